@@ -1,0 +1,1 @@
+"""Python SDK of the joint-limit constitution service."""

@@ -1,0 +1,70 @@
+"""Pydantic models of `POST /v1/evaluate` (CONTRACT.md, wire contract v1).
+
+Shapes are checked here (row lengths, pairs, triples); everything that needs
+arithmetic (finiteness, ranges, singular frames) is checked by the core so that
+the in-process SDK gets the same errors as HTTP callers.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Output = Literal["energy", "gradient", "hessian"]
+HessianMode = Literal["exact", "psd"]
+OUTPUTS: tuple[Output, ...] = ("energy", "gradient", "hessian")
+
+# allow_inf_nan=False: a 200 never carries NaN or Infinity, so none may come in.
+Real = Annotated[float, Field(allow_inf_nan=False)]
+Dof = Annotated[list[Real], Field(min_length=12, max_length=12)]
+Vec3 = Annotated[list[Real], Field(min_length=3, max_length=3)]
+Edge = Annotated[list[Vec3], Field(min_length=2, max_length=2)]
+BodyPair = Annotated[list[int], Field(min_length=2, max_length=2)]
+
+
+class _Wire(BaseModel):
+    # A misspelt field is an error, not a silently ignored default.
+    model_config = ConfigDict(extra="forbid")
+
+
+class Bodies(_Wire):
+    """Every body once; joints refer to rows by index. Each row is 12 DOFs `[p, A row 0, A row 1, A row 2]`."""
+
+    q: list[Dof]
+    q_prev: list[Dof]
+    q_ref: list[Dof]
+
+
+class JointBatch(_Wire):
+    """Joints of one constitution; all per-joint lists have one entry per joint."""
+
+    constitution_uid: int
+    base_uid: int
+    body_ids: list[BodyPair]
+    edges: list[Edge]
+    lower: list[Real]
+    upper: list[Real]
+    strength: list[Real]
+
+
+class EvaluateRequest(_Wire):
+    bodies: Bodies
+    batches: list[JointBatch]
+    outputs: Annotated[list[Output], Field(min_length=1)] = list(OUTPUTS)
+    hessian_mode: HessianMode = "exact"
+    active_only: bool = False
+
+
+class BatchResult(_Wire):
+    constitution_uid: int
+    index: list[int]
+    x: list[float]
+    energy: list[float]
+    gradient: list[list[float]] | None = None
+    hessian: list[list[list[float]]] | None = None
+
+
+class EvaluateResponse(_Wire):
+    total_energy: float
+    batches: list[BatchResult]

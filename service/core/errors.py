@@ -1,0 +1,24 @@
+"""Input faults found by the core, located the way FastAPI locates its own."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+Loc = tuple[str | int, ...]
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One fault; `loc` is relative to the request body, e.g. `("batches", 1, "lower", 2)`."""
+
+    loc: Loc
+    msg: str
+    type: str = "value_error"
+
+
+class InputError(ValueError):
+    """The request is malformed or physically meaningless; carries every fault found."""
+
+    def __init__(self, faults: list[Fault]) -> None:
+        self.faults = faults
+        super().__init__("; ".join(f"{'.'.join(map(str, f.loc))}: {f.msg}" for f in faults))

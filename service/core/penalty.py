@@ -1,0 +1,44 @@
+"""The cubic limit penalty shared by every joint-limit constitution.
+
+    E(x) = s (g / w)^3,   g = x - u above the range, l - x below it, 0 inside,
+    w = u - l, or 1 for a degenerate range (u == l: the fallback s |x - l|^3).
+
+Boundary points are in range. All arrays are (N,).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+def gap(x: Array, lower: Array, upper: Array) -> tuple[Array, Array]:
+    """Distance outside the range and the side: `(g >= 0, side in {-1, 0, +1})`."""
+    above = x > upper
+    below = x < lower
+    g = np.where(above, x - upper, np.where(below, lower - x, 0.0))
+    side = above.astype(np.float64) - below.astype(np.float64)
+    return g, side
+
+
+def width(lower: Array, upper: Array) -> Array:
+    return np.where(upper > lower, upper - lower, 1.0)
+
+
+def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
+    g, _ = gap(x, lower, upper)
+    r = g / width(lower, upper)
+    return strength * (r * r * r)
+
+
+def derivatives(
+    x: Array, lower: Array, upper: Array, strength: Array
+) -> tuple[Array, Array, Array]:
+    """`(E, dE/dx, d2E/dx2)`, each (N,)."""
+    g, side = gap(x, lower, upper)
+    w = width(lower, upper)
+    r = g / w
+    sw = strength / w
+    return strength * (r * r * r), side * 3.0 * sw * (r * r), 6.0 * (sw / w) * r

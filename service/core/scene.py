@@ -1,0 +1,51 @@
+"""In-process inputs and outputs of the core: NumPy arrays, no wire types."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+OUTPUTS = ("energy", "gradient", "hessian")
+
+
+@dataclass(frozen=True)
+class Bodies:
+    """Every body once: `q`, `q_prev`, `q_ref` (B, 12)."""
+
+    q: Array
+    q_prev: Array
+    q_ref: Array
+
+
+@dataclass(frozen=True)
+class Joints:
+    """One batch of joints of one constitution (N joints)."""
+
+    constitution_uid: int
+    base_uid: int
+    body_ids: NDArray[np.int64]  # (N, 2)
+    edges: Array  # (N, 2, 3), world space at q_ref
+    lower: Array  # (N,)
+    upper: Array  # (N,)
+    strength: Array  # (N,)
+
+
+@dataclass
+class BatchResult:
+    """Rows `index` (M,) of a request batch: `x`, `energy` (M,), `gradient` (M, 24), `hessian` (M, 24, 24)."""
+
+    constitution_uid: int
+    index: NDArray[np.int64]
+    x: Array
+    energy: Array
+    gradient: Array | None = None
+    hessian: Array | None = None
+
+
+@dataclass
+class Evaluation:
+    total_energy: float
+    batches: list[BatchResult] = field(default_factory=list)

@@ -1,0 +1,24 @@
+"""Service configuration, from the environment (`JOINTLIMITS_*`) or explicit arguments."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+
+def _env(name: str, default: str) -> str:
+    return os.environ.get(f"JOINTLIMITS_{name}", default)
+
+
+@dataclass(frozen=True)
+class Settings:
+    max_body_bytes: int = field(default_factory=lambda: int(_env("MAX_BODY_BYTES", str(256 * 2**20))))
+    """Largest request body accepted; larger answers 413 before it is parsed."""
+    max_joints: int = field(default_factory=lambda: int(_env("MAX_JOINTS", "1000000")))
+    """Most joints (over all batches) in one request; more answers 413."""
+    token: str | None = field(default_factory=lambda: _env("TOKEN", "") or None)
+    """Bearer token required on /v1/evaluate when set; the API is open when unset."""
+    cors_origins: tuple[str, ...] = field(
+        default_factory=lambda: tuple(o for o in _env("CORS_ORIGINS", "").split(",") if o)
+    )
+    """Origins allowed by CORS; CORS is off when empty."""

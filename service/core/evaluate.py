@@ -151,7 +151,7 @@ def _raise_nonfinite(b: int, rows: np.ndarray, *arrays: Array | None) -> None:
     bad = np.zeros(rows.shape[0], dtype=bool)
     for a in arrays:
         if a is not None:
-            bad |= ~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+            bad |= ~np.isfinite(a).all(axis=tuple(range(1, a.ndim)))
     raise_if(
         [
             Fault(

@@ -1,0 +1,406 @@
+"""An independent 50-digit reference for #670 / #669, written from CONTRACT.md alone.
+
+Nothing here is shared with `service/core`: the frames come from a Newton polar
+iteration in mpmath, the coordinate `x` from the contract's formulas, and every
+derivative from second-order forward-mode automatic differentiation (`Jet`)
+rather than from hand-derived formulas. The revolute angle is differentiated as
+`Im log(cos + i sin)` (complex jets), a different route from the usual
+`atan2` partials. The chain rule `F -> q` uses `J = dF/dq` built from the
+definition `F_k = alpha_k p + A v_k`, explicitly and sparsely.
+
+Use `reference_request(request)` for a whole CONTRACT v1 request dict, or
+`JointRef` for one joint (e.g. to finite-difference the reference energy).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from mpmath import mp, mpc, mpf
+
+DPS = 50
+
+Vec = list  # a list of 3 mpf
+Mat = list  # a list of lists of mpf
+
+
+# ---------------------------------------------------------------- small mp linear algebra
+
+
+def _mpv(a: Sequence[Any]) -> Vec:
+    # Floats (also NumPy's) exactly; mp numbers (finite-difference steps) as they are.
+    return [v if isinstance(v, mpf) else mpf(float(v)) for v in a]
+
+
+def _dot(a: Vec, b: Vec) -> Any:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cross(a: Vec, b: Vec) -> Vec:
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def _normalize(a: Vec) -> Vec:
+    n = mp.sqrt(_dot(a, a))
+    return [v / n for v in a]
+
+
+def _matvec(A: Mat, v: Vec) -> Vec:
+    return [_dot(A[r], v) for r in range(3)]
+
+
+def _tmatvec(A: Mat, v: Vec) -> Vec:
+    """A^T v."""
+    return [A[0][c] * v[0] + A[1][c] * v[1] + A[2][c] * v[2] for c in range(3)]
+
+
+def _split(q: Sequence[float]) -> tuple[Vec, Mat]:
+    q = _mpv(q)
+    return q[:3], [q[3:6], q[6:9], q[9:12]]
+
+
+def polar_rotation(A: Mat) -> Mat:
+    """Orthogonal polar factor by the scaled Newton iteration `X <- (g X + X^-T / g) / 2`."""
+    X = mp.matrix(A)
+    for _ in range(200):
+        Xi = mp.inverse(X)
+        g = abs(mp.det(X)) ** (mpf(-1) / 3)
+        Y = (g * X + Xi.T / g) / 2
+        change = mp.mnorm(Y - X, 1)
+        X = Y
+        if change < mpf(10) ** (-(mp.dps - 3)):
+            break
+    else:  # pragma: no cover - a nonsingular A always converges
+        raise ArithmeticError("polar iteration did not converge")
+    R = [[X[r, c] for c in range(3)] for r in range(3)]
+    # Orthogonal to working precision, or the frames below are not what the contract means.
+    RtR = mp.matrix(R).T * mp.matrix(R) - mp.eye(3)
+    assert mp.mnorm(RtR, 1) < mpf(10) ** (-(mp.dps - 8))
+    return R
+
+
+# ---------------------------------------------------------------- second-order forward-mode AD
+
+
+class Jet:
+    """A value with its gradient and Hessian in a few variables, both sparse (dicts)."""
+
+    __slots__ = ("v", "g", "h")
+
+    def __init__(self, v: Any, g: dict | None = None, h: dict | None = None) -> None:
+        self.v, self.g, self.h = v, g or {}, h or {}
+
+    @staticmethod
+    def var(v: Any, i: int) -> Jet:
+        return Jet(v, {i: mpf(1)})
+
+    def _lift(self, o: Any) -> Jet:
+        return o if isinstance(o, Jet) else Jet(o)
+
+    def __add__(self, o: Any) -> Jet:
+        o = self._lift(o)
+        g = dict(self.g)
+        for k, d in o.g.items():
+            g[k] = g.get(k, 0) + d
+        h = dict(self.h)
+        for k, d in o.h.items():
+            h[k] = h.get(k, 0) + d
+        return Jet(self.v + o.v, g, h)
+
+    __radd__ = __add__
+
+    def __neg__(self) -> Jet:
+        return Jet(-self.v, {k: -d for k, d in self.g.items()}, {k: -d for k, d in self.h.items()})
+
+    def __sub__(self, o: Any) -> Jet:
+        return self + (-self._lift(o))
+
+    def __rsub__(self, o: Any) -> Jet:
+        return self._lift(o) - self
+
+    def __mul__(self, o: Any) -> Jet:
+        if not isinstance(o, Jet):
+            return Jet(self.v * o, {k: d * o for k, d in self.g.items()}, {k: d * o for k, d in self.h.items()})
+        g: dict = {}
+        for k, d in self.g.items():
+            g[k] = g.get(k, 0) + d * o.v
+        for k, d in o.g.items():
+            g[k] = g.get(k, 0) + d * self.v
+        h: dict = {}
+        for k, d in self.h.items():
+            h[k] = h.get(k, 0) + d * o.v
+        for k, d in o.h.items():
+            h[k] = h.get(k, 0) + d * self.v
+        for a, da in self.g.items():
+            for b, db in o.g.items():
+                p = da * db
+                h[(a, b)] = h.get((a, b), 0) + p
+                h[(b, a)] = h.get((b, a), 0) + p
+        return Jet(self.v * o.v, g, h)
+
+    __rmul__ = __mul__
+
+    def log(self) -> Jet:
+        """Principal log (works for complex values): d log z = dz / z, d2 log z = d2z / z - dz dz^T / z^2."""
+        z = self.v
+        g = {k: d / z for k, d in self.g.items()}
+        h = {k: d / z for k, d in self.h.items()}
+        for a, da in self.g.items():
+            for b, db in self.g.items():
+                h[(a, b)] = h.get((a, b), 0) - da * db / (z * z)
+        return Jet(mp.log(z), g, h)
+
+    def imag(self) -> Jet:
+        return Jet(mp.im(self.v), {k: mp.im(d) for k, d in self.g.items()}, {k: mp.im(d) for k, d in self.h.items()})
+
+    def grad(self, n: int) -> list:
+        return [self.g.get(i, mpf(0)) for i in range(n)]
+
+    def hess(self, n: int) -> Mat:
+        return [[self.h.get((i, j), mpf(0)) for j in range(n)] for i in range(n)]
+
+
+def _jdot(a: Sequence[Any], b: Sequence[Any]) -> Any:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+# ---------------------------------------------------------------- the two coordinates
+
+
+def _cos_sin(F: Sequence[Sequence[Any]]) -> tuple[Any, Any]:
+    """Contract: cos = (B_i.B_j + N_i.N_j)/2, sin = (B_i.N_j - N_i.B_j)/2 (the corrected sign)."""
+    B_i, N_i, B_j, N_j = F
+    return (_jdot(B_i, B_j) + _jdot(N_i, N_j)) * mpf(0.5), (_jdot(B_i, N_j) - _jdot(N_i, B_j)) * mpf(0.5)
+
+
+def _delta_theta(cs_a: tuple[Any, Any], cs_b: tuple[Any, Any]) -> Any:
+    (ca, sa), (cb, sb) = cs_a, cs_b
+    return mp.atan2(sa * cb - ca * sb, ca * cb + sa * sb)
+
+
+def _theta(F: Sequence[Sequence[Any]]) -> Any:
+    C_i, T_i, C_j, T_j = F
+    D = [C_j[r] - C_i[r] for r in range(3)]
+    S = [T_i[r] + T_j[r] for r in range(3)]
+    return _jdot(D, S) * mpf(0.5)
+
+
+# ---------------------------------------------------------------- one joint
+
+
+@dataclass
+class JointResult:
+    """One joint at 50 digits: `gradient` (24), Hessians (24 x 24) in both modes (zeros inside the range)."""
+
+    x: Any
+    energy: Any
+    gradient: list
+    hessian_exact: Mat
+    hessian_psd: Mat
+
+    def as_float(self) -> dict[str, np.ndarray]:
+        f = lambda a: np.array([[float(v) for v in row] for row in a] if isinstance(a[0], list) else [float(v) for v in a])  # noqa: E731
+        return dict(
+            x=float(self.x),
+            energy=float(self.energy),
+            gradient=f(self.gradient),
+            hessian_exact=f(self.hessian_exact),
+            hessian_psd=f(self.hessian_psd),
+        )
+
+
+def penalty_jet(x: Any, lower: float, upper: float, strength: float) -> tuple[Any, Any, Any]:
+    """(E, E', E'') at x: s (g / w)^3 outside [l, u] (bounds inside), w = u - l or 1 when u == l."""
+    lo, up, s = mpf(lower), mpf(upper), mpf(strength)
+    X = Jet.var(x, 0)
+    if x > up:
+        g = X - up
+    elif x < lo:
+        g = lo - X
+    else:
+        return mpf(0), mpf(0), mpf(0)
+    w = up - lo if up > lo else mpf(1)
+    r = g * (1 / w)
+    E = r * r * r * s
+    return E.v, E.g.get(0, mpf(0)), E.h.get((0, 0), mpf(0))
+
+
+class JointRef:
+    """One joint's frames (from `q_ref` and the edge) and its evaluation at 50 digits."""
+
+    def __init__(self, uid: int, q_ref_i: Sequence[float], q_ref_j: Sequence[float], edge: Sequence[Sequence[float]]) -> None:
+        assert uid in (669, 670), uid
+        self.uid = uid
+        with mp.workdps(DPS):
+            p0, p1 = _mpv(edge[0]), _mpv(edge[1])
+            t = _normalize([p1[r] - p0[r] for r in range(3)])
+            refs = [_split(q_ref_i), _split(q_ref_j)]
+            R = [polar_rotation(A) for _, A in refs]
+            if uid == 670:
+                test = [mpf(0), mpf(1), mpf(0)] if abs(t[0]) > mpf("0.9") else [mpf(1), mpf(0), mpf(0)]
+                n = _normalize(_cross(t, test))
+                b = _normalize(_cross(t, n))
+                # F = [B_i, N_i, B_j, N_j]: local vectors R_k^T b, R_k^T n; all directions.
+                self.local = [_tmatvec(R[0], b), _tmatvec(R[0], n), _tmatvec(R[1], b), _tmatvec(R[1], n)]
+                self.alpha = [0, 0, 0, 0]
+            else:
+                # F = [C_i, T_i, C_j, T_j]: anchors c_k = A_ref_k^-1 (p0 - p_ref_k), axes R_k^T t.
+                c = []
+                for p_ref, A_ref in refs:
+                    sol = mp.lu_solve(mp.matrix(A_ref), mp.matrix([p0[r] - p_ref[r] for r in range(3)]))
+                    c.append([sol[r] for r in range(3)])
+                self.local = [c[0], _tmatvec(R[0], t), c[1], _tmatvec(R[1], t)]
+                self.alpha = [1, 0, 1, 0]
+            self.t, self.R = t, R
+
+    def frames(self, q_i: Sequence[float], q_j: Sequence[float]) -> list[Vec]:
+        """The four frame quantities F_k = alpha_k p + A v_k of bodies i (k = 0, 1) and j (k = 2, 3)."""
+        bodies = [_split(q_i), _split(q_j)]
+        F = []
+        for k in range(4):
+            p, A = bodies[k // 2]
+            Av = _matvec(A, self.local[k])
+            F.append([Av[r] + p[r] for r in range(3)] if self.alpha[k] else Av)
+        return F
+
+    def _x_value(self, F: list, F_prev: list, F_ref: list) -> Any:
+        if self.uid == 670:
+            cs_prev = _cos_sin(F_prev)
+            return _delta_theta(cs_prev, _cos_sin(F_ref)) + _delta_theta(_cos_sin(F), cs_prev)
+        th_prev = _theta(F_prev)
+        return (th_prev - _theta(F_ref)) + (_theta(F) - th_prev)
+
+    def _x_jet(self, F: list) -> Jet:
+        """dx/dF and d2x/dF2 (12 variables, index 3k + r) from the q-dependent term only."""
+        FJ = [[Jet.var(F[k][r], 3 * k + r) for r in range(3)] for k in range(4)]
+        if self.uid == 670:
+            c, s = _cos_sin(FJ)
+            # DeltaTheta(q, q_prev) = arg(z conj(z_prev)), z = cos + i sin: its q-derivatives are those of Im log z.
+            return (c + s * mpc(0, 1)).log().imag()
+        return _theta(FJ)
+
+    def J(self) -> list[list[tuple[int, Any]]]:
+        """Sparse dF/dq: row 3k + r -> [(dof column among the 24, coefficient)]."""
+        rows = []
+        for k in range(4):
+            base = 12 * (k // 2)
+            for r in range(3):
+                row = [(base + 3 + 3 * r + c, self.local[k][c]) for c in range(3)]  # A[r, c] at 3 + 3r + c
+                if self.alpha[k]:
+                    row.append((base + r, mpf(1)))  # p[r]
+                rows.append(row)
+        return rows
+
+    def x(self, q: Sequence[Sequence[float]], q_prev: Sequence[Sequence[float]], q_ref: Sequence[Sequence[float]]) -> Any:
+        with mp.workdps(DPS):
+            return self._x_value(self.frames(*q), self.frames(*q_prev), self.frames(*q_ref))
+
+    def energy_at(self, q24: Sequence[Any], x_prev: Any, F_prev: list, lower: float, upper: float, strength: float) -> Any:
+        """Energy at a current DOF vector given in mp (for 50-digit finite differences); x_prev = x at q = q_prev."""
+        F = self.frames(q24[:12], q24[12:])
+        if self.uid == 670:
+            x = x_prev + _delta_theta(_cos_sin(F), _cos_sin(F_prev))
+        else:
+            x = x_prev + (_theta(F) - _theta(F_prev))
+        return penalty_jet(x, lower, upper, strength)[0]
+
+    def evaluate(
+        self,
+        q: Sequence[Sequence[float]],
+        q_prev: Sequence[Sequence[float]],
+        q_ref: Sequence[Sequence[float]],
+        lower: float,
+        upper: float,
+        strength: float,
+        derivatives: bool = True,
+    ) -> JointResult:
+        """x, E and (if asked) the gradient and both Hessians w.r.t. [q_i, q_j]."""
+        with mp.workdps(DPS):
+            F = self.frames(*q)
+            x = self._x_value(F, self.frames(*q_prev), self.frames(*q_ref))
+            E, dE, d2E = penalty_jet(x, lower, upper, strength)
+            zero_g = [mpf(0)] * 24
+            zero_h = [[mpf(0)] * 24 for _ in range(24)]
+            if not derivatives or dE == 0:
+                return JointResult(x, E, zero_g, zero_h, [row[:] for row in zero_h])
+            xj = self._x_jet(F)
+            dx, Hx = xj.grad(12), xj.hess(12)
+            rank1 = [[d2E * dx[a] * dx[b] for b in range(12)] for a in range(12)]
+            curv = [[dE * Hx[a][b] for b in range(12)] for a in range(12)]
+            M_exact = [[rank1[a][b] + curv[a][b] for b in range(12)] for a in range(12)]
+            P = _psd(curv)
+            M_psd = [[rank1[a][b] + P[a][b] for b in range(12)] for a in range(12)]
+            J = self.J()
+            grad = [mpf(0)] * 24
+            for f, row in enumerate(J):
+                for col, coef in row:
+                    grad[col] += dE * dx[f] * coef
+            return JointResult(x, E, grad, _congruence(J, M_exact), _congruence(J, M_psd))
+
+
+def _psd(M: Mat) -> Mat:
+    """Symmetric M with its negative eigenvalues clamped to 0 (mpmath eigsy)."""
+    n = len(M)
+    A = mp.matrix(n, n)
+    for a in range(n):
+        for b in range(n):
+            A[a, b] = (M[a][b] + M[b][a]) / 2
+    lam, V = mp.eigsy(A)
+    keep = [i for i in range(n) if lam[i] > 0]
+    return [[mp.fsum(V[a, i] * lam[i] * V[b, i] for i in keep) for b in range(n)] for a in range(n)]
+
+
+def _congruence(J: list[list[tuple[int, Any]]], M: Mat) -> Mat:
+    """J^T M J (24 x 24) with the sparse J of `JointRef.J`."""
+    H = [[mpf(0)] * 24 for _ in range(24)]
+    for f, row_f in enumerate(J):
+        for g, row_g in enumerate(J):
+            m = M[f][g]
+            if m == 0:
+                continue
+            for a, ca in row_f:
+                Ha = H[a]
+                for b, cb in row_g:
+                    Ha[b] += ca * m * cb
+    return H
+
+
+# ---------------------------------------------------------------- whole requests
+
+
+def reference_request(request: Mapping[str, Any], derivatives: bool = True) -> list[dict[str, Any]]:
+    """Every joint of a CONTRACT v1 request dict, per batch, as float64 arrays rounded from 50 digits.
+
+    Each batch: `x`, `energy` (N,), `gradient` (N, 24), `hessian_exact`, `hessian_psd` (N, 24, 24),
+    and `mp` (the `JointResult`s). Inactive joints have exact zeros.
+    """
+    bodies = request["bodies"]
+    q, q_prev, q_ref = (np.asarray(bodies[k], dtype=np.float64) for k in ("q", "q_prev", "q_ref"))
+    out = []
+    for batch in request["batches"]:
+        res = []
+        for (i, j), edge, lo, up, s in zip(batch["body_ids"], batch["edges"], batch["lower"], batch["upper"], batch["strength"]):
+            ref = JointRef(int(batch["constitution_uid"]), q_ref[i], q_ref[j], edge)
+            res.append(ref.evaluate((q[i], q[j]), (q_prev[i], q_prev[j]), (q_ref[i], q_ref[j]), lo, up, s, derivatives))
+        flo = [r.as_float() for r in res]
+        n = len(flo)
+        out.append(
+            dict(
+                constitution_uid=int(batch["constitution_uid"]),
+                x=np.array([f["x"] for f in flo]),
+                energy=np.array([f["energy"] for f in flo]),
+                gradient=np.array([f["gradient"] for f in flo]).reshape(n, 24),
+                hessian_exact=np.array([f["hessian_exact"] for f in flo]).reshape(n, 24, 24),
+                hessian_psd=np.array([f["hessian_psd"] for f in flo]).reshape(n, 24, 24),
+                mp=res,
+            )
+        )
+    return out
+
+
+def reference_total_energy(ref: list[dict[str, Any]]) -> float:
+    with mp.workdps(DPS):
+        return float(mp.fsum(r.energy for b in ref for r in b["mp"]))

@@ -1,1 +1,34 @@
-"""Python SDK of the joint-limit constitution service."""
+"""Python SDK of the joint-limit constitution service.
+
+    from client import Client, LocalClient, Scene
+    scene = Scene(); ...; result = Client("http://127.0.0.1:8000").evaluate(scene.request())
+
+`Client` (sync) and `AsyncClient` speak HTTP (binary by default); `LocalClient` calls the
+core in-process with the same API. Server faults raise `ServiceError` / `InvalidInput`.
+"""
+
+from client.aio import AsyncClient
+from client.errors import Fault, InvalidInput, ServiceError, TooLarge
+from client.local import LocalClient
+from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, BatchResult, Evaluation, JointBatch, Request
+from client.scene import Scene, dofs, request_from_arrays
+from client.sync import Client
+
+__all__ = [
+    "PRISMATIC_LIMIT",
+    "REVOLUTE_LIMIT",
+    "AsyncClient",
+    "BatchResult",
+    "Client",
+    "Evaluation",
+    "Fault",
+    "InvalidInput",
+    "JointBatch",
+    "LocalClient",
+    "Request",
+    "Scene",
+    "ServiceError",
+    "TooLarge",
+    "dofs",
+    "request_from_arrays",
+]

@@ -1,5 +1,7 @@
 """Wire schemas of contract v1: shared by the service and the client, no numerics."""
 
+from schemas.constitutions import Attribute, ConstitutionInfo, ConstitutionsResponse, Limits
+from schemas.errors import ErrorItem, ErrorResponse
 from schemas.evaluate import (
     OUTPUTS,
     BatchResult,
@@ -13,11 +15,17 @@ from schemas.evaluate import (
 
 __all__ = [
     "OUTPUTS",
+    "Attribute",
     "BatchResult",
     "Bodies",
+    "ConstitutionInfo",
+    "ConstitutionsResponse",
+    "ErrorItem",
+    "ErrorResponse",
     "EvaluateRequest",
     "EvaluateResponse",
     "HessianMode",
     "JointBatch",
+    "Limits",
     "Output",
 ]

@@ -15,12 +15,15 @@ Output = Literal["energy", "gradient", "hessian"]
 HessianMode = Literal["exact", "psd"]
 OUTPUTS: tuple[Output, ...] = ("energy", "gradient", "hessian")
 
-# allow_inf_nan=False: a 200 never carries NaN or Infinity, so none may come in.
-Real = Annotated[float, Field(allow_inf_nan=False)]
+# allow_inf_nan=False: a 200 never carries NaN or Infinity, so none may come in (nor 1e400).
+# strict: a number is a JSON number (integers included), never a string such as "0.5".
+Real = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 Dof = Annotated[list[Real], Field(min_length=12, max_length=12)]
 Vec3 = Annotated[list[Real], Field(min_length=3, max_length=3)]
 Edge = Annotated[list[Vec3], Field(min_length=2, max_length=2)]
-BodyPair = Annotated[list[int], Field(min_length=2, max_length=2)]
+# Integers are JSON integers (no 1.0, no "1", no true) that fit int64, as the binary encoding carries them.
+Int64 = Annotated[int, Field(strict=True, ge=-(2**63), le=2**63 - 1)]
+BodyPair = Annotated[list[Int64], Field(min_length=2, max_length=2)]
 
 
 class _Wire(BaseModel):
@@ -39,8 +42,8 @@ class Bodies(_Wire):
 class JointBatch(_Wire):
     """Joints of one constitution; all per-joint lists have one entry per joint."""
 
-    constitution_uid: int
-    base_uid: int
+    constitution_uid: Int64
+    base_uid: Int64
     body_ids: list[BodyPair]
     edges: list[Edge]
     lower: list[Real]
@@ -53,7 +56,7 @@ class EvaluateRequest(_Wire):
     batches: list[JointBatch]
     outputs: Annotated[list[Output], Field(min_length=1)] = list(OUTPUTS)
     hessian_mode: HessianMode = "exact"
-    active_only: bool = False
+    active_only: Annotated[bool, Field(strict=True)] = False
 
 
 class BatchResult(_Wire):

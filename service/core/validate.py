@@ -7,13 +7,14 @@ again here because the in-process API takes arbitrary arrays.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from service.core.errors import Fault, InputError
 from service.core.kinematics import SINGULAR_RATIO
 from service.core.registry import CONSTITUTIONS
-from service.core.scene import OUTPUTS, Bodies, Joints
+from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
 
 MAX_FAULTS = 20
 """Faults listed per check; a request with a million bad joints gets a readable answer."""
@@ -26,7 +27,8 @@ def _where(mask: np.ndarray) -> list[int]:
 
 
 def _nonfinite_rows(a: np.ndarray) -> np.ndarray:
-    return ~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+    """(N,) rows of `a` (N, ...) holding a NaN or an infinity; N may be 0."""
+    return ~np.isfinite(a).all(axis=tuple(range(1, a.ndim)))
 
 
 def check_options(outputs: Sequence[str], hessian_mode: str) -> list[Fault]:
@@ -91,7 +93,7 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
         faults += [Fault(at(name, j), "is not a finite number") for j in _where(_nonfinite_rows(getattr(joints, name)))]
     ids = joints.body_ids
     faults += [
-        Fault(at("body_ids", j), f"body index {ids[j].tolist()} out of range [0, {n_bodies})")
+        Fault(at("body_ids", j), f"body index {ids[j].tolist()} out of range [0, {n_bodies}) (there are {n_bodies} bodies)")
         for j in _where(((ids < 0) | (ids >= n_bodies)).any(axis=1))
     ]
     faults += [
@@ -101,13 +103,109 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     if faults:
         return faults
     lo, up, s = joints.lower, joints.upper, joints.strength
-    faults += [Fault(at("lower", j), f"lower {lo[j]!r} > upper {up[j]!r}") for j in _where(lo > up)]
-    faults += [Fault(at("strength", j), f"strength {s[j]!r} < 0") for j in _where(s < 0)]
-    length = np.linalg.norm(joints.edges[:, 1] - joints.edges[:, 0], axis=-1)
-    faults += [Fault(at("edges", j), "zero-length edge: p0 == p1 gives no joint axis") for j in _where(length == 0)]
+    faults += [
+        Fault(at("lower", j), f"lower {float(lo[j])!r} > upper {float(up[j])!r}: the range is empty")
+        for j in _where(lo > up)
+    ]
+    faults += [Fault(at("strength", j), f"strength {float(s[j])!r} < 0: must be >= 0") for j in _where(s < 0)]
+    with np.errstate(over="ignore", invalid="ignore"):
+        # The same arithmetic as the constitutions' unit axis, so exactly the edges it cannot normalise.
+        length = np.linalg.norm(joints.edges[:, 1] - joints.edges[:, 0], axis=-1)
+    faults += [
+        Fault(at("edges", j), "zero-length edge: p0 == p1 (or too close to normalise) gives no joint axis")
+        for j in _where(length == 0)
+    ]
+    faults += [
+        Fault(at("edges", j), "edge too long: |p1 - p0| overflows float64") for j in _where(~np.isfinite(length))
+    ]
     return faults
+
+
+def check_evaluation(ev: Evaluation) -> list[Fault]:
+    """Faults of a finished evaluation that would put NaN or Infinity in an answer.
+
+    The core names overflowing energies and derivatives itself; this also catches a
+    joint coordinate `x` that overflowed in an otherwise inactive joint (x = NaN has
+    no gap, so zero energy), so that no answer ever carries a non-finite number.
+    """
+    faults = [
+        Fault(
+            ("batches", b, "body_ids", int(r.index[i])),
+            "the joint coordinate x overflows float64 at this configuration (positions or edge too large)",
+        )
+        for b, r in enumerate(ev.batches)
+        for i in _where(~np.isfinite(r.x))
+    ]
+    if not faults and not np.isfinite(ev.total_energy):
+        faults.append(Fault(("batches",), "the total energy overflows float64"))
+    return faults[:MAX_FAULTS]
 
 
 def raise_if(faults: list[Fault]) -> None:
     if faults:
         raise InputError(faults)
+
+
+def checked_evaluate(bodies: Bodies, batches: Sequence[Joints], **options: Any) -> Evaluation:
+    """`service.core.evaluate` that never returns a non-finite number nor fails with a non-input error.
+
+    What the HTTP shell and the SDK's local mode call. Overflow is expected with
+    hostile numbers: warnings are silenced and every overflow becomes an
+    `InputError` naming the joint. The PSD projection (an eigensolver) fails
+    outright on a non-finite curvature; the exact mode then locates the joints.
+    Batches without joints are checked and answered here (the core's row-wise
+    finiteness check cannot reshape an empty batch), the others go to the core.
+    """
+    from service.core.evaluate import evaluate  # evaluate imports this module
+
+    batches = [_as_arrays(j) for j in batches]
+    empty = [b for b, j in enumerate(batches) if j.body_ids.ndim == 2 and j.body_ids.shape[0] == 0]
+    full = [b for b in range(len(batches)) if b not in set(empty)]
+    n_bodies = int(np.shape(bodies.q)[0]) if np.ndim(bodies.q) else 0
+    faults = [f for b in empty for f in check_joints(b, batches[b], n_bodies)]
+    with np.errstate(all="ignore"):
+        try:
+            try:
+                ev = evaluate(bodies, [batches[b] for b in full], **options)
+            except np.linalg.LinAlgError:
+                evaluate(bodies, [batches[b] for b in full], **{**options, "hessian_mode": "exact"})  # names the joints
+                raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
+        except InputError as e:
+            raise InputError(faults + [_renumber(f, full) for f in e.faults]) from None
+    raise_if(faults)
+    for b in empty:
+        ev.batches.insert(b, _no_rows(batches[b].constitution_uid, options.get("outputs", OUTPUTS)))
+    raise_if(check_evaluation(ev))
+    return ev
+
+
+def _as_arrays(j: Joints) -> Joints:
+    return Joints(
+        constitution_uid=int(j.constitution_uid),
+        base_uid=int(j.base_uid),
+        body_ids=np.asarray(j.body_ids, dtype=np.int64),
+        edges=np.asarray(j.edges, dtype=np.float64),
+        lower=np.asarray(j.lower, dtype=np.float64),
+        upper=np.asarray(j.upper, dtype=np.float64),
+        strength=np.asarray(j.strength, dtype=np.float64),
+    )
+
+
+def _renumber(f: Fault, full: list[int]) -> Fault:
+    """A core fault's batch index back in the caller's numbering (empty batches were left out)."""
+    loc = f.loc
+    if len(loc) >= 2 and loc[0] == "batches" and isinstance(loc[1], int) and loc[1] < len(full):
+        loc = ("batches", full[loc[1]], *loc[2:])
+    return Fault(loc, f.msg, f.type)
+
+
+def _no_rows(uid: int, outputs: Sequence[str]) -> BatchResult:
+    none = np.zeros(0)
+    return BatchResult(
+        constitution_uid=int(uid),
+        index=np.zeros(0, dtype=np.int64),
+        x=none,
+        energy=none,
+        gradient=np.zeros((0, 24)) if "gradient" in outputs else None,
+        hessian=np.zeros((0, 24, 24)) if "hessian" in outputs else None,
+    )

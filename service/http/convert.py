@@ -1,13 +1,34 @@
-"""Wire models <-> core arrays. No numerics beyond `np.asarray`."""
+"""The JSON encoding: wire bytes <-> core arrays. No numerics beyond `np.asarray`."""
 
 from __future__ import annotations
 
 from typing import Any
 
 import numpy as np
+import orjson
+from pydantic import ValidationError
 
 from schemas import EvaluateRequest
 from service.core import Bodies, Evaluation, Joints
+from service.http import limits
+from service.http.errors import from_validation
+
+MEDIA_TYPE = "application/json"
+
+
+def decode(body: bytes, max_joints: int) -> dict[str, Any]:
+    """Keyword arguments of `service.core.evaluate` for a JSON body.
+
+    Raises `HttpError` (413) for too many joints, `InputError` (422) for a malformed body.
+    """
+    limits.check_joints(limits.json_joints_upper_bound(body), max_joints)
+    try:
+        # Rust-side parse and validation straight from bytes; rejects NaN, Infinity and 1e400.
+        req = EvaluateRequest.model_validate_json(body)
+    except ValidationError as e:
+        raise from_validation(e) from None
+    limits.check_joints(sum(len(j.body_ids) for j in req.batches), max_joints)
+    return to_core(req)
 
 
 def to_core(req: EvaluateRequest) -> dict[str, Any]:
@@ -35,15 +56,26 @@ def to_core(req: EvaluateRequest) -> dict[str, Any]:
 
 
 def to_wire(ev: Evaluation) -> dict[str, Any]:
-    """The response body of contract v1; `gradient`/`hessian` only when computed."""
+    """The response body of contract v1 as NumPy arrays; `gradient`/`hessian` only when computed."""
     batches = []
     for r in ev.batches:
-        out: dict[str, Any] = dict(
-            constitution_uid=r.constitution_uid, index=r.index.tolist(), x=r.x.tolist(), energy=r.energy.tolist()
-        )
+        out: dict[str, Any] = dict(constitution_uid=r.constitution_uid, index=r.index, x=r.x, energy=r.energy)
         if r.gradient is not None:
-            out["gradient"] = r.gradient.tolist()
+            out["gradient"] = r.gradient
         if r.hessian is not None:
-            out["hessian"] = r.hessian.tolist()
+            out["hessian"] = r.hessian
         batches.append(out)
     return dict(total_energy=ev.total_energy, batches=batches)
+
+
+def encode(ev: Evaluation) -> bytes:
+    """JSON bytes with each float in its shortest round-trip form.
+
+    The core guarantees finite numbers; orjson would write a stray NaN as `null`, never as `NaN`.
+    """
+    doc = to_wire(ev)
+    for b in doc["batches"]:
+        for k, v in b.items():
+            if isinstance(v, np.ndarray):
+                b[k] = np.ascontiguousarray(v)  # orjson serialises C-ordered arrays only
+    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY)

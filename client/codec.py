@@ -1,0 +1,82 @@
+"""Requests to bytes and response bytes to results, in JSON or the binary encoding (schemas/binary.py)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import orjson
+
+from client.errors import ServiceError
+from client.model import BatchResult, Evaluation, Request
+from schemas import binary as wire
+
+JSON = "application/json"
+BINARY = wire.MEDIA_TYPE
+_PER_JOINT = ("edges", "lower", "upper", "strength")
+_SHAPES = {1: (-1,), 2: (-1, 24), 3: (-1, 24, 24)}  # x / energy / index, gradient, hessian
+
+
+def encode(request: Request, binary: bool) -> tuple[bytes, str]:
+    """The request body and its Content-Type."""
+    if binary:
+        f64 = lambda a: wire.pack_array(a, wire.FLOAT64)  # noqa: E731
+        doc = _document(request, f64, lambda a: wire.pack_array(a, wire.INT64))
+        return wire.dumps(doc), BINARY
+    # orjson writes every float64 in its shortest round-trip form: the server reads back the same bits.
+    as_json = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    doc = _document(request, as_json, lambda a: np.ascontiguousarray(a, dtype=np.int64))
+    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY), JSON
+
+
+def _document(request: Request, f64: Any, i64: Any) -> dict[str, Any]:
+    return {
+        "bodies": {k: f64(getattr(request, k)) for k in ("q", "q_prev", "q_ref")},
+        "batches": [
+            {
+                "constitution_uid": int(b.constitution_uid),
+                "base_uid": int(b.base_uid if b.base_uid is not None else -1),
+                "body_ids": i64(b.body_ids),
+                **{k: f64(getattr(b, k)) for k in _PER_JOINT},
+            }
+            for b in request.batches
+        ],
+        "outputs": list(request.outputs),
+        "hessian_mode": request.hessian_mode,
+        "active_only": bool(request.active_only),
+    }
+
+
+def decode(content: bytes, content_type: str) -> Evaluation:
+    """An `Evaluation` from a 200 body of either encoding (binary arrays are read-only views, no copy)."""
+    if content_type.split(";")[0].strip().lower() in wire.MEDIA_TYPES:
+        doc = wire.loads(content)
+        arr = lambda v, ndim, dtype=wire.FLOAT64: wire.unpack_array(v, dtype, ndim)  # noqa: E731
+    else:
+        doc = orjson.loads(content)
+        arr = lambda v, ndim, dtype=wire.FLOAT64: np.asarray(v, dtype=np.dtype(dtype)).reshape(  # noqa: E731
+            _SHAPES[ndim]
+        )
+    return Evaluation(
+        total_energy=float(doc["total_energy"]),
+        batches=[
+            BatchResult(
+                constitution_uid=int(b["constitution_uid"]),
+                index=arr(b["index"], 1, wire.INT64),
+                x=arr(b["x"], 1),
+                energy=arr(b["energy"], 1),
+                gradient=arr(b["gradient"], 2) if "gradient" in b else None,
+                hessian=arr(b["hessian"], 3) if "hessian" in b else None,
+            )
+            for b in doc["batches"]
+        ],
+    )
+
+
+def error(status: int, content: bytes) -> ServiceError:
+    """The server's error body (always JSON) as an exception."""
+    try:
+        body = orjson.loads(content)
+    except orjson.JSONDecodeError:
+        body = {"detail": content.decode("utf-8", "replace")[:500] or f"HTTP {status}"}
+    return ServiceError.from_body(status, body)

@@ -1,0 +1,70 @@
+"""In-process mode: the same API as `Client`, calling the core directly (a notebook without a server)."""
+
+from __future__ import annotations
+
+from types import TracebackType
+
+from client.errors import Fault, InvalidInput
+from client.model import BatchResult, Evaluation, Request
+from client.progress import ProgressCallback
+from schemas import ConstitutionsResponse, Limits
+from schemas.constitutions import describe
+from service import core
+from service.core.validate import checked_evaluate
+
+
+class LocalClient:
+    """`evaluate` and `constitutions` as `Client` has them, without HTTP.
+
+    Numbers are bit-identical to the service's. Input faults raise `InvalidInput` with
+    the `loc` the server would answer (`("body", "batches", 1, "lower", 2)`).
+    """
+
+    def __init__(self, **_ignored: object) -> None:
+        # Accepts (and ignores) the HTTP clients' options, so switching mode is one word.
+        pass
+
+    def constitutions(self) -> ConstitutionsResponse:
+        infos = [describe(uid, c.name, c.base_uid) for uid, c in sorted(core.CONSTITUTIONS.items(), reverse=True)]
+        return ConstitutionsResponse(constitutions=infos, limits=Limits(max_body_bytes=2**63 - 1, max_joints=2**63 - 1))
+
+    def evaluate(self, request: Request, *, progress: bool | ProgressCallback | None = None) -> Evaluation:
+        joints = [
+            core.Joints(
+                constitution_uid=b.constitution_uid,
+                base_uid=b.base_uid if b.base_uid is not None else -1,
+                body_ids=b.body_ids,
+                edges=b.edges,
+                lower=b.lower,
+                upper=b.upper,
+                strength=b.strength,
+            )
+            for b in request.batches
+        ]
+        try:
+            ev = checked_evaluate(
+                bodies=core.Bodies(request.q, request.q_prev, request.q_ref),
+                batches=joints,
+                outputs=request.outputs,
+                hessian_mode=request.hessian_mode,
+                active_only=request.active_only,
+            )
+        except core.InputError as e:
+            raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults]) from None
+        if callable(progress):
+            progress(request.n_joints, request.n_joints)
+        return Evaluation(
+            total_energy=ev.total_energy,
+            batches=[
+                BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian) for r in ev.batches
+            ],
+        )
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> LocalClient:
+        return self
+
+    def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
+        pass

@@ -1,0 +1,115 @@
+"""Build a `Request` from a scene: bodies' poses and joints with their edges and limits.
+
+A pose is a body's transform, given as any of: a 4 x 4 homogeneous matrix `[[A, p], [0, 1]]`,
+a pair `(p (3,), A (3, 3))`, or the 12 DOFs `q = [p, A row 0, A row 1, A row 2]`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Union
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, JointBatch, Request
+from schemas import OUTPUTS
+from schemas.constitutions import STRENGTH_DEFAULT
+
+Pose = Union[ArrayLike, tuple[ArrayLike, ArrayLike]]
+
+
+def dofs(pose: Pose) -> np.ndarray:
+    """The 12 DOFs (12,) of one pose."""
+    if isinstance(pose, tuple) and len(pose) == 2:
+        p, A = (np.asarray(v, dtype=np.float64) for v in pose)
+        return np.concatenate([p.reshape(3), A.reshape(9)])
+    a = np.asarray(pose, dtype=np.float64)
+    if a.shape == (4, 4):
+        return np.concatenate([a[:3, 3], a[:3, :3].reshape(9)])
+    if a.shape == (12,):
+        return a.copy()
+    raise ValueError(f"a pose is a 4x4 transform, a (p, A) pair or 12 DOFs, got shape {a.shape}")
+
+
+class Scene:
+    """Collects bodies and joint limits; `request()` assembles the arrays of the wire.
+
+    >>> scene = Scene()
+    >>> a = scene.add_body(np.eye(4))
+    >>> b = scene.add_body(turned, ref=np.eye(4))       # current pose, and the pose the joint was built at
+    >>> j = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5, strength=100)
+    >>> result = client.evaluate(scene.request())
+    >>> result.batch(670).hessian[j]                      # (24, 24) in the DOFs [q_a, q_b]
+    """
+
+    def __init__(self) -> None:
+        self._q: list[np.ndarray] = []
+        self._q_prev: list[np.ndarray] = []
+        self._q_ref: list[np.ndarray] = []
+        self._joints: dict[int, list[tuple]] = {}
+
+    def add_body(self, pose: Pose, *, prev: Pose | None = None, ref: Pose | None = None) -> int:
+        """A body at `pose` now; `prev` (last time step) defaults to `ref`, `ref` (when the joints
+        were built) to `pose`. Returns its row, for joints to refer to."""
+        q = dofs(pose)
+        q_ref = dofs(ref) if ref is not None else q
+        self._q.append(q)
+        self._q_ref.append(q_ref)
+        self._q_prev.append(dofs(prev) if prev is not None else q_ref)
+        return len(self._q) - 1
+
+    def add_revolute_limit(
+        self, i: int, j: int, p0: ArrayLike, p1: ArrayLike, lower: float, upper: float, strength: float = STRENGTH_DEFAULT
+    ) -> int:
+        """#670 on the revolute joint of bodies `i`, `j` about the edge `p0 -> p1` (world, at ref); angles in rad.
+        Returns the joint's row in the 670 batch."""
+        return self._add(REVOLUTE_LIMIT, i, j, p0, p1, lower, upper, strength)
+
+    def add_prismatic_limit(
+        self, i: int, j: int, p0: ArrayLike, p1: ArrayLike, lower: float, upper: float, strength: float = STRENGTH_DEFAULT
+    ) -> int:
+        """#669 on the prismatic joint of bodies `i`, `j` sliding along `p0 -> p1`. Returns its row in the 669 batch."""
+        return self._add(PRISMATIC_LIMIT, i, j, p0, p1, lower, upper, strength)
+
+    def _add(self, uid: int, i: int, j: int, p0: ArrayLike, p1: ArrayLike, *limits: float) -> int:
+        rows = self._joints.setdefault(uid, [])
+        rows.append(((int(i), int(j)), (np.asarray(p0, float).reshape(3), np.asarray(p1, float).reshape(3)), *limits))
+        return len(rows) - 1
+
+    def request(
+        self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False
+    ) -> Request:
+        """The request: one batch per constitution, in the order first used; bodies in the order added."""
+        batches = []
+        for uid, rows in self._joints.items():
+            ids, edges, lower, upper, strength = zip(*rows)
+            batches.append(JointBatch.of(uid, ids, [np.stack(e) for e in edges], lower, upper, strength))
+        stack = lambda rows: np.array(rows, dtype=np.float64).reshape(-1, 12)  # noqa: E731
+        return Request(
+            q=stack(self._q),
+            q_prev=stack(self._q_prev),
+            q_ref=stack(self._q_ref),
+            batches=batches,
+            outputs=tuple(outputs),
+            hessian_mode=hessian_mode,
+            active_only=active_only,
+        )
+
+
+def request_from_arrays(
+    q: ArrayLike,
+    joints: Sequence[JointBatch],
+    *,
+    q_prev: ArrayLike | None = None,
+    q_ref: ArrayLike | None = None,
+    outputs: Sequence[str] = OUTPUTS,
+    hessian_mode: str = "exact",
+    active_only: bool = False,
+) -> Request:
+    """The vectorised builder: bodies' DOFs (B, 12) (`q_ref` defaults to `q`, `q_prev` to `q_ref`) and
+    batches made with `JointBatch.of(uid, body_ids, edges, lower, upper, strength)`."""
+    q = np.asarray(q, dtype=np.float64)
+    q_ref = q if q_ref is None else np.asarray(q_ref, dtype=np.float64)
+    q_prev = q_ref if q_prev is None else np.asarray(q_prev, dtype=np.float64)
+    return Request(q, q_prev, q_ref, list(joints), tuple(outputs), hessian_mode, active_only)

@@ -1,0 +1,125 @@
+"""Split a large request into several that each fit the server's limits, and merge their answers.
+
+Each part carries only the bodies its joints use (renumbered), so parts stay small
+however many bodies the scene has. Results and error locations are mapped back to
+the original batch, joint and body indices.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from client.errors import Fault, ServiceError
+from client.model import BatchResult, Evaluation, JointBatch, Request
+
+
+@dataclass(frozen=True)
+class Part:
+    """One request of a split: rows `[start, stop)` of original batch `batches[k]` for each k."""
+
+    request: Request
+    batches: list[int]
+    starts: list[int]
+    bodies: np.ndarray | None
+    """Original body row of each of the part's bodies (M,), or None when they are all kept."""
+
+    @property
+    def n_joints(self) -> int:
+        return self.request.n_joints
+
+
+def plan(request: Request, max_joints: int) -> list[Part]:
+    """Parts of at most `max_joints` joints (at least one part, empty batches included)."""
+    if request.n_joints <= max_joints:
+        return [Part(request, list(range(len(request.batches))), [0] * len(request.batches), None)]
+    parts, pieces, room = [], [], max_joints
+    for k, b in enumerate(request.batches):
+        start, n = 0, len(b)
+        while True:
+            take = min(room, n - start)
+            pieces.append((k, start, start + take))
+            start, room = start + take, room - take
+            if room == 0:
+                parts.append(_part(request, pieces))
+                pieces, room = [], max_joints
+            if start >= n:
+                break
+    if pieces:
+        parts.append(_part(request, pieces))
+    return parts
+
+
+def _part(request: Request, pieces: list[tuple[int, int, int]]) -> Part:
+    batches = [_rows(request.batches[k], a, b) for k, a, b in pieces]
+    ids = np.concatenate([b.body_ids.reshape(-1) for b in batches]) if batches else np.zeros(0, np.int64)
+    n_bodies = np.shape(request.q)[0]
+    keep = None
+    if ids.size and ids.min() >= 0 and ids.max() < n_bodies:
+        # Only in-range ids are renumbered; otherwise the server names the bad index as the user wrote it.
+        keep = np.unique(ids)
+        batches = [replace(b, body_ids=np.searchsorted(keep, b.body_ids)) for b in batches]
+    pick = (lambda a: np.asarray(a)[keep]) if keep is not None else (lambda a: a)
+    sub = replace(request, q=pick(request.q), q_prev=pick(request.q_prev), q_ref=pick(request.q_ref), batches=batches)
+    return Part(sub, [k for k, _, _ in pieces], [a for _, a, _ in pieces], keep)
+
+
+def _rows(b: JointBatch, start: int, stop: int) -> JointBatch:
+    return replace(
+        b,
+        body_ids=np.asarray(b.body_ids)[start:stop],
+        edges=np.asarray(b.edges)[start:stop],
+        lower=np.asarray(b.lower)[start:stop],
+        upper=np.asarray(b.upper)[start:stop],
+        strength=np.asarray(b.strength)[start:stop],
+    )
+
+
+def merge(request: Request, parts: list[Part], results: list[Evaluation]) -> Evaluation:
+    """One `Evaluation` as if the request had been sent whole (total energy summed part by part)."""
+    if len(parts) == 1 and parts[0].bodies is None:
+        return results[0]
+    pieces: list[list[BatchResult]] = [[] for _ in request.batches]
+    for part, ev in zip(parts, results):
+        for k, start, r in zip(part.batches, part.starts, ev.batches):
+            pieces[k].append(replace(r, index=r.index + start))
+    merged = []
+    for b, rs in zip(request.batches, pieces):
+        cat = lambda name: (  # noqa: E731
+            np.concatenate([getattr(r, name) for r in rs]) if getattr(rs[0], name) is not None else None
+        )
+        merged.append(
+            BatchResult(
+                constitution_uid=b.constitution_uid,
+                index=cat("index"),
+                x=cat("x"),
+                energy=cat("energy"),
+                gradient=cat("gradient"),
+                hessian=cat("hessian"),
+            )
+        )
+    return Evaluation(total_energy=float(sum(ev.total_energy for ev in results)), batches=merged)
+
+
+def relocate(part: Part, e: ServiceError) -> ServiceError:
+    """The error of one part with `loc`s in the original request's batch, joint and body indices."""
+    whole = part.bodies is None and not any(part.starts) and part.batches == list(range(len(part.batches)))
+    if whole:
+        return e
+    faults = [Fault(_relocate(part, f.loc), f.msg, f.type) for f in e.faults]
+    return type(e)(e.status, faults)
+
+
+def _relocate(part: Part, loc: tuple) -> tuple:
+    loc = list(loc)
+    # loc = ["body", "batches", b, field, j, ...] or ["body", "bodies", name, i, ...]
+    if len(loc) >= 3 and loc[:2] == ["body", "batches"] and isinstance(loc[2], int) and loc[2] < len(part.batches):
+        b = loc[2]
+        loc[2] = part.batches[b]
+        if len(loc) >= 5 and isinstance(loc[4], int) and loc[3] != "constitution_uid":
+            loc[4] += part.starts[b]
+    elif len(loc) >= 4 and loc[:2] == ["body", "bodies"] and isinstance(loc[3], int) and part.bodies is not None:
+        if 0 <= loc[3] < len(part.bodies):
+            loc[3] = int(part.bodies[loc[3]])
+    return tuple(loc)

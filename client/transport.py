@@ -1,0 +1,54 @@
+"""What the sync and async clients share: headers, retry policy, part size, response handling."""
+
+from __future__ import annotations
+
+import httpx
+
+from client import codec
+from client.model import Evaluation
+from schemas import ConstitutionsResponse
+
+RETRYABLE = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError)
+"""Connection failures only: the request never reached the server or the connection dropped
+before any answer (evaluation is idempotent). Timeouts while the server computes, and every
+HTTP status, are never retried."""
+
+DEFAULT_PART_JOINTS = 20_000
+"""Joints per request when splitting (each Hessian is 4.6 kB: ~90 MB of answer per part)."""
+
+# Worst-case request bytes per joint: its arrays plus two bodies' three 12-DOF rows.
+_BYTES_PER_JOINT = {True: 8 * (2 + 6 + 3) + 2 * 3 * 12 * 8 + 64, False: 2 * 3 * 12 * 25 + 11 * 25 + 64}
+
+
+def headers(token: str | None, binary: bool) -> dict[str, str]:
+    h = {"Accept": codec.BINARY if binary else codec.JSON}
+    if token:
+        h["Authorization"] = f"Bearer {token}"
+    return h
+
+
+def delays(retries: int, backoff: float) -> list[float]:
+    """Sleep before each retry: `backoff`, `2 backoff`, `4 backoff`, ..."""
+    return [backoff * 2**k for k in range(retries)]
+
+
+def part_joints(limits: ConstitutionsResponse | None, binary: bool, user_max: int | None) -> int:
+    """Joints per request: the user's cap, else the default, within the server's joint and byte limits."""
+    n = user_max or DEFAULT_PART_JOINTS
+    if limits is not None:
+        by_bytes = max(1, limits.limits.max_body_bytes // _BYTES_PER_JOINT[binary])
+        n = min(n, limits.limits.max_joints, by_bytes)
+    return max(1, n)
+
+
+def result(response: httpx.Response) -> Evaluation:
+    """The evaluation of a 200, else the server's error as a `ServiceError` (with its `loc`s)."""
+    if response.status_code != 200:
+        raise codec.error(response.status_code, response.content)
+    return codec.decode(response.content, response.headers.get("content-type", codec.JSON))
+
+
+def constitutions(response: httpx.Response) -> ConstitutionsResponse:
+    if response.status_code != 200:
+        raise codec.error(response.status_code, response.content)
+    return ConstitutionsResponse.model_validate_json(response.content)

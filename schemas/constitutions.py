@@ -1,0 +1,71 @@
+"""`GET /v1/constitutions`: what the service evaluates, in the specs' own names."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel
+
+
+class Attribute(BaseModel):
+    """A per-joint input: `field` on the wire (a list in `JointBatch`), `name` in the spec."""
+
+    name: str
+    field: str
+    unit: str
+    default: float | None
+    """The reference engine's default (the SDK's scene builder applies it); `None`: required."""
+    description: str
+
+
+class ConstitutionInfo(BaseModel):
+    uid: int
+    name: str
+    base_uid: int
+    base_name: str
+    coordinate: str
+    """What the joint coordinate `x` measures, and its unit."""
+    attributes: list[Attribute]
+
+
+class Limits(BaseModel):
+    """This deployment's request limits; larger requests answer 413 (the SDK splits by them)."""
+
+    max_body_bytes: int
+    max_joints: int
+
+
+class ConstitutionsResponse(BaseModel):
+    constitutions: list[ConstitutionInfo]
+    limits: Limits
+
+
+# What the specs say of each constitution (UIDs, names and base UIDs come from the core's registry).
+_BASE_NAMES = {18: "AffineBodyRevoluteJoint", 20: "AffineBodyPrismaticJoint"}
+_COORDINATES = {
+    670: ("rad", "relative angle of body j about the edge axis +t (right-hand rule), incremental"),
+    669: ("length unit of the DOFs", "relative slide of body j along the edge axis +t"),
+}
+STRENGTH_DEFAULT = 1.0
+"""The reference engine's default `limit/strength` (`apply_to(sc, lower, upper, strength = 1)`)."""
+
+
+def describe(uid: int, name: str, base_uid: int) -> ConstitutionInfo:
+    """The discovery entry of one constitution, in the specs' attribute names and units."""
+    unit, meaning = _COORDINATES.get(uid, ("", ""))
+    return ConstitutionInfo(
+        uid=uid,
+        name=name,
+        base_uid=base_uid,
+        base_name=_BASE_NAMES.get(base_uid, ""),
+        coordinate=f"{meaning} [{unit}]" if unit else meaning,
+        attributes=[
+            Attribute(name="limit/lower", field="lower", unit=unit, default=None, description="lower bound l of x; l <= u"),
+            Attribute(name="limit/upper", field="upper", unit=unit, default=None, description="upper bound u of x"),
+            Attribute(
+                name="limit/strength",
+                field="strength",
+                unit="energy unit",
+                default=STRENGTH_DEFAULT,
+                description="penalty strength s >= 0 of E = s (gap / (u - l))^3 (s |x - l|^3 when u == l)",
+            ),
+        ],
+    )

@@ -1,0 +1,14 @@
+"""`GET /v1/constitutions`: the core's registry, described in the specs' words."""
+
+from __future__ import annotations
+
+from schemas import ConstitutionsResponse, Limits
+from schemas.constitutions import describe
+from service.core import CONSTITUTIONS
+from service.settings import Settings
+
+
+def constitutions(settings: Settings) -> ConstitutionsResponse:
+    infos = [describe(uid, c.name, c.base_uid) for uid, c in sorted(CONSTITUTIONS.items(), reverse=True)]
+    limits = Limits(max_body_bytes=settings.max_body_bytes, max_joints=settings.max_joints)
+    return ConstitutionsResponse(constitutions=infos, limits=limits)

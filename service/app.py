@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from fastapi import FastAPI
 
-from service.core import InputError
-from service.http.errors import input_error_handler
-from service.http.routes import router
+from service.http.routes import install
+from service.http import middleware as ops
 from service.settings import Settings
 
 
@@ -19,8 +18,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         "and #669 AffineBodyPrismaticJointLimit (wire contract v1).",
     )
     app.state.settings = settings
-    app.include_router(router)
-    app.add_exception_handler(InputError, input_error_handler)
+    install(app)  # routes, 4xx handlers (422, 413, 415, 406), OpenAPI of the raw-bodied route
+    ops.install(app, settings)  # bearer auth, CORS, request ids, JSON access log, /metrics
     return app
 
 

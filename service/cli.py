@@ -1,0 +1,241 @@
+"""`jointlimits serve`: run the service under uvicorn with production defaults.
+
+Every option can also come from the environment (`JOINTLIMITS_<OPTION>`); a command-line
+flag wins over the environment, which wins over the default. The request limits and CORS
+are handed to the application through the same `JOINTLIMITS_*` variables that
+`service.settings.Settings` reads, so each worker process sees them. The bearer token is
+read from `JOINTLIMITS_TOKEN` or `--token-file` only, never from a flag (flags show in `ps`).
+
+Several workers (`--workers N`, N > 1, or `auto`) run under uvicorn's supervisor, which
+shares one listening socket and respawns a worker that dies. Prometheus needs its
+multiprocess mode for `/metrics` to sum over them: unless `PROMETHEUS_MULTIPROC_DIR` is
+already set, a fresh directory is made for the run and removed afterwards.
+
+SIGTERM / SIGINT shut down gracefully: stop accepting, finish in-flight requests (for at most
+`--graceful-timeout` seconds), exit 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+ENV_PREFIX = "JOINTLIMITS_"
+
+
+def _env(name: str, default: str) -> str:
+    return os.environ.get(ENV_PREFIX + name, default)
+
+
+def available_cpus() -> int:
+    """CPUs this process may use: its affinity mask, capped by a cgroup v2/v1 CPU quota (containers)."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover (not Linux)
+        n = os.cpu_count() or 1
+    quota = _cgroup_cpu_quota()
+    if quota is not None:
+        n = min(n, max(1, math.ceil(quota)))
+    return max(1, n)
+
+
+def _cgroup_cpu_quota() -> float | None:
+    try:
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]  # cgroup v2
+        return None if quota == "max" else int(quota) / int(period)
+    except (OSError, ValueError):
+        pass
+    try:
+        quota_us = int(Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us").read_text())  # cgroup v1
+        period_us = int(Path("/sys/fs/cgroup/cpu/cpu.cfs_period_us").read_text())
+        return None if quota_us <= 0 else quota_us / period_us
+    except (OSError, ValueError):
+        return None
+
+
+def _workers(value: str) -> int:
+    if value.strip().lower() == "auto":
+        return available_cpus()
+    n = int(value)
+    if n < 1:
+        raise argparse.ArgumentTypeError("workers must be >= 1 or 'auto'")
+    return n
+
+
+def _positive_int(value: str) -> int:
+    n = int(value)
+    if n < 1:
+        raise argparse.ArgumentTypeError("must be a positive integer")
+    return n
+
+
+def _bool(value: str) -> bool:
+    v = value.strip().lower()
+    if v in ("1", "true", "yes", "on"):
+        return True
+    if v in ("0", "false", "no", "off", ""):
+        return False
+    raise argparse.ArgumentTypeError(f"not a boolean: {value!r}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="jointlimits", description="The joint-limit constitution service.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    s = sub.add_parser(
+        "serve",
+        help="serve the HTTP API",
+        description="Serve the HTTP API. Each option defaults to its JOINTLIMITS_* environment variable.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    s.add_argument("--host", default=_env("HOST", "127.0.0.1"), help="bind address (JOINTLIMITS_HOST); 0.0.0.0 in the container")
+    s.add_argument("--port", type=int, default=int(_env("PORT", "8000")), help="TCP port (JOINTLIMITS_PORT)")
+    s.add_argument(
+        "--workers",
+        type=_workers,
+        default=_env("WORKERS", "auto"),
+        help="worker processes, or 'auto' = usable CPUs, cgroup quota included (JOINTLIMITS_WORKERS)",
+    )
+    s.add_argument(
+        "--max-body-bytes",
+        type=_positive_int,
+        default=int(_env("MAX_BODY_BYTES", str(256 * 2**20))),
+        help="largest request body; larger answers 413 (JOINTLIMITS_MAX_BODY_BYTES)",
+    )
+    s.add_argument(
+        "--max-joints",
+        type=_positive_int,
+        default=int(_env("MAX_JOINTS", "1000000")),
+        help="most joints in one request; more answers 413 (JOINTLIMITS_MAX_JOINTS)",
+    )
+    s.add_argument(
+        "--cors-origins",
+        default=_env("CORS_ORIGINS", ""),
+        help="comma-separated origins allowed by CORS; empty = CORS off (JOINTLIMITS_CORS_ORIGINS)",
+    )
+    s.add_argument(
+        "--token-file",
+        default=_env("TOKEN_FILE", "") or None,
+        help="file holding the bearer token required on /v1/* (JOINTLIMITS_TOKEN_FILE; or JOINTLIMITS_TOKEN itself)",
+    )
+    s.add_argument(
+        "--graceful-timeout",
+        type=float,
+        default=float(_env("GRACEFUL_TIMEOUT", "30")),
+        help="seconds in-flight requests get to finish after SIGTERM (JOINTLIMITS_GRACEFUL_TIMEOUT)",
+    )
+    s.add_argument(
+        "--keepalive-timeout",
+        type=float,
+        default=float(_env("KEEPALIVE_TIMEOUT", "75")),
+        help="seconds an idle keep-alive connection stays open; keep it above your load balancer's "
+        "idle timeout (JOINTLIMITS_KEEPALIVE_TIMEOUT)",
+    )
+    s.add_argument("--backlog", type=_positive_int, default=int(_env("BACKLOG", "2048")), help="listen backlog (JOINTLIMITS_BACKLOG)")
+    s.add_argument(
+        "--log-level",
+        default=_env("LOG_LEVEL", "info"),
+        choices=["critical", "error", "warning", "info", "debug"],
+        help="log level (JOINTLIMITS_LOG_LEVEL)",
+    )
+    s.add_argument(
+        "--access-log",
+        type=_bool,
+        default=_bool(_env("ACCESS_LOG", "true")),
+        help="one JSON line per request on stdout (JOINTLIMITS_ACCESS_LOG)",
+    )
+    return parser
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("jointlimits")
+    except Exception:  # pragma: no cover
+        return "unknown"
+
+
+def serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.observability import log_config
+
+    # Hand the application settings to every worker through the environment Settings reads.
+    os.environ[ENV_PREFIX + "MAX_BODY_BYTES"] = str(args.max_body_bytes)
+    os.environ[ENV_PREFIX + "MAX_JOINTS"] = str(args.max_joints)
+    os.environ[ENV_PREFIX + "CORS_ORIGINS"] = args.cors_origins
+    if args.token_file:
+        token = Path(args.token_file).read_text().strip()
+        if not token:
+            print(f"jointlimits: token file {args.token_file} is empty", file=sys.stderr)
+            return 2
+        os.environ[ENV_PREFIX + "TOKEN"] = token
+
+    from service.settings import Settings
+
+    Settings()  # fail here, once, on a malformed variable rather than in every worker
+    if args.workers > 1:
+        # uvicorn's supervisor would respawn workers that cannot import the app, forever: fail fast
+        # instead, in a throw-away process (the supervisor itself stays small: it never imports it).
+        check = subprocess.run([sys.executable, "-c", "import service.app"], capture_output=True, text=True)
+        if check.returncode != 0:
+            print(f"jointlimits: the application does not import:\n{check.stderr}", file=sys.stderr)
+            return 3
+
+    own_metrics_dir = None
+    if args.workers > 1 and not os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
+        own_metrics_dir = tempfile.mkdtemp(prefix="jointlimits-metrics-")
+        os.environ["PROMETHEUS_MULTIPROC_DIR"] = own_metrics_dir
+    elif os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
+        # A directory kept from an earlier run would add its counts to this one's.
+        directory = Path(os.environ["PROMETHEUS_MULTIPROC_DIR"])
+        directory.mkdir(parents=True, exist_ok=True)
+        for stale in directory.glob("*.db"):
+            stale.unlink()
+    # uvicorn re-raises SIGTERM/SIGINT once it has shut down gracefully, which would end the
+    # process "killed by SIGTERM" (143). A graceful stop is a success: exit 0, like the
+    # multi-worker supervisor does.
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, _exit_cleanly)
+    try:
+        uvicorn.run(
+            "service.app:app",
+            host=args.host,
+            port=args.port,
+            workers=args.workers,
+            log_config=log_config(args.log_level, args.access_log),
+            log_level=args.log_level,
+            access_log=False,  # ours (JSON, with request id and joints) replaces uvicorn's
+            timeout_graceful_shutdown=max(1, math.ceil(args.graceful_timeout)),
+            timeout_keep_alive=max(1, math.ceil(args.keepalive_timeout)),
+            backlog=args.backlog,
+            server_header=False,
+        )
+    finally:
+        if own_metrics_dir:
+            shutil.rmtree(own_metrics_dir, ignore_errors=True)
+    return 0
+
+
+def _exit_cleanly(signum: int, frame: object) -> None:
+    raise SystemExit(0)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.command == "serve":
+        return serve(args)
+    return 2  # pragma: no cover (argparse requires a command)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

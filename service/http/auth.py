@@ -1,0 +1,54 @@
+"""Optional bearer-token auth for the API (`/v1/...`).
+
+With no token configured (`JOINTLIMITS_TOKEN` unset or empty) the API is open. With one,
+every request under `/v1/` must carry `Authorization: Bearer <token>`, or it answers 401
+with `WWW-Authenticate: Bearer` before its body is read (an unauthenticated flood costs
+no parsing). `/healthz`, `/metrics` and the OpenAPI document stay open, so probes and
+scrapers need no secret. CORS preflights (`OPTIONS`) are answered by the CORS middleware,
+which sits outside this one.
+"""
+
+from __future__ import annotations
+
+import hmac
+import json
+
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+PROTECTED_PREFIX = "/v1/"
+
+
+class BearerAuthMiddleware:
+    def __init__(self, app: ASGIApp, token: str, prefix: str = PROTECTED_PREFIX) -> None:
+        if not token:
+            raise ValueError("BearerAuthMiddleware needs a non-empty token")
+        self.app = app
+        self.expected = token.encode()
+        self.prefix = prefix
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or not scope["path"].startswith(self.prefix) or self._authorized(scope):
+            await self.app(scope, receive, send)
+            return
+        body = json.dumps({"detail": "missing or invalid bearer token"}).encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 401,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"www-authenticate", b'Bearer realm="jointlimits"'),
+                ],
+            }
+        )
+        await send({"type": "http.response.body", "body": body})
+
+    def _authorized(self, scope: Scope) -> bool:
+        for name, value in scope.get("headers", ()):
+            if name == b"authorization":
+                scheme, _, credentials = value.strip().partition(b" ")
+                # The scheme is case-insensitive (RFC 9110); the token comparison is constant-time,
+                # so it leaks nothing about how much of the token matched.
+                return scheme.lower() == b"bearer" and hmac.compare_digest(credentials.strip(), self.expected)
+        return False

@@ -1,0 +1,46 @@
+"""Operational wiring of the application: auth, CORS, request ids, access log, metrics.
+
+Order, outermost first: observability (sees every request, including 401s and CORS
+preflights, and serves `/metrics`), CORS (answers preflights before auth could refuse
+them), bearer auth (refuses before the body is read), then the routes.
+"""
+
+from __future__ import annotations
+
+from fastapi import FastAPI
+from starlette.middleware.cors import CORSMiddleware
+
+from service.http.auth import BearerAuthMiddleware
+from service.observability import Metrics, ObservabilityMiddleware
+from service.settings import Settings
+
+
+def install(app: FastAPI, settings: Settings) -> None:
+    # Starlette wraps in reverse: the middleware added last is the outermost.
+    if settings.token:
+        app.add_middleware(BearerAuthMiddleware, token=settings.token)
+    if settings.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=list(settings.cors_origins),
+            allow_methods=["GET", "POST"],
+            allow_headers=["Authorization", "Content-Type", "Accept", "X-Request-ID"],
+            expose_headers=["X-Request-ID"],
+            max_age=600,
+        )
+    app.state.metrics = Metrics()
+    app.add_middleware(
+        ObservabilityMiddleware,
+        metrics=app.state.metrics,
+        route_paths=lambda: _route_paths(app),
+    )
+
+
+def _route_paths(app: FastAPI) -> list[str]:
+    """Paths of the app's routes without parameters (labels for requests refused before routing)."""
+    paths = [r.path for r in app.routes if isinstance(getattr(r, "path", None), str)]
+    try:
+        paths += list(app.openapi().get("paths", {}))  # also the routes of included routers
+    except Exception:  # pragma: no cover (a broken schema must not break metrics)
+        pass
+    return [p for p in paths if "{" not in p]

@@ -1,0 +1,704 @@
+"""Load and fault drills against a running service (loopback only, bounded in time and count).
+
+    python -m service.loadtest --spawn --workers 2 --clients 16 --duration 30 --scenario all
+
+`--spawn` starts `jointlimits serve` on a free loopback port for the run (and stops it);
+without it, `--url` names a service already running on 127.0.0.1. Scenarios:
+
+- `mixed`: N clients on keep-alive connections, valid and invalid requests mixed, for
+  `--duration` seconds: throughput, p50/p99 latency per kind, 5xx count, dropped
+  connections, and the RSS of each worker before and after (growth).
+- `flood`: oversized requests (declared too long, streamed too long, too many joints) from
+  half the clients while the other half send valid requests: the server stays up, the
+  flood gets 413, the valid clients keep their latency.
+- `kill`: SIGKILL one worker in the middle of a load run; clients retry a request whose
+  connection broke (POST /v1/evaluate is a pure function, so retrying is safe) and must
+  see no error; the supervisor replaces the worker.
+- `sigterm`: SIGTERM the server while every client has a slow request in flight: each of
+  those requests completes with 200 and the server exits 0.
+
+The client is a minimal HTTP/1.1 client on asyncio streams with pre-encoded requests, so
+that on a 2-core machine it takes as little CPU from the server as it can. Standard
+library only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import random
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections import Counter, defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+LOOPBACK = "127.0.0.1"
+MAX_REQUESTS_PER_CLIENT = 200_000  # a hard bound on every loop, whatever the duration
+CONNECTION_ERRORS = (ConnectionError, asyncio.IncompleteReadError, BrokenPipeError, OSError)
+
+
+# --------------------------------------------------------------------------- payloads
+
+
+def scene(n_joints: int, seed: int = 0, outside: float = 0.5) -> dict[str, Any]:
+    """A request body: `n_joints` joints (alternately #670 and #669), about `outside` of them past a limit.
+
+    Joint k couples bodies 2k and 2k+1 along +z; body 2k+1 is turned (revolute) or slid
+    (prismatic) by a seeded amount in [-1, 1], the limits are [-w, w] with w chosen so
+    that the wanted fraction is outside.
+    """
+    rng = random.Random(seed)
+    w = 1.0 - outside
+    ident = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    q, q_ref = [], []
+    rev: dict[str, list] = {"body_ids": [], "edges": [], "lower": [], "upper": [], "strength": []}
+    pri: dict[str, list] = {"body_ids": [], "edges": [], "lower": [], "upper": [], "strength": []}
+    for k in range(n_joints):
+        base = [float(2 * k), 0.0, 0.0]
+        a = rng.uniform(-1.0, 1.0)
+        q_ref += [base + ident, base + ident]
+        if k % 2 == 0:
+            c, s = math.cos(a), math.sin(a)
+            q += [base + ident, base + [c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0]]
+            batch = rev
+        else:
+            q += [base + ident, [base[0], base[1], base[2] + a] + ident]
+            batch = pri
+        batch["body_ids"].append([2 * k, 2 * k + 1])
+        batch["edges"].append([base, [base[0], base[1], base[2] + 1.0]])
+        batch["lower"].append(-w)
+        batch["upper"].append(w)
+        batch["strength"].append(100.0)
+    batches = []
+    if rev["body_ids"]:
+        batches.append({"constitution_uid": 670, "base_uid": 18, **rev})
+    if pri["body_ids"]:
+        batches.append({"constitution_uid": 669, "base_uid": 20, **pri})
+    return {"bodies": {"q": q, "q_prev": q_ref, "q_ref": q_ref}, "batches": batches}
+
+
+@dataclass(frozen=True)
+class Kind:
+    """One kind of request in a mix: its bytes on the wire and the statuses it may get."""
+
+    name: str
+    raw: bytes
+    ok: frozenset[int]
+    weight: float = 1.0
+
+
+def http_request(method: str, path: str, body: bytes | None = None, headers: dict[str, str] | None = None) -> bytes:
+    lines = [f"{method} {path} HTTP/1.1", f"Host: {LOOPBACK}"]
+    for k, v in (headers or {}).items():
+        lines.append(f"{k}: {v}")
+    if body is not None:
+        lines.append("Content-Type: application/json")
+        lines.append(f"Content-Length: {len(body)}")
+    return ("\r\n".join(lines) + "\r\n\r\n").encode() + (body or b"")
+
+
+def _post(body: Any, token: str | None, **extra: str) -> Callable[[], bytes]:
+    data = body if isinstance(body, bytes) else json.dumps(body).encode()
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    headers.update(extra)
+    return lambda: http_request("POST", "/v1/evaluate", data, headers)
+
+
+def mixed_kinds(token: str | None = None) -> list[Kind]:
+    """What a solver farm sends, plus what a broken client sends (~1 request in 4 is invalid)."""
+    small = scene(2, seed=1)
+    medium = scene(200, seed=2) | {"outputs": ["energy", "gradient"]}
+    hess = scene(100, seed=3) | {"hessian_mode": "psd"}
+    bad_range = scene(4, seed=4)
+    bad_range["batches"][0]["lower"][0] = 2.0  # lower > upper: 422 naming the joint
+    bad_shape = scene(2, seed=5)
+    bad_shape["bodies"]["q"][0] = bad_shape["bodies"]["q"][0][:11]  # an 11-DOF row: 422
+    kinds = [
+        Kind("valid_2_joints", _post(small, token)(), frozenset({200}), 4),
+        Kind("valid_200_joints_grad", _post(medium, token)(), frozenset({200}), 3),
+        Kind("valid_100_joints_hessian", _post(hess, token)(), frozenset({200}), 1),
+        Kind("invalid_json", _post(b'{"bodies": [1, 2', token)(), frozenset({422}), 1),
+        Kind("invalid_lower_gt_upper", _post(bad_range, token)(), frozenset({422}), 1),
+        Kind("invalid_shape", _post(bad_shape, token)(), frozenset({422}), 1),
+        Kind("healthz", http_request("GET", "/healthz"), frozenset({200}), 0.5),
+        Kind("not_found", http_request("GET", "/nope"), frozenset({404}), 0.5),
+    ]
+    if token:
+        kinds.append(Kind("unauthorized", _post(small, None)(), frozenset({401}), 0.5))
+    return kinds
+
+
+def flood_kinds(max_body_bytes: int, max_joints: int, token: str | None = None) -> list[Kind]:
+    """Requests over the size limits: each should be refused (413) without being parsed."""
+    auth = f"Authorization: Bearer {token}\r\n" if token else ""
+    over = max_body_bytes + 1
+    # Declares a body over the limit and sends it all (a client that does not wait for the answer).
+    declared = (
+        f"POST /v1/evaluate HTTP/1.1\r\nHost: {LOOPBACK}\r\n{auth}Content-Type: application/json\r\n"
+        f"Content-Length: {over}\r\n\r\n"
+    ).encode() + b" " * over
+    # No length declared: chunks until past the limit.
+    chunk = b" " * 65536
+    n_chunks = over // len(chunk) + 2
+    streamed = (
+        f"POST /v1/evaluate HTTP/1.1\r\nHost: {LOOPBACK}\r\n{auth}Content-Type: application/json\r\n"
+        "Transfer-Encoding: chunked\r\n\r\n"
+    ).encode() + (f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n") * n_chunks + b"0\r\n\r\n"
+    joints = _post(scene(max_joints + 1, seed=6), token)()
+    kinds = [
+        Kind("oversized_declared", declared, frozenset({413})),
+        Kind("oversized_chunked", streamed, frozenset({413})),
+    ]
+    if len(joints) <= max_body_bytes:  # else it would be a body-size 413, not a joint-count one
+        kinds.append(Kind("too_many_joints", joints, frozenset({413})))
+    return kinds
+
+
+# --------------------------------------------------------------------------- client
+
+
+@dataclass
+class Stats:
+    started: float = 0.0
+    elapsed: float = 0.0
+    latencies: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    statuses: Counter = field(default_factory=Counter)
+    unexpected: Counter = field(default_factory=Counter)  # (kind, status) not in kind.ok
+    connection_errors: int = 0  # a connection broke before a complete answer (each retry counts)
+    failed: int = 0  # requests that got no answer, retries included (dropped)
+    retried_ok: int = 0  # requests that broke and then succeeded on a retry
+    connects: int = 0
+    evaluate_answered: int = 0  # answers to POST /v1/evaluate (to compare with /metrics)
+
+    def record(self, kind: Kind, status: int, latency: float) -> None:
+        self.statuses[status] += 1
+        if kind.raw.startswith(b"POST /v1/evaluate "):
+            self.evaluate_answered += 1
+        self.latencies[kind.name].append(latency)
+        if status not in kind.ok:
+            self.unexpected[f"{kind.name}:{status}"] += 1
+
+    @property
+    def requests(self) -> int:
+        return sum(self.statuses.values())
+
+    def server_errors(self) -> int:
+        return sum(n for s, n in self.statuses.items() if s >= 500)
+
+    def summary(self) -> dict[str, Any]:
+        every = sorted(x for v in self.latencies.values() for x in v)
+        per_kind = {
+            k: {"n": len(v), "p50_ms": _ms(_pct(sorted(v), 50)), "p99_ms": _ms(_pct(sorted(v), 99))}
+            for k, v in sorted(self.latencies.items())
+        }
+        return {
+            "seconds": round(self.elapsed, 2),
+            "requests": self.requests,
+            "throughput_rps": round(self.requests / self.elapsed, 1) if self.elapsed else 0.0,
+            "p50_ms": _ms(_pct(every, 50)),
+            "p99_ms": _ms(_pct(every, 99)),
+            "max_ms": _ms(every[-1] if every else None),
+            "statuses": {str(k): v for k, v in sorted(self.statuses.items())},
+            "server_errors_5xx": self.server_errors(),
+            "unexpected": dict(self.unexpected),
+            "connection_errors": self.connection_errors,
+            "dropped": self.failed,
+            "retried_ok": self.retried_ok,
+            "connects": self.connects,
+            "evaluate_answered": self.evaluate_answered,
+            "by_kind": per_kind,
+        }
+
+
+def _pct(xs: Sequence[float], p: float) -> float | None:
+    if not xs:
+        return None
+    return xs[min(len(xs) - 1, max(0, math.ceil(p / 100 * len(xs)) - 1))]
+
+
+def _ms(x: float | None) -> float | None:
+    return None if x is None else round(x * 1e3, 2)
+
+
+class Connection:
+    def __init__(self, port: int, stats: Stats) -> None:
+        self.port = port
+        self.stats = stats
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+
+    async def _open(self) -> None:
+        self.reader, self.writer = await asyncio.open_connection(LOOPBACK, self.port, limit=2**24)
+        self.stats.connects += 1
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        self.reader = self.writer = None
+
+    async def exchange(self, raw: bytes, timeout: float) -> int:
+        """Send one request, read its whole answer; the status. Raises on a broken connection."""
+        if self.writer is None:
+            await self._open()
+        assert self.reader is not None and self.writer is not None
+        try:
+            return await asyncio.wait_for(self._exchange(raw), timeout)
+        except BaseException:
+            self.close()
+            raise
+
+    async def _exchange(self, raw: bytes) -> int:
+        assert self.reader is not None and self.writer is not None
+        self.writer.write(raw)
+        try:
+            await self.writer.drain()
+        except CONNECTION_ERRORS:
+            # The server may answer (413) and close before reading a body it refuses: the
+            # answer can still be in our receive buffer.
+            pass
+        head = await self.reader.readuntil(b"\r\n\r\n")
+        lines = head.decode("latin-1").split("\r\n")
+        status = int(lines[0].split(" ", 2)[1])
+        headers = {}
+        for line in lines[1:]:
+            if ":" in line:
+                k, v = line.split(":", 1)
+                headers[k.strip().lower()] = v.strip()
+        if "content-length" in headers:
+            await self.reader.readexactly(int(headers["content-length"]))
+        elif headers.get("transfer-encoding", "").lower() == "chunked":
+            while True:
+                size = int((await self.reader.readuntil(b"\r\n")).split(b";")[0], 16)
+                await self.reader.readexactly(size + 2)
+                if size == 0:
+                    break
+        if headers.get("connection", "").lower() == "close":
+            self.close()
+        return status
+
+
+async def client_loop(
+    port: int,
+    kinds: Sequence[Kind],
+    stats: Stats,
+    deadline: float,
+    seed: int,
+    retries: int = 0,
+    timeout: float = 30.0,
+    max_requests: int = MAX_REQUESTS_PER_CLIENT,
+) -> None:
+    """Requests drawn from `kinds` (by weight) until `deadline` or `max_requests`."""
+    rng = random.Random(seed)
+    weights = [k.weight for k in kinds]
+    conn = Connection(port, stats)
+    try:
+        for _ in range(max_requests):
+            if time.monotonic() >= deadline:
+                break
+            kind = rng.choices(kinds, weights)[0]
+            t0 = time.perf_counter()
+            for attempt in range(retries + 1):
+                try:
+                    status = await conn.exchange(kind.raw, timeout)
+                except (asyncio.TimeoutError, *CONNECTION_ERRORS):
+                    stats.connection_errors += 1
+                    if attempt == retries:
+                        stats.failed += 1
+                        break
+                    await asyncio.sleep(0.05 * (attempt + 1))
+                    continue
+                stats.record(kind, status, time.perf_counter() - t0)
+                stats.retried_ok += attempt > 0
+                break
+    finally:
+        conn.close()
+
+
+async def run_load(
+    port: int,
+    kinds: Sequence[Kind],
+    clients: int,
+    duration: float,
+    retries: int = 0,
+    seed: int = 0,
+    during: Callable[[], Any] | None = None,
+) -> Stats:
+    """`clients` concurrent clients for `duration` s; `during` (a coroutine function) runs alongside."""
+    stats = Stats(started=time.monotonic())
+    deadline = stats.started + duration
+    tasks = [
+        asyncio.create_task(client_loop(port, kinds, stats, deadline, seed * 1000 + i, retries)) for i in range(clients)
+    ]
+    side = asyncio.create_task(during()) if during else None
+    await asyncio.gather(*tasks)
+    stats.elapsed = time.monotonic() - stats.started
+    if side:
+        await side
+    return stats
+
+
+# --------------------------------------------------------------------------- server process
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind((LOOPBACK, 0))
+        return s.getsockname()[1]
+
+
+def rss_kib(pid: int) -> int | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of a process so far."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def worker_pids(supervisor: int) -> list[int]:
+    """uvicorn's worker processes under `supervisor` (spawned children; not the resource tracker)."""
+    pids = []
+    for task in Path(f"/proc/{supervisor}/task").glob("*/children"):
+        try:
+            pids += [int(p) for p in task.read_text().split()]
+        except OSError:
+            continue
+    out = []
+    for pid in sorted(set(pids)):
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmd and b"resource_tracker" not in cmd:
+            out.append(pid)
+    return out
+
+
+class Server:
+    """`jointlimits serve` in its own process group on a free loopback port."""
+
+    def __init__(
+        self,
+        workers: int = 2,
+        extra_args: Sequence[str] = (),
+        env: dict[str, str] | None = None,
+        command: Sequence[str] = (sys.executable, "-m", "service.cli"),
+    ) -> None:
+        self.port = free_port()
+        self.workers = workers
+        self.log_path = Path(os.environ.get("TMPDIR", "/tmp")) / f"jointlimits-serve-{self.port}.log"
+        args = [
+            *command, "serve",
+            "--host", LOOPBACK, "--port", str(self.port), "--workers", str(workers), *extra_args,
+        ]  # fmt: skip
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen(
+            args,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, **(env or {})},
+            start_new_session=True,
+        )
+
+    def wait_ready(self, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited with {self.proc.returncode}:\n{self.log()[-3000:]}")
+            if self.workers == 1 or len(worker_pids(self.proc.pid)) >= self.workers:
+                if get(self.port, "/healthz", timeout=1.0)[0] == 200:
+                    # Every worker up: ask a few times so each has imported and served once.
+                    for _ in range(4 * self.workers):
+                        get(self.port, "/healthz", timeout=5.0)
+                    return
+            time.sleep(0.1)
+        raise RuntimeError(f"server not ready in {timeout} s:\n{self.log()[-3000:]}")
+
+    def worker_pids(self) -> list[int]:
+        return worker_pids(self.proc.pid) if self.workers > 1 else [self.proc.pid]
+
+    def log(self) -> str:
+        self._log.flush()
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self, timeout: float = 30.0) -> int | None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(5)
+        try:  # stray workers of a supervisor that was killed
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        self._log.close()
+        return self.proc.returncode
+
+    def __enter__(self) -> Server:
+        try:
+            self.wait_ready()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        self.stop()
+        if exc_type is None:  # kept for a post-mortem otherwise
+            self.log_path.unlink(missing_ok=True)
+
+
+def get(port: int, path: str, timeout: float = 5.0, headers: dict[str, str] | None = None) -> tuple[int, bytes]:
+    """A blocking GET on loopback; (0, b"") when nothing answers."""
+    import http.client
+
+    conn = http.client.HTTPConnection(LOOPBACK, port, timeout=timeout)
+    try:
+        conn.request("GET", path, headers=headers or {})
+        r = conn.getresponse()
+        return r.status, r.read()
+    except OSError:
+        return 0, b""
+    finally:
+        conn.close()
+
+
+def metric_total(text: str, name: str, **labels: str) -> float:
+    """Sum of the samples of `name` whose labels include `labels` in a Prometheus exposition."""
+    total = 0.0
+    for line in text.splitlines():
+        if not line.startswith(name + "{") and not line.startswith(name + " "):
+            continue
+        head, _, value = line.rpartition(" ")
+        if all(f'{k}="{v}"' in head for k, v in labels.items()):
+            total += float(value)
+    return total
+
+
+def evaluate_requests_counted(port: int) -> float:
+    """POST /v1/evaluate requests answered, according to the server's own /metrics (all workers)."""
+    status, text = get(port, "/metrics", timeout=10)
+    if status != 200:
+        return float("nan")
+    return metric_total(text.decode(), "jointlimits_http_requests_total", route="/v1/evaluate")
+
+
+# --------------------------------------------------------------------------- scenarios
+
+
+def scenario_mixed(server: Server, clients: int, duration: float, token: str | None = None) -> dict[str, Any]:
+    kinds = mixed_kinds(token)
+    # Warm-up: every worker has seen every kind of request before memory is first measured.
+    asyncio.run(run_load(server.port, kinds, clients, min(3.0, duration / 5), seed=99))
+    before = {pid: rss_kib(pid) for pid in server.worker_pids()}
+    cpu0 = {pid: cpu_seconds(pid) for pid in before}
+    m0 = evaluate_requests_counted(server.port)
+    stats = asyncio.run(run_load(server.port, kinds, clients, duration))
+    m1 = evaluate_requests_counted(server.port)
+    after = {pid: rss_kib(pid) for pid in server.worker_pids()}
+    cpu1 = {pid: cpu_seconds(pid) for pid in before}
+    out = stats.summary()
+    out["workers_rss_kib"] = {
+        str(pid): {"before": before[pid], "after": after.get(pid), "growth": _sub(after.get(pid), before[pid])}
+        for pid in before
+    }
+    out["workers_cpu_s"] = {
+        str(pid): None if cpu0[pid] is None or cpu1[pid] is None else round(cpu1[pid] - cpu0[pid], 2) for pid in before
+    }
+    out["workers_replaced"] = sorted(before) != sorted(after)
+    out["metrics_evaluate_delta"] = m1 - m0
+    return out
+
+
+def _sub(a: int | None, b: int | None) -> int | None:
+    return None if a is None or b is None else a - b
+
+
+def scenario_flood(
+    server: Server, clients: int, duration: float, max_body_bytes: int, max_joints: int, token: str | None = None
+) -> dict[str, Any]:
+    valid = [k for k in mixed_kinds(token) if k.name.startswith("valid")]
+    baseline = asyncio.run(run_load(server.port, valid, max(1, clients // 2), duration / 2, seed=1))
+    flood = flood_kinds(max_body_bytes, max_joints, token)
+    flood_stats: list[Stats] = []
+
+    async def both() -> Stats:
+        async def flooders() -> None:
+            flood_stats.append(await run_load(server.port, flood, max(1, clients // 2), duration, seed=2))
+
+        valid_stats = await run_load(server.port, valid, max(1, clients // 2), duration, seed=3, during=flooders)
+        return valid_stats
+
+    under = asyncio.run(both())
+    return {
+        "valid_alone": baseline.summary(),
+        "valid_under_flood": under.summary(),
+        "flood": flood_stats[0].summary(),
+        "healthz_after": get(server.port, "/healthz")[0],
+    }
+
+
+def scenario_kill(server: Server, clients: int, duration: float, token: str | None = None) -> dict[str, Any]:
+    kinds = mixed_kinds(token)
+    before = server.worker_pids()
+    events: dict[str, Any] = {"workers_before": before}
+
+    async def kill_one() -> None:
+        cpu0 = {pid: cpu_seconds(pid) or 0.0 for pid in before}
+        await asyncio.sleep(duration / 3)
+        # The busiest worker: the one holding (most of) the clients' keep-alive connections.
+        victim = max(before, key=lambda pid: (cpu_seconds(pid) or 0.0) - cpu0[pid])
+        os.kill(victim, signal.SIGKILL)
+        t_kill = time.monotonic()
+        events["killed"] = victim
+        for _ in range(int(duration * 20)):  # bounded: the supervisor checks every 0.5 s
+            now = server.worker_pids()
+            if victim not in now and len(now) == len(before):
+                events["replaced_by"] = sorted(set(now) - set(before))
+                events["replaced_after_s"] = round(time.monotonic() - t_kill, 2)
+                break
+            await asyncio.sleep(0.05)
+
+    m0 = evaluate_requests_counted(server.port)
+    stats = asyncio.run(run_load(server.port, kinds, clients, duration, retries=3, during=kill_one))
+    out = stats.summary()
+    # Scraped from a worker that did not serve most of these (the busiest one was killed):
+    # the counts of the dead worker are still in the sum.
+    out["metrics_evaluate_delta"] = evaluate_requests_counted(server.port) - m0
+    out.update(events)
+    out["workers_after"] = server.worker_pids()
+    out["healthz_after"] = get(server.port, "/healthz")[0]
+    return out
+
+
+def scenario_sigterm(server: Server, clients: int, slow_joints: int = 1000, token: str | None = None) -> dict[str, Any]:
+    """Every client sends one slow request; SIGTERM arrives while all of them are being computed."""
+    raw = _post(scene(slow_joints, seed=7), token)()  # ~0.5 MB in, ~6 MB of Hessians out
+    kind = Kind("slow", raw, frozenset({200}))
+    # How long one takes alone, to send the signal well inside the in-flight window.
+    async def alone() -> float:
+        conn = Connection(server.port, Stats())
+        try:
+            t0 = time.perf_counter()
+            status = await conn.exchange(kind.raw, timeout=120)
+            assert status == 200, status
+            return time.perf_counter() - t0
+        finally:
+            conn.close()
+
+    one = asyncio.run(alone())
+    results: list[tuple[float, float, int | str]] = []
+
+    async def one_request(i: int) -> None:
+        conn = Connection(server.port, Stats())
+        sent = time.monotonic()
+        try:
+            status: int | str = await conn.exchange(kind.raw, timeout=120)
+        except (asyncio.TimeoutError, *CONNECTION_ERRORS) as e:
+            status = type(e).__name__
+        finally:
+            conn.close()
+        results.append((sent, time.monotonic(), status))
+
+    async def drill() -> dict[str, Any]:
+        tasks = [asyncio.create_task(one_request(i)) for i in range(clients)]
+        await asyncio.sleep(min(0.5, one / 2))  # all sent and being computed (16 in 2 workers: ~8 x one)
+        t_sig = time.monotonic()
+        server.proc.send_signal(signal.SIGTERM)
+        await asyncio.gather(*tasks)
+        loop = asyncio.get_running_loop()
+        code = await loop.run_in_executor(None, server.proc.wait, 120)
+        return {"t_sig": t_sig, "exit_code": code, "exited_after_s": round(time.monotonic() - t_sig, 2)}
+
+    info = asyncio.run(drill())
+    statuses = Counter(str(s) for _, _, s in results)
+    last_done = max(done for _, done, _ in results)
+    return {
+        "in_flight_at_sigterm": len(results),
+        "one_request_alone_s": round(one, 3),
+        "statuses": dict(statuses),
+        "completed_200": statuses.get("200", 0),
+        "last_completion_after_sigterm_s": round(last_done - info["t_sig"], 2),
+        "exit_code": info["exit_code"],
+        "server_exited_after_s": info["exited_after_s"],
+    }
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m service.loadtest", description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenario", choices=["mixed", "flood", "kill", "sigterm", "all"], default="mixed")
+    p.add_argument("--spawn", action="store_true", help="start `jointlimits serve` on a free loopback port")
+    p.add_argument("--port", type=int, default=8000, help="port of a running service on 127.0.0.1 (without --spawn)")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--clients", type=int, default=16)
+    p.add_argument("--duration", type=float, default=30.0)
+    p.add_argument("--max-body-bytes", type=int, default=1_000_000, help="the spawned server's limit (flood)")
+    p.add_argument("--max-joints", type=int, default=1_000, help="the spawned server's limit (flood)")
+    p.add_argument("--token", default=os.environ.get("JOINTLIMITS_TOKEN") or None)
+    a = p.parse_args(argv)
+    if a.duration > 600 or a.clients > 256:
+        p.error("bounded: --duration <= 600, --clients <= 256")
+    limits = ["--max-body-bytes", str(a.max_body_bytes), "--max-joints", str(a.max_joints)]
+    env: dict[str, str] = {}  # the production defaults: JSON access log on (to a file)
+
+    def spawned() -> Server:
+        return Server(a.workers, limits, env)
+
+    report: dict[str, Any] = {"workers": a.workers, "clients": a.clients, "duration_s": a.duration}
+    scenarios = ["mixed", "flood", "kill", "sigterm"] if a.scenario == "all" else [a.scenario]
+    for name in scenarios:
+        if not a.spawn:
+            if name in ("kill", "sigterm"):
+                p.error(f"--scenario {name} needs --spawn (it signals the server)")
+
+            class _Running:
+                port = a.port
+
+                def worker_pids(self) -> list[int]:
+                    return []
+
+            target: Any = _Running()
+            report[name] = _run(name, target, a)
+            continue
+        with spawned() as server:
+            report[name] = _run(name, server, a)
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+def _run(name: str, server: Any, a: argparse.Namespace) -> dict[str, Any]:
+    if name == "mixed":
+        return scenario_mixed(server, a.clients, a.duration, a.token)
+    if name == "flood":
+        return scenario_flood(server, a.clients, min(a.duration, 10.0), a.max_body_bytes, a.max_joints, a.token)
+    if name == "kill":
+        return scenario_kill(server, a.clients, min(a.duration, 10.0), a.token)
+    return scenario_sigterm(server, a.clients, token=a.token)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,297 @@
+"""Observability: JSON logs, a JSON access log per request, and Prometheus metrics.
+
+`ObservabilityMiddleware` is a pure ASGI middleware (no `BaseHTTPMiddleware`, which would
+buffer bodies and cost a task per request). For every HTTP request it
+
+- takes the caller's `X-Request-ID` (when it is short and printable) or makes one, and
+  echoes it in the response;
+- logs one JSON line on the `jointlimits.access` logger: request id, method, path, route,
+  status, latency, bytes in, joint count, client;
+- counts the request by method, route and status, and observes its latency.
+
+The joint count comes from `request.state.joints` (set by the evaluate route once the body
+is parsed, so it is free) and `request.state.joints_by_constitution`; a request rejected
+before that (bad JSON, 401, 413) logs `joints: null`.
+
+Metrics and several worker processes: `prometheus_client` aggregates across processes only
+in its multiprocess mode, which it enters when `PROMETHEUS_MULTIPROC_DIR` is set *before*
+it is imported. `jointlimits serve --workers N` (N > 1) sets it to a fresh directory, so
+`/metrics` on any worker reports the sum over all workers, including workers that died
+and were replaced (their counters stay in the directory).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import time
+import uuid
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    generate_latest,
+    multiprocess,
+)
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+ACCESS_LOGGER = "jointlimits.access"
+_REQUEST_ID = re.compile(r"^[A-Za-z0-9._:\-]{1,128}$")
+
+# Seconds. The evaluate route spans ~1 ms (one joint) to seconds (10^5 joints with Hessians).
+LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+
+
+# --------------------------------------------------------------------------- logging
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per line: `ts`, `level`, `logger`, `msg`, plus a record's `fields`."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        out: dict[str, Any] = {
+            "ts": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z",
+            "level": record.levelname.lower(),
+            "logger": record.name,
+            "msg": record.getMessage(),
+        }
+        fields = getattr(record, "fields", None)
+        if isinstance(fields, Mapping):
+            out.update(fields)
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out, separators=(",", ":"), default=str)
+
+
+def log_config(level: str = "info", access_log: bool = True) -> dict[str, Any]:
+    """A `logging.config.dictConfig` for uvicorn: everything as JSON lines on stdout.
+
+    uvicorn's own access log is replaced by ours (`jointlimits.access`, which knows the
+    request id and joint count); uvicorn's error log keeps its messages, as JSON.
+    """
+    level = level.upper()
+    handler = {"class": "logging.StreamHandler", "formatter": "json", "stream": "ext://sys.stdout"}
+    return {
+        "version": 1,
+        "disable_existing_loggers": False,
+        "formatters": {"json": {"()": "service.observability.JsonFormatter"}},
+        "handlers": {"stdout": handler},
+        "loggers": {
+            "uvicorn": {"handlers": ["stdout"], "level": level, "propagate": False},
+            "uvicorn.error": {"level": level},
+            "uvicorn.access": {"handlers": [], "level": "CRITICAL", "propagate": False},
+            "jointlimits": {"handlers": ["stdout"], "level": level, "propagate": False},
+            ACCESS_LOGGER: {"level": "INFO" if access_log else "CRITICAL"},
+        },
+    }
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def multiprocess_dir() -> str | None:
+    return os.environ.get("PROMETHEUS_MULTIPROC_DIR") or os.environ.get("prometheus_multiproc_dir")
+
+
+class Metrics:
+    """The service's Prometheus metrics, one set per application.
+
+    Single process: a registry of its own (so two apps in one test process do not share
+    counts). Multiprocess: unregistered metrics whose values live in the shared directory,
+    exposed through a `MultiProcessCollector` built per scrape.
+    """
+
+    def __init__(self) -> None:
+        self.multiprocess = multiprocess_dir() is not None
+        reg = None if self.multiprocess else CollectorRegistry()
+        self.registry = reg
+        self.requests = Counter(
+            "jointlimits_http_requests_total",
+            "HTTP requests answered, by method, route template and status code.",
+            ["method", "route", "status"],
+            registry=reg,
+        )
+        self.latency = Histogram(
+            "jointlimits_http_request_duration_seconds",
+            "Time from the request's arrival to the end of its response, by method and route template.",
+            ["method", "route"],
+            buckets=LATENCY_BUCKETS,
+            registry=reg,
+        )
+        self.joints = Counter(
+            "jointlimits_joints_evaluated_total",
+            "Joints evaluated in successful requests, by constitution UID.",
+            ["constitution"],
+            registry=reg,
+        )
+        self.in_flight = Gauge(
+            "jointlimits_http_requests_in_flight",
+            "HTTP requests being handled now (summed over live workers).",
+            registry=reg,
+            multiprocess_mode="livesum",
+        )
+        if self.multiprocess:
+            _forget_dead_workers()
+
+    def exposition(self) -> bytes:
+        if self.multiprocess:
+            registry = CollectorRegistry()
+            multiprocess.MultiProcessCollector(registry)
+            return generate_latest(registry)
+        assert self.registry is not None
+        return generate_latest(self.registry)
+
+
+def _forget_dead_workers() -> None:
+    """Drop the live-gauge files of workers that no longer exist (a killed worker cannot do it itself).
+
+    Counters and histograms of dead workers are kept: their requests did happen.
+    """
+    path = multiprocess_dir()
+    if not path:
+        return
+    for f in Path(path).glob("gauge_live*_*.db"):
+        try:
+            pid = int(f.stem.rsplit("_", 1)[1])
+            os.kill(pid, 0)
+        except ValueError:
+            continue
+        except ProcessLookupError:
+            multiprocess.mark_process_dead(pid, path)
+        except PermissionError:
+            continue
+
+
+async def metrics_endpoint_app(metrics: Metrics, send: Send) -> None:
+    body = metrics.exposition()
+    await send(
+        {
+            "type": "http.response.start",
+            "status": 200,
+            "headers": [(b"content-type", CONTENT_TYPE_LATEST.encode()), (b"content-length", str(len(body)).encode())],
+        }
+    )
+    await send({"type": "http.response.body", "body": body})
+
+
+# --------------------------------------------------------------------------- middleware
+
+
+class ObservabilityMiddleware:
+    """Request id, JSON access log and metrics for every HTTP request; serves `GET /metrics`."""
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        metrics: Metrics,
+        metrics_path: str = "/metrics",
+        route_paths: Callable[[], Iterable[str]] = tuple,
+    ) -> None:
+        self.app = app
+        self.metrics = metrics
+        self.metrics_path = metrics_path
+        # Paths of the app's routes, for requests refused before routing (401, 413 from a middleware):
+        # they are labelled with their route too; any other unmatched path is "unmatched" (bounded labels).
+        self._route_paths = route_paths
+        self._known: frozenset[str] | None = None
+        self.log = logging.getLogger(ACCESS_LOGGER)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        start = time.perf_counter()
+        request_id = _request_id(scope)
+        state = scope.setdefault("state", {})
+        state["request_id"] = request_id
+        status = 500
+        bytes_in = 0
+        rid_header = (b"x-request-id", request_id.encode())
+
+        async def receive_counting() -> Message:
+            nonlocal bytes_in
+            message = await receive()
+            if message["type"] == "http.request":
+                bytes_in += len(message.get("body", b""))
+            return message
+
+        async def send_tagged(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+                message["headers"] = [*message.get("headers", []), rid_header]
+            await send(message)
+
+        self.metrics.in_flight.inc()
+        try:
+            if scope["path"] == self.metrics_path and scope["method"] in ("GET", "HEAD"):
+                scope["route"] = _MetricsRoute
+                await metrics_endpoint_app(self.metrics, send_tagged)
+            else:
+                await self.app(scope, receive_counting, send_tagged)
+        finally:
+            self.metrics.in_flight.dec()
+            elapsed = time.perf_counter() - start
+            self._record(scope, state, request_id, status, elapsed, bytes_in)
+
+    def _record(
+        self, scope: Scope, state: dict[str, Any], request_id: str, status: int, elapsed: float, bytes_in: int
+    ) -> None:
+        route = getattr(scope.get("route"), "path", None)
+        if route is None:
+            if self._known is None:
+                self._known = frozenset(self._route_paths())
+            route = scope["path"] if scope["path"] in self._known else "unmatched"
+        method = scope["method"]
+        self.metrics.requests.labels(method, route, str(status)).inc()
+        self.metrics.latency.labels(method, route).observe(elapsed)
+        by_uid = state.get("joints_by_constitution")
+        if status == 200 and isinstance(by_uid, Mapping):
+            for uid, n in by_uid.items():
+                if n:
+                    self.metrics.joints.labels(str(uid)).inc(n)
+        if self.log.isEnabledFor(logging.INFO):
+            client = scope.get("client")
+            self.log.info(
+                "request",
+                extra={
+                    "fields": {
+                        "request_id": request_id,
+                        "method": method,
+                        "path": scope["path"],
+                        "route": route,
+                        "status": status,
+                        "latency_ms": round(elapsed * 1e3, 3),
+                        "bytes_in": bytes_in,
+                        "joints": state.get("joints"),
+                        "client": f"{client[0]}:{client[1]}" if client else None,
+                        "pid": os.getpid(),
+                    }
+                },
+            )
+
+
+class _MetricsRoute:
+    path = "/metrics"
+
+
+def _request_id(scope: Scope) -> str:
+    for name, value in scope.get("headers", ()):
+        if name == b"x-request-id":
+            try:
+                rid = value.decode("ascii")
+            except UnicodeDecodeError:
+                break
+            if _REQUEST_ID.match(rid):
+                return rid
+            break
+    return uuid.uuid4().hex

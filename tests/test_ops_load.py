@@ -1,0 +1,86 @@
+"""Load and faults on a real 2-worker server on loopback (`service/loadtest.py` does the work).
+
+About 75 s in all: a 30 s mixed load (JOINTLIMITS_LOAD_SECONDS to change it), a flood of
+oversized requests, a worker killed under load, SIGTERM under load. The figures in the
+README come from `python -m service.loadtest --spawn --scenario all`, the same code.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from service import loadtest as lt
+
+LOAD_SECONDS = float(os.environ.get("JOINTLIMITS_LOAD_SECONDS", "30"))
+MAX_BODY_BYTES, MAX_JOINTS = 1_000_000, 1_000
+LIMITS = ["--max-body-bytes", str(MAX_BODY_BYTES), "--max-joints", str(MAX_JOINTS)]
+
+
+@pytest.fixture
+def server():
+    with lt.Server(workers=2, extra_args=LIMITS) as s:
+        yield s
+
+
+def show(name: str, report: dict) -> None:
+    print(f"\n{name}: " + json.dumps({k: v for k, v in report.items() if k != "by_kind"}))
+
+
+def test_mixed_load_two_workers_sixteen_clients(server):
+    r = lt.scenario_mixed(server, clients=16, duration=LOAD_SECONDS)
+    show("mixed", r)
+    assert r["requests"] > 0 and r["throughput_rps"] > 0
+    assert r["server_errors_5xx"] == 0
+    assert r["dropped"] == 0 and r["connection_errors"] == 0
+    assert r["unexpected"] == {}, "every request got the status its kind calls for"
+    assert {"200", "404", "422"} <= r["statuses"].keys()
+    assert not r["workers_replaced"]
+    for pid, rss in r["workers_rss_kib"].items():
+        assert rss["growth"] is not None and rss["growth"] < 64 * 1024, f"worker {pid} grew {rss['growth']} KiB"
+    # /metrics counts every evaluate request exactly, whichever worker answered it.
+    assert r["metrics_evaluate_delta"] == r["evaluate_answered"]
+    assert server.proc.poll() is None
+
+
+def test_flood_of_oversized_requests_neither_downs_nor_starves(server):
+    pids = server.worker_pids()
+    r = lt.scenario_flood(server, clients=16, duration=8, max_body_bytes=MAX_BODY_BYTES, max_joints=MAX_JOINTS)
+    for part in ("valid_alone", "valid_under_flood", "flood"):
+        show(part, r[part])
+    flood, valid = r["flood"], r["valid_under_flood"]
+    assert flood["requests"] > 0 and set(flood["statuses"]) == {"413"}
+    assert flood["server_errors_5xx"] == 0 and flood["dropped"] == 0
+    assert {"oversized_declared", "oversized_chunked", "too_many_joints"} <= flood["by_kind"].keys()
+    assert valid["requests"] > 0 and set(valid["statuses"]) == {"200"}
+    assert valid["dropped"] == 0 and valid["connection_errors"] == 0
+    # Not starved: valid clients keep a useful share of their throughput and a bounded p99.
+    assert valid["throughput_rps"] > 0.25 * r["valid_alone"]["throughput_rps"]
+    assert valid["p99_ms"] < max(2000.0, 5 * r["valid_alone"]["p99_ms"])
+    assert r["healthz_after"] == 200 and server.proc.poll() is None
+    assert server.worker_pids() == pids  # nothing crashed and was respawned
+
+
+def test_killed_worker_is_replaced_and_retrying_clients_see_no_error(server):
+    r = lt.scenario_kill(server, clients=16, duration=10)
+    show("kill", r)
+    assert r["killed"] in r["workers_before"] and r["killed"] not in r["workers_after"]
+    assert r["replaced_by"] and len(r["workers_after"]) == 2 and r["replaced_after_s"] < 10
+    assert r["dropped"] == 0, "a client that retries sees no error"
+    assert r["server_errors_5xx"] == 0 and r["unexpected"] == {}
+    assert r["connection_errors"] >= 1, "the kill broke connections (else the drill tested nothing)"
+    assert r["healthz_after"] == 200
+    # The metrics of the dead worker survive it (multiprocess mode): the sum still matches, give or
+    # take the requests the kill cut between the answer and its count.
+    assert abs(r["metrics_evaluate_delta"] - r["evaluate_answered"]) <= 16
+
+
+def test_sigterm_under_load_lets_in_flight_requests_finish(server):
+    r = lt.scenario_sigterm(server, clients=16)
+    show("sigterm", r)
+    assert r["in_flight_at_sigterm"] == 16
+    assert r["statuses"] == {"200": 16}, "every in-flight request completed"
+    assert r["exit_code"] == 0
+    assert r["last_completion_after_sigterm_s"] > 0  # they were still running when the signal came

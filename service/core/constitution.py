@@ -7,12 +7,39 @@ and one line in `service.core.registry`.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
+
+
+@dataclass
+class Curvature:
+    """A second derivative in `F` (12 x 12 per joint) kept in its structured form
+
+        d2x/dF2 = kron(K, I_3) + U^T C U,
+
+    `K` (N, 4, 4) symmetric block coefficients, `U` (N, k, 4, 3) a few vectors in F,
+    `C` (N, k, k) symmetric. `dx_coef` (N, k) says `dx/dF = dx_coef . U` when the
+    gradient lies in span(U) (None otherwise): the chain rule then needs no extra
+    factor for the `E'' dx dx^T` term. Never formed as 12 x 12 on the fast paths.
+    """
+
+    kron: Array
+    basis: Array
+    coef: Array
+    dx_coef: Array | None = None
+
+    def dense(self) -> Array:
+        """(N, 12, 12): the generic form, for the eigensolver of the PSD projection."""
+        n, k = self.basis.shape[:2]
+        U = self.basis.reshape(n, k, 12)
+        D = np.einsum("nab,nai,nbj->nij", self.coef, U, U)
+        D.reshape(n, 4, 3, 4, 3)[...] += self.kron[:, :, None, :, None] * np.eye(3, dtype=D.dtype)[None, None, :, None, :]
+        return D
 
 
 class Constitution(Protocol):
@@ -37,6 +64,10 @@ class Constitution(Protocol):
         """(N,) True where `x` has no derivatives at this `F`."""
         ...
 
-    def derivatives(self, F: Array, second: bool) -> tuple[Array, Array | None]:
-        """`dx/dF` (N, 4, 3) and, if `second`, `d2x/dF2` (N, 4, 3, 4, 3)."""
+    def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
+        """`dx/dF` (N, 4, 3) and, if `second`, `d2x/dF2` in structured form."""
+        ...
+
+    def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature | None:
+        """`dE d2x/dF2` projected onto the PSD cone in closed form, or None to use the eigensolver."""
         ...

@@ -6,27 +6,30 @@ F = [C_i, T_i, C_j, T_j], with C_k = p_k + A_k c_k (the anchor) and T_k = A_k t_
     theta = (C_j - C_i) . (T_i + T_j) / 2,   x = theta(q) - theta(q_ref).
 
 The incremental form of the spec telescopes exactly to this difference.
-theta is bilinear in F, so d2x/dF2 is a constant.
+theta is bilinear in F, so d2x/dF2 is a constant, `kron(PAIRS, I_3)`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from service.core.constitution import Array
-from service.core.kinematics import unit
+from service.core.constitution import Array, Curvature
+from service.core.kinematics import solve3, unit
 
 # theta = D.S / 2 with D = C_j - C_i, S = T_i + T_j: coefficients of D and S per block.
 _D = np.array([-1.0, 0.0, 1.0, 0.0])
 _S = np.array([0.0, 1.0, 0.0, 1.0])
 _PAIRS = 0.5 * (np.outer(_D, _S) + np.outer(_S, _D))  # (4, 4) block coefficients of d2theta/dF2
-_D2X = np.einsum("kl,rs->krls", _PAIRS, np.eye(3))  # (4, 3, 4, 3)
+# PAIRS = (u+ u+^T - u- u-^T) with u+- = (D +- S) / 2 orthonormal (D perp S, |D| = |S| = sqrt 2):
+# eigenvalues +-1, so the PSD part of dE PAIRS is |dE| u u^T, u chosen by the sign of dE.
+_U_PLUS = 0.5 * (_D + _S)
+_U_MINUS = 0.5 * (_D - _S)
 
 
 def _theta(F: Array) -> Array:
     D = F[:, 2] - F[:, 0]
     S = F[:, 1] + F[:, 3]
-    return 0.5 * np.einsum("nr,nr->n", D, S)
+    return 0.5 * (D[:, 0] * S[:, 0] + D[:, 1] * S[:, 1] + D[:, 2] * S[:, 2])
 
 
 class Prismatic:
@@ -36,11 +39,12 @@ class Prismatic:
     alpha = np.array([1.0, 0.0, 1.0, 0.0])
 
     def local_vectors(self, edges: Array, p_ref: Array, A_ref: Array, R_ref: Array) -> Array:
+        n = edges.shape[0]
         t = unit(edges[:, 1] - edges[:, 0])
         # c_k = A_ref_k^{-1} (p0 - p_ref_k): the difference first, then the solve.
-        c = np.linalg.solve(A_ref, (edges[:, :1] - p_ref)[..., None])[..., 0]  # (N, 2, 3)
-        t_local = np.einsum("nr,nkrc->nkc", t, R_ref)  # R_k^T t
-        return np.stack([c[:, 0], t_local[:, 0], c[:, 1], t_local[:, 1]], axis=1)
+        c = solve3(A_ref.reshape(2 * n, 3, 3), (edges[:, :1] - p_ref).reshape(2 * n, 3)).reshape(n, 2, 3)
+        t_local = np.matmul(t[:, None, None, :], R_ref)[:, :, 0]  # R_k^T t, (N, 2, 3)
+        return np.stack([c, t_local], axis=2).reshape(n, 4, 3)
 
     def coordinate(self, F: Array, F_prev: Array, F_ref: Array) -> Array:
         return _theta(F) - _theta(F_ref)
@@ -48,13 +52,25 @@ class Prismatic:
     def collapsed(self, F: Array) -> np.ndarray:
         return np.zeros(F.shape[0], dtype=bool)
 
-    def derivatives(self, F: Array, second: bool) -> tuple[Array, Array | None]:
+    def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
+        n = F.shape[0]
+        dx = np.empty_like(F)
         D = F[:, 2] - F[:, 0]
         S = F[:, 1] + F[:, 3]
-        dx = 0.5 * (_D[None, :, None] * S[:, None, :] + _S[None, :, None] * D[:, None, :])
+        dx[:, 0] = -0.5 * S
+        dx[:, 2] = 0.5 * S
+        dx[:, 1] = dx[:, 3] = 0.5 * D
         if not second:
             return dx, None
-        return dx, np.broadcast_to(_D2X, (F.shape[0], 4, 3, 4, 3))
+        # Rank-1 factor for E'' dx dx^T is dx itself (coefficient 0 in d2x).
+        kron = np.broadcast_to(_PAIRS.astype(F.dtype), (n, 4, 4))
+        return dx, Curvature(kron=kron, basis=dx[:, None], coef=np.zeros((n, 1, 1), F.dtype), dx_coef=np.ones((n, 1), F.dtype))
+
+    def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
+        u = np.where((dE >= 0)[:, None], _U_PLUS, _U_MINUS)  # (N, 4)
+        kron = np.abs(dE)[:, None, None] * (u[:, :, None] * u[:, None, :])
+        n = dE.shape[0]
+        return Curvature(kron=kron, basis=curvature.basis, coef=np.zeros((n, 1, 1), dE.dtype), dx_coef=curvature.dx_coef)
 
 
 PRISMATIC = Prismatic()

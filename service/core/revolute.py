@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.core.constitution import Array
+from service.core.constitution import Array, Curvature
 from service.core.kinematics import unit
 
 E_X = np.array([1.0, 0.0, 0.0])
@@ -28,10 +28,14 @@ _SIN_PAIRS[0, 3] = _SIN_PAIRS[3, 0] = 0.5
 _SIN_PAIRS[1, 2] = _SIN_PAIRS[2, 1] = -0.5
 
 
+def _dot(a: Array, b: Array) -> Array:
+    """Row-wise dot of (N, 3) arrays, without einsum's per-call overhead on 3-vectors."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
 def _cos_sin(F: Array) -> tuple[Array, Array]:
     B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-    dot = lambda a, b: np.einsum("nr,nr->n", a, b)  # noqa: E731
-    return 0.5 * (dot(B_i, B_j) + dot(N_i, N_j)), 0.5 * (dot(B_i, N_j) - dot(N_i, B_j))
+    return 0.5 * (_dot(B_i, B_j) + _dot(N_i, N_j)), 0.5 * (_dot(B_i, N_j) - _dot(N_i, B_j))
 
 
 def _delta(cs_a: tuple[Array, Array], cs_b: tuple[Array, Array]) -> Array:
@@ -51,9 +55,9 @@ class Revolute:
         test = np.where((np.abs(t[:, :1]) > 0.9), E_Y, E_X)
         n = unit(np.cross(t, test))
         b = unit(np.cross(t, n))
-        # Body-local b_k = R_k^T b: the row-vector product b R_k.
-        to_local = lambda w, k: np.einsum("nr,nrc->nc", w, R_ref[:, k])  # noqa: E731
-        return np.stack([to_local(b, 0), to_local(n, 0), to_local(b, 1), to_local(n, 1)], axis=1)
+        # Body-local b_k = R_k^T b: the row-vector products [b; n] R_k, both bodies at once.
+        bn = np.stack([b, n], axis=1)  # (N, 2, 3)
+        return np.matmul(bn[:, None], R_ref).reshape(-1, 4, 3)
 
     def coordinate(self, F: Array, F_prev: Array, F_ref: Array) -> Array:
         cs_prev = _cos_sin(F_prev)
@@ -63,30 +67,29 @@ class Revolute:
         c, s = _cos_sin(F)
         return (c == 0.0) & (s == 0.0)
 
-    def derivatives(self, F: Array, second: bool) -> tuple[Array, Array | None]:
+    def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
         n = F.shape[0]
         c, s = _cos_sin(F)
         r2 = c * c + s * s
         x_c, x_s = -s / r2, c / r2
-        # d cos/dF and d sin/dF, (N, 4, 3).
-        g_c = np.einsum("kl,nlr->nkr", _COS_PAIRS, F)
-        g_s = np.einsum("kl,nlr->nkr", _SIN_PAIRS, F)
-        dx = x_c[:, None, None] * g_c + x_s[:, None, None] * g_s
+        # d cos/dF and d sin/dF, (N, 2, 4, 3): each block is one other block of F, halved.
+        g = np.empty((n, 2, 4, 3), dtype=F.dtype)
+        g[:, 0, 0], g[:, 0, 1], g[:, 0, 2], g[:, 0, 3] = F[:, 2], F[:, 3], F[:, 0], F[:, 1]
+        g[:, 1, 0], g[:, 1, 1], g[:, 1, 2], g[:, 1, 3] = F[:, 3], -F[:, 2], -F[:, 1], F[:, 0]
+        g *= 0.5
+        dx = x_c[:, None, None] * g[:, 0] + x_s[:, None, None] * g[:, 1]
         if not second:
             return dx, None
         r4 = r2 * r2
-        x_cc, x_ss, x_cs = 2.0 * c * s / r4, -2.0 * c * s / r4, (s * s - c * c) / r4
-        gc, gs = g_c.reshape(n, 12), g_s.reshape(n, 12)
-        outer = lambda a, b: np.einsum("ni,nj->nij", a, b)  # noqa: E731
-        cross = outer(gc, gs)
-        d2x = (
-            x_cc[:, None, None] * outer(gc, gc)
-            + x_ss[:, None, None] * outer(gs, gs)
-            + x_cs[:, None, None] * (cross + cross.transpose(0, 2, 1))
-        ).reshape(n, 4, 3, 4, 3)
-        pairs = x_c[:, None, None] * _COS_PAIRS + x_s[:, None, None] * _SIN_PAIRS  # (N, 4, 4)
-        d2x += pairs[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
-        return dx, d2x
+        coef = np.empty((n, 2, 2), dtype=F.dtype)
+        coef[:, 0, 0] = 2.0 * c * s / r4
+        coef[:, 1, 1] = -coef[:, 0, 0]
+        coef[:, 0, 1] = coef[:, 1, 0] = (s * s - c * c) / r4
+        kron = x_c[:, None, None] * _COS_PAIRS + x_s[:, None, None] * _SIN_PAIRS  # (N, 4, 4)
+        return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1))
+
+    def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature | None:
+        return None  # the rank-2 update mixes with K (x) I_3: the 12 x 12 eigensolver decides
 
 
 REVOLUTE = Revolute()

@@ -48,16 +48,22 @@ class Constitution(Protocol):
     name: str
     alpha: Array
     """(4,): 1 where `F_k` is a point that follows the body's translation, 0 for a direction."""
+    telescopes: bool
+    """True when the incremental `x` telescopes to a function of `q` and `q_ref`: `q_prev` is never gathered."""
 
-    def local_vectors(self, edges: Array, p_ref: Array, A_ref: Array, R_ref: Array) -> Array:
+    def local_vectors(self, edges: Array, p_ref: Array | None, A_ref: Array, R_ref: Array) -> Array:
         """Body-local `v` (N, 4, 3) from the joint edges (N, 2, 3) and the bodies at `q_ref`.
 
-        `p_ref` (N, 2, 3), `A_ref` (N, 2, 3, 3) and its rotation `R_ref` (N, 2, 3, 3) of bodies i, j.
+        `p_ref` (N, 2, 3) (None when `alpha` is zero), `A_ref` (N, 2, 3, 3) and its rotation
+        `R_ref` (N, 2, 3, 3) of bodies i, j.
         """
         ...
 
-    def coordinate(self, F: Array, F_prev: Array, F_ref: Array) -> Array:
-        """Joint coordinate `x` (N,) in incremental form from `F` (N, 4, 3) at `q`, `q_prev`, `q_ref`."""
+    def coordinate(self, F: Array, F_prev: Array | None, F_ref: Array) -> Array:
+        """Joint coordinate `x` (N,) in incremental form from `F` (N, 4, 3) at `q`, `q_prev`, `q_ref`.
+
+        `F_prev` is None when `telescopes`.
+        """
         ...
 
     def collapsed(self, F: Array) -> NDArray[np.bool_]:

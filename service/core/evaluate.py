@@ -9,10 +9,10 @@ import numpy as np
 from service.core import assembly, penalty
 from service.core.constitution import Array, Constitution, Curvature
 from service.core.errors import Fault, InputError
-from service.core.kinematics import frame_quantities, gather_pairs, polar_rotation, split
+from service.core.kinematics import Q, Q_PREV, Q_REF, STATES, BodyTable, frame_quantities
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
-from service.core.validate import MAX_FAULTS, check_bodies, check_joints, check_options, raise_if
+from service.core.validate import MAX_FAULTS, check_bodies, check_joints, check_options, check_rotations, raise_if
 
 CHUNK = 4096
 """Active joints differentiated at once: bounds temporaries to a few MB whatever the batch size."""
@@ -35,21 +35,19 @@ def evaluate(
     """
     outputs = tuple(outputs)
     bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
-    faults = check_options(outputs, hessian_mode) + check_bodies(bodies, None)
+    faults = check_options(outputs, hessian_mode) + check_bodies(bodies)
     raise_if(faults)
-    _, A_ref = split(bodies.q_ref)  # polar rotations in float64 whatever `dtype`
-    R_ref, ratio = polar_rotation(A_ref)
+    table = BodyTable(bodies, dtype)
     n_bodies = bodies.q.shape[0]
     batches = [_as_arrays(j) for j in batches]
-    faults = check_bodies(bodies, ratio)
+    faults = check_rotations(table.ratio)
     for b, joints in enumerate(batches):
         faults += check_joints(b, joints, n_bodies)
     raise_if(faults)
 
     want_g, want_h = "gradient" in outputs, "hessian" in outputs
     results = [
-        _evaluate_batch(b, j, bodies, R_ref, want_g, want_h, hessian_mode == "psd", active_only, np.dtype(dtype))
-        for b, j in enumerate(batches)
+        _evaluate_batch(b, j, table, want_g, want_h, hessian_mode == "psd", active_only) for b, j in enumerate(batches)
     ]
     total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
     if not np.isfinite(total):
@@ -72,19 +70,24 @@ def _as_arrays(j: Joints) -> Joints:
 def _evaluate_batch(
     b: int,
     joints: Joints,
-    bodies: Bodies,
-    R_ref: Array,
+    table: BodyTable,
     want_g: bool,
     want_h: bool,
     psd: bool,
     active_only: bool,
-    dtype: np.dtype,
 ) -> dict:
     c = CONSTITUTIONS[joints.constitution_uid]
-    ids = joints.body_ids
-    p_ref, A_ref = gather_pairs(bodies.q_ref, ids, dtype)
-    v = c.local_vectors(joints.edges.astype(dtype, copy=False), p_ref, A_ref, R_ref[ids].astype(dtype, copy=False))
-    F = [frame_quantities(q, ids, c.alpha, v, dtype) for q in (bodies.q, bodies.q_prev, bodies.q_ref)]
+    pairs = np.ascontiguousarray(joints.body_ids.T)  # (2, N): contiguous indices gather 30% faster
+    dtype = table.dofs.dtype
+    points = bool(c.alpha.any())
+    ref = table.pair(pairs, Q_REF, points)
+    v = c.local_vectors(joints.edges.astype(dtype, copy=False), *ref, table.rotations(pairs))
+
+    def frames(state: int) -> Array:
+        p, A = ref if state == Q_REF else table.pair(pairs, state, points)
+        return frame_quantities(p, A, c.alpha, v)
+
+    F = [frames(Q), None if c.telescopes else frames(Q_PREV), frames(Q_REF)]
     _raise_collapsed(b, c, F)
     x = c.coordinate(*F)
     lo, up, s = (a.astype(dtype, copy=False) for a in (joints.lower, joints.upper, joints.strength))
@@ -148,7 +151,9 @@ def _derivatives(
 
 def _raise_collapsed(b: int, c: Constitution, F: list[Array]) -> None:
     faults = []
-    for state, Fs in zip(("q", "q_prev", "q_ref"), F):
+    for state, Fs in zip(STATES, F):
+        if Fs is None:
+            continue
         faults += [
             Fault(
                 ("batches", b, "body_ids", int(j)),

@@ -18,10 +18,15 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from service.core.scene import Bodies
+
 Array = NDArray[np.float64]
 
 # Which body each frame quantity belongs to (0: body i, 1: body j).
 BLOCK_BODY = np.array([0, 0, 1, 1])
+
+STATES = ("q", "q_prev", "q_ref")
+Q, Q_PREV, Q_REF = range(3)
 
 SINGULAR_RATIO = 1e-12
 """`A_ref` is singular when its smallest singular value is below this times its largest."""
@@ -29,7 +34,9 @@ SINGULAR_RATIO = 1e-12
 _NEWTON_RATIO = 1e-4
 """Below this estimated conditioning ratio the polar factor comes from an SVD, not Newton's iteration."""
 _NEWTON_STEPS = 12
-_NEWTON_TOL = 1e-13
+_NEWTON_TOL = 1e-8
+"""Stop once a step changes no entry by more than this: near the factor, X = U (I + E) steps to
+U (I + E^2 / 2 + O(E^3)), so the step just taken left an error of about half its square (< 1e-16)."""
 
 
 def split(q: Array) -> tuple[Array, Array]:
@@ -53,19 +60,24 @@ def _cofactors_t(a: Array) -> tuple[Array, Array]:
     return C, a[0] * C[0] + a[1] * C[1] + a[2] * C[2]
 
 
-def solve3(A: Array, b: Array) -> Array:
-    """`A^-1 b` for `A` (M, 3, 3), `b` (M, 3) by cofactors (`A^-1 = C^T / det`): 3 x 3 LAPACK calls cost more."""
-    m = A.shape[0]
-    C, det = _cofactors_t(np.ascontiguousarray(A.reshape(m, 9).T))
-    bt = b.T
-    x = np.empty((3, m), dtype=A.dtype)
-    for c in range(3):
-        x[c] = (C[c] * bt[0] + C[3 + c] * bt[1] + C[6 + c] * bt[2]) / det
-    return x.T
+def solve3(A: Array, b: Array) -> list[Array]:
+    """Components of `A^-1 b` (each (...,)) for `A` (..., 3, 3), `b` (..., 3), by cofactors.
+
+    `A^-1 = C^T / det`: a 3 x 3 LAPACK call per joint costs more than these passes,
+    which read `A` in place, whatever its layout.
+    """
+    C = [
+        [A[..., i, k] * A[..., j, l] - A[..., i, l] * A[..., j, k] for k, l in ((1, 2), (2, 0), (0, 1))]
+        for i, j in ((1, 2), (2, 0), (0, 1))
+    ]
+    det = A[..., 0, 0] * C[0][0] + A[..., 0, 1] * C[0][1] + A[..., 0, 2] * C[0][2]
+    return [(C[0][c] * b[..., 0] + C[1][c] * b[..., 1] + C[2][c] * b[..., 2]) / det for c in range(3)]
 
 
-def polar_rotation(A: Array) -> tuple[Array, Array]:
-    """Orthogonal polar factor of each `A` (M, 3, 3) and its conditioning ratio `s_min / s_max` (M,).
+def polar_rotation(a: Array) -> tuple[Array, Array]:
+    """Orthogonal polar factor `R` (9, M) of each `A` and its conditioning ratio `s_min / s_max` (M,).
+
+    Component-major in and out: `a[3 r + c]` is `A[r, c]` of all M matrices.
 
     Why not an SVD for every body: it was 95% of an energy-only evaluation. Newton's
     iteration `X <- (g X + X^-T / g) / 2` (Frobenius scaling `g`), with cofactor inverses
@@ -74,8 +86,7 @@ def polar_rotation(A: Array) -> tuple[Array, Array]:
     returned ratio is exact from the SVD where it decides anything; elsewhere it is the
     bound `1 / (|A|_F |A^-1|_F)`, which lies in `[ratio / 3, ratio]`, far above `SINGULAR_RATIO`.
     """
-    m = A.shape[0]
-    a = np.ascontiguousarray(A.reshape(m, 9).T)  # (9, M)
+    m = a.shape[1]
     ratio = np.zeros(m)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         C, det = _cofactors_t(a)
@@ -86,8 +97,10 @@ def polar_rotation(A: Array) -> tuple[Array, Array]:
     newton = np.flatnonzero(good)
     ratio[newton] = est[newton]
     if newton.shape[0] < m:
-        a, C, det, nA, nC = a[:, newton], C[:, newton], det[newton], nA[newton], nC[newton]
-    X, done = a.copy() if newton.shape[0] == m else a, np.zeros(newton.shape[0], dtype=bool)
+        X, C, det, nA, nC = a[:, newton], C[:, newton], det[newton], nA[newton], nC[newton]
+    else:
+        X = a.copy()  # updated in place below
+    done = np.zeros(newton.shape[0], dtype=bool)
     for _ in range(_NEWTON_STEPS):
         g = np.sqrt(nC / (np.abs(det) * nA))  # sqrt(|X^-1|_F / |X|_F)
         X_new = X * (0.5 * g)
@@ -101,57 +114,117 @@ def polar_rotation(A: Array) -> tuple[Array, Array]:
         nA = np.sqrt(np.einsum("im,im->m", X, X))
         nC = np.sqrt(np.einsum("im,im->m", C, C))
     if newton.shape[0] == m:
-        R = np.ascontiguousarray(X.T).reshape(m, 3, 3)
+        R = X
     else:
-        R = np.empty_like(A)
-        R[newton] = X.T.reshape(-1, 3, 3)
+        R = np.empty_like(a)
+        R[:, newton] = X
     svd = np.concatenate([np.flatnonzero(~good), newton[~done]])
     if svd.shape[0]:
-        U, s, Vt = np.linalg.svd(A[svd])
-        R[svd] = U @ Vt
+        U, s, Vt = np.linalg.svd(a[:, svd].T.reshape(-1, 3, 3))
+        R[:, svd] = (U @ Vt).reshape(-1, 9).T
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio[svd] = np.nan_to_num(s[:, -1] / s[:, 0], nan=0.0)
     return R, ratio
 
 
-def gather_pairs(q: Array, ids: NDArray[np.int64], dtype: type = np.float64) -> tuple[Array, Array]:
-    """`p` (N, 2, 3) and `A` (N, 2, 3, 3) of each joint's two bodies in state `q` (B, 12)."""
-    q2 = np.take(q, ids, axis=0)  # faster than q[ids] for (N, 2) index arrays
-    if q2.dtype != dtype:
-        q2 = q2.astype(dtype)
-    return split(q2)
+def component_major(n: int, shape: tuple[int, ...], dtype: type = np.float64) -> Array:
+    """An empty (N, *shape) array stored component-major: every `a[:, i, ..]` is a contiguous (N,) row.
 
-
-def frame_quantities(q: Array, ids: NDArray[np.int64], alpha: Array, v: Array, dtype: type = np.float64) -> Array:
-    """`F` (N, 4, 3) of joints `ids` (N, 2) whose bodies are in state `q` (B, 12).
-
-    `alpha` (4,) and `v` (N, 4, 3) as in the module docstring. Computed component by
-    component on contiguous (N,) rows: NumPy's broadcasting over trailing 3-vectors (or a
-    batched 3 x 3 matmul) spends its time in per-row loop overhead, 5x slower.
+    The kernels here work on whole columns of N numbers: NumPy's broadcasting over
+    trailing 3-vectors (or a batched 3 x 3 matmul) spends its time in per-row loop
+    overhead, 5x slower. Elementwise ufuncs keep this layout (order K).
     """
-    n = v.shape[0]
-    qT = np.ascontiguousarray(q.T, dtype=dtype)  # (12, B)
-    vT = np.ascontiguousarray(v.transpose(1, 2, 0))  # (4, 3, N)
-    FT = np.empty((4, 3, n), dtype=dtype)
-    tmp = np.empty(n, dtype=dtype)
-    for b in range(2):
-        body = np.take(qT, ids[:, b], axis=1)  # (12, N)
-        for k in (2 * b, 2 * b + 1):
-            for r in range(3):
-                out = FT[k, r]
-                np.multiply(body[3 + 3 * r], vT[k, 0], out=out)
-                out += np.multiply(body[4 + 3 * r], vT[k, 1], out=tmp)
-                out += np.multiply(body[5 + 3 * r], vT[k, 2], out=tmp)
-        if b == 0:
-            p_i = body[:3]
-        elif alpha.any():
-            # Nearby positions are differenced before anything large is added.
-            dp = body[:3] - p_i
-            for k in (2, 3):
-                if alpha[k]:
-                    FT[k] += alpha[k] * dp
-    return np.ascontiguousarray(FT.transpose(2, 0, 1))
+    return np.moveaxis(np.empty(shape + (n,), dtype=dtype), -1, 0)
+
+
+class BodyTable:
+    """Every body's DOFs in the three states and its reference rotation, component-major.
+
+    Built once per evaluation (B bodies, whatever the number of joints); each batch
+    then gathers its joints' two bodies with one `take` per state. `ratio` (B,) is
+    each `A_ref`'s conditioning (`polar_rotation`).
+    """
+
+    def __init__(self, bodies: Bodies, dtype: type = np.float64) -> None:
+        n = bodies.q.shape[0]
+        self.dofs = np.empty((len(STATES), 12, n), dtype=dtype)  # (state, DOF, body)
+        for s, q in enumerate((bodies.q, bodies.q_prev, bodies.q_ref)):
+            self.dofs[s] = q.T
+        # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
+        A_ref = self.dofs[Q_REF, 3:] if self.dofs.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
+        R, self.ratio = polar_rotation(A_ref)
+        self.rotation = R.astype(dtype, copy=False)  # (9, B)
+
+    def pair(self, pairs: NDArray[np.intp], state: int, translation: bool = True) -> tuple[Array | None, Array]:
+        """`p` (N, 2, 3) (None without `translation`) and `A` (N, 2, 3, 3) of joints `pairs` in `state`.
+
+        `pairs` (2, N) contiguous: each joint's bodies i and j (the transpose of `body_ids`).
+        """
+        rows = self.dofs[state] if translation else self.dofs[state, 3:]
+        g = np.take(rows, pairs, axis=1)  # (k, 2, N)
+        A = g[-9:].reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
+        return (g[:3].transpose(2, 1, 0) if translation else None), A
+
+    def rotations(self, pairs: NDArray[np.intp]) -> Array:
+        """`R_ref` (N, 2, 3, 3) of joints `pairs` (2, N)."""
+        g = np.take(self.rotation, pairs, axis=1)  # (9, 2, N)
+        return g.reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
+
+
+def frame_quantities(p: Array | None, A: Array, alpha: Array, v: Array) -> Array:
+    """`F` (N, 4, 3), component-major, of joints whose two bodies are at `p` (N, 2, 3), `A` (N, 2, 3, 3).
+
+    `alpha` (4,) and `v` (N, 4, 3) as in the module docstring; `p` may be None when
+    `alpha` is zero. Body i's position is the origin, so `F_0, F_1` need no `p`.
+    """
+    n = A.shape[0]
+    F = component_major(n, (4, 3), A.dtype)
+    tmp = np.empty(n, dtype=A.dtype)
+    for k in range(4):
+        side = BLOCK_BODY[k]
+        for r in range(3):
+            out = F[:, k, r]
+            np.multiply(A[:, side, r, 0], v[:, k, 0], out=out)
+            out += np.multiply(A[:, side, r, 1], v[:, k, 1], out=tmp)
+            out += np.multiply(A[:, side, r, 2], v[:, k, 2], out=tmp)
+    if alpha[2:].any():
+        # Nearby positions are differenced before anything large is added.
+        dp = p[:, 1] - p[:, 0]
+        for k in (2, 3):
+            if alpha[k]:
+                F[:, k] += alpha[k] * dp
+    return F
+
+
+def dot(a: Array, b: Array) -> Array:
+    """Row-wise dot (N,) of (N, 3) arrays, column by column."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def cross(a: Array, b: Array) -> Array:
+    """Row-wise cross product of (N, 3) arrays, component-major."""
+    out = component_major(a.shape[0], (3,), a.dtype)
+    for r in range(3):
+        i, j = (r + 1) % 3, (r + 2) % 3
+        np.subtract(a[:, i] * b[:, j], a[:, j] * b[:, i], out=out[:, r])
+    return out
+
+
+def to_local(R: Array, w: Array) -> Array:
+    """`R^T w` (N, 3), component-major, for rotations `R` (N, 3, 3) and world vectors `w` (N, 3)."""
+    out = component_major(w.shape[0], (3,), w.dtype)
+    for c in range(3):
+        np.add(R[:, 0, c] * w[:, 0] + R[:, 1, c] * w[:, 1], R[:, 2, c] * w[:, 2], out=out[:, c])
+    return out
+
+
+def edge_axis(edges: Array) -> Array:
+    """Unit joint axis `t` (N, 3), component-major, of edges `p0 -> p1` (N, 2, 3)."""
+    d = component_major(edges.shape[0], (3,), edges.dtype)
+    np.subtract(edges[:, 1], edges[:, 0], out=d)
+    return unit(d)
 
 
 def unit(v: Array) -> Array:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+    """Each row of `v` (N, 3) over its length, in `v`'s layout."""
+    return v / np.sqrt(dot(v, v))[:, None]

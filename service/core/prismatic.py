@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.core.constitution import Array, Curvature
-from service.core.kinematics import solve3, unit
+from service.core.kinematics import component_major, dot, edge_axis, solve3, to_local
 
 # theta = D.S / 2 with D = C_j - C_i, S = T_i + T_j: coefficients of D and S per block.
 _D = np.array([-1.0, 0.0, 1.0, 0.0])
@@ -29,7 +29,7 @@ _U_MINUS = 0.5 * (_D - _S)
 def _theta(F: Array) -> Array:
     D = F[:, 2] - F[:, 0]
     S = F[:, 1] + F[:, 3]
-    return 0.5 * (D[:, 0] * S[:, 0] + D[:, 1] * S[:, 1] + D[:, 2] * S[:, 2])
+    return 0.5 * dot(D, S)
 
 
 class Prismatic:
@@ -37,18 +37,24 @@ class Prismatic:
     base_uid = 20
     name = "AffineBodyPrismaticJointLimit"
     alpha = np.array([1.0, 0.0, 1.0, 0.0])
+    telescopes = True
 
-    def local_vectors(self, edges: Array, p_ref: Array, A_ref: Array, R_ref: Array) -> Array:
-        n = edges.shape[0]
-        t = unit(edges[:, 1] - edges[:, 0])
+    def local_vectors(self, edges: Array, p_ref: Array | None, A_ref: Array, R_ref: Array) -> Array:
+        t = edge_axis(edges)
+        v = component_major(t.shape[0], (4, 3), t.dtype)
         # c_k = A_ref_k^{-1} (p0 - p_ref_k): the difference first, then the solve.
-        c = solve3(A_ref.reshape(2 * n, 3, 3), (edges[:, :1] - p_ref).reshape(2 * n, 3)).reshape(n, 2, 3)
-        t_local = np.matmul(t[:, None, None, :], R_ref)[:, :, 0]  # R_k^T t, (N, 2, 3)
-        return np.stack([c, t_local], axis=2).reshape(n, 4, 3)
+        d = component_major(t.shape[0], (2, 3), t.dtype)
+        for r in range(3):
+            np.subtract(edges[:, 0, r, None], p_ref[:, :, r], out=d[:, :, r])
+        c = solve3(A_ref, d)  # 3 x (N, 2)
+        for r in range(3):
+            v[:, 0::2, r] = c[r]
+        for side in range(2):
+            v[:, 2 * side + 1] = to_local(R_ref[:, side], t)  # t_k = R_k^T t
+        return v
 
-    def coordinate(self, F: Array, F_prev: Array, F_ref: Array) -> Array:
+    def coordinate(self, F: Array, F_prev: Array | None, F_ref: Array) -> Array:
         return _theta(F) - _theta(F_ref)
-
     def collapsed(self, F: Array) -> np.ndarray:
         return np.zeros(F.shape[0], dtype=bool)
 

@@ -14,10 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.core.constitution import Array, Curvature
-from service.core.kinematics import unit
-
-E_X = np.array([1.0, 0.0, 0.0])
-E_Y = np.array([0.0, 1.0, 0.0])
+from service.core.kinematics import component_major, cross, dot, edge_axis, to_local, unit
 
 # Constant second derivatives of the bilinear cos and sin in the (4 x 4) block
 # layout of F; each block is a multiple of the 3 x 3 identity.
@@ -28,14 +25,9 @@ _SIN_PAIRS[0, 3] = _SIN_PAIRS[3, 0] = 0.5
 _SIN_PAIRS[1, 2] = _SIN_PAIRS[2, 1] = -0.5
 
 
-def _dot(a: Array, b: Array) -> Array:
-    """Row-wise dot of (N, 3) arrays, without einsum's per-call overhead on 3-vectors."""
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
-
-
 def _cos_sin(F: Array) -> tuple[Array, Array]:
     B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-    return 0.5 * (_dot(B_i, B_j) + _dot(N_i, N_j)), 0.5 * (_dot(B_i, N_j) - _dot(N_i, B_j))
+    return 0.5 * (dot(B_i, B_j) + dot(N_i, N_j)), 0.5 * (dot(B_i, N_j) - dot(N_i, B_j))
 
 
 def _delta(cs_a: tuple[Array, Array], cs_b: tuple[Array, Array]) -> Array:
@@ -49,15 +41,22 @@ class Revolute:
     base_uid = 18
     name = "AffineBodyRevoluteJointLimit"
     alpha = np.zeros(4)
+    telescopes = False
 
-    def local_vectors(self, edges: Array, p_ref: Array, A_ref: Array, R_ref: Array) -> Array:
-        t = unit(edges[:, 1] - edges[:, 0])
-        test = np.where((np.abs(t[:, :1]) > 0.9), E_Y, E_X)
-        n = unit(np.cross(t, test))
-        b = unit(np.cross(t, n))
-        # Body-local b_k = R_k^T b: the row-vector products [b; n] R_k, both bodies at once.
-        bn = np.stack([b, n], axis=1)  # (N, 2, 3)
-        return np.matmul(bn[:, None], R_ref).reshape(-1, 4, 3)
+    def local_vectors(self, edges: Array, p_ref: Array | None, A_ref: Array, R_ref: Array) -> Array:
+        t = edge_axis(edges)
+        # n = t x test with test = e_y where |t . e_x| > 0.9, else e_x; written out, both cases at once.
+        y = np.abs(t[:, 0]) > 0.9
+        n = component_major(t.shape[0], (3,), t.dtype)
+        n[:, 0] = np.where(y, -t[:, 2], 0.0)
+        n[:, 1] = np.where(y, 0.0, t[:, 2])
+        n[:, 2] = np.where(y, t[:, 0], -t[:, 1])
+        n = unit(n)
+        b = unit(cross(t, n))
+        v = component_major(t.shape[0], (4, 3), t.dtype)
+        for k, (side, w) in enumerate(((0, b), (0, n), (1, b), (1, n))):
+            v[:, k] = to_local(R_ref[:, side], w)  # body-local b_k = R_k^T b
+        return v
 
     def coordinate(self, F: Array, F_prev: Array, F_ref: Array) -> Array:
         cs_prev = _cos_sin(F_prev)

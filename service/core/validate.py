@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from service.core.errors import Fault, InputError
-from service.core.kinematics import SINGULAR_RATIO
+from service.core.kinematics import SINGULAR_RATIO, dot
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
 
@@ -26,9 +26,12 @@ def _where(mask: np.ndarray) -> list[int]:
     return [int(i) for i in np.flatnonzero(mask)[:MAX_FAULTS]]
 
 
-def _nonfinite_rows(a: np.ndarray) -> np.ndarray:
-    """(N,) rows of `a` (N, ...) holding a NaN or an infinity; N may be 0."""
-    return ~np.isfinite(a).all(axis=tuple(range(1, a.ndim)))
+def _nonfinite_rows(a: np.ndarray) -> list[int]:
+    """The first `MAX_FAULTS` rows of `a` (N, ...) holding a NaN or an infinity; N may be 0."""
+    finite = np.isfinite(a)
+    if finite.all():  # the common case: a flat reduction, much cheaper than one per row
+        return []
+    return _where(~finite.all(axis=tuple(range(1, a.ndim))))
 
 
 def check_options(outputs: Sequence[str], hessian_mode: str) -> list[Fault]:
@@ -44,7 +47,7 @@ def check_options(outputs: Sequence[str], hessian_mode: str) -> list[Fault]:
     return faults
 
 
-def check_bodies(bodies: Bodies, rotation_ratio: np.ndarray | None) -> list[Fault]:
+def check_bodies(bodies: Bodies) -> list[Fault]:
     faults: list[Fault] = []
     n = np.shape(bodies.q)[0] if np.ndim(bodies.q) else 0
     for name in ("q", "q_prev", "q_ref"):
@@ -52,13 +55,16 @@ def check_bodies(bodies: Bodies, rotation_ratio: np.ndarray | None) -> list[Faul
         if a.ndim != 2 or a.shape[1] != 12 or a.shape[0] != n:
             faults.append(Fault(("bodies", name), f"must be {n} rows of 12 numbers, got shape {a.shape}"))
             continue
-        faults += [Fault(("bodies", name, i), "contains a non-finite number") for i in _where(_nonfinite_rows(a))]
-    if not faults and rotation_ratio is not None:
-        faults += [
-            Fault(("bodies", "q_ref", i), f"A_ref is singular (smallest/largest singular value < {SINGULAR_RATIO:g})")
-            for i in _where(~(rotation_ratio >= SINGULAR_RATIO))
-        ]
+        faults += [Fault(("bodies", name, i), "contains a non-finite number") for i in _nonfinite_rows(a)]
     return faults
+
+
+def check_rotations(rotation_ratio: np.ndarray) -> list[Fault]:
+    """Bodies whose `A_ref` is too close to singular for a polar factor (`rotation_ratio` (B,) = s_min / s_max)."""
+    return [
+        Fault(("bodies", "q_ref", i), f"A_ref is singular (smallest/largest singular value < {SINGULAR_RATIO:g})")
+        for i in _where(~(rotation_ratio >= SINGULAR_RATIO))
+    ]
 
 
 def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
@@ -90,7 +96,7 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     if faults:
         return faults
     for name in ("edges", "lower", "upper", "strength"):
-        faults += [Fault(at(name, j), "is not a finite number") for j in _where(_nonfinite_rows(getattr(joints, name)))]
+        faults += [Fault(at(name, j), "is not a finite number") for j in _nonfinite_rows(getattr(joints, name))]
     ids = joints.body_ids
     faults += [
         Fault(at("body_ids", j), f"body index {ids[j].tolist()} out of range [0, {n_bodies}) (there are {n_bodies} bodies)")
@@ -110,7 +116,8 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     faults += [Fault(at("strength", j), f"strength {float(s[j])!r} < 0: must be >= 0") for j in _where(s < 0)]
     with np.errstate(over="ignore", invalid="ignore"):
         # The same arithmetic as the constitutions' unit axis, so exactly the edges it cannot normalise.
-        length = np.linalg.norm(joints.edges[:, 1] - joints.edges[:, 0], axis=-1)
+        d = joints.edges[:, 1] - joints.edges[:, 0]
+        length = np.sqrt(dot(d, d))
     faults += [
         Fault(at("edges", j), "zero-length edge: p0 == p1 (or too close to normalise) gives no joint axis")
         for j in _where(length == 0)

@@ -175,7 +175,7 @@ def test_active_only_reports_exactly_the_joints_with_energy(seed: int, mode: str
 @pytest.mark.parametrize("outputs", [("energy",), ("energy", "gradient", "hessian")])
 def test_active_only_with_an_idle_batch(outputs: tuple[str, ...]) -> None:
     """A batch with no joint outside its range answers zero rows (CORE BUG: it raises ValueError
-    "cannot reshape array of size 0" in evaluate._raise_nonfinite, a 500 over HTTP)."""
+    "cannot reshape array of size 0" in the non-finite check, a 500 over HTTP)."""
     sc = scene(0)
     x = sc.x()
     idle = replace(sc.batches[0], lower=x[0] - 1.0, upper=x[0] + 1.0)  # every joint well inside

@@ -8,9 +8,8 @@ The Hessian `E'' g g^T + J^T (E' d2x/dF2) J` is assembled from the structured
 curvature (`constitution.Curvature`) in two parts, each bitwise symmetric by
 construction, straight into the output in DOF order:
 
-- low rank: `J^T U^T S U J` with `S = E' C + E'' t t^T` (k x k, k <= 2) becomes
-  `sum_a sign_a z_a z_a^T` from S's closed-form eigenpairs; `sigma z_i z_j` with
-  `sigma = +-1` is exactly symmetric;
+- low rank: `Y^T S Y` with `Y = U J` (k x 24) and `S = E' C + E'' t t^T` (k x k): one
+  small GEMM per joint, then averaged with its transpose (for k = 1, `s (y_i y_j)`);
 - Kronecker: `J^T (K (x) I_3) J` touches only the entries that share a row r of
   `[p | A]`: per r an 8 x 8 (or, with no points, 6 x 6) block `W = w^T K w`.
 
@@ -23,19 +22,6 @@ from __future__ import annotations
 import numpy as np
 
 from service.core.constitution import Array, Curvature
-
-
-def _dof_index() -> np.ndarray:
-    """(3, 2, 4): contract DOF of (row r, body b, m), m = 0 for p_r, 1 + c for A[r, c]."""
-    idx = np.empty((3, 2, 4), dtype=np.intp)
-    for r in range(3):
-        for b in range(2):
-            idx[r, b, 0] = 12 * b + r
-            idx[r, b, 1:] = 12 * b + 3 + 3 * r + np.arange(3)
-    return idx
-
-
-DOF = _dof_index()
 
 
 def gradient(alpha: Array, v: Array, dF: Array) -> Array:
@@ -54,36 +40,6 @@ def gradient(alpha: Array, v: Array, dF: Array) -> Array:
     else:
         out[..., :3] = 0.0
     return out.reshape(dF.shape[:-2] + (24,))
-
-
-def _eig2(S: Array) -> tuple[Array, Array]:
-    """Eigenpairs of symmetric 2 x 2 `S` (N, 2, 2) by one Jacobi rotation: values (N, 2), vectors (N, 2, 2) as rows."""
-    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tau = (c - a) / (2.0 * b)
-        t = np.where(tau >= 0, 1.0, -1.0) / (np.abs(tau) + np.hypot(1.0, tau))
-    t = np.where(b == 0, 0.0, t)
-    cs = 1.0 / np.sqrt(1.0 + t * t)
-    sn = t * cs
-    lam = np.stack([a - t * b, c + t * b], axis=1)
-    vec = np.stack([np.stack([cs, -sn], axis=1), np.stack([sn, cs], axis=1)], axis=1)
-    return lam, vec
-
-
-def _low_rank_factors(Y: Array, S: Array) -> tuple[Array, Array]:
-    """`Y^T S Y` as `sum_a sign_a z_a z_a^T`: `Y` (N, k, 24), `S` (N, k, k) -> signs (N, k), `z` (N, k, 24)."""
-    k = Y.shape[1]
-    if k == 1:
-        lam, vec = S[:, :, 0], np.ones((S.shape[0], 1, 1), dtype=S.dtype)
-    elif k == 2:
-        lam, vec = _eig2(S)
-    elif not np.any(S - S * np.eye(k, dtype=S.dtype)):
-        lam, vec = np.diagonal(S, axis1=1, axis2=2), np.broadcast_to(np.eye(k, dtype=S.dtype), S.shape)
-    else:
-        lam, V = np.linalg.eigh(S)
-        vec = V.transpose(0, 2, 1)
-    z = np.einsum("nab,nbi->nai", vec * np.sqrt(np.abs(lam))[:, :, None], Y)
-    return np.sign(lam), z
 
 
 def hessian(
@@ -105,23 +61,38 @@ def hessian(
         basis = np.concatenate([basis, dx[:, None]], axis=1)
         S = np.pad(S, ((0, 0), (0, 1), (0, 1)))
         S[:, k, k] = d2E
-    sign, z = _low_rank_factors(gradient(alpha, v, basis), S)
-    sz = sign[:, :, None] * z  # sign is +-1 or 0: exact
-    np.multiply(sz[:, 0, :, None], z[:, 0, None, :], out=out)
-    for a in range(1, z.shape[1]):
-        out += sz[:, a, :, None] * z[:, a, None, :]
+    Y = gradient(alpha, v, basis)  # (N, k, 24)
+    if Y.shape[1] == 1:
+        # s (y_i y_j) == s (y_j y_i): bitwise symmetric as it stands.
+        np.multiply(Y[:, 0, :, None], Y[:, 0, None, :], out=out)
+        out *= S[:, 0, 0, None, None]
+    else:
+        np.matmul(Y.transpose(0, 2, 1), S @ Y, out=out)  # one small GEMM per joint: k passes fused into one
+        scratch = np.empty_like(out)
+        np.copyto(scratch, out.transpose(0, 2, 1))
+        out += scratch
+        out *= 0.5  # (H + H^T) / 2: bitwise symmetric whatever order the GEMM summed in
     # Kronecker part: W[b, m, b', m'] = sum w[b,k,m] (E' K)[b,k,b',l] w[b',l,m'].
     m0 = 0 if alpha.any() else 1
-    w = np.empty((n, 2, 2, 4), dtype=v.dtype)
+    w = np.empty((n, 2, 2, 4), dtype=v.dtype)  # (joint, body, k, m)
     w[..., 0] = alpha.reshape(2, 2)
     w[..., 1:] = v.reshape(n, 2, 2, 3)
     w = w[..., m0:]
-    K = (dE[:, None, None] * curvature.kron).reshape(n, 2, 2, 2, 2)
-    W = np.einsum("nbkm,nbkcl,nclo->nbmco", w, K, w).reshape(n, 8 - 2 * m0, 8 - 2 * m0)
-    W = 0.5 * (W + W.transpose(0, 2, 1))  # bitwise symmetric before it is added twice
+    K = (dE[:, None, None] * curvature.kron).reshape(n, 2, 2, 2, 2)  # (joint, body, k, body', l)
+    Kw = (K[..., None] * w[:, None, None]).sum(axis=4)  # sum over l: (joint, body, k, body', m')
+    W = (w[:, :, :, :, None, None] * Kw[:, :, :, None]).sum(axis=2)  # sum over k: (joint, body, m, body', m')
+    W += W.transpose(0, 3, 4, 1, 2)
+    W *= 0.5  # bitwise symmetric before it is added to both triangles
+    # Each row r of [p | A] gets the same W: basic-slice views of `out`, no fancy indexing.
+    H = out.reshape(n, 2, 12, 2, 12)
+    A = W[:, :, -3:, :, -3:]
     for r in range(3):
-        idx = DOF[r, :, m0:].reshape(-1)
-        out[:, idx[:, None], idx[None, :]] += W
+        a = slice(3 + 3 * r, 6 + 3 * r)
+        H[:, :, a, :, a] += A
+        if m0 == 0:
+            H[:, :, r, :, a] += W[:, :, 0, :, 1:]
+            H[:, :, a, :, r] += W[:, :, 1:, :, 0]
+            H[:, :, r, :, r] += W[:, :, 0, :, 0]
     return out
 
 

@@ -12,7 +12,15 @@ from service.core.errors import Fault, InputError
 from service.core.kinematics import Q, Q_PREV, Q_REF, STATES, BodyTable, frame_quantities
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
-from service.core.validate import MAX_FAULTS, check_bodies, check_joints, check_options, check_rotations, raise_if
+from service.core.validate import (
+    MAX_FAULTS,
+    check_bodies,
+    check_joints,
+    check_options,
+    check_rotations,
+    nonfinite_rows,
+    raise_if,
+)
 
 CHUNK = 4096
 """Active joints differentiated at once: bounds temporaries to a few MB whatever the batch size."""
@@ -93,14 +101,13 @@ def _evaluate_batch(
     lo, up, s = (a.astype(dtype, copy=False) for a in (joints.lower, joints.upper, joints.strength))
     energy = penalty.energy(x, lo, up, s)
 
-    outside = (penalty.gap(x, lo, up)[0] > 0) & (s > 0)
-    active = np.flatnonzero(outside)
-    rows = active if active_only else np.arange(x.shape[0])
-    n = rows.shape[0]
+    active = np.flatnonzero((penalty.gap(x, lo, up)[0] > 0) & (s > 0))
+    n = active.shape[0] if active_only else x.shape[0]
     # Inactive rows are exact zeros that were never differentiated (calloc: untouched pages stay free).
     gradient = np.zeros((n, 24), dtype=dtype) if want_g else None
     hessian = np.zeros((n, 24, 24), dtype=dtype) if want_h else None
-    out_pos = np.arange(active.shape[0]) if active_only else active
+    out_pos = np.arange(n) if active_only else active
+    overflow = nonfinite_rows(energy)
     if want_g or want_h:
         for start in range(0, active.shape[0], CHUNK):
             sel = active[start : start + CHUNK]
@@ -111,16 +118,27 @@ def _evaluate_batch(
             if want_h:
                 h_out = hessian[pos[0] : pos[-1] + 1] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
             g = _derivatives(c, F[0][sel], v[sel], x[sel], lo[sel], up[sel], s[sel], h_out, psd)
+            # Only active rows can overflow: checked while they are still in cache.
+            overflow += [int(sel[i]) for i in nonfinite_rows(g)] if want_g else []
+            overflow += [int(sel[i]) for i in nonfinite_rows(h_out)] if want_h else []
             if want_g:
                 gradient[pos] = g
             if want_h and not contiguous:
                 hessian[pos] = h_out
-    _raise_nonfinite(b, rows, energy[rows], gradient, hessian)
+    raise_if(
+        [
+            Fault(
+                ("batches", b, "strength", j),
+                "the energy or its derivatives overflow float64 at this configuration and strength",
+            )
+            for j in sorted(set(overflow))[:MAX_FAULTS]
+        ]
+    )
     return dict(
         constitution_uid=c.uid,
-        index=rows,
-        x=x[rows],
-        energy=energy[rows],
+        index=active if active_only else np.arange(n),
+        x=x[active] if active_only else x,
+        energy=energy[active] if active_only else energy,
         gradient=gradient,
         hessian=hessian,
         all_energy=energy,
@@ -162,19 +180,3 @@ def _raise_collapsed(b: int, c: Constitution, F: list[Array]) -> None:
             for j in np.flatnonzero(c.collapsed(Fs))[:MAX_FAULTS]
         ]
     raise_if(faults)
-
-
-def _raise_nonfinite(b: int, rows: np.ndarray, *arrays: Array | None) -> None:
-    bad = np.zeros(rows.shape[0], dtype=bool)
-    for a in arrays:
-        if a is not None:
-            bad |= ~np.isfinite(a).all(axis=tuple(range(1, a.ndim)))
-    raise_if(
-        [
-            Fault(
-                ("batches", b, "strength", int(rows[i])),
-                "the energy or its derivatives overflow float64 at this configuration and strength",
-            )
-            for i in np.flatnonzero(bad)[:MAX_FAULTS]
-        ]
-    )

@@ -26,7 +26,7 @@ def _where(mask: np.ndarray) -> list[int]:
     return [int(i) for i in np.flatnonzero(mask)[:MAX_FAULTS]]
 
 
-def _nonfinite_rows(a: np.ndarray) -> list[int]:
+def nonfinite_rows(a: np.ndarray) -> list[int]:
     """The first `MAX_FAULTS` rows of `a` (N, ...) holding a NaN or an infinity; N may be 0."""
     finite = np.isfinite(a)
     if finite.all():  # the common case: a flat reduction, much cheaper than one per row
@@ -55,7 +55,7 @@ def check_bodies(bodies: Bodies) -> list[Fault]:
         if a.ndim != 2 or a.shape[1] != 12 or a.shape[0] != n:
             faults.append(Fault(("bodies", name), f"must be {n} rows of 12 numbers, got shape {a.shape}"))
             continue
-        faults += [Fault(("bodies", name, i), "contains a non-finite number") for i in _nonfinite_rows(a)]
+        faults += [Fault(("bodies", name, i), "contains a non-finite number") for i in nonfinite_rows(a)]
     return faults
 
 
@@ -96,7 +96,7 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     if faults:
         return faults
     for name in ("edges", "lower", "upper", "strength"):
-        faults += [Fault(at(name, j), "is not a finite number") for j in _nonfinite_rows(getattr(joints, name))]
+        faults += [Fault(at(name, j), "is not a finite number") for j in nonfinite_rows(getattr(joints, name))]
     ids = joints.body_ids
     faults += [
         Fault(at("body_ids", j), f"body index {ids[j].tolist()} out of range [0, {n_bodies}) (there are {n_bodies} bodies)")

@@ -7,20 +7,22 @@ from types import TracebackType
 
 import httpx
 
-from client import codec, split, transport
-from client.errors import ServiceError
+from client import split, transport
+from client.base import DEFAULT_URL, BaseClient
 from client.model import Evaluation, Request
-from client.progress import ProgressCallback, resolve_progress
+from client.progress import ProgressCallback
 from schemas import ConstitutionsResponse
 
 
-class AsyncClient:
+class AsyncClient(BaseClient):
     """Async twin of `client.Client` (same arguments, same results and errors); `concurrency`
     bounds how many parts of a split request are in flight at once."""
 
+    _http: httpx.AsyncClient
+
     def __init__(
         self,
-        base_url: str = "http://127.0.0.1:8000",
+        base_url: str = DEFAULT_URL,
         *,
         binary: bool = True,
         timeout: float | httpx.Timeout = 60.0,
@@ -32,55 +34,43 @@ class AsyncClient:
         concurrency: int = 4,
         http_transport: httpx.AsyncBaseTransport | None = None,
     ) -> None:
-        self.binary = binary
-        self.retries, self.backoff = retries, backoff
-        self.max_joints_per_request = max_joints_per_request
-        self.progress = progress
-        self.concurrency = concurrency
-        self._limits: ConstitutionsResponse | None = None
-        self._http = httpx.AsyncClient(
-            base_url=base_url, timeout=timeout, headers=transport.headers(token, binary), transport=http_transport
+        super().__init__(
+            base_url,
+            binary=binary,
+            timeout=timeout,
+            retries=retries,
+            backoff=backoff,
+            token=token,
+            max_joints_per_request=max_joints_per_request,
+            progress=progress,
         )
+        self.concurrency = concurrency
+        self._http = httpx.AsyncClient(**self._http_options, transport=http_transport)
 
     async def constitutions(self) -> ConstitutionsResponse:
-        return transport.constitutions(await self._send("GET", "/v1/constitutions"))
+        return transport.constitutions(await self._send(self._constitutions_request()))
 
     async def evaluate(self, request: Request, *, progress: bool | ProgressCallback | None = None) -> Evaluation:
         if self._limits is None:
             self._limits = await self.constitutions()
-        parts = split.plan(request, transport.part_joints(self._limits, self.binary, self.max_joints_per_request))
-        report = resolve_progress(self.progress if progress is None else progress, len(parts))
+        job = self._job(request, progress)
         gate = asyncio.Semaphore(self.concurrency)
-        done = 0
 
         async def run(part: split.Part) -> Evaluation:
-            nonlocal done
-            content, content_type = codec.encode(part.request, self.binary)
+            outgoing = self._evaluate_request(part)  # only sending is gated: parts encode while others are in flight
             async with gate:
-                response = await self._send(
-                    "POST", "/v1/evaluate", content=content, headers={"Content-Type": content_type}
-                )
-            try:
-                ev = transport.result(response)
-            except ServiceError as e:
-                raise split.relocate(part, e) from None
-            done += part.n_joints
-            if report:
-                report(done, request.n_joints)
-            return ev
+                response = await self._send(outgoing)
+            return job.receive(part, response)
 
-        results = await asyncio.gather(*(run(p) for p in parts))
-        return split.merge(request, parts, list(results))
+        return job.merge(await asyncio.gather(*(run(part) for part in job.parts)))
 
-    async def _send(self, method: str, url: str, **kw: object) -> httpx.Response:
-        for pause in [*transport.delays(self.retries, self.backoff), None]:
+    async def _send(self, request: httpx.Request) -> httpx.Response:
+        retry = self._retry()
+        while True:
             try:
-                return await self._http.request(method, url, **kw)  # type: ignore[arg-type]
-            except transport.RETRYABLE:
-                if pause is None:
-                    raise
-                await asyncio.sleep(pause)
-        raise AssertionError("unreachable")
+                return await self._http.send(request)
+            except transport.RETRYABLE as e:
+                await asyncio.sleep(retry.pause(e))
 
     async def aclose(self) -> None:
         await self._http.aclose()

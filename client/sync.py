@@ -7,14 +7,14 @@ from types import TracebackType
 
 import httpx
 
-from client import codec, split, transport
-from client.progress import ProgressCallback, resolve_progress
-from client.errors import ServiceError
+from client import transport
+from client.base import DEFAULT_URL, BaseClient
 from client.model import Evaluation, Request
+from client.progress import ProgressCallback
 from schemas import ConstitutionsResponse
 
 
-class Client:
+class Client(BaseClient):
     """`POST /v1/evaluate` from NumPy arrays to NumPy arrays.
 
     `binary` (default) speaks msgpack with raw float64 buffers; `False` speaks JSON. Both
@@ -25,9 +25,13 @@ class Client:
     a 4xx/5xx raises `ServiceError` (`InvalidInput` for 422) carrying the server's `loc`s.
     """
 
+    _http: httpx.Client
+
+    # The arguments are spelled out (not forwarded as **kwargs) so that signatures and type
+    # checkers show them; tests/test_client_sdk.py holds AsyncClient's to the same.
     def __init__(
         self,
-        base_url: str = "http://127.0.0.1:8000",
+        base_url: str = DEFAULT_URL,
         *,
         binary: bool = True,
         timeout: float | httpx.Timeout = 60.0,
@@ -38,47 +42,36 @@ class Client:
         progress: bool | ProgressCallback = False,
         http_transport: httpx.BaseTransport | None = None,
     ) -> None:
-        self.binary = binary
-        self.retries, self.backoff = retries, backoff
-        self.max_joints_per_request = max_joints_per_request
-        self.progress = progress
-        self._limits: ConstitutionsResponse | None = None
-        self._http = httpx.Client(
-            base_url=base_url, timeout=timeout, headers=transport.headers(token, binary), transport=http_transport
+        super().__init__(
+            base_url,
+            binary=binary,
+            timeout=timeout,
+            retries=retries,
+            backoff=backoff,
+            token=token,
+            max_joints_per_request=max_joints_per_request,
+            progress=progress,
         )
+        self._http = httpx.Client(**self._http_options, transport=http_transport)
 
     def constitutions(self) -> ConstitutionsResponse:
         """The supported constitutions (UIDs, attribute names, defaults, units) and the server's limits."""
-        return transport.constitutions(self._send("GET", "/v1/constitutions"))
+        return transport.constitutions(self._send(self._constitutions_request()))
 
     def evaluate(self, request: Request, *, progress: bool | ProgressCallback | None = None) -> Evaluation:
         """Energy, gradient and Hessian of every joint of `request` (see `Evaluation`)."""
         if self._limits is None:
             self._limits = self.constitutions()
-        parts = split.plan(request, transport.part_joints(self._limits, self.binary, self.max_joints_per_request))
-        report = resolve_progress(self.progress if progress is None else progress, len(parts))
-        results, done = [], 0
-        for part in parts:
-            content, content_type = codec.encode(part.request, self.binary)
-            response = self._send("POST", "/v1/evaluate", content=content, headers={"Content-Type": content_type})
-            try:
-                results.append(transport.result(response))
-            except ServiceError as e:
-                raise split.relocate(part, e) from None
-            done += part.n_joints
-            if report:
-                report(done, request.n_joints)
-        return split.merge(request, parts, results)
+        job = self._job(request, progress)
+        return job.merge([job.receive(part, self._send(self._evaluate_request(part))) for part in job.parts])
 
-    def _send(self, method: str, url: str, **kw: object) -> httpx.Response:
-        for pause in [*transport.delays(self.retries, self.backoff), None]:
+    def _send(self, request: httpx.Request) -> httpx.Response:
+        retry = self._retry()
+        while True:
             try:
-                return self._http.request(method, url, **kw)  # type: ignore[arg-type]
-            except transport.RETRYABLE:
-                if pause is None:
-                    raise
-                time.sleep(pause)
-        raise AssertionError("unreachable")
+                return self._http.send(request)
+            except transport.RETRYABLE as e:
+                time.sleep(retry.pause(e))
 
     def close(self) -> None:
         self._http.close()
@@ -88,4 +81,3 @@ class Client:
 
     def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
         self.close()
-

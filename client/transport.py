@@ -32,6 +32,20 @@ def delays(retries: int, backoff: float) -> list[float]:
     return [backoff * 2**k for k in range(retries)]
 
 
+class Retry:
+    """The retries of one request: the pause before each next try, until `retries` are spent."""
+
+    def __init__(self, retries: int, backoff: float) -> None:
+        self._pauses = iter(delays(retries, backoff))
+
+    def pause(self, error: Exception) -> float:
+        """Seconds to sleep after `error` (one of `RETRYABLE`) before the next try; re-raises it if none is left."""
+        pause = next(self._pauses, None)
+        if pause is None:
+            raise error
+        return pause
+
+
 def part_joints(limits: ConstitutionsResponse | None, binary: bool, user_max: int | None) -> int:
     """Joints per request: the user's cap, else the default, within the server's joint and byte limits."""
     n = user_max or DEFAULT_PART_JOINTS

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import inspect
 from dataclasses import replace
 
 import httpx
@@ -237,6 +238,15 @@ def test_connection_refused_on_a_real_socket_is_retried_then_raised():
     s.close()  # nothing listens there now
     with pytest.raises(httpx.ConnectError):
         Client(f"http://127.0.0.1:{port}", retries=1, backoff=0.01, timeout=2.0).constitutions()
+
+
+def test_async_client_takes_the_sync_clients_arguments_and_defaults():
+    def spelled(cls: type) -> dict:
+        return {p.name: (p.kind, p.default) for p in inspect.signature(cls).parameters.values()}
+
+    sync, aio = spelled(Client), spelled(AsyncClient)
+    assert aio.pop("concurrency") == (inspect.Parameter.KEYWORD_ONLY, 4)
+    assert list(aio.items()) == list(sync.items())
 
 
 def test_local_mode_has_the_same_api_and_numbers(live):

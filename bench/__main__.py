@@ -1,0 +1,275 @@
+"""`python -m bench [--quick]`: speed against error of the core, its peers, and the service over HTTP.
+
+Everything is measured in one run on this machine, peers side by side; the report (Markdown,
+JSON, PNG) goes to bench/results/ (report.* for the full run, quick.* for --quick). The last
+line printed is `speedup_vs_autodiff_egh=<X> speedup_vs_autodiff_e=<Y>`: core / JAX throughput
+at the largest size (1e5 by default), E+G+H exact and energy only (nan without the JAX peer).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench import measure as M
+from bench import report
+from bench.scenes import make_scene, shifted
+
+GOLDEN = Path(__file__).resolve().parent.parent / "tests" / "golden_cases.json"
+OUTSIDE = 0.1  # fraction of joints past a limit in the timing scenes
+SIZES = [100, 1_000, 10_000, 100_000]
+HTTP_SIZES = (10, 1_000, 10_000)  # joints per request, fixed by the issue whatever --sizes says
+MODES = ["e", "eg", "egh", "psd"]
+
+
+def log(msg: str) -> None:
+    """Progress on stderr: stdout carries the report and, last, the speedup line."""
+    print(msg, file=sys.stderr, flush=True)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="python -m bench", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true",
+                    help="at the largest size only energy and E+G+H exact; no psd variants, no 'frames precomputed' JAX "
+                         "flavour, no active-only, memory or HTTP; smaller accuracy cases: under 60 s")
+    ap.add_argument("--sizes", type=int, nargs="+", default=SIZES, metavar="N",
+                    help="core sizes in joints (default: 100 1000 10000 100000); the largest is where peers, "
+                         "float32, ratios, active-only and memory are measured, and the full run also times "
+                         "energy alone at 10x the largest")
+    ap.add_argument("--reps", type=int, default=5, help="timed repetitions per measurement (median; at least 5)")
+    ap.add_argument("--no-jax", action="store_true", help="skip the JAX peer (also skipped when JAX is not installed)")
+    ap.add_argument("--no-http", action="store_true", help="skip the HTTP measurements")
+    ap.add_argument("--no-plot", action="store_true", help="write no PNG (also skipped when matplotlib is missing)")
+    ap.add_argument("--out", type=Path, default=report.RESULTS, metavar="DIR",
+                    help="directory of the report files (default: bench/results)")
+    return ap.parse_args(argv)
+
+
+def command(args: argparse.Namespace) -> str:
+    """The command line of this run, less --out (where it writes does not change what it measured)."""
+    flags = [f for f in ("quick", "no_jax", "no_http", "no_plot") if getattr(args, f)]
+    words = ["python -m bench"] + ["--" + f.replace("_", "-") for f in flags]
+    if sorted(set(args.sizes)) != SIZES:
+        words.append("--sizes " + " ".join(str(n) for n in sorted(set(args.sizes))))
+    if args.reps != 5:
+        words.append(f"--reps {args.reps}")
+    return " ".join(words)
+
+
+def case_list(quick: bool) -> list[tuple[str, str, dict]]:
+    """Golden cases + generated ones (well) + hard ones (strongly affine, large steps, far from the origin)."""
+    cases = M.golden_cases(GOLDEN)
+    k = 1 if quick else 3  # the reference is mpmath at 50 digits: a few ms per joint
+    gens = [("generated_rigidish", "well", dict(n_joints=16 * k, outside=0.6, seed=11)),
+            ("hard_strain_0.3", "hard", dict(n_joints=8 * k, outside=0.6, seed=12, strain=0.3)),
+            ("hard_large_step", "hard", dict(n_joints=8 * k, outside=0.6, seed=13, step=0.9))]
+    for name, fam, kw in gens:
+        cases.append((name, fam, M.to_request(*make_scene(**kw))))
+    cases.append(("hard_far_1e4", "hard", M.to_request(*shifted(*make_scene(8 * k, outside=0.6, seed=14), 1e4))))
+    return cases
+
+
+def load_jax(res: dict[str, Any], no_jax: bool) -> tuple[Any, list[tuple[str, bool]], str]:
+    """The JAX peer class (None if skipped or missing, which is noted), its flavours, and why it is absent."""
+    if no_jax:
+        return None, [], "skipped (--no-jax)"
+    try:
+        import jax
+
+        from bench.peer_jax import FLAVOURS, JaxPeer
+    except ImportError:
+        res["notes"].append("JAX peer: not installed (pip install -e '.[bench]'); its rows and targets are absent.")
+        return None, [], "JAX not installed"
+    res["jax_version"] = jax.__version__
+    return JaxPeer, FLAVOURS, ""
+
+
+def time_jax(JaxPeer: Any, flavours: list[tuple[str, bool]], scene: tuple, quick: bool, reps: int,
+             res: dict[str, Any]) -> dict[tuple[str, str], float]:
+    """Median seconds of each JAX flavour on `scene` per bench mode ("psd": the psd E+G+H)."""
+    t: dict[tuple[str, str], float] = {}
+    n = sum(j.body_ids.shape[0] for j in scene[1])
+    for name, same in flavours:
+        for psd in (False,) if quick else (False, True):
+            peer = JaxPeer(*scene, same_work=same, psd=psd)
+            for m in ["egh"] if psd else (["e", "egh"] if quick else ["e", "eg", "egh"]):
+                key = "psd" if psd else m
+                t[(name, key)] = M.median_time(lambda: peer(m), reps)
+                res["peers"].append({"peer": name, "n": n, "mode": M.MODE_NAMES[key], "t": t[(name, key)]})
+                log(f"{name} {key}: {t[(name, key)]:.4g}s")
+            del peer  # a 1e5 peer holds its inputs on the device
+    return t
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    quick, reps = args.quick, max(5, args.reps)
+    sizes = sorted(set(args.sizes))
+    n_big = sizes[-1]
+    t_start = time.perf_counter()
+    res: dict[str, Any] = {"command": command(args), "n_big": n_big,
+                           "notes": [], "targets": [], "peers": [], "variants": []}
+    JaxPeer, flavours, jax_missing = load_jax(res, args.no_jax)
+    flavours = flavours[:1] if quick else flavours
+    with_plot = not args.no_plot and importlib.util.find_spec("matplotlib") is not None
+    if not args.no_plot and not with_plot:
+        res["notes"].append("Plot: matplotlib not installed (pip install -e '.[bench]'); no PNG written.")
+    res["machine"] = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python "
+                      f"{platform.python_version()}, NumPy {np.__version__}, JAX {res.get('jax_version', '-')}; "
+                      f"medians of {reps} repetitions after one warm-up")
+    res["scene"] = f"half #670 half #669, {OUTSIDE:.0%} of joints outside their range (5% for active-only)"
+
+    # ---------------------------------------------------------------- core in-process
+    res["core_modes"] = [M.MODE_NAMES[m] for m in MODES]
+    scenes = {n: make_scene(n, OUTSIDE, seed=n % 97) for n in sizes}
+    core: dict[str, list[float | None]] = {}
+    for n in sizes:
+        # --quick: only the two modes of the final line at the largest size.
+        keep = [m for m in MODES if not (quick and n == n_big and m in ("eg", "psd"))]
+        core[str(n)] = [M.median_time(M.core_call(*scenes[n], m), reps) if m in keep else None for m in MODES]
+        log(f"core N={n}: " + ", ".join(f"{m}={t:.4g}s" for m, t in zip(MODES, core[str(n)]) if t))
+    if not quick:  # energy alone at 10x: a scene too large for the Hessian's 4.6 KB per joint
+        n_e = 10 * n_big
+        core[str(n_e)] = [M.median_time(M.core_call(*make_scene(n_e, OUTSIDE, seed=1), "e"), reps), None, None, None]
+        log(f"core N={n_e}: e={core[str(n_e)][0]:.4g}s")
+    res["core"] = core
+    t_core = dict(zip(MODES, core[str(n_big)]))
+
+    # ---------------------------------------------------------------- peers
+    big = scenes[n_big]
+    t_peer = time_jax(JaxPeer, flavours, big, quick, reps, res) if JaxPeer else {}
+    n_loop = min(100 if quick else 300, n_big)
+    loop_scene = make_scene(n_loop, OUTSIDE, seed=5)
+    for m in ("e", "egh"):
+        t = M.median_time(M.loop_call(*loop_scene, m), reps)
+        t_peer[("loop", m)] = t * n_big / n_loop  # the per-joint cost is constant: scaled to n_big
+        res["peers"].append({"peer": "per-joint Python loop", "n": n_loop, "mode": M.MODE_NAMES[m], "t": t})
+    for n in sizes:
+        for m in ("e", "egh"):
+            t = M.median_time(M.floor_call(n, m), reps)
+            res["peers"].append({"peer": report.FLOOR, "n": n, "mode": M.MODE_NAMES[m], "t": t})
+            t_peer[("floor", m)] = t  # the last, n_big, stays
+    t32 = {m: M.median_time(M.core_call(*big, m, dtype=np.float32), reps) for m in ("e", "egh")}
+    log(f"float32: {t32}")
+
+    # ---------------------------------------------------------------- accuracy
+    cases = case_list(quick)
+    cs = M.build_case_set(cases, modes=("exact",) if quick else ("exact", "psd"))
+    n_well = sum(f == "well" for f in cs.families)
+    res["notes"].append(f"Accuracy over {len(cases)} cases ({n_well} well-conditioned: the golden cases and generated "
+                        f"ones; {len(cases) - n_well} hard: strain 0.3, steps of 0.9 rad, a scene 1e4 from the "
+                        "origin), against tests/reference.py (mpmath, 50 digits).")
+
+    def variant(name: str, egh_t: float | None, e_t: float | None, results: M.Results | None,
+                mode: str = "exact") -> None:
+        """A row of speed (joints/s at n_big) and error (per family) for the table and the plot."""
+        res["variants"].append({
+            "name": name, "egh_jps": n_big / egh_t if egh_t else None, "e_jps": n_big / e_t if e_t else None,
+            "err": cs.errors(results, mode, "well") if results is not None else None,
+            "err_hard": cs.errors(results, mode, "hard") if results is not None else None,
+        })
+
+    variant(report.CORE, t_core["egh"], t_core["e"], M.core_results(cs, "exact"))
+    if not quick:
+        variant("core float64 psd", t_core["psd"], None, M.core_results(cs, "psd"), "psd")
+    variant("core float32 exact", t32["egh"], t32["e"], M.core_results(cs, "exact", np.float32))
+    variant("per-joint loop", t_peer[("loop", "egh")], t_peer[("loop", "e")],
+            M.loop_results(cs.bodies, M.single_joints(cs.batches)))
+    for name, same in flavours:
+        for psd in (False,) if quick else (False, True):
+            key = "psd" if psd else "egh"
+            results = JaxPeer(cs.bodies, cs.batches, same_work=same, psd=psd).results()
+            variant(name + (" psd" if psd else ""), t_peer.get((name, key)), None if psd else t_peer.get((name, "e")),
+                    results, "psd" if psd else "exact")
+    variant(report.FLOOR, t_peer[("floor", "egh")], t_peer[("floor", "e")], None)
+
+    # ---------------------------------------------------------------- ratios and extras
+    n_s = report.count(n_big)
+    ratios: dict[str, float] = {}
+    for name, _ in flavours:
+        ratios[f"E+G+H exact, {n_s}, vs {name}"] = t_peer[(name, "egh")] / t_core["egh"]
+        ratios[f"energy, {n_s}, vs {name}"] = t_peer[(name, "e")] / t_core["e"]
+    if not quick and flavours:
+        ratios[f"E+G+H psd, {n_s}, vs {flavours[0][0]} psd"] = t_peer[(flavours[0][0], "psd")] / t_core["psd"]
+    ratios[f"E+G+H exact, {n_s}, vs per-joint loop"] = t_peer[("loop", "egh")] / t_core["egh"]
+    ratios[f"E+G+H exact, {n_s}, vs memory-write floor"] = t_peer[("floor", "egh")] / t_core["egh"]
+    res["ratios"] = ratios
+    jname = report.JAX
+    res["speedup"] = {m: (t_peer[(jname, m)] / t_core[m] if (jname, m) in t_peer else None) for m in ("egh", "e")}
+
+    if not quick:
+        res["active"] = _active_only(n_big, reps)
+        log(f"active: {res['active']}")
+        res["memory"] = _memory(big)
+        log(f"memory: {res['memory']}")
+        if not args.no_http:
+            res["http"] = _http(reps)
+    res["targets"] = report.targets(res, jax_missing or "JAX peer not run")
+    res["seconds"] = time.perf_counter() - t_start
+    res["notes"].append(f"This run took {res['seconds']:.0f} s.")
+    files = report.write(res, "quick" if quick else "report", args.out, with_plot)
+    log("wrote " + ", ".join(str(f) for f in files))
+    print(report.markdown(res))
+    print(speedup_line(res["speedup"]))
+    return 0
+
+
+def speedup_line(speedup: dict[str, float | None]) -> str:
+    """The run's last line: core / JAX throughput at the largest size, nan where JAX did not run."""
+    x, y = (float("nan") if speedup.get(m) is None else speedup[m] for m in ("egh", "e"))
+    return f"speedup_vs_autodiff_egh={x:.2f} speedup_vs_autodiff_e={y:.2f}"
+
+
+def _active_only(n: int, reps: int) -> dict[str, Any]:
+    """E+G+H exact with and without active_only on a 5%-outside scene, and active_only with every joint outside."""
+    def call(frac: float, active_only: bool) -> Callable:
+        return M.core_call(*make_scene(n, frac, seed=3), "egh", active_only=active_only)
+
+    return {"n": n, "fraction": 0.05, "full": M.median_time(call(0.05, False), reps),
+            "active_only": M.median_time(call(0.05, True), reps), "all_active": M.median_time(call(1.0, True), reps)}
+
+
+def _memory(scene: tuple) -> dict[str, int]:
+    """Peak bytes during one E+G+H exact call on `scene` against the bytes of what it returns."""
+    n = sum(j.body_ids.shape[0] for j in scene[1])
+    peak = M.peak_memory(M.core_call(*scene, "egh"))
+    return {"n": n, "peak": peak, "output": M.output_bytes(n, "egh") + 8 * n}  # + the int64 index column
+
+
+def _http(reps: int) -> dict[str, Any]:
+    """JSON and binary requests at HTTP_SIZES against a local server; binary at 1e4 against in-process."""
+    from bench import http_bench as H
+
+    rows = []
+    with H.Server() as srv:
+        binary = H.binary_available(srv.url, *make_scene(10, OUTSIDE, seed=1))
+        for n in HTTP_SIZES:
+            scene = make_scene(n, OUTSIDE, seed=7)
+            for enc in ["json", "binary"] if binary else ["json"]:
+                # Small requests are noisy and cheap: more of them.
+                r = H.measure(srv.url, *scene, enc == "binary", reps if n > 10 else 50)
+                r["encoding"] = enc
+                rows.append(r)
+                log(f"http {enc} {n}: {r}")
+    out: dict[str, Any] = {"rows": rows, "note": "binary: application/msgpack" if binary else "binary: not available"}
+    b = [r for r in rows if r["encoding"] == "binary" and r["joints"] == 10_000]
+    if b:
+        # In-process on the very scene sent over HTTP (E+G+H exact), so only the transport differs.
+        t = M.median_time(M.core_call(*make_scene(10_000, OUTSIDE, seed=7), "egh"), reps)
+        out["inprocess_1e4_jps"] = 10_000 / t
+        out["binary_vs_inprocess_1e4"] = b[0]["joints_per_s"] / out["inprocess_1e4_jps"]
+    return out
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

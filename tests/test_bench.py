@@ -1,0 +1,212 @@
+"""The benchmark's own pieces (bench/): Pareto front, report, error measure, scenes, peers, and a tiny end-to-end run.
+
+Runs with only `.[test]` installed: no JAX (its test is skipped), no matplotlib (no plot is drawn).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench import measure as M
+from bench import report
+from bench.__main__ import main as bench_main
+from bench.scenes import make_scene, shifted
+from service.core import evaluate
+
+FIELDS = ("energy", "gradient", "hessian")
+SPEEDUP_LINE = re.compile(r"speedup_vs_autodiff_egh=(nan|\d+\.\d\d) speedup_vs_autodiff_e=(nan|\d+\.\d\d)")
+
+
+def core_rows(bodies, batches, **kw) -> list[dict[str, np.ndarray]]:
+    """The core's energy (N,), gradient (N, 24), Hessian (N, 24, 24) per batch."""
+    return [{f: getattr(r, f) for f in FIELDS} for r in evaluate(bodies, batches, **kw).batches]
+
+
+# ------------------------------------------------------------------ report
+
+
+def test_pareto_keeps_the_non_dominated_points_by_error():
+    pts = [
+        (1e-14, 4e5),  # 0: front
+        (9e-15, 7e4),  # 1: front (lowest error)
+        (1e-5, 5e5),  # 2: front (fastest)
+        (1e-14, 2e3),  # 3: same error as 0, slower
+        (1e-3, 1e5),  # 4: worse than 0 in both
+        (9e-15, 7e4),  # 5: a duplicate of 1: only the first stays
+    ]
+    assert report.pareto(pts) == [1, 0, 2]
+    assert report.pareto([]) == []
+    assert report.pareto([(1.0, 1.0)]) == [0]
+    assert report.pareto([(1.0, 3.0), (2.0, 2.0), (3.0, 1.0)]) == [0]
+
+
+def synthetic_result() -> dict:
+    """A result dict as the full run builds it, every optional section present."""
+    err = lambda h: {"E": 3e-14, "G": 2e-14, "H": h}  # noqa: E731
+    res = {
+        "command": "python -m bench", "n_big": 100_000, "machine": "test machine", "scene": "synthetic",
+        "core_modes": ["energy", "E+G", "E+G+H exact", "E+G+H psd"],
+        "core": {"100": [1e-3, 1.1e-3, 2e-3, 2.5e-3], "100000": [0.17, 0.18, 0.24, 0.3],
+                 "1000000": [1.7, None, None, None]},
+        "peers": [{"peer": report.JAX, "n": 100_000, "mode": "E+G+H exact", "t": 1.5}],
+        "variants": [
+            {"name": report.CORE, "egh_jps": 4.1e5, "e_jps": 5.9e5, "err": err(1.04e-14), "err_hard": err(1.2e-14)},
+            {"name": report.JAX, "egh_jps": 6.7e4, "e_jps": 5.9e5, "err": err(8.81e-15), "err_hard": err(4.7e-14)},
+            {"name": report.FLOOR, "egh_jps": 3e6, "e_jps": 3e9, "err": None, "err_hard": None},
+        ],
+        "ratios": {"E+G+H exact, 1e5, vs JAX": 6.13},
+        "speedup": {"egh": 6.13, "e": 0.99},
+        "http": {"note": "binary: application/msgpack", "inprocess_1e4_jps": 3e5, "binary_vs_inprocess_1e4": 0.35,
+                 "rows": [{"encoding": "binary", "joints": 10_000, "requests_per_s": 10.0, "joints_per_s": 1e5,
+                           "p50_ms": 95.0, "p99_ms": 120.0, "bytes_per_joint": 5000.0}]},
+        "active": {"n": 100_000, "fraction": 0.05, "full": 0.1, "active_only": 0.08, "all_active": 0.5},
+        "memory": {"n": 100_000, "peak": 600 * 2**20, "output": 460 * 2**20},
+        "notes": ["a note"],
+    }
+    res["targets"] = report.targets(res)
+    return res
+
+
+def test_markdown_renders_every_section_and_honest_targets():
+    res = synthetic_result()
+    md = report.markdown(res)
+    for title in ("# Speed against error", "## Targets", "## Speed and error per variant", "## Core in-process",
+                  "## Peers", "## Ratios", "## HTTP on loopback", "## Model only what a scene needs",
+                  "## Peak memory", "## Notes"):
+        assert title in md, title
+    status = {t["target"]: t["status"] for t in res["targets"]}
+    assert len(status) == 6  # target 1: speed, error on well and on hard cases; then 2, 3, 4
+    rows = "\n".join(f"{t} {s}" for t, s in status.items())
+    # A strict comparison: 1.04e-14 > 8.81e-15 is missed (by 1.18x), with both numbers printed.
+    assert re.search(r"well-conditioned cases .*\*\*missed\*\* by 1\.18x", rows)
+    assert "core 1.04e-14" in md and "JAX 8.81e-15" in md
+    assert re.search(r"hard cases \*\*met\*\*", rows)
+    assert re.search(r"E\+G\+H exact at 1e5.*\*\*met\*\*", rows)
+    assert re.search(r"energy at 1e5.*\*\*missed\*\* by 3\.03x", rows)
+    assert re.search(r"peak memory.*\*\*met\*\*", rows)
+    assert re.search(r"binary HTTP.*\*\*missed\*\* by 1\.43x", rows)
+    assert "Target 1 (speed and Hessian error together): **missed**" in md
+    assert "| 1e6 |" in md and "n/a" in md  # the energy-only row; the floor has no error
+
+
+def test_targets_without_the_optional_measurements_say_why():
+    res = synthetic_result()
+    for key in ("http", "memory", "speedup"):
+        res.pop(key)
+    rows = report.targets(res, "JAX not installed")
+    assert [t["met"] for t in rows] == [None] * 4
+    assert "not measured: JAX not installed" in rows[0]["status"]
+
+
+def test_count_writes_joint_counts_as_the_issue_does():
+    got = [report.count(n) for n in (100, 1000, 100_000, 1_000_000, 300, 10)]
+    assert got == ["1e2", "1e3", "1e5", "1e6", "300", "10"]
+
+
+# ------------------------------------------------------------------ measure
+
+
+def test_relerr_is_normwise_and_absolute_against_zero():
+    assert M.relerr([1.0, 2.0], [1.0, 2.0]) == 0.0
+    assert M.relerr([1.0, 2.1], [1.0, 2.0]) == pytest.approx(0.05)  # max|diff| / max|want|, not per entry
+    assert M.relerr([1.1, 2.0], [1.0, 2.0]) == pytest.approx(0.05)
+    assert M.relerr([-1.0], [1.0]) == 2.0
+    assert M.relerr([0.5, 0.0], [0.0, 0.0]) == 0.5  # all-zero reference: the absolute error
+    assert M.relerr([], []) == 0.0
+    assert M.relerr(np.ones((2, 3), np.float32), np.ones((2, 3))) == 0.0
+
+
+@pytest.mark.parametrize("mode, shapes", [
+    ("e", [(7,), (7,)]),
+    ("eg", [(7,), (7,), (7, 24)]),
+    ("egh", [(7,), (7,), (7, 24), (7, 24, 24)]),
+    ("psd", [(7,), (7,), (7, 24), (7, 24, 24)]),
+])
+def test_floor_writes_exactly_the_output_the_core_returns(mode, shapes):
+    arrays = M.floor_call(7, mode)()
+    assert [a.shape for a in arrays] == shapes
+    assert all(a.dtype == np.float64 and (a == 1.0).all() for a in arrays)
+    assert M.output_bytes(7, mode) == sum(a.nbytes for a in arrays)
+    # The same bytes as the core's own x, energy, gradient, Hessian for 7 joints.
+    ev = M.core_call(*make_scene(7, 0.5, seed=1), mode)()
+    got = sum(a.nbytes for r in ev.batches for a in (r.x, r.energy, r.gradient, r.hessian) if a is not None)
+    assert got == M.output_bytes(7, mode)
+
+
+# ------------------------------------------------------------------ scenes
+
+
+@pytest.mark.parametrize("n, outside", [(1000, 0.05), (101, 0.3), (10, 0.0), (9, 1.0)])
+def test_make_scene_puts_exactly_the_requested_fraction_outside(n, outside):
+    bodies, batches = make_scene(n, outside, seed=4)
+    assert [(j.constitution_uid, j.body_ids.shape[0]) for j in batches] == [(670, (n + 1) // 2), (669, n // 2)]
+    energies = np.concatenate([r.energy for r in evaluate(bodies, batches, outputs=("energy",)).batches])
+    assert energies.shape == (n,)
+    assert int((energies > 0).sum()) == round(outside * n)
+
+
+def test_shifted_scene_keeps_every_coordinate():
+    bodies, batches = make_scene(40, 0.5, seed=2)
+    q_before = bodies.q.copy()
+    moved, moved_batches = shifted(bodies, batches, 1e4)
+    assert np.array_equal(bodies.q, q_before)  # the original is left alone
+    assert not np.allclose(moved.q[:, :3], bodies.q[:, :3])
+    x = [r.x for r in evaluate(bodies, batches, outputs=("energy",)).batches]
+    x_moved = [r.x for r in evaluate(moved, moved_batches, outputs=("energy",)).batches]
+    for a, b in zip(x, x_moved):
+        # Translation-invariant up to rounding of coordinates of size 1e4 (1e4 * eps ~ 2e-12).
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-10)
+
+
+# ------------------------------------------------------------------ peers
+
+
+@pytest.mark.parametrize("mode", ["e", "egh", "psd"])
+def test_per_joint_loop_agrees_with_the_core(mode):
+    bodies, batches = make_scene(20, 0.5, seed=6)
+    loop = M.loop_results(bodies, M.single_joints(batches), mode)
+    core = core_rows(bodies, batches, outputs=M.OUTPUTS[mode], hessian_mode="psd" if mode == "psd" else "exact")
+    for got, want in zip(loop, core):
+        for f in M.OUTPUTS[mode]:
+            assert got[f].shape == want[f].shape
+            assert M.relerr(got[f], want[f]) <= 1e-15, f
+
+
+def test_jax_peer_agrees_with_the_core():
+    pytest.importorskip("jax")
+    from bench.peer_jax import JaxPeer
+
+    bodies, batches = make_scene(10, 0.5, seed=8)
+    for got, want in zip(JaxPeer(bodies, batches).results(), core_rows(bodies, batches)):
+        for f in FIELDS:
+            assert M.relerr(got[f], want[f]) <= 1e-12, f
+
+
+# ------------------------------------------------------------------ end to end
+
+
+def test_bench_runs_end_to_end_at_tiny_sizes(tmp_path: Path, capsys: pytest.CaptureFixture[str]):
+    results = {p: p.stat().st_mtime_ns for p in report.RESULTS.glob("*")} if report.RESULTS.exists() else {}
+    assert bench_main(["--sizes", "40", "80", "--no-jax", "--no-http", "--no-plot", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out.rstrip("\n").split("\n")
+    assert SPEEDUP_LINE.fullmatch(out[-1]), out[-1]
+    assert sum(bool(SPEEDUP_LINE.search(line)) for line in out) == 1  # only the last line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json", "report.md"]
+    md = (tmp_path / "report.md").read_text()
+    assert "## Targets" in md and "core float64 psd" in md and "## Peak memory" in md
+    # Nothing written into bench/results/.
+    now = {p: p.stat().st_mtime_ns for p in report.RESULTS.glob("*")} if report.RESULTS.exists() else {}
+    assert now == results
+
+
+def test_plot_labels_of_close_points_are_lifted_apart():
+    pts = [(1e-14, 4e5), (1.1e-14, 3.9e5), (1e-5, 4.05e5), (1e-14, 2e3)]
+    h = report.label_heights(pts, 0.1)
+    assert h[1] == pytest.approx(np.log10(3.9e5))  # the lower of the two close points keeps its height
+    assert h[0] >= h[1] + 0.1 - 1e-12  # the upper one is lifted clear of it
+    assert h[2] == pytest.approx(np.log10(4.05e5))  # nine decades away in error: left alone
+    assert h[3] == pytest.approx(np.log10(2e3))

@@ -345,3 +345,58 @@ def test_collapsed_revolute_frame_is_an_input_error_naming_the_joint() -> None:
     with pytest.raises(InputError) as err:
         evaluate(**sc.core_args())
     assert [f.loc for f in err.value.faults] == [("batches", 0, "body_ids", 1)]
+
+
+# ---------------------------------------------------------------- threads
+
+
+def _same(a: Evaluation, b: Evaluation) -> None:
+    assert a.total_energy == b.total_energy
+    for p, q in zip(a.batches, b.batches, strict=True):
+        for name in ("index", "x", "energy", "gradient", "hessian"):
+            np.testing.assert_array_equal(getattr(p, name), getattr(q, name))
+
+
+@pytest.mark.parametrize("mode", ["exact", "psd"])
+@pytest.mark.parametrize("seed", range(4))
+def test_threads_give_bitwise_the_same_answer(seed: int, mode: str) -> None:
+    """threads=2: polar factors in halves and the batches side by side; one batch: its derivative chunks."""
+    sc = scene(seed)
+    _same(evaluate(**sc.core_args(hessian_mode=mode)), evaluate(**sc.core_args(hessian_mode=mode), threads=2))
+    one = replace(sc, batches=sc.batches[:1])
+    _same(evaluate(**one.core_args(hessian_mode=mode)), evaluate(**one.core_args(hessian_mode=mode), threads=3))
+
+
+@pytest.mark.parametrize("active_only", [False, True])
+def test_threads_over_derivative_chunks(active_only: bool) -> None:
+    """One batch of > 2 x 4096 active joints: its chunks run on two threads into the same output."""
+    sc = scene(3)
+    b = sc.batches[0]
+    x = sc.x()[0]
+    reps = 8300 // b.lower.shape[0] + 1
+    tile = lambda a: np.concatenate([a] * reps)  # noqa: E731
+    big = replace(b, body_ids=tile(b.body_ids), edges=tile(b.edges), lower=tile(x - 2.0), upper=tile(x - 1.0), strength=tile(b.strength))
+    sc = replace(sc, batches=[big])
+    _same(evaluate(**sc.core_args(active_only=active_only)), evaluate(**sc.core_args(active_only=active_only), threads=2))
+
+
+def test_threads_keep_the_callers_error_state() -> None:
+    """An overflow on a worker thread is an InputError naming the joint, under the caller's np.errstate
+    (no RuntimeWarning escapes from the workers)."""
+    import warnings
+
+    from service.core.validate import checked_evaluate
+
+    sc = scene(4)
+    b = sc.batches[0]
+    s = b.strength.copy()
+    s[0] = 1e308
+    lo, up = b.lower.copy(), b.upper.copy()
+    x = sc.x()[0]
+    lo[0], up[0] = x[0] - 1e-300 - 1.0, x[0] - 1.0
+    sc = replace(sc, batches=[replace(b, lower=lo, upper=up, strength=s), *sc.batches[1:]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError) as err:
+            checked_evaluate(**sc.core_args(), threads=2)
+    assert err.value.faults[0].loc == ("batches", 0, "strength", 0)

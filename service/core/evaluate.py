@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from functools import partial
 
 import numpy as np
 
@@ -10,6 +11,7 @@ from service.core import assembly, penalty
 from service.core.constitution import Array, Constitution, Curvature
 from service.core.errors import Fault, InputError
 from service.core.kinematics import Q, Q_PREV, Q_REF, STATES, BodyTable, frame_quantities
+from service.core.parallel import run_all
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
 from service.core.validate import (
@@ -33,6 +35,7 @@ def evaluate(
     hessian_mode: str = "exact",
     active_only: bool = False,
     dtype: type = np.float64,
+    threads: int = 1,
 ) -> Evaluation:
     """Energy, gradient and Hessian of every joint, as CONTRACT.md v1 defines them.
 
@@ -40,12 +43,15 @@ def evaluate(
     computed, and only joints outside their range are differentiated. `dtype`
     np.float32 runs everything after validation and the polar rotations in single
     precision (a benchmark variant: about 1e-7 relative error; the wire is float64).
+    `threads` > 1 evaluates the polar factors, the batches (or, for one batch, its
+    derivative chunks) on that many threads, with bitwise the same results; the HTTP
+    service keeps 1, its worker processes already fill the cores.
     """
     outputs = tuple(outputs)
     bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
     faults = check_options(outputs, hessian_mode) + check_bodies(bodies)
     raise_if(faults)
-    table = BodyTable(bodies, dtype)
+    table = BodyTable(bodies, dtype, threads)
     n_bodies = bodies.q.shape[0]
     batches = [_as_arrays(j) for j in batches]
     faults = check_rotations(table.ratio)
@@ -54,9 +60,14 @@ def evaluate(
     raise_if(faults)
 
     want_g, want_h = "gradient" in outputs, "hessian" in outputs
-    results = [
-        _evaluate_batch(b, j, table, want_g, want_h, hessian_mode == "psd", active_only) for b, j in enumerate(batches)
-    ]
+    inner = threads if len(batches) == 1 else 1  # one level of threads: a pool never waits on itself
+    results = run_all(
+        [
+            partial(_evaluate_batch, b, j, table, want_g, want_h, hessian_mode == "psd", active_only, inner)
+            for b, j in enumerate(batches)
+        ],
+        threads,
+    )
     total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
     if not np.isfinite(total):
         raise InputError([Fault(("batches",), "the total energy overflows float64")])
@@ -83,6 +94,7 @@ def _evaluate_batch(
     want_h: bool,
     psd: bool,
     active_only: bool,
+    threads: int,
 ) -> dict:
     c = CONSTITUTIONS[joints.constitution_uid]
     pairs = np.ascontiguousarray(joints.body_ids.T)  # (2, N): contiguous indices gather 30% faster
@@ -107,24 +119,29 @@ def _evaluate_batch(
     gradient = np.zeros((n, 24), dtype=dtype) if want_g else None
     hessian = np.zeros((n, 24, 24), dtype=dtype) if want_h else None
     out_pos = np.arange(n) if active_only else active
+
+    def chunk(start: int) -> list[int]:
+        """Differentiate active joints `start : start + CHUNK`; the rows among them that overflow."""
+        sel = active[start : start + CHUNK]
+        pos = out_pos[start : start + CHUNK]
+        # Contiguous rows (active_only, or a fully active stretch) are written in place.
+        contiguous = pos[-1] - pos[0] + 1 == pos.shape[0]
+        h_out = None
+        if want_h:
+            h_out = hessian[pos[0] : pos[-1] + 1] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
+        g = _derivatives(c, F[0][sel], v[sel], x[sel], lo[sel], up[sel], s[sel], h_out, psd)
+        # Only active rows can overflow: checked while they are still in cache.
+        bad = (nonfinite_rows(g) if want_g else []) + (nonfinite_rows(h_out) if want_h else [])
+        if want_g:
+            gradient[pos] = g
+        if want_h and not contiguous:
+            hessian[pos] = h_out
+        return [int(sel[i]) for i in bad]
+
     overflow = nonfinite_rows(energy)
     if want_g or want_h:
-        for start in range(0, active.shape[0], CHUNK):
-            sel = active[start : start + CHUNK]
-            pos = out_pos[start : start + CHUNK]
-            # Contiguous rows (active_only, or a fully active stretch) are written in place.
-            contiguous = pos[-1] - pos[0] + 1 == pos.shape[0]
-            h_out = None
-            if want_h:
-                h_out = hessian[pos[0] : pos[-1] + 1] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
-            g = _derivatives(c, F[0][sel], v[sel], x[sel], lo[sel], up[sel], s[sel], h_out, psd)
-            # Only active rows can overflow: checked while they are still in cache.
-            overflow += [int(sel[i]) for i in nonfinite_rows(g)] if want_g else []
-            overflow += [int(sel[i]) for i in nonfinite_rows(h_out)] if want_h else []
-            if want_g:
-                gradient[pos] = g
-            if want_h and not contiguous:
-                hessian[pos] = h_out
+        for bad in run_all([partial(chunk, start) for start in range(0, active.shape[0], CHUNK)], threads):
+            overflow += bad
     raise_if(
         [
             Fault(

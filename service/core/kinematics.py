@@ -15,9 +15,12 @@ from the origin from losing digits to its translation.
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from numpy.typing import NDArray
 
+from service.core.parallel import run_all
 from service.core.scene import Bodies
 
 Array = NDArray[np.float64]
@@ -60,6 +63,15 @@ def _cofactors_t(a: Array) -> tuple[Array, Array]:
     return C, a[0] * C[0] + a[1] * C[1] + a[2] * C[2]
 
 
+def _frobenius_t(a: Array) -> Array:
+    """Frobenius norms (M,) of `a` (9, M), summed in one fixed order whatever M and layout (einsum's is not)."""
+    s = a[0] * a[0]
+    tmp = np.empty_like(s)
+    for i in range(1, 9):
+        s += np.multiply(a[i], a[i], out=tmp)
+    return np.sqrt(s, out=s)
+
+
 def solve3(A: Array, b: Array) -> list[Array]:
     """Components of `A^-1 b` (each (...,)) for `A` (..., 3, 3), `b` (..., 3), by cofactors.
 
@@ -90,35 +102,34 @@ def polar_rotation(a: Array) -> tuple[Array, Array]:
     ratio = np.zeros(m)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         C, det = _cofactors_t(a)
-        nA = np.sqrt(np.einsum("im,im->m", a, a))
-        nC = np.sqrt(np.einsum("im,im->m", C, C))
+        nA = _frobenius_t(a)
+        nC = _frobenius_t(C)
         est = np.abs(det) / (nA * nC)
     good = est >= _NEWTON_RATIO
     newton = np.flatnonzero(good)
     ratio[newton] = est[newton]
-    if newton.shape[0] < m:
-        X, C, det, nA, nC = a[:, newton], C[:, newton], det[newton], nA[newton], nC[newton]
-    else:
-        X = a.copy()  # updated in place below
-    done = np.zeros(newton.shape[0], dtype=bool)
+    X, C, det, nA, nC = a[:, newton], C[:, newton], det[newton], nA[newton], nC[newton]
+    R = np.empty_like(a)
+    # Each body stops on its own test: its factor never depends on which others it was batched with.
+    going = newton
     for _ in range(_NEWTON_STEPS):
         g = np.sqrt(nC / (np.abs(det) * nA))  # sqrt(|X^-1|_F / |X|_F)
         X_new = X * (0.5 * g)
         X_new += C * (0.5 / (g * det))
         X -= X_new
         done = np.abs(X, out=X).max(axis=0) <= _NEWTON_TOL
-        X = X_new
         if done.all():
+            R[:, going] = X_new
+            going = going[:0]
             break
+        if done.any():
+            R[:, going[done]] = X_new[:, done]
+            going, X_new = going[~done], X_new[:, ~done]
+        X = X_new
         C, det = _cofactors_t(X)
-        nA = np.sqrt(np.einsum("im,im->m", X, X))
-        nC = np.sqrt(np.einsum("im,im->m", C, C))
-    if newton.shape[0] == m:
-        R = X
-    else:
-        R = np.empty_like(a)
-        R[:, newton] = X
-    svd = np.concatenate([np.flatnonzero(~good), newton[~done]])
+        nA = _frobenius_t(X)
+        nC = _frobenius_t(C)
+    svd = np.concatenate([np.flatnonzero(~good), going])
     if svd.shape[0]:
         U, s, Vt = np.linalg.svd(a[:, svd].T.reshape(-1, 3, 3))
         R[:, svd] = (U @ Vt).reshape(-1, 9).T
@@ -145,14 +156,16 @@ class BodyTable:
     each `A_ref`'s conditioning (`polar_rotation`).
     """
 
-    def __init__(self, bodies: Bodies, dtype: type = np.float64) -> None:
+    def __init__(self, bodies: Bodies, dtype: type = np.float64, threads: int = 1) -> None:
         n = bodies.q.shape[0]
         self.dofs = np.empty((len(STATES), 12, n), dtype=dtype)  # (state, DOF, body)
         for s, q in enumerate((bodies.q, bodies.q_prev, bodies.q_ref)):
             self.dofs[s] = q.T
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         A_ref = self.dofs[Q_REF, 3:] if self.dofs.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
-        R, self.ratio = polar_rotation(A_ref)
+        parts = np.array_split(A_ref, threads, axis=1) if threads > 1 else [A_ref]
+        parts = run_all([partial(polar_rotation, a) for a in parts], threads)
+        R, self.ratio = parts[0] if len(parts) == 1 else (np.concatenate(a, axis=-1) for a in zip(*parts))
         self.rotation = R.astype(dtype, copy=False)  # (9, B)
 
     def pair(self, pairs: NDArray[np.intp], state: int, translation: bool = True) -> tuple[Array | None, Array]:

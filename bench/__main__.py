@@ -29,6 +29,7 @@ OUTSIDE = 0.1  # fraction of joints past a limit in the timing scenes
 SIZES = [100, 1_000, 10_000, 100_000]
 HTTP_SIZES = (10, 1_000, 10_000)  # joints per request, fixed by the issue whatever --sizes says
 MODES = ["e", "eg", "egh", "psd"]
+THREADS = os.cpu_count() or 1  # JAX's XLA runs on every core by default: the core is timed so too
 
 
 def log(msg: str) -> None:
@@ -144,6 +145,11 @@ def main(argv: list[str] | None = None) -> int:
         log(f"core N={n_e}: e={core[str(n_e)][0]:.4g}s")
     res["core"] = core
     t_core = dict(zip(MODES, core[str(n_big)]))
+    # The same calls on every core (`threads`: bitwise the same answers); the speedup line uses these.
+    t_mt = {m: M.median_time(M.core_call(*scenes[n_big], m, threads=THREADS), reps)
+            for m in (["e", "egh"] if quick else ["e", "egh", "psd"])} if THREADS > 1 else dict(t_core)
+    res["threads"] = THREADS
+    log(f"core N={n_big}, {THREADS} threads: " + ", ".join(f"{m}={t:.4g}s" for m, t in t_mt.items()))
 
     # ---------------------------------------------------------------- peers
     big = scenes[n_big]
@@ -180,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
         })
 
     variant(report.CORE, t_core["egh"], t_core["e"], M.core_results(cs, "exact"))
+    if THREADS > 1:
+        variant(report.core_threads(THREADS), t_mt["egh"], t_mt["e"], M.core_results(cs, "exact", threads=THREADS))
     if not quick:
         variant("core float64 psd", t_core["psd"], None, M.core_results(cs, "psd"), "psd")
     variant("core float32 exact", t32["egh"], t32["e"], M.core_results(cs, "exact", np.float32))
@@ -197,15 +205,17 @@ def main(argv: list[str] | None = None) -> int:
     n_s = report.count(n_big)
     ratios: dict[str, float] = {}
     for name, _ in flavours:
-        ratios[f"E+G+H exact, {n_s}, vs {name}"] = t_peer[(name, "egh")] / t_core["egh"]
-        ratios[f"energy, {n_s}, vs {name}"] = t_peer[(name, "e")] / t_core["e"]
+        for label, t in (("1 thread", t_core), (f"{THREADS} threads", t_mt)) if THREADS > 1 else (("1 thread", t_core),):
+            ratios[f"E+G+H exact, {n_s}, core on {label} vs {name}"] = t_peer[(name, "egh")] / t["egh"]
+            ratios[f"energy, {n_s}, core on {label} vs {name}"] = t_peer[(name, "e")] / t["e"]
     if not quick and flavours:
-        ratios[f"E+G+H psd, {n_s}, vs {flavours[0][0]} psd"] = t_peer[(flavours[0][0], "psd")] / t_core["psd"]
+        ratios[f"E+G+H psd, {n_s}, core on {THREADS} threads vs {flavours[0][0]} psd"] = (
+            t_peer[(flavours[0][0], "psd")] / t_mt["psd"])
     ratios[f"E+G+H exact, {n_s}, vs per-joint loop"] = t_peer[("loop", "egh")] / t_core["egh"]
     ratios[f"E+G+H exact, {n_s}, vs memory-write floor"] = t_peer[("floor", "egh")] / t_core["egh"]
     res["ratios"] = ratios
     jname = report.JAX
-    res["speedup"] = {m: (t_peer[(jname, m)] / t_core[m] if (jname, m) in t_peer else None) for m in ("egh", "e")}
+    res["speedup"] = {m: (t_peer[(jname, m)] / t_mt[m] if (jname, m) in t_peer else None) for m in ("egh", "e")}
 
     if not quick:
         res["active"] = _active_only(n_big, reps)
@@ -247,7 +257,8 @@ def _memory(scene: tuple) -> dict[str, int]:
 
 
 def _http(reps: int) -> dict[str, Any]:
-    """JSON and binary requests at HTTP_SIZES against a local server; binary at 1e4 against in-process."""
+    """JSON and binary requests at HTTP_SIZES against a local server, full answers and active_only;
+    at 1e4 each binary flavour against the same request in-process."""
     from bench import http_bench as H
 
     rows = []
@@ -256,18 +267,21 @@ def _http(reps: int) -> dict[str, Any]:
         for n in HTTP_SIZES:
             scene = make_scene(n, OUTSIDE, seed=7)
             for enc in ["json", "binary"] if binary else ["json"]:
-                # Small requests are noisy and cheap: more of them.
-                r = H.measure(srv.url, *scene, enc == "binary", reps if n > 10 else 50)
-                r["encoding"] = enc
-                rows.append(r)
-                log(f"http {enc} {n}: {r}")
+                for active_only in (False, True):
+                    # Small requests are noisy and cheap: more of them.
+                    r = H.measure(srv.url, *scene, enc == "binary", reps if n > 10 else 50, active_only)
+                    r.update(encoding=enc, active_only=active_only)
+                    rows.append(r)
+                    log(f"http {enc} {n} active_only={active_only}: {r}")
     out: dict[str, Any] = {"rows": rows, "note": "binary: application/msgpack" if binary else "binary: not available"}
-    b = [r for r in rows if r["encoding"] == "binary" and r["joints"] == 10_000]
-    if b:
-        # In-process on the very scene sent over HTTP (E+G+H exact), so only the transport differs.
-        t = M.median_time(M.core_call(*make_scene(10_000, OUTSIDE, seed=7), "egh"), reps)
-        out["inprocess_1e4_jps"] = 10_000 / t
-        out["binary_vs_inprocess_1e4"] = b[0]["joints_per_s"] / out["inprocess_1e4_jps"]
+    scene = make_scene(10_000, OUTSIDE, seed=7)
+    for r in rows:
+        if r["encoding"] == "binary" and r["joints"] == 10_000:
+            # In-process on the very request sent over HTTP, so only the transport differs.
+            key = "active_only" if r["active_only"] else "full"
+            t = M.median_time(M.core_call(*scene, "egh", active_only=r["active_only"]), reps)
+            out[f"inprocess_1e4_jps_{key}"] = 10_000 / t
+            out[f"binary_vs_inprocess_1e4_{key}"] = r["joints_per_s"] / out[f"inprocess_1e4_jps_{key}"]
     return out
 
 

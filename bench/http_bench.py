@@ -56,14 +56,14 @@ class Server:
             self.proc.wait(10)
 
 
-def encode(bodies: Bodies, batches: list[Joints], binary: bool) -> tuple[bytes, dict[str, str]]:
+def encode(bodies: Bodies, batches: list[Joints], binary: bool, active_only: bool = False) -> tuple[bytes, dict[str, str]]:
     """The request body and headers: msgpack with raw float64/int64 buffers, or JSON straight from NumPy."""
     if binary:
         doc = document(bodies, batches, lambda a: wire.pack_array(a, wire.FLOAT64),
-                       lambda a: wire.pack_array(a, wire.INT64))
+                       lambda a: wire.pack_array(a, wire.INT64), active_only=active_only)
         return wire.dumps(doc), {"Content-Type": wire.MEDIA_TYPE, "Accept": wire.MEDIA_TYPE}
     doc = document(bodies, batches, lambda a: np.ascontiguousarray(a, np.float64),
-                   lambda a: np.ascontiguousarray(a, np.int64))
+                   lambda a: np.ascontiguousarray(a, np.int64), active_only=active_only)
     return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY), {"Content-Type": "application/json"}
 
 
@@ -83,14 +83,15 @@ def binary_available(url: str, bodies: Bodies, batches: list[Joints]) -> bool:
     return r.status_code == 200 and r.headers.get("content-type", "").split(";")[0] in wire.MEDIA_TYPES
 
 
-def measure(url: str, bodies: Bodies, batches: list[Joints], binary: bool, reps: int) -> dict[str, float]:
+def measure(url: str, bodies: Bodies, batches: list[Joints], binary: bool, reps: int,
+            active_only: bool = False) -> dict[str, float]:
     """Sequential requests (encode + POST + decode, as a client sees it): throughput, latency, bytes."""
     n = sum(j.body_ids.shape[0] for j in batches)
     with httpx.Client(timeout=300) as client:
         lat, sent, received = [], 0, 0
         for i in range(reps + 1):
             t = time.perf_counter()
-            body, headers = encode(bodies, batches, binary)
+            body, headers = encode(bodies, batches, binary, active_only)
             r = client.post(url + "/v1/evaluate", content=body, headers=headers)
             r.raise_for_status()
             decode(r, binary)

@@ -116,7 +116,8 @@ def relerr(got: Any, want: Any) -> float:
     return diff / scale if scale > 0 else diff
 
 
-def document(bodies: Bodies, batches: list[Joints], f64: Callable, i64: Callable, hessian_mode: str = "exact") -> dict:
+def document(bodies: Bodies, batches: list[Joints], f64: Callable, i64: Callable, hessian_mode: str = "exact",
+             active_only: bool = False) -> dict:
     """A CONTRACT v1 request of every output, arrays converted by `f64` / `i64` (lists, NumPy, wire arrays)."""
     return {
         "bodies": {k: f64(getattr(bodies, k)) for k in ("q", "q_prev", "q_ref")},
@@ -127,7 +128,7 @@ def document(bodies: Bodies, batches: list[Joints], f64: Callable, i64: Callable
         ],
         "outputs": ["energy", "gradient", "hessian"],
         "hessian_mode": hessian_mode,
-        "active_only": False,
+        "active_only": active_only,
     }
 
 
@@ -218,9 +219,9 @@ def build_case_set(cases: list[tuple[str, str, dict]], modes: tuple[str, ...] = 
                    [np.concatenate(per_uid[u]["case"]) for u in uids], ref)
 
 
-def core_results(cs: CaseSet, mode: str, dtype: type = np.float64) -> Results:
-    """The core on the merged cases, hessian mode `mode` ("exact" or "psd")."""
-    ev = evaluate(cs.bodies, cs.batches, hessian_mode=mode, dtype=dtype)
+def core_results(cs: CaseSet, mode: str, dtype: type = np.float64, **kw: Any) -> Results:
+    """The core on the merged cases, hessian mode `mode` ("exact" or "psd"); `kw` goes to `evaluate`."""
+    ev = evaluate(cs.bodies, cs.batches, hessian_mode=mode, dtype=dtype, **kw)
     return [{"energy": r.energy, "gradient": r.gradient, "hessian": r.hessian} for r in ev.batches]
 
 

@@ -60,9 +60,12 @@ def synthetic_result() -> dict:
         ],
         "ratios": {"E+G+H exact, 1e5, vs JAX": 6.13},
         "speedup": {"egh": 6.13, "e": 0.99},
-        "http": {"note": "binary: application/msgpack", "inprocess_1e4_jps": 3e5, "binary_vs_inprocess_1e4": 0.35,
-                 "rows": [{"encoding": "binary", "joints": 10_000, "requests_per_s": 10.0, "joints_per_s": 1e5,
-                           "p50_ms": 95.0, "p99_ms": 120.0, "bytes_per_joint": 5000.0}]},
+        "http": {"note": "binary: application/msgpack", "inprocess_1e4_jps_full": 3e5, "binary_vs_inprocess_1e4_full": 0.35,
+                 "inprocess_1e4_jps_active_only": 6e5, "binary_vs_inprocess_1e4_active_only": 0.6,
+                 "rows": [{"encoding": "binary", "active_only": False, "joints": 10_000, "requests_per_s": 10.0,
+                           "joints_per_s": 1e5, "p50_ms": 95.0, "p99_ms": 120.0, "bytes_per_joint": 5000.0},
+                          {"encoding": "binary", "active_only": True, "joints": 10_000, "requests_per_s": 36.0,
+                           "joints_per_s": 3.6e5, "p50_ms": 27.0, "p99_ms": 31.0, "bytes_per_joint": 700.0}]},
         "active": {"n": 100_000, "fraction": 0.05, "full": 0.1, "active_only": 0.08, "all_active": 0.5},
         "memory": {"n": 100_000, "peak": 600 * 2**20, "output": 460 * 2**20},
         "notes": ["a note"],
@@ -79,7 +82,7 @@ def test_markdown_renders_every_section_and_honest_targets():
                   "## Peak memory", "## Notes"):
         assert title in md, title
     status = {t["target"]: t["status"] for t in res["targets"]}
-    assert len(status) == 6  # target 1: speed, error on well and on hard cases; then 2, 3, 4
+    assert len(status) == 7  # target 1: speed, error on well and on hard cases; then 2, 3, 4 (active_only and full)
     rows = "\n".join(f"{t} {s}" for t, s in status.items())
     # A strict comparison: 1.04e-14 > 8.81e-15 is missed (by 1.18x), with both numbers printed.
     assert re.search(r"well-conditioned cases .*\*\*missed\*\* by 1\.18x", rows)
@@ -88,7 +91,8 @@ def test_markdown_renders_every_section_and_honest_targets():
     assert re.search(r"E\+G\+H exact at 1e5.*\*\*met\*\*", rows)
     assert re.search(r"energy at 1e5.*\*\*missed\*\* by 3\.03x", rows)
     assert re.search(r"peak memory.*\*\*met\*\*", rows)
-    assert re.search(r"binary HTTP.*\*\*missed\*\* by 1\.43x", rows)
+    assert re.search(r"binary HTTP.*active_only.*\*\*met\*\*", rows)
+    assert re.search(r"full answer.*\*\*missed\*\* by 1\.43x", rows)
     assert "Target 1 (speed and Hessian error together): **missed**" in md
     assert "| 1e6 |" in md and "n/a" in md  # the energy-only row; the floor has no error
 
@@ -98,7 +102,7 @@ def test_targets_without_the_optional_measurements_say_why():
     for key in ("http", "memory", "speedup"):
         res.pop(key)
     rows = report.targets(res, "JAX not installed")
-    assert [t["met"] for t in rows] == [None] * 4
+    assert [t["met"] for t in rows] == [None] * 4  # 1, 2, 3 and 4 not measured
     assert "not measured: JAX not installed" in rows[0]["status"]
 
 

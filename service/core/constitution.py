@@ -49,7 +49,7 @@ class Constitution(Protocol):
     alpha: Array
     """(4,): 1 where `F_k` is a point that follows the body's translation, 0 for a direction."""
     telescopes: bool
-    """True when the incremental `x` telescopes to a function of `q` and `q_ref`: `q_prev` is never gathered."""
+    """True when the incremental `x` telescopes to a function of `q` and `q_ref`: `q_prev` is not needed."""
 
     def local_vectors(self, edges: Array, p_ref: Array | None, A_ref: Array, R_ref: Array) -> Array:
         """Body-local `v` (N, 4, 3) from the joint edges (N, 2, 3) and the bodies at `q_ref`.
@@ -59,10 +59,12 @@ class Constitution(Protocol):
         """
         ...
 
-    def coordinate(self, F: Array, F_prev: Array | None, F_ref: Array) -> Array:
-        """Joint coordinate `x` (N,) in incremental form from `F` (N, 4, 3) at `q`, `q_prev`, `q_ref`.
+    def coordinate(self, F_ref: Array, steps: list[Array]) -> Array:
+        """Joint coordinate `x` (N,) in incremental form from `F_ref` (N, 4, 3) at `q_ref` and the increments of `F`.
 
-        `F_prev` is None when `telescopes`.
+        `steps` are `F(q_prev - q_ref), F(q - q_prev)`, or `[F(q - q_ref)]` when `telescopes`
+        (each (N, 4, 3)). Taking `x` as increments of bilinear forms keeps its error relative
+        to the step, not to the size of the scene.
         """
         ...
 

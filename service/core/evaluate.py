@@ -10,7 +10,16 @@ import numpy as np
 from service.core import assembly, penalty
 from service.core.constitution import Array, Constitution, Curvature
 from service.core.errors import Fault, InputError
-from service.core.kinematics import Q, Q_PREV, Q_REF, STATES, BodyTable, frame_quantities
+from service.core.kinematics import (
+    PREV_STEP,
+    REF,
+    STEP,
+    STEPS,
+    TOTAL_STEP,
+    BodyTable,
+    frame_quantities,
+    relative_position,
+)
 from service.core.parallel import run_all
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
@@ -51,9 +60,17 @@ def evaluate(
     bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
     faults = check_options(outputs, hessian_mode) + check_bodies(bodies)
     raise_if(faults)
-    table = BodyTable(bodies, dtype, threads)
-    n_bodies = bodies.q.shape[0]
     batches = [_as_arrays(j) for j in batches]
+    # Only what the batches' constitutions read: A's increments, and positions for points.
+    used = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
+    table = BodyTable(
+        bodies,
+        dtype,
+        threads,
+        rows={row for c in used for row in _increments(c)},
+        states={state for c in used if c.alpha.any() for row in _increments(c) for state in STEPS[row]},
+    )
+    n_bodies = bodies.q.shape[0]
     faults = check_rotations(table.ratio)
     for b, joints in enumerate(batches):
         faults += check_joints(b, joints, n_bodies)
@@ -72,6 +89,11 @@ def evaluate(
     if not np.isfinite(total):
         raise InputError([Fault(("batches",), "the total energy overflows float64")])
     return Evaluation(total_energy=total, batches=[BatchResult(**r) for r in results])
+
+
+def _increments(c: Constitution) -> tuple[int, ...]:
+    """The body table's rows of `A` increments that `c.coordinate` takes, in its order."""
+    return (TOTAL_STEP,) if c.telescopes else (PREV_STEP, STEP)
 
 
 def _as_arrays(j: Joints) -> Joints:
@@ -98,18 +120,28 @@ def _evaluate_batch(
 ) -> dict:
     c = CONSTITUTIONS[joints.constitution_uid]
     pairs = np.ascontiguousarray(joints.body_ids.T)  # (2, N): contiguous indices gather 30% faster
-    dtype = table.dofs.dtype
+    dtype = table.linear.dtype
     points = bool(c.alpha.any())
-    ref = table.pair(pairs, Q_REF, points)
-    v = c.local_vectors(joints.edges.astype(dtype, copy=False), *ref, table.rotations(pairs))
+    rows = _increments(c)
+    A_ref = table.linear_of(pairs, REF)
+    p = {state: table.positions_of(pairs, state) for row in rows for state in STEPS[row]} if points else {}
+    v = c.local_vectors(joints.edges.astype(dtype, copy=False), p.get(0), A_ref, table.rotations(pairs))
+    # Body j from body i in each state (points only), then frames at q_ref and their increments.
+    r = {state: relative_position(ps) for state, ps in p.items()}
+    F_ref = frame_quantities(r.get(0), A_ref, c.alpha, v)
 
-    def frames(state: int) -> Array:
-        p, A = ref if state == Q_REF else table.pair(pairs, state, points)
-        return frame_quantities(p, A, c.alpha, v)
+    def step(row: int) -> Array:
+        a, b = STEPS[row]
+        return frame_quantities(r[b] - r[a] if points else None, table.linear_of(pairs, row), c.alpha, v)
 
-    F = [frames(Q), None if c.telescopes else frames(Q_PREV), frames(Q_REF)]
-    _raise_collapsed(b, c, F)
-    x = c.coordinate(*F)
+    steps = [step(row) for row in rows]
+    x = c.coordinate(F_ref, steps)
+    # F at q_prev (if used) and at q, for the collapse check and the derivatives.
+    states = [F_ref]
+    for step in steps:
+        states.append(states[-1] + step)
+    _raise_collapsed(b, c, dict(zip(("q_ref", "q_prev", "q") if len(states) == 3 else ("q_ref", "q"), states)))
+    F = states[-1]
     lo, up, s = (a.astype(dtype, copy=False) for a in (joints.lower, joints.upper, joints.strength))
     energy = penalty.energy(x, lo, up, s)
 
@@ -129,7 +161,7 @@ def _evaluate_batch(
         h_out = None
         if want_h:
             h_out = hessian[pos[0] : pos[-1] + 1] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
-        g = _derivatives(c, F[0][sel], v[sel], x[sel], lo[sel], up[sel], s[sel], h_out, psd)
+        g = _derivatives(c, F[sel], v[sel], x[sel], lo[sel], up[sel], s[sel], h_out, psd)
         # Only active rows can overflow: checked while they are still in cache.
         bad = (nonfinite_rows(g) if want_g else []) + (nonfinite_rows(h_out) if want_h else [])
         if want_g:
@@ -184,16 +216,14 @@ def _derivatives(
     return grad
 
 
-def _raise_collapsed(b: int, c: Constitution, F: list[Array]) -> None:
-    faults = []
-    for state, Fs in zip(STATES, F):
-        if Fs is None:
-            continue
-        faults += [
-            Fault(
-                ("batches", b, "body_ids", int(j)),
-                f"the joint frame collapses at {state} (cos = sin = 0): the angle and its derivatives do not exist",
-            )
-            for j in np.flatnonzero(c.collapsed(Fs))[:MAX_FAULTS]
-        ]
+def _raise_collapsed(b: int, c: Constitution, F: dict[str, Array]) -> None:
+    """Joints whose frame collapses in any state of `F` ((N, 4, 3) by state name)."""
+    faults = [
+        Fault(
+            ("batches", b, "body_ids", int(j)),
+            f"the joint frame collapses at {state} (cos = sin = 0): the angle and its derivatives do not exist",
+        )
+        for state, Fs in F.items()
+        for j in np.flatnonzero(c.collapsed(Fs))[:MAX_FAULTS]
+    ]
     raise_if(faults)

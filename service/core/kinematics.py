@@ -15,6 +15,7 @@ from the origin from losing digits to its translation.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from functools import partial
 
 import numpy as np
@@ -28,8 +29,13 @@ Array = NDArray[np.float64]
 # Which body each frame quantity belongs to (0: body i, 1: body j).
 BLOCK_BODY = np.array([0, 0, 1, 1])
 
-STATES = ("q", "q_prev", "q_ref")
-Q, Q_PREV, Q_REF = range(3)
+# The body table holds `A` at the reference state and its increments, each taken once per
+# body; a joint coordinate is then an increment of a bilinear form in the increments of F
+# (no cancellation between two large values of two states), see the constitutions.
+REF, PREV_STEP, STEP, TOTAL_STEP = range(4)
+"""Rows of `A` in the body table: at `q_ref`, then `q_prev - q_ref`, `q - q_prev`, `q - q_ref`."""
+STEPS = {PREV_STEP: (0, 1), STEP: (1, 2), TOTAL_STEP: (0, 2)}
+"""Each increment row of `A` as (from, to) states: 0 q_ref, 1 q_prev, 2 q."""
 
 SINGULAR_RATIO = 1e-12
 """`A_ref` is singular when its smallest singular value is below this times its largest."""
@@ -108,8 +114,11 @@ def polar_rotation(a: Array) -> tuple[Array, Array]:
     good = est >= _NEWTON_RATIO
     newton = np.flatnonzero(good)
     ratio[newton] = est[newton]
-    X, C, det, nA, nC = a[:, newton], C[:, newton], det[newton], nA[newton], nC[newton]
-    R = np.empty_like(a)
+    if newton.shape[0] < m:
+        X, C, det, nA, nC = a[:, newton], C[:, newton], det[newton], nA[newton], nC[newton]
+    else:
+        X = a.copy()  # updated in place below
+    R = None  # filled as bodies converge; while none has, `going` is every Newton body, in order
     # Each body stops on its own test: its factor never depends on which others it was batched with.
     going = newton
     for _ in range(_NEWTON_STEPS):
@@ -118,17 +127,20 @@ def polar_rotation(a: Array) -> tuple[Array, Array]:
         X_new += C * (0.5 / (g * det))
         X -= X_new
         done = np.abs(X, out=X).max(axis=0) <= _NEWTON_TOL
-        if done.all():
-            R[:, going] = X_new
-            going = going[:0]
+        if done.all() and R is None and going.shape[0] == m:
+            R, going = X_new, going[:0]  # the common case: all at once, no scatter
             break
         if done.any():
+            R = np.empty_like(a) if R is None else R
             R[:, going[done]] = X_new[:, done]
             going, X_new = going[~done], X_new[:, ~done]
+        if going.shape[0] == 0:
+            break
         X = X_new
         C, det = _cofactors_t(X)
         nA = _frobenius_t(X)
         nC = _frobenius_t(C)
+    R = np.empty_like(a) if R is None else R
     svd = np.concatenate([np.flatnonzero(~good), going])
     if svd.shape[0]:
         U, s, Vt = np.linalg.svd(a[:, svd].T.reshape(-1, 3, 3))
@@ -149,64 +161,92 @@ def component_major(n: int, shape: tuple[int, ...], dtype: type = np.float64) ->
 
 
 class BodyTable:
-    """Every body's DOFs in the three states and its reference rotation, component-major.
+    """Every body's positions, its `A` at `q_ref` and `A`'s increments, and its reference rotation, component-major.
 
     Built once per evaluation (B bodies, whatever the number of joints); each batch
-    then gathers its joints' two bodies with one `take` per state. `ratio` (B,) is
-    each `A_ref`'s conditioning (`polar_rotation`).
+    then gathers its joints' two bodies with one `take` per row. Positions stay
+    absolute: a joint differences its two bodies' positions within one state first
+    (small), then across states. `ratio` (B,) is each `A_ref`'s conditioning (`polar_rotation`).
     """
 
-    def __init__(self, bodies: Bodies, dtype: type = np.float64, threads: int = 1) -> None:
+    def __init__(
+        self,
+        bodies: Bodies,
+        dtype: type = np.float64,
+        threads: int = 1,
+        rows: Iterable[int] = STEPS,
+        states: Iterable[int] = (0, 1, 2),
+    ) -> None:
+        """Only the increment `rows` of `A` and the position `states` asked for are filled (the others are garbage)."""
         n = bodies.q.shape[0]
-        self.dofs = np.empty((len(STATES), 12, n), dtype=dtype)  # (state, DOF, body)
-        for s, q in enumerate((bodies.q, bodies.q_prev, bodies.q_ref)):
-            self.dofs[s] = q.T
+        q = (bodies.q_ref, bodies.q_prev, bodies.q)
+        self.positions = np.empty((3, 3, n), dtype=dtype)  # (q_ref, q_prev, q; xyz; body)
+        for s in states:
+            self.positions[s] = q[s][:, :3].T
+        self.linear = np.empty((4, 9, n), dtype=dtype)  # (REF..TOTAL_STEP; A[r, c]; body)
+        self.linear[REF] = bodies.q_ref[:, 3:].T
+        for row in rows:
+            a, b = STEPS[row]
+            self.linear[row] = (q[b][:, 3:] - q[a][:, 3:]).T
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
-        A_ref = self.dofs[Q_REF, 3:] if self.dofs.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
+        A_ref = self.linear[REF] if self.linear.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
         parts = np.array_split(A_ref, threads, axis=1) if threads > 1 else [A_ref]
         parts = run_all([partial(polar_rotation, a) for a in parts], threads)
         R, self.ratio = parts[0] if len(parts) == 1 else (np.concatenate(a, axis=-1) for a in zip(*parts))
         self.rotation = R.astype(dtype, copy=False)  # (9, B)
 
-    def pair(self, pairs: NDArray[np.intp], state: int, translation: bool = True) -> tuple[Array | None, Array]:
-        """`p` (N, 2, 3) (None without `translation`) and `A` (N, 2, 3, 3) of joints `pairs` in `state`.
+    def positions_of(self, pairs: NDArray[np.intp], state: int) -> Array:
+        """`p` (N, 2, 3) of joints `pairs` in `state` (0: q_ref, 1: q_prev, 2: q).
 
         `pairs` (2, N) contiguous: each joint's bodies i and j (the transpose of `body_ids`).
         """
-        rows = self.dofs[state] if translation else self.dofs[state, 3:]
-        g = np.take(rows, pairs, axis=1)  # (k, 2, N)
-        A = g[-9:].reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
-        return (g[:3].transpose(2, 1, 0) if translation else None), A
+        return np.take(self.positions[state], pairs, axis=1).transpose(2, 1, 0)
+
+    def linear_of(self, pairs: NDArray[np.intp], row: int) -> Array:
+        """`A` (N, 2, 3, 3) of joints `pairs` (2, N) at `q_ref` (`REF`) or its increment `row`."""
+        return self._matrices(self.linear[row], pairs)
 
     def rotations(self, pairs: NDArray[np.intp]) -> Array:
         """`R_ref` (N, 2, 3, 3) of joints `pairs` (2, N)."""
-        g = np.take(self.rotation, pairs, axis=1)  # (9, 2, N)
+        return self._matrices(self.rotation, pairs)
+
+    @staticmethod
+    def _matrices(rows: Array, pairs: NDArray[np.intp]) -> Array:
+        g = np.take(rows, pairs, axis=1)  # (9, 2, N)
         return g.reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
 
 
-def frame_quantities(p: Array | None, A: Array, alpha: Array, v: Array) -> Array:
-    """`F` (N, 4, 3), component-major, of joints whose two bodies are at `p` (N, 2, 3), `A` (N, 2, 3, 3).
+def frame_quantities(r: Array | None, A: Array, alpha: Array, v: Array) -> Array:
+    """`F` (N, 4, 3), component-major, of joints whose bodies have `A` (N, 2, 3, 3), body j at `r` (N, 3) from body i.
 
-    `alpha` (4,) and `v` (N, 4, 3) as in the module docstring; `p` may be None when
-    `alpha` is zero. Body i's position is the origin, so `F_0, F_1` need no `p`.
+    `alpha` (4,) and `v` (N, 4, 3) as in the module docstring; `r` may be None when
+    `alpha` is zero. `F` is linear in `(r, A)`: their increments give the increment of `F`.
     """
     n = A.shape[0]
     F = component_major(n, (4, 3), A.dtype)
     tmp = np.empty(n, dtype=A.dtype)
     for k in range(4):
         side = BLOCK_BODY[k]
-        for r in range(3):
-            out = F[:, k, r]
-            np.multiply(A[:, side, r, 0], v[:, k, 0], out=out)
-            out += np.multiply(A[:, side, r, 1], v[:, k, 1], out=tmp)
-            out += np.multiply(A[:, side, r, 2], v[:, k, 2], out=tmp)
-    if alpha[2:].any():
-        # Nearby positions are differenced before anything large is added.
-        dp = p[:, 1] - p[:, 0]
-        for k in (2, 3):
-            if alpha[k]:
-                F[:, k] += alpha[k] * dp
+        for row in range(3):
+            out = F[:, k, row]
+            np.multiply(A[:, side, row, 0], v[:, k, 0], out=out)
+            out += np.multiply(A[:, side, row, 1], v[:, k, 1], out=tmp)
+            out += np.multiply(A[:, side, row, 2], v[:, k, 2], out=tmp)
+    for k in (2, 3):  # body i is the origin: F_0, F_1 see no position
+        if alpha[k]:
+            F[:, k] += alpha[k] * r
     return F
+
+
+def relative_position(p: Array) -> Array:
+    """Body j's position from body i's, `r` (N, 3), of positions `p` (N, 2, 3) in one state.
+
+    Nearby positions are differenced before anything large is added: a scene far from
+    the origin, or moved far between states, loses no digits to its translation.
+    """
+    r = component_major(p.shape[0], (3,), p.dtype)
+    np.subtract(p[:, 1], p[:, 0], out=r)
+    return r
 
 
 def dot(a: Array, b: Array) -> Array:

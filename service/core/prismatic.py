@@ -5,7 +5,8 @@ F = [C_i, T_i, C_j, T_j], with C_k = p_k + A_k c_k (the anchor) and T_k = A_k t_
 
     theta = (C_j - C_i) . (T_i + T_j) / 2,   x = theta(q) - theta(q_ref).
 
-The incremental form of the spec telescopes exactly to this difference.
+The incremental form of the spec telescopes exactly to this difference, taken from
+`F(q_ref)` and the increment `F(q - q_ref)` in whichever of two exact forms rounds less.
 theta is bilinear in F, so d2x/dF2 is a constant, `kron(PAIRS, I_3)`.
 """
 
@@ -24,12 +25,6 @@ _PAIRS = 0.5 * (np.outer(_D, _S) + np.outer(_S, _D))  # (4, 4) block coefficient
 # eigenvalues +-1, so the PSD part of dE PAIRS is |dE| u u^T, u chosen by the sign of dE.
 _U_PLUS = 0.5 * (_D + _S)
 _U_MINUS = 0.5 * (_D - _S)
-
-
-def _theta(F: Array) -> Array:
-    D = F[:, 2] - F[:, 0]
-    S = F[:, 1] + F[:, 3]
-    return 0.5 * dot(D, S)
 
 
 class Prismatic:
@@ -53,8 +48,19 @@ class Prismatic:
             v[:, 2 * side + 1] = to_local(R_ref[:, side], t)  # t_k = R_k^T t
         return v
 
-    def coordinate(self, F: Array, F_prev: Array | None, F_ref: Array) -> Array:
-        return _theta(F) - _theta(F_ref)
+    def coordinate(self, F_ref: Array, steps: list[Array]) -> Array:
+        (dF,) = steps
+        D, S = F_ref[:, 2] - F_ref[:, 0], F_ref[:, 1] + F_ref[:, 3]
+        dD, dS = dF[:, 2] - dF[:, 0], dF[:, 1] + dF[:, 3]
+        D2, S2 = D + dD, S + dS  # at q
+        # theta(q) - theta(q_ref) two ways; each joint takes the one with the smaller rounding
+        # bound: the increment ((D + dD) . dS + dD . S) / 2 for small steps (no cancellation),
+        # the plain difference when the step is as large as the scene.
+        step = 0.5 * (dot(D2, dS) + dot(dD, S))
+        plain = 0.5 * (dot(D2, S2) - dot(D, S))
+        n = lambda a: np.sqrt(dot(a, a))  # noqa: E731
+        nD, nS, nD2 = n(D), n(S), n(D2)
+        return np.where(nD2 * n(dS) + n(dD) * nS <= nD2 * n(S2) + nD * nS, step, plain)
     def collapsed(self, F: Array) -> np.ndarray:
         return np.zeros(F.shape[0], dtype=bool)
 

@@ -30,10 +30,20 @@ def _cos_sin(F: Array) -> tuple[Array, Array]:
     return 0.5 * (dot(B_i, B_j) + dot(N_i, N_j)), 0.5 * (dot(B_i, N_j) - dot(N_i, B_j))
 
 
-def _delta(cs_a: tuple[Array, Array], cs_b: tuple[Array, Array]) -> Array:
-    """DeltaTheta(a, b): the angle from state b to state a, in (-pi, pi]."""
-    (c_a, s_a), (c_b, s_b) = cs_a, cs_b
-    return np.arctan2(s_a * c_b - c_a * s_b, c_a * c_b + s_a * s_b)
+def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Array, Array]]:
+    """DeltaTheta(F + dF, F) and (cos, sin) at F + dF, from (cos, sin) `cs` at F.
+
+    `sin_a cos_b - cos_a sin_b` is `dsin cos_b - dcos sin_b` with the increments `dcos`, `dsin`
+    of the bilinear cos and sin taken term by term: no cancellation of two O(1) products.
+    """
+    B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
+    dB_i, dN_i, dB_j, dN_j = dF[:, 0], dF[:, 1], dF[:, 2], dF[:, 3]
+    B_i2, N_i2 = B_i + dB_i, N_i + dN_i  # body i after the step
+    dc = 0.5 * (dot(B_i2, dB_j) + dot(dB_i, B_j) + dot(N_i2, dN_j) + dot(dN_i, N_j))
+    ds = 0.5 * (dot(B_i2, dN_j) + dot(dB_i, N_j) - dot(N_i2, dB_j) - dot(dN_i, B_j))
+    c, s = cs
+    c2, s2 = c + dc, s + ds
+    return np.arctan2(ds * c - dc * s, c2 * c + s2 * s), (c2, s2)
 
 
 class Revolute:
@@ -58,9 +68,11 @@ class Revolute:
             v[:, k] = to_local(R_ref[:, side], w)  # body-local b_k = R_k^T b
         return v
 
-    def coordinate(self, F: Array, F_prev: Array, F_ref: Array) -> Array:
-        cs_prev = _cos_sin(F_prev)
-        return _delta(cs_prev, _cos_sin(F_ref)) + _delta(_cos_sin(F), cs_prev)
+    def coordinate(self, F_ref: Array, steps: list[Array]) -> Array:
+        dF_prev, dF = steps
+        turn_prev, cs_prev = _step(F_ref, dF_prev, _cos_sin(F_ref))
+        turn, _ = _step(F_ref + dF_prev, dF, cs_prev)
+        return turn_prev + turn
 
     def collapsed(self, F: Array) -> np.ndarray:
         c, s = _cos_sin(F)

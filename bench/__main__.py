@@ -23,6 +23,7 @@ import numpy as np
 from bench import measure as M
 from bench import report
 from bench.scenes import make_scene, shifted
+from service.core.heap import keep_heap
 
 GOLDEN = Path(__file__).resolve().parent.parent / "tests" / "golden_cases.json"
 OUTSIDE = 0.1  # fraction of joints past a limit in the timing scenes
@@ -133,6 +134,13 @@ def main(argv: list[str] | None = None) -> int:
     # ---------------------------------------------------------------- core in-process
     res["core_modes"] = [M.MODE_NAMES[m] for m in MODES]
     scenes = {n: make_scene(n, OUTSIDE, seed=n % 97) for n in sizes}
+    # First with glibc's default heap (every large array a fresh mapping, faulted in on each call),
+    # then as the service runs: `keep_heap`, which reuses freed pages as JAX's allocator does.
+    t_default_heap = {m: M.median_time(M.core_call(*scenes[n_big], m), reps) for m in ("e", "egh")}
+    res["notes"].append(f"glibc's default heap, 1 thread, at {report.count(n_big)}: energy {t_default_heap['e']:.3g} s, "
+                        f"E+G+H exact {t_default_heap['egh']:.3g} s; every other core figure is with keep_heap "
+                        f"({'applied' if keep_heap() else 'not available here'}), as `jointlimits serve` runs.")
+    log(res["notes"][-1])
     core: dict[str, list[float | None]] = {}
     for n in sizes:
         # --quick: only the two modes of the final line at the largest size.

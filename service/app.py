@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from fastapi import FastAPI
 
+from service.core.heap import keep_heap
 from service.http.routes import install
 from service.http import middleware as ops
 from service.settings import Settings
@@ -11,6 +12,8 @@ from service.settings import Settings
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
+    if settings.keep_heap:
+        keep_heap()  # every worker imports the app: this process's allocator, once
     app = FastAPI(
         title="Joint-limit constitution service",
         version="1.0.0",

@@ -147,6 +147,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="log level (JOINTLIMITS_LOG_LEVEL)",
     )
     s.add_argument(
+        "--keep-heap",
+        type=_bool,
+        default=_bool(_env("KEEP_HEAP", "true")),
+        help="keep freed memory in each worker's heap: no page faults per request, holds the largest request's "
+        "memory (JOINTLIMITS_KEEP_HEAP)",
+    )
+    s.add_argument(
         "--access-log",
         type=_bool,
         default=_bool(_env("ACCESS_LOG", "true")),
@@ -173,6 +180,7 @@ def serve(args: argparse.Namespace) -> int:
     os.environ[ENV_PREFIX + "MAX_BODY_BYTES"] = str(args.max_body_bytes)
     os.environ[ENV_PREFIX + "MAX_JOINTS"] = str(args.max_joints)
     os.environ[ENV_PREFIX + "CORS_ORIGINS"] = args.cors_origins
+    os.environ[ENV_PREFIX + "KEEP_HEAP"] = "true" if args.keep_heap else "false"
     if args.token_file:
         token = Path(args.token_file).read_text().strip()
         if not token:

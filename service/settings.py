@@ -22,3 +22,6 @@ class Settings:
         default_factory=lambda: tuple(o for o in _env("CORS_ORIGINS", "").split(",") if o)
     )
     """Origins allowed by CORS; CORS is off when empty."""
+    keep_heap: bool = field(default_factory=lambda: _env("KEEP_HEAP", "true").strip().lower() not in ("0", "false", "no", "off"))
+    """Keep freed memory in the worker's heap (`service.core.heap`): no page faults per request, at the
+    price of holding the largest request's memory."""

@@ -179,15 +179,17 @@ class BodyTable:
     ) -> None:
         """Only the increment `rows` of `A` and the position `states` asked for are filled (the others are garbage)."""
         n = bodies.q.shape[0]
+        rows = tuple(rows)
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
-        self.positions = np.empty((3, 3, n), dtype=dtype)  # (q_ref, q_prev, q; xyz; body)
-        for s in states:
-            self.positions[s] = q[s][:, :3].T
+        dofs = np.empty((3, 12, n), dtype=dtype)  # (q_ref, q_prev, q; DOF; body): one transposed copy per state
+        for s in {0, *states, *(s for row in rows for s in STEPS[row])}:
+            dofs[s] = q[s].T
+        self.positions = dofs[:, :3]  # (state; xyz; body)
         self.linear = np.empty((4, 9, n), dtype=dtype)  # (REF..TOTAL_STEP; A[r, c]; body)
-        self.linear[REF] = bodies.q_ref[:, 3:].T
+        self.linear[REF] = dofs[0, 3:]
         for row in rows:
             a, b = STEPS[row]
-            self.linear[row] = (q[b][:, 3:] - q[a][:, 3:]).T
+            np.subtract(dofs[b, 3:], dofs[a, 3:], out=self.linear[row])
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         A_ref = self.linear[REF] if self.linear.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
         parts = np.array_split(A_ref, threads, axis=1) if threads > 1 else [A_ref]

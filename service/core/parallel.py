@@ -3,11 +3,23 @@
 from __future__ import annotations
 
 import contextvars
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
 T = TypeVar("T")
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_LOCK = threading.Lock()
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """One long-lived pool per size: starting threads per call costs more than small evaluations."""
+    with _LOCK:
+        if threads not in _POOLS:
+            _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="jointlimits-core")
+        return _POOLS[threads]
 
 
 def run_all(tasks: Sequence[Callable[[], T]], threads: int) -> list[T]:
@@ -18,6 +30,6 @@ def run_all(tasks: Sequence[Callable[[], T]], threads: int) -> list[T]:
     """
     if threads <= 1 or len(tasks) <= 1:
         return [task() for task in tasks]
-    with ThreadPoolExecutor(min(threads, len(tasks))) as pool:
-        futures = [pool.submit(contextvars.copy_context().run, task) for task in tasks]
-        return [f.result() for f in futures]
+    pool = _pool(threads)
+    futures = [pool.submit(contextvars.copy_context().run, task) for task in tasks]
+    return [f.result() for f in futures]

@@ -14,7 +14,7 @@ import numpy as np
 from service.core.errors import Fault, InputError
 from service.core.kinematics import SINGULAR_RATIO, dot
 from service.core.registry import CONSTITUTIONS
-from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
+from service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
 
 MAX_FAULTS = 20
 """Faults listed per check; a request with a million bad joints gets a readable answer."""
@@ -160,59 +160,14 @@ def checked_evaluate(bodies: Bodies, batches: Sequence[Joints], **options: Any) 
     hostile numbers: warnings are silenced and every overflow becomes an
     `InputError` naming the joint. The PSD projection (an eigensolver) fails
     outright on a non-finite curvature; the exact mode then locates the joints.
-    Batches without joints are checked and answered here (the core's row-wise
-    finiteness check cannot reshape an empty batch), the others go to the core.
     """
     from service.core.evaluate import evaluate  # evaluate imports this module
 
-    batches = [_as_arrays(j) for j in batches]
-    empty = [b for b, j in enumerate(batches) if j.body_ids.ndim == 2 and j.body_ids.shape[0] == 0]
-    full = [b for b in range(len(batches)) if b not in set(empty)]
-    n_bodies = int(np.shape(bodies.q)[0]) if np.ndim(bodies.q) else 0
-    faults = [f for b in empty for f in check_joints(b, batches[b], n_bodies)]
     with np.errstate(all="ignore"):
         try:
-            try:
-                ev = evaluate(bodies, [batches[b] for b in full], **options)
-            except np.linalg.LinAlgError:
-                evaluate(bodies, [batches[b] for b in full], **{**options, "hessian_mode": "exact"})  # names the joints
-                raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
-        except InputError as e:
-            raise InputError(faults + [_renumber(f, full) for f in e.faults]) from None
-    raise_if(faults)
-    for b in empty:
-        ev.batches.insert(b, _no_rows(batches[b].constitution_uid, options.get("outputs", OUTPUTS)))
+            ev = evaluate(bodies, batches, **options)
+        except np.linalg.LinAlgError:
+            evaluate(bodies, batches, **{**options, "hessian_mode": "exact"})  # names the joints
+            raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
     raise_if(check_evaluation(ev))
     return ev
-
-
-def _as_arrays(j: Joints) -> Joints:
-    return Joints(
-        constitution_uid=int(j.constitution_uid),
-        base_uid=int(j.base_uid),
-        body_ids=np.asarray(j.body_ids, dtype=np.int64),
-        edges=np.asarray(j.edges, dtype=np.float64),
-        lower=np.asarray(j.lower, dtype=np.float64),
-        upper=np.asarray(j.upper, dtype=np.float64),
-        strength=np.asarray(j.strength, dtype=np.float64),
-    )
-
-
-def _renumber(f: Fault, full: list[int]) -> Fault:
-    """A core fault's batch index back in the caller's numbering (empty batches were left out)."""
-    loc = f.loc
-    if len(loc) >= 2 and loc[0] == "batches" and isinstance(loc[1], int) and loc[1] < len(full):
-        loc = ("batches", full[loc[1]], *loc[2:])
-    return Fault(loc, f.msg, f.type)
-
-
-def _no_rows(uid: int, outputs: Sequence[str]) -> BatchResult:
-    none = np.zeros(0)
-    return BatchResult(
-        constitution_uid=int(uid),
-        index=np.zeros(0, dtype=np.int64),
-        x=none,
-        energy=none,
-        gradient=np.zeros((0, 24)) if "gradient" in outputs else None,
-        hessian=np.zeros((0, 24, 24)) if "hessian" in outputs else None,
-    )

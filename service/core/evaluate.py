@@ -131,15 +131,15 @@ def _evaluate_batch(
     F_ref = frame_quantities(r.get(0), A_ref, c.alpha, v)
 
     def step(row: int) -> Array:
-        a, b = STEPS[row]
-        return frame_quantities(r[b] - r[a] if points else None, table.linear_of(pairs, row), c.alpha, v)
+        s0, s1 = STEPS[row]
+        return frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.alpha, v)
 
     steps = [step(row) for row in rows]
     x = c.coordinate(F_ref, steps)
     # F at q_prev (if used) and at q, for the collapse check and the derivatives.
     states = [F_ref]
-    for step in steps:
-        states.append(states[-1] + step)
+    for dF in steps:
+        states.append(states[-1] + dF)
     _raise_collapsed(b, c, dict(zip(("q_ref", "q_prev", "q") if len(states) == 3 else ("q_ref", "q"), states)))
     F = states[-1]
     lo, up, s = (a.astype(dtype, copy=False) for a in (joints.lower, joints.upper, joints.strength))

@@ -50,8 +50,8 @@ def evaluate(
 
     Raises `InputError` naming every fault found. Only the outputs asked for are
     computed, and only joints outside their range are differentiated. `dtype`
-    np.float32 runs everything after validation and the polar rotations in single
-    precision (a benchmark variant: about 1e-7 relative error; the wire is float64).
+    np.float32 runs everything after validation and the polar factors in single
+    precision (a benchmark variant: ~1e-5 relative error; the wire is float64).
     `threads` > 1 evaluates the polar factors, the batches (or, for one batch, its
     derivative chunks) on that many threads, with bitwise the same results; the HTTP
     service keeps 1, its worker processes already fill the cores.

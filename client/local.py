@@ -20,9 +20,10 @@ class LocalClient:
     the `loc` the server would answer (`("body", "batches", 1, "lower", 2)`).
     """
 
-    def __init__(self, **_ignored: object) -> None:
-        # Accepts (and ignores) the HTTP clients' options, so switching mode is one word.
-        pass
+    def __init__(self, *, threads: int = 1, **_ignored: object) -> None:
+        """`threads` > 1 lets the core use that many threads (bitwise the same numbers); the HTTP
+        clients' options are accepted and ignored, so switching mode is one word."""
+        self.threads = threads
 
     def constitutions(self) -> ConstitutionsResponse:
         infos = [describe(uid, c.name, c.base_uid) for uid, c in sorted(core.CONSTITUTIONS.items(), reverse=True)]
@@ -48,6 +49,7 @@ class LocalClient:
                 outputs=request.outputs,
                 hessian_mode=request.hessian_mode,
                 active_only=request.active_only,
+                threads=self.threads,
             )
         except core.InputError as e:
             raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults]) from None

@@ -111,6 +111,7 @@ def test_large_batch_is_split_under_the_server_limit_with_progress(live):
     local = LocalClient().evaluate(request)
     _same_rows(ev, local)
     assert sum(len(b.index) for b in ev.batches) == 1000
+    _same_rows(local, LocalClient(threads=2).evaluate(request))  # the core's threads change no bit
 
 
 def test_split_with_active_only_and_a_small_user_cap(live):

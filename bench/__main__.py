@@ -107,7 +107,7 @@ def time_jax(JaxPeer: Any, flavours: list[tuple[str, bool]], scene: tuple, quick
             peer = JaxPeer(*scene, same_work=same, psd=psd)
             for m in ["egh"] if psd else (["e", "egh"] if quick else ["e", "eg", "egh"]):
                 key = "psd" if psd else m
-                t[(name, key)] = M.median_time(lambda: peer(m), reps)
+                t[(name, key)] = M.median_time(lambda p=peer, m=m: p(m), reps)
                 res["peers"].append({"peer": name, "n": n, "mode": M.MODE_NAMES[key], "t": t[(name, key)]})
                 log(f"{name} {key}: {t[(name, key)]:.4g}s")
             del peer  # a 1e5 peer holds its inputs on the device

@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from service.core.errors import Fault, InputError
-from service.core.kinematics import SINGULAR_RATIO, dot
+from service.core.kinematics import dot
+from service.core.polar import SINGULAR_RATIO
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
 

@@ -1,0 +1,101 @@
+"""Orthogonal polar factors of many 3 x 3 matrices at once, component-major (the joint frames' R_k)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+SINGULAR_RATIO = 1e-12
+"""`A_ref` is singular when its smallest singular value is below this times its largest."""
+
+_NEWTON_RATIO = 1e-4
+"""Below this estimated conditioning ratio the polar factor comes from an SVD, not Newton's iteration."""
+_NEWTON_STEPS = 12
+_NEWTON_TOL = 1e-8
+"""Stop once a step changes no entry by more than this: near the factor, X = U (I + E) steps to
+U (I + E^2 / 2 + O(E^3)), so the step just taken left an error of about half its square (< 1e-16)."""
+
+
+def _cofactors_t(a: Array) -> tuple[Array, Array]:
+    """Cofactors and determinant in component-major layout: `a` (9, M) -> `C` (9, M), det (M,).
+
+    Row i of the cofactor matrix is row (i+1) x row (i+2); contiguous (M,) components
+    make every product a SIMD pass (strided views of (M, 3, 3) are 10x slower).
+    """
+    C = np.empty_like(a)
+    for r in range(3):
+        u0, u1, u2 = a[3 * ((r + 1) % 3) : 3 * ((r + 1) % 3) + 3]
+        w0, w1, w2 = a[3 * ((r + 2) % 3) : 3 * ((r + 2) % 3) + 3]
+        C[3 * r] = u1 * w2 - u2 * w1
+        C[3 * r + 1] = u2 * w0 - u0 * w2
+        C[3 * r + 2] = u0 * w1 - u1 * w0
+    return C, a[0] * C[0] + a[1] * C[1] + a[2] * C[2]
+
+
+def _frobenius_t(a: Array) -> Array:
+    """Frobenius norms (M,) of `a` (9, M), summed in one fixed order whatever M and layout (einsum's is not)."""
+    s = a[0] * a[0]
+    tmp = np.empty_like(s)
+    for i in range(1, 9):
+        s += np.multiply(a[i], a[i], out=tmp)
+    return np.sqrt(s, out=s)
+
+
+def polar_rotation(a: Array) -> tuple[Array, Array]:
+    """Orthogonal polar factor `R` (9, M) of each `A` and its conditioning ratio `s_min / s_max` (M,).
+
+    Component-major in and out: `a[3 r + c]` is `A[r, c]` of all M matrices.
+
+    Why not an SVD for every body: it was 95% of an energy-only evaluation. Newton's
+    iteration `X <- (g X + X^-T / g) / 2` (Frobenius scaling `g`), with cofactor inverses
+    (`X^-T = C / det`), converges quadratically to the same factor; bodies it is not good
+    for (estimated ratio below 1e-4, or not converged in 12 steps) take the SVD. The
+    returned ratio is exact from the SVD where it decides anything; elsewhere it is the
+    bound `1 / (|A|_F |A^-1|_F)`, which lies in `[ratio / 3, ratio]`, far above `SINGULAR_RATIO`.
+    """
+    m = a.shape[1]
+    ratio = np.zeros(m)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        C, det = _cofactors_t(a)
+        nA = _frobenius_t(a)
+        nC = _frobenius_t(C)
+        est = np.abs(det) / (nA * nC)
+    good = est >= _NEWTON_RATIO
+    newton = np.flatnonzero(good)
+    ratio[newton] = est[newton]
+    if newton.shape[0] < m:
+        X, C, det, nA, nC = a[:, newton], C[:, newton], det[newton], nA[newton], nC[newton]
+    else:
+        X = a.copy()  # updated in place below
+    R = None  # filled as bodies converge; while none has, `going` is every Newton body, in order
+    # Each body stops on its own test: its factor never depends on which others it was batched with.
+    going = newton
+    for _ in range(_NEWTON_STEPS):
+        g = np.sqrt(nC / (np.abs(det) * nA))  # sqrt(|X^-1|_F / |X|_F)
+        X_new = X * (0.5 * g)
+        X_new += C * (0.5 / (g * det))
+        X -= X_new
+        done = np.abs(X, out=X).max(axis=0) <= _NEWTON_TOL
+        if done.all() and R is None and going.shape[0] == m:
+            R, going = X_new, going[:0]  # the common case: all at once, no scatter
+            break
+        if done.any():
+            R = np.empty_like(a) if R is None else R
+            R[:, going[done]] = X_new[:, done]
+            going, X_new = going[~done], X_new[:, ~done]
+        if going.shape[0] == 0:
+            break
+        X = X_new
+        C, det = _cofactors_t(X)
+        nA = _frobenius_t(X)
+        nC = _frobenius_t(C)
+    R = np.empty_like(a) if R is None else R
+    svd = np.concatenate([np.flatnonzero(~good), going])
+    if svd.shape[0]:
+        U, s, Vt = np.linalg.svd(a[:, svd].T.reshape(-1, 3, 3))
+        R[:, svd] = (U @ Vt).reshape(-1, 9).T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio[svd] = np.nan_to_num(s[:, -1] / s[:, 0], nan=0.0)
+    return R, ratio

@@ -59,12 +59,13 @@ class Constitution(Protocol):
         """
         ...
 
-    def coordinate(self, F_ref: Array, steps: list[Array]) -> Array:
-        """Joint coordinate `x` (N,) in incremental form from `F_ref` (N, 4, 3) at `q_ref` and the increments of `F`.
+    def coordinate(self, starts: list[Array], steps: list[Array]) -> Array:
+        """Joint coordinate `x` (N,) in incremental form, from the frames' steps.
 
-        `steps` are `F(q_prev - q_ref), F(q - q_prev)`, or `[F(q - q_ref)]` when `telescopes`
-        (each (N, 4, 3)). Taking `x` as increments of bilinear forms keeps its error relative
-        to the step, not to the size of the scene.
+        `steps` are the increments `F(q_prev - q_ref), F(q - q_prev)`, or `[F(q - q_ref)]` when
+        `telescopes`; `starts` the frames where each step starts (`F` at `q_ref`, then at
+        `q_prev`); all (N, 4, 3). Taking `x` as increments of bilinear forms keeps its error
+        relative to the step, not to the size of the scene.
         """
         ...
 

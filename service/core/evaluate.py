@@ -135,11 +135,11 @@ def _evaluate_batch(
         return frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.alpha, v)
 
     steps = [step(row) for row in rows]
-    x = c.coordinate(F_ref, steps)
-    # F at q_prev (if used) and at q, for the collapse check and the derivatives.
+    # F at q_prev (if used) and at q: where each step starts, the collapse check, the derivatives.
     states = [F_ref]
     for dF in steps:
         states.append(states[-1] + dF)
+    x = c.coordinate(states[:-1], steps)
     _raise_collapsed(b, c, dict(zip(("q_ref", "q_prev", "q") if len(states) == 3 else ("q_ref", "q"), states)))
     F = states[-1]
     lo, up, s = (a.astype(dtype, copy=False) for a in (joints.lower, joints.upper, joints.strength))

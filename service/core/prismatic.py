@@ -48,8 +48,8 @@ class Prismatic:
             v[:, 2 * side + 1] = to_local(R_ref[:, side], t)  # t_k = R_k^T t
         return v
 
-    def coordinate(self, F_ref: Array, steps: list[Array]) -> Array:
-        (dF,) = steps
+    def coordinate(self, starts: list[Array], steps: list[Array]) -> Array:
+        (F_ref,), (dF,) = starts, steps
         D, S = F_ref[:, 2] - F_ref[:, 0], F_ref[:, 1] + F_ref[:, 3]
         # D and S at q from their increments (A's increments times body-local vectors, small), not
         # from A(q) itself; the difference of the two thetas then rounds no worse than a step form

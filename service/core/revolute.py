@@ -68,11 +68,12 @@ class Revolute:
             v[:, k] = to_local(R_ref[:, side], w)  # body-local b_k = R_k^T b
         return v
 
-    def coordinate(self, F_ref: Array, steps: list[Array]) -> Array:
-        dF_prev, dF = steps
-        turn_prev, cs_prev = _step(F_ref, dF_prev, _cos_sin(F_ref))
-        turn, _ = _step(F_ref + dF_prev, dF, cs_prev)
-        return turn_prev + turn
+    def coordinate(self, starts: list[Array], steps: list[Array]) -> Array:
+        x, cs = 0.0, _cos_sin(starts[0])
+        for F, dF in zip(starts, steps):
+            turn, cs = _step(F, dF, cs)
+            x = x + turn
+        return x
 
     def collapsed(self, F: Array) -> np.ndarray:
         c, s = _cos_sin(F)

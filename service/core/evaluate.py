@@ -61,15 +61,9 @@ def evaluate(
     faults = check_options(outputs, hessian_mode) + check_bodies(bodies)
     raise_if(faults)
     batches = [_as_arrays(j) for j in batches]
-    # Only what the batches' constitutions read: A's increments, and positions for points.
+    # Only the increments of A (and the states they span) that the batches' constitutions read.
     used = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
-    table = BodyTable(
-        bodies,
-        dtype,
-        threads,
-        rows={row for c in used for row in _increments(c)},
-        states={state for c in used if c.alpha.any() for row in _increments(c) for state in STEPS[row]},
-    )
+    table = BodyTable(bodies, dtype, threads, rows={row for c in used for row in _increments(c)})
     n_bodies = bodies.q.shape[0]
     faults = check_rotations(table.ratio)
     for b, joints in enumerate(batches):

@@ -78,14 +78,13 @@ class BodyTable:
         dtype: type = np.float64,
         threads: int = 1,
         rows: Iterable[int] = STEPS,
-        states: Iterable[int] = (0, 1, 2),
     ) -> None:
-        """Only the increment `rows` of `A` and the position `states` asked for are filled (the others are garbage)."""
+        """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage)."""
         n = bodies.q.shape[0]
         rows = tuple(rows)
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
         dofs = np.empty((3, 12, n), dtype=dtype)  # (q_ref, q_prev, q; DOF; body): one transposed copy per state
-        for s in {0, *states, *(s for row in rows for s in STEPS[row])}:
+        for s in {0, *(s for row in rows for s in STEPS[row])}:
             dofs[s] = q[s].T
         self.positions = dofs[:, :3]  # (state; xyz; body)
         self.linear = np.empty((4, 9, n), dtype=dtype)  # (REF..TOTAL_STEP; A[r, c]; body)

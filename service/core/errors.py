@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 Loc = tuple[str | int, ...]
 
+MAX_FAULTS = 20
+"""Faults listed in one answer: a request with a million bad joints gets a readable 422."""
+
 
 @dataclass(frozen=True)
 class Fault:

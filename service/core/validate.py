@@ -11,14 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from service.core.errors import Fault, InputError
+from service.core.errors import MAX_FAULTS, Fault, InputError
 from service.core.kinematics import dot
 from service.core.polar import SINGULAR_RATIO
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
-
-MAX_FAULTS = 20
-"""Faults listed per check; a request with a million bad joints gets a readable answer."""
 
 HESSIAN_MODES = ("exact", "psd")
 

@@ -7,7 +7,7 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
 from service.core import Fault, InputError
-from service.core.validate import MAX_FAULTS
+from service.core.errors import MAX_FAULTS
 
 
 class HttpError(Exception):

@@ -89,4 +89,4 @@ class Job:
 
     def merge(self, results: list[Evaluation]) -> Evaluation:
         """The parts' evaluations, in the order of `parts`, as one."""
-        return split.merge(self.request, self.parts, results)
+        return split.merge(self.request, self.parts, results).sized(self.request)

@@ -60,7 +60,7 @@ class LocalClient:
             batches=[
                 BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian) for r in ev.batches
             ],
-        )
+        ).sized(request)
 
     def close(self) -> None:
         pass

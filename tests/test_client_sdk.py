@@ -168,7 +168,7 @@ def test_errors_after_a_split_name_the_original_batch_joint_and_body(live, mode)
     assert [f.loc for f in err.value.faults] == [("body", "batches", 1, "lower", 450)]
     with pytest.raises(InvalidInput) as err:
         run(bad_body)
-    assert [f.loc for f in err.value.faults] == [("body", "bodies", "q", body)]
+    assert [f.loc for f in err.value.faults] == [("body", "bodies", "q", body, 4)]  # to the element, as JSON names it
 
 
 def test_too_large_is_raised_when_splitting_is_defeated(live):

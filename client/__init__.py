@@ -8,7 +8,7 @@ core in-process with the same API. Server faults raise `ServiceError` / `Invalid
 """
 
 from client.aio import AsyncClient
-from client.errors import Fault, InvalidInput, ServiceError, TooLarge
+from client.errors import Fault, InvalidInput, ServiceError, TooLarge, Unreachable, WrongURL
 from client.local import LocalClient
 from client.model import (
     PRISMATIC_LIMIT,
@@ -40,6 +40,8 @@ __all__ = [
     "Scene",
     "ServiceError",
     "TooLarge",
+    "Unreachable",
+    "WrongURL",
     "dofs",
     "request_from_arrays",
 ]

@@ -26,6 +26,7 @@ class AsyncClient(BaseClient):
         *,
         binary: bool = True,
         timeout: float | httpx.Timeout = 60.0,
+        connect_timeout: float = transport.CONNECT_TIMEOUT,
         retries: int = 3,
         backoff: float = 0.2,
         token: str | None = None,
@@ -38,6 +39,7 @@ class AsyncClient(BaseClient):
             base_url,
             binary=binary,
             timeout=timeout,
+            connect_timeout=connect_timeout,
             retries=retries,
             backoff=backoff,
             token=token,
@@ -65,7 +67,7 @@ class AsyncClient(BaseClient):
         return job.merge(await asyncio.gather(*(run(part) for part in job.parts)))
 
     async def _send(self, request: httpx.Request) -> httpx.Response:
-        retry = self._retry()
+        retry = self._retry(request)
         while True:
             try:
                 return await self._http.send(request)

@@ -35,6 +35,7 @@ class Client(BaseClient):
         *,
         binary: bool = True,
         timeout: float | httpx.Timeout = 60.0,
+        connect_timeout: float = transport.CONNECT_TIMEOUT,
         retries: int = 3,
         backoff: float = 0.2,
         token: str | None = None,
@@ -46,6 +47,7 @@ class Client(BaseClient):
             base_url,
             binary=binary,
             timeout=timeout,
+            connect_timeout=connect_timeout,
             retries=retries,
             backoff=backoff,
             token=token,
@@ -66,7 +68,7 @@ class Client(BaseClient):
         return job.merge([job.receive(part, self._send(self._evaluate_request(part))) for part in job.parts])
 
     def _send(self, request: httpx.Request) -> httpx.Response:
-        retry = self._retry()
+        retry = self._retry(request)
         while True:
             try:
                 return self._http.send(request)

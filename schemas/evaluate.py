@@ -39,16 +39,21 @@ class Bodies(_Wire):
     q_ref: list[Dof]
 
 
+def _no_default(schema: dict) -> None:
+    schema.pop("default", None)  # absent means "follows" (see the description), not null
+
+
 class JointBatch(_Wire):
     """Joints of one constitution; all per-joint lists have one entry per joint."""
 
     constitution_uid: Int64
-    base_uid: Int64
+    # Optional on the wire (absent, never null): the core fills them in (service/http/convert.py: defaults).
+    base_uid: Int64 = Field(None, json_schema_extra=_no_default)
     body_ids: list[BodyPair]
     edges: list[Edge]
     lower: list[Real]
     upper: list[Real]
-    strength: list[Real]
+    strength: list[Real] = Field(None, json_schema_extra=_no_default)
 
 
 class EvaluateRequest(_Wire):

@@ -112,7 +112,7 @@ class JointResult:
     hessian: Array | None
 
 
-@dataclass
+@dataclass(repr=False)
 class BatchResult:
     """Rows `index` (M,) of a request batch: `x`, `energy` (M,), `gradient` (M, 24), `hessian` (M, 24, 24).
 
@@ -129,6 +129,16 @@ class BatchResult:
     hessian: Array | None = None
     size: int | None = None
     """Joints in the request's batch (N); the clients set it, so `joint` can tell an inactive joint from no joint."""
+
+    def outputs(self) -> list[str]:
+        """What this answer carries: `x`, `energy`, and `gradient` / `hessian` when asked for."""
+        return ["x", "energy"] + [k for k in ("gradient", "hessian") if getattr(self, k) is not None]
+
+    def __repr__(self) -> str:
+        # A summary: the arrays themselves are ~250 lines per joint with Hessians.
+        of = f" of {self.size}" if self.size is not None else ""
+        return (f"BatchResult(constitution_uid={self.constitution_uid}, rows={len(self.index)}{of} joints, "
+                f"energy sum={float(np.sum(self.energy))!r}, outputs={', '.join(self.outputs())})")
 
     def joint(self, k: int) -> JointResult:
         """Joint `k` of the request's batch (its row there, or a `Joint` handle), with or without `active_only`.
@@ -151,7 +161,7 @@ class BatchResult:
                            zeros(self.gradient, 24), zeros(self.hessian, (24, 24)))
 
 
-@dataclass
+@dataclass(repr=False)
 class Evaluation:
     """The answer: `total_energy` and one `BatchResult` per request batch, in request order."""
 
@@ -164,6 +174,11 @@ class Evaluation:
             if b.constitution_uid == constitution_uid:
                 return b
         raise KeyError(f"no batch of constitution {constitution_uid}")
+
+    def __repr__(self) -> str:
+        """A summary (batches, joints, total energy, outputs); the arrays are in `batches`."""
+        rows = "".join(f"\n  {b!r}," for b in self.batches)
+        return f"Evaluation(total_energy={self.total_energy!r}, batches=[{rows}{chr(10) if rows else ''}])"
 
     def sized(self, request: Request) -> Evaluation:
         """Itself, each batch told how many joints its request batch has (what `joint` needs under `active_only`)."""

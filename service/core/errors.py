@@ -4,13 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from schemas.errors import NONFINITE_MSG, NONFINITE_TYPE  # noqa: F401 (the wire's words for a NaN, said on every path)
+
 Loc = tuple[str | int, ...]
 
 MAX_FAULTS = 20
 """Faults listed in one answer: a request with a million bad joints gets a readable 422."""
-
-NONFINITE_MSG, NONFINITE_TYPE = "Input should be a finite number", "finite_number"
-"""A NaN, an infinity (or JSON's `null`, `1e400`): pydantic's own words for JSON, said by every path."""
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,8 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
 from service.core import Fault, InputError
-from service.core.errors import MAX_FAULTS, NONFINITE_MSG, NONFINITE_TYPE
+from schemas.errors import validation_items
+from service.core.errors import MAX_FAULTS
 
 
 class HttpError(Exception):
@@ -36,15 +37,5 @@ async def http_error_handler(request: Request, exc: Exception) -> JSONResponse:
 
 
 def from_validation(e: ValidationError) -> InputError:
-    """Pydantic's errors as core faults (same loc, same msg), without echoing the input back.
-
-    JSON's `null` where a number belongs is what a NaN becomes in most JSON writers: it gets the
-    words of every other non-finite number (pydantic would say "a valid number", as for a string).
-    """
-    faults = [
-        Fault(tuple(err["loc"]), NONFINITE_MSG, NONFINITE_TYPE)
-        if err["type"] == "float_type" and err["input"] is None
-        else Fault(tuple(err["loc"]), err["msg"], err["type"])
-        for err in e.errors(include_url=False, include_context=False)[: 4 * MAX_FAULTS]
-    ]
-    return InputError(faults)
+    """Pydantic's errors as core faults (same loc, same msg; `null` for a number reads as non-finite)."""
+    return InputError([Fault(*item) for item in validation_items(e, 4 * MAX_FAULTS)])

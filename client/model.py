@@ -90,6 +90,9 @@ class Joint(int):
         self.constitution_uid = constitution_uid
         return self
 
+    def __getnewargs__(self) -> tuple[int, int]:  # pickle and copy keep the constitution
+        return int(self), self.constitution_uid
+
     def __repr__(self) -> str:
         return f"Joint({int(self)}, constitution_uid={self.constitution_uid})"
 

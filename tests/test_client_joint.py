@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 
@@ -34,6 +36,7 @@ def test_the_handle_is_the_row_and_knows_its_constitution():
     _, js = scene()
     assert [int(j) for j in js] == [0, 0, 1, 1, 2]
     assert [j.constitution_uid for j in js] == [670, 669, 670, 669, 670]
+    assert [(k, k.constitution_uid) for k in pickle.loads(pickle.dumps(js))] == [(j, j.constitution_uid) for j in js]
 
 
 @pytest.mark.parametrize("mode", ["local", "binary", "json"])

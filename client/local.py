@@ -10,7 +10,6 @@ from client.progress import ProgressCallback
 from schemas import ConstitutionsResponse, Limits
 from schemas.constitutions import describe
 from service import core
-from service.core.validate import checked_evaluate
 
 
 class LocalClient:
@@ -43,7 +42,7 @@ class LocalClient:
             for b in request.batches
         ]
         try:
-            ev = checked_evaluate(
+            ev = core.evaluate(
                 bodies=core.Bodies(request.q, request.q_prev, request.q_ref),
                 batches=joints,
                 outputs=request.outputs,

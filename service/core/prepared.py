@@ -66,10 +66,10 @@ class _Batch:
     row: int  # the body table's increment row of the last step (to q): STEP or TOTAL_STEP
     origin: int  # the state it starts from (0: q_ref, 1: q_prev)
     r_origin: Array | None  # (N, 3) body j from body i in that state (points only)
-    lower: Array  # the request's bounds on the coordinate, float64 (owned: `update` writes them)
+    lower: Array  # the request's bounds on the coordinate, float64 (`update` writes them: copies in `prepare`)
     upper: Array
     strength: Array
-    offset: Array
+    offset: Array | None  # None: 0 (only in the stateless call, which saves the arrays)
     lo: Array  # the penalty's bounds on x (lower - offset, upper - offset) and strength, in the scene's dtype
     up: Array
     s: Array
@@ -172,7 +172,7 @@ class PreparedScene:
         F = jb.starts[-1] + dF
         raise_if(collapsed_faults(b, jb.c, {"q": F}))
         r = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads)
-        r["coordinate"] = r["x"] + (jb.offset[r["index"]] if active_only else jb.offset)
+        r["coordinate"] = _plus_offset(r["x"], jb.offset, r["index"] if active_only else None)
         return r
 
     # ---------------------------------------------------------------- state
@@ -201,7 +201,7 @@ class PreparedScene:
                 if not jb.c.telescopes:
                     jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (origin 1)
             self._table.dofs[1] = self._table.dofs[2]
-            return [x + jb.offset for jb, (_, x) in zip(self._batches, new)]
+            return [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
 
     def _from_ref(self, jb: _Batch) -> tuple[Array, Array]:
         """Frames (N, 4, 3) at `q` (loaded with `TOTAL_STEP`) and the coordinate from `q_ref` in one
@@ -228,7 +228,7 @@ class PreparedScene:
                     x = self._from_ref(jb)[1]
                 else:
                     x = self._angle(jb)
-                out.append(x + jb.offset)
+                out.append(_plus_offset(x, jb.offset))
         return out
 
     def update(
@@ -274,11 +274,20 @@ def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtyp
     log = FaultLog()
     log.add(check_bodies(Bodies(q_prev, q_prev, q_ref), names=("q_ref", "q_prev")))
     log.raise_if_any()
-    return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype)
+    return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype, own=True)
 
 
-def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type) -> PreparedScene:
-    """`prepare` of bodies whose states are already checked, and joints as arrays."""
+def _plus_offset(x: Array, offset: Array | None, index: NDArray[np.int64] | None = None) -> Array:
+    """The coordinate `x + offset` (M,) of `x` (M,), at joints `index` (M,) of `offset` if given."""
+    if offset is None:
+        return x.copy()
+    return x + (offset if index is None else offset[index])
+
+
+def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, own: bool) -> PreparedScene:
+    """`prepare` of bodies whose states are already checked, and joints as arrays. `own`: the scene's
+    limits are its own arrays (`update` writes them); else the stateless call's, which allocates
+    nothing it does not need (every fresh array here is page faults of its own)."""
     used = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
     # q_prev is always in the table: the state a commit replaces.
     rows = {PREV_STEP} | {row for c in used for row in _increments(c)[:-1]}
@@ -292,12 +301,12 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type) -
         log.add(check_joints(b, joints, n_bodies))
     log.raise_if_any()
     with np.errstate(all="ignore"):
-        prepared = [_prepare_batch(b, j, table, log) for b, j in enumerate(batches)]
+        prepared = [_prepare_batch(b, j, table, log, own) for b, j in enumerate(batches)]
     log.raise_if_any()
     return PreparedScene(table, prepared, threads)
 
 
-def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog) -> _Batch:
+def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog, own: bool) -> _Batch:
     c = CONSTITUTIONS[joints.constitution_uid]
     pairs = np.ascontiguousarray(joints.body_ids.T)  # (2, N): contiguous indices gather 30% faster
     dtype = table.linear.dtype
@@ -320,12 +329,13 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog) -> _
     names = ("q_ref", "q_prev")[: len(starts)]
     log.add(collapsed_faults(b, c, dict(zip(names, starts))))
     n = pairs.shape[1]
-    offset = joints.offset if joints.offset is not None else np.zeros(n)
+    offset = joints.offset if joints.offset is not None or not own else np.zeros(n)
     theta = None
     if joints.prev_coordinate is not None:
-        theta = (joints.prev_coordinate - offset).astype(dtype, copy=False)
-    lower, upper, strength = (np.array(a, dtype=np.float64) for a in (joints.lower, joints.upper, joints.strength))
-    offset = np.array(offset, dtype=np.float64)
+        theta = (joints.prev_coordinate - (0.0 if offset is None else offset)).astype(dtype, copy=False)
+    lower, upper, strength = joints.lower, joints.upper, joints.strength
+    # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
+    lo, up = (a if offset is None else a - offset for a in (lower, upper))
     return _Batch(
         c=c,
         pairs=pairs,
@@ -340,10 +350,9 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog) -> _
         upper=upper,
         strength=strength,
         offset=offset,
-        # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
-        lo=(lower - offset).astype(dtype, copy=False),
-        up=(upper - offset).astype(dtype, copy=False),
-        s=strength.astype(dtype, copy=True),
+        lo=lo.astype(dtype, copy=False),
+        up=up.astype(dtype, copy=False),
+        s=strength.astype(dtype, copy=own),
         theta=theta,
     )
 
@@ -389,5 +398,5 @@ def evaluate(
     log.add(check_options(outputs, hessian_mode))
     log.add(check_bodies(bodies))
     log.raise_if_any()
-    scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype)
+    scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
     return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True)

@@ -17,8 +17,10 @@ from service.core.kinematics import (
     STEPS,
     TOTAL_STEP,
     BodyTable,
+    CarefulFrames,
     frame_quantities,
     relative_position,
+    state_frames,
 )
 from service.core.parallel import run_all
 from service.core.registry import CONSTITUTIONS
@@ -130,11 +132,9 @@ def _evaluate_batch(
 
     steps = [step(row) for row in rows]
     # F at q_prev (if used) and at q: where each step starts, the collapse check, the derivatives.
-    states = [F_ref]
-    for dF in steps:
-        states.append(states[-1] + dF)
-    x = c.coordinate(states[:-1], steps)
-    _raise_collapsed(b, c, dict(zip(("q_ref", "q_prev", "q") if len(states) == 3 else ("q_ref", "q"), states)))
+    states, careful = state_frames(table, pairs, rows, c.alpha, v, F_ref, steps)
+    x = c.coordinate(states[:-1], steps, careful)
+    _raise_collapsed(b, c, ("q_ref", "q_prev", "q") if len(states) == 3 else ("q_ref", "q"), states, careful)
     F = states[-1]
     lo, up, s = (a.astype(dtype, copy=False) for a in (joints.lower, joints.upper, joints.strength))
     energy = penalty.energy(x, lo, up, s)
@@ -210,14 +210,18 @@ def _derivatives(
     return grad
 
 
-def _raise_collapsed(b: int, c: Constitution, F: dict[str, Array]) -> None:
-    """Joints whose frame collapses in any state of `F` ((N, 4, 3) by state name)."""
-    faults = [
-        Fault(
-            ("batches", b, "body_ids", int(j)),
-            f"the joint frame collapses at {state} (cos = sin = 0): the angle and its derivatives do not exist",
-        )
-        for state, Fs in F.items()
-        for j in np.flatnonzero(c.collapsed(Fs))[:MAX_FAULTS]
-    ]
-    raise_if(faults)
+def _raise_collapsed(b: int, c: Constitution, names: tuple[str, ...], states: list[Array], careful: CarefulFrames | None) -> None:
+    """Joints whose frame collapses in any state (`states` (N, 4, 3) named by `names`); `careful` joints judged on their scaled frames."""
+    faults = []
+    for s, (name, F) in enumerate(zip(names, states)):
+        bad = c.collapsed(F)
+        if careful is not None:
+            bad[careful.idx] = c.collapsed(careful.states[s])
+        faults += [
+            Fault(
+                ("batches", b, "body_ids", int(j)),
+                f"the joint frame collapses at {name} (cos and sin within rounding of 0): the angle and its derivatives do not exist",
+            )
+            for j in np.flatnonzero(bad)[:MAX_FAULTS]
+        ]
+    raise_if(faults[:MAX_FAULTS])

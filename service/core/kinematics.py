@@ -257,8 +257,9 @@ def state_frames(
     as large as the frame, e.g. `A_ref = 1e300 I` and `q_prev = I`, leaves nothing of `F_a + dF`).
     """
     states = [F_ref]
-    for dF in steps:
-        states.append(states[-1] + dF)
+    with np.errstate(over="ignore", invalid="ignore"):  # only where `careful` replaces them below
+        for dF in steps:
+            states.append(states[-1] + dF)
     idx = np.flatnonzero(~table.plain_joints(pairs))
     if idx.shape[0] == 0:
         return states, None

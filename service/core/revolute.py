@@ -70,18 +70,31 @@ def _careful_angle(careful: CarefulFrames) -> Array:
     the step is as large as the frame (a frame shrunk by 1e-12 in one step). Each bound is taken
     relative to `hypot(cos, sin)`, the angle's rounding bound up to a constant.
     """
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # a bound of inf or NaN loses the choice
+        return _careful_steps(careful)
+
+
+def _careful_steps(careful: CarefulFrames) -> Array:
     x = 0.0
     for k, (F, dF) in enumerate(zip(careful.starts, careful.steps)):
         c, s = _cos_sin(F)
         turn_step, (c2, s2) = _step(F, dF, (c, s))
         F2 = F + dF
         bound_step = (_pair_size(F2, 0) * _pair_size(dF, 1) + _pair_size(dF, 0) * _pair_size(F, 1)) / np.hypot(c2, s2)
-        E = careful.states[k + 1]  # the end state's own frames, scaled on their own
+        # Each state's own frames, scaled on their own: in the step's common scaling a frame 1e18
+        # times smaller than the other state's would keep few digits (or none), whatever the bound says.
+        S, E = careful.states[k], careful.states[k + 1]
+        ca, sa = _cos_sin(S)
         ce, se = _cos_sin(E)
-        turn_direct = np.arctan2(se * c - ce * s, ce * c + se * s)
-        bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se) + _pair_size(F, 0) * _pair_size(F, 1) / np.hypot(c, s)
-        x = x + np.where(bound_step <= bound_direct, turn_step, turn_direct)
+        turn_direct = np.arctan2(se * ca - ce * sa, ce * ca + se * sa)
+        bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se) + _pair_size(S, 0) * _pair_size(S, 1) / np.hypot(ca, sa)
+        steady = (np.abs(careful.exponents[k] - careful.exponents[k + 1]) <= _STEADY_EXPONENTS).all(axis=1)
+        x = x + np.where(steady & (bound_step <= bound_direct), turn_step, turn_direct)
     return x
+
+
+_STEADY_EXPONENTS = 60
+"""A body whose A changes by more than 2^60 in one step takes the direct form for that step."""
 
 
 _SAFE = (2.0**-240, 2.0**240)
@@ -149,12 +162,14 @@ class Revolute:
         return x
 
     def collapsed(self, F: Array) -> np.ndarray:
-        c, s = _cos_sin(F)
-        B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-        size2 = dot(B_i, B_i) * dot(B_j, B_j) + dot(N_i, N_i) * dot(N_j, N_j)
         # Squares of frames from A inside kinematics.PLAIN_RANGE (or scaled) stay normal numbers
         # unless the frame is far below its own rounding; then both sides are 0 and it collapses.
-        return c * c + s * s <= (2.0 * COLLAPSE_RATIO * COLLAPSE_RATIO) * size2
+        # (Other frames may overflow here: the caller judges those joints on scaled frames.)
+        with np.errstate(over="ignore", invalid="ignore"):
+            c, s = _cos_sin(F)
+            B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
+            size2 = dot(B_i, B_i) * dot(B_j, B_j) + dot(N_i, N_i) * dot(N_j, N_j)
+            return c * c + s * s <= (2.0 * COLLAPSE_RATIO * COLLAPSE_RATIO) * size2
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
         dx, curvature = _polar_derivatives(F, second)

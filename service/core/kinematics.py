@@ -153,32 +153,35 @@ class BodyTable:
 
 
 PLAIN_RANGE = (2.0**-200, 2.0**200)
-"""Largest |A| entry of a body in every state inside this range keeps every product the joint
+"""`|A|` (Frobenius) of a body in every state inside this range keeps every product the joint
 coordinates and their derivatives form (up to ~|A|^8) a normal float64 number."""
 
 
 PLAIN_STEP = 2.0
-"""A step `dA` up to this times `A` (max-abs) keeps the common path: any turn of a body of steady
-scale (`|R - I|` <= 2), not a body shrunk or grown by orders of magnitude in one step."""
+"""A step `dA` up to this times `A` (Frobenius) keeps the common path: any turn of a body of steady
+scale (`|R - I| <= sqrt(8) < 2 |R|`), not a body shrunk or grown by orders of magnitude in one step."""
 
 
 def _plain_bodies(states: Array, linear: Array, rows: Iterable[int]) -> NDArray[np.bool_]:
     """(B,) True for a body whose frames the common path forms well: `F_a + dF` at each state.
 
-    That needs each step's increment at most `PLAIN_STEP` times `A` where it ends (max-abs norms):
+    That needs each step's increment at most `PLAIN_STEP` times `A` where it ends (Frobenius norms):
     then `F_a + dF` and the increment forms of the coordinates round within a small factor (~16)
     of the direct `F(A_b)`, whatever the turn; and `A` inside `PLAIN_RANGE` in every state.
     Every other body's joints take `careful_frames` (rare: the passes here read B bodies once,
     not N joints).
     """
     spanned = sorted({s for row in rows for s in STEPS[row]} | {0})
-    size = {s: np.abs(states[s]).max(axis=0) for s in spanned}
+    # Squared Frobenius norms (one fused pass each), compared squared.
+    size = {s: np.einsum("ij,ij->j", states[s], states[s]) for s in spanned}
+    smallest, largest = size[spanned[0]].copy(), size[spanned[0]].copy()
+    for s in spanned[1:]:
+        np.minimum(smallest, size[s], out=smallest)
+        np.maximum(largest, size[s], out=largest)
     lo, hi = PLAIN_RANGE
-    plain = np.ones(states.shape[-1], dtype=bool)
-    for s in spanned:
-        plain &= (size[s] >= lo) & (size[s] <= hi)
+    plain = (smallest >= lo * lo) & (largest <= hi * hi)
     for row in rows:
-        plain &= np.abs(linear[row]).max(axis=0) <= PLAIN_STEP * size[STEPS[row][1]]
+        plain &= np.einsum("ij,ij->j", linear[row], linear[row]) <= (PLAIN_STEP * PLAIN_STEP) * size[STEPS[row][1]]
     return plain
 
 
@@ -334,8 +337,14 @@ def edge_axis(edges: Array) -> Array:
     that of `d / |d|`.
     """
     d = edge_vector(edges)
-    _, e = np.frexp(max_abs(d))
-    return unit(np.ldexp(d, -e[:, None]))
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # the odd rows are redone below
+        dd = dot(d, d)
+        t = d / np.sqrt(dd)[:, None]
+    odd = np.flatnonzero(~((dd >= 2.0**-1000) & (dd <= 2.0**1000)))  # rare: their dot(d, d) lost digits or overflowed
+    if odd.shape[0]:
+        _, e = np.frexp(max_abs(d[odd]))
+        t[odd] = unit(np.ldexp(d[odd], -e[:, None]))
+    return t
 
 
 def edge_vector(edges: Array) -> Array:

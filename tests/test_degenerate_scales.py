@@ -23,6 +23,7 @@ from service.core.validate import checked_evaluate
 from tests.conftest import relerr
 from tests.reference import JointRef
 from tests.scenes import pack, random_rotation, random_unit, rotation_about
+from tests.test_contract_live import live  # noqa: F401 (fixture)
 
 E_Z = np.array([0.0, 0.0, 1.0])
 STATES = ("q_ref", "q_prev", "q")
@@ -313,3 +314,58 @@ def test_revolute_derivatives_of_tiny_and_huge_frames_are_finite_or_refused() ->
         assert abs(b.x[0] - 0.7) <= TOL
         assert relerr(b.gradient[0], want["gradient"]) <= 1e-12
         assert relerr(b.hessian[0], want["hessian_exact"]) <= 1e-12
+
+
+# ---------------------------------------------------------------- near a collapse: as exact as its conditioning, then refused
+
+
+@pytest.mark.parametrize("eps", [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 0.0])
+def test_nearly_flipped_frame_is_as_exact_as_its_conditioning_or_refused(eps: float) -> None:
+    """Body j turned by pi - eps about an in-plane axis: (cos, sin) ~ eps^2 / 4 against frame vectors of size 1.
+
+    Above `COLLAPSE_RATIO` (eps >~ 3e-6) the angle is answered to within a few roundings of the
+    frames over hypot(cos, sin) (the angle's own condition number: x is decided by digits of F
+    that float64 only keeps to ~1e-16); below it, or exactly flipped, a 422 naming the joint and q.
+    """
+    rng = np.random.default_rng(int(eps * 1e9) + 5)
+    for _ in range(4):
+        a = rng.uniform(0, 2 * np.pi)
+        R = rotation_about(np.array([np.cos(a), np.sin(a), 0.0]), np.pi - eps) @ rotation_about(E_Z, rng.uniform(-1, 1))
+        bodies = _revolute_probe({"q": R, "q_prev": R})
+        x = _answer(bodies, _joint(670, Z_EDGE))
+        r = eps * eps / 4  # hypot(cos, sin) to first order; the frame vectors have size ~1
+        if r <= 1e-12 * 4:  # the threshold, with a margin of 4 for the first-order r and the size's sqrt(2)s
+            if r < 1e-12 / 4:
+                assert isinstance(x, InputError)
+            if isinstance(x, InputError):  # at q_prev and q (the same A), one fault each
+                _assert_refused(x)
+                assert [next(s for s in STATES if f"at {s} " in f.msg) for f in x.faults] == ["q_prev", "q"], x
+            continue
+        assert not isinstance(x, InputError), x
+        assert abs(x - _reference_x(bodies, _joint(670, Z_EDGE))) <= 8 * 2.2e-16 / r
+
+
+# ---------------------------------------------------------------- the probes over HTTP
+
+
+def test_issue_probes_over_http(live) -> None:  # noqa: F811
+    """The issue's scaled frame answers 200 with x = 0.7; A = 0 a 422 whose loc names the joint, in both encodings."""
+    from client import Client, InvalidInput, Scene
+
+    def request(A_q: np.ndarray):
+        scene = Scene()
+        a = scene.add_body((np.zeros(3), np.eye(3)))
+        b = scene.add_body((np.array([1.0, 0, 0]), A_q), ref=(np.array([1.0, 0, 0]), np.eye(3)))
+        scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.1, upper=0.1, strength=1.0)
+        return scene.request()
+
+    for binary in (False, True):
+        with Client(live, binary=binary) as c:
+            for k in (1e-12, 3e-17, 1e-100):
+                ev = c.evaluate(request(k * TURN))
+                assert abs(ev.batches[0].x[0] - 0.7) <= TOL and abs(ev.batches[0].energy[0] - 27.0) <= 1e-12 * 27
+            with pytest.raises(InvalidInput) as err:
+                c.evaluate(request(np.zeros((3, 3))))
+            assert err.value.status == 422
+            assert [f.loc for f in err.value.faults] == [("body", "batches", 0, "body_ids", 0)]
+            assert "collapses at q " in err.value.msg

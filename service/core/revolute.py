@@ -29,7 +29,9 @@ _SIN_PAIRS[1, 2] = _SIN_PAIRS[2, 1] = -0.5
 COLLAPSE_RATIO = 1e-12
 """A frame collapses where `cos^2 + sin^2 <= 2 COLLAPSE_RATIO^2 (|B_i|^2 |B_j|^2 + |N_i|^2 |N_j|^2)`:
 (cos, sin) within rounding of zero relative to the frame vectors' size, whatever their scale
-(the same ratio as `polar.SINGULAR_RATIO`); the angle's rounding error there is ~1e4 roundings."""
+(the same ratio as `polar.SINGULAR_RATIO`). Above it the angle is as exact as its conditioning
+allows: a few roundings times size / hypot(cos, sin), up to ~1e-3 rad right at the threshold
+(body j nearly flipped over an in-plane axis; `tests/test_degenerate_scales.py`)."""
 
 
 def _cos_sin(F: Array) -> tuple[Array, Array]:

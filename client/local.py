@@ -11,7 +11,6 @@ from client.progress import ProgressCallback
 from schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from schemas.constitutions import describe
 from service import core
-from service.core.validate import checked_evaluate
 
 
 HTTP_OPTIONS = frozenset(
@@ -62,11 +61,13 @@ class LocalClient:
                 lower=b.lower,
                 upper=b.upper,
                 strength=b.strength,
+                offset=b.offset,
+                prev_coordinate=b.prev_coordinate,
             )
             for b in request.batches
         ]
         try:
-            ev = checked_evaluate(
+            ev = core.evaluate(
                 bodies=core.Bodies(request.q, request.q_prev, request.q_ref),
                 batches=joints,
                 outputs=request.outputs,
@@ -81,7 +82,8 @@ class LocalClient:
         return Evaluation(
             total_energy=ev.total_energy,
             batches=[
-                BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian) for r in ev.batches
+                BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate)
+                for r in ev.batches
             ],
         ).sized(request)
 

@@ -23,9 +23,10 @@ MEDIA_TYPE = wire.MEDIA_TYPE
 _REQUEST_KEYS = {"bodies": True, "batches": True, "outputs": False, "hessian_mode": False, "active_only": False}
 _BODY_KEYS = {"q": True, "q_prev": True, "q_ref": True}
 _JOINT_ARRAYS = {"body_ids": (wire.INT64, 2), "edges": (wire.FLOAT64, 3)} | {
-    k: (wire.FLOAT64, 1) for k in ("lower", "upper", "strength")
+    k: (wire.FLOAT64, 1) for k in ("lower", "upper", "strength", "offset", "prev_coordinate")
 }
-_BATCH_KEYS = {"constitution_uid": True, "base_uid": False} | {k: k != "strength" for k in _JOINT_ARRAYS}
+_OPTIONAL = {"strength", "offset", "prev_coordinate"}  # strength defaults to 1; offset, prev_coordinate: v1.1
+_BATCH_KEYS = {"constitution_uid": True, "base_uid": False} | {k: k not in _OPTIONAL for k in _JOINT_ARRAYS}
 _INT64_RANGE = range(-(2**63), 2**63)
 _EMPTY = {"f": np.zeros((0, 12)), "i": np.zeros((0, 2), dtype=np.int64)}
 
@@ -111,6 +112,8 @@ def _batch(r: _Reader, b: int, raw: Any) -> Joints:
         lower=arrays.get("lower", np.zeros(0)),
         upper=arrays.get("upper", np.zeros(0)),
         strength=arrays["strength"] if "strength" in fields else strength_of(None, ids.shape[0]),
+        offset=arrays.get("offset"),
+        prev_coordinate=arrays.get("prev_coordinate"),
     )
 
 
@@ -138,6 +141,7 @@ def encode(ev: Evaluation) -> bytes:
             "constitution_uid": res.constitution_uid,
             "index": wire.pack_array(res.index, wire.INT64),
             "x": wire.pack_array(res.x, wire.FLOAT64),
+            **({} if res.coordinate is None else {"coordinate": wire.pack_array(res.coordinate, wire.FLOAT64)}),
             "energy": wire.pack_array(res.energy, wire.FLOAT64),
         }
         for k in ("gradient", "hessian"):

@@ -48,16 +48,18 @@ def solve3(A: Array, b: Array) -> list[Array]:
     float64's comfortable range (|A| beyond ~1e+-100), those rows are solved again with
     `A` scaled by a power of two (exact): `A^-1 b = 2^-e (2^-e A)^-1 b`.
     """
-    x, det = _solve3_cofactors(A, b)
+    # Overflow is expected on the first pass (redone below) and legitimate on the second (an
+    # anchor beyond float64: the coordinate overflows and `validate` names the joint).
     with np.errstate(all="ignore"):
+        x, det = _solve3_cofactors(A, b)
         bad = ~((np.abs(det) >= _DET_MIN) & (np.abs(det) <= _DET_MAX) & np.isfinite(x[0] + x[1] + x[2]))
-    if bad.any():
-        idx = np.nonzero(bad)
-        A_bad = A[idx]  # (M, 3, 3)
-        _, e = np.frexp(np.abs(A_bad).max(axis=(-2, -1)))
-        scaled, _ = _solve3_cofactors(np.ldexp(A_bad, -e[:, None, None]), b[idx])
-        for k in range(3):
-            x[k][idx] = np.ldexp(scaled[k], -e)
+        if bad.any():
+            idx = np.nonzero(bad)
+            A_bad = A[idx]  # (M, 3, 3)
+            _, e = np.frexp(np.abs(A_bad).max(axis=(-2, -1)))
+            scaled, _ = _solve3_cofactors(np.ldexp(A_bad, -e[:, None, None]), b[idx])
+            for k in range(3):
+                x[k][idx] = np.ldexp(scaled[k], -e)
     return x
 
 
@@ -71,8 +73,7 @@ def _solve3_cofactors(A: Array, b: Array) -> tuple[list[Array], Array]:
         for i, j in ((1, 2), (2, 0), (0, 1))
     ]
     det = A[..., 0, 0] * C[0][0] + A[..., 0, 1] * C[0][1] + A[..., 0, 2] * C[0][2]
-    with np.errstate(all="ignore"):
-        return [(C[0][c] * b[..., 0] + C[1][c] * b[..., 1] + C[2][c] * b[..., 2]) / det for c in range(3)], det
+    return [(C[0][c] * b[..., 0] + C[1][c] * b[..., 1] + C[2][c] * b[..., 2]) / det for c in range(3)], det
 
 
 def component_major(n: int, shape: tuple[int, ...], dtype: type = np.float64) -> Array:

@@ -153,9 +153,12 @@ class BodyTable:
         return g.reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
 
 
-PLAIN_RANGE = (2.0**-200, 2.0**200)
-"""`|A|` (Frobenius) of a body in every state inside this range keeps every product the joint
-coordinates and their derivatives form (up to ~|A|^8) a normal float64 number."""
+def plain_range(dtype: type) -> tuple[float, float]:
+    """`|A|` (Frobenius) of a body in every state inside this range keeps every product the joint
+    coordinates and their collapse test form (up to ~|A|^4, with margin) a normal number:
+    `2^+-200` in float64 (`2^+-25` in the float32 bench variant)."""
+    e = np.finfo(dtype).maxexp // 5
+    return 2.0**-e, 2.0**e
 
 
 PLAIN_STEP = 2.0
@@ -168,7 +171,7 @@ def _plain_bodies(states: Array, linear: Array, rows: Iterable[int]) -> NDArray[
 
     That needs each step's increment at most `PLAIN_STEP` times `A` where it ends (Frobenius norms):
     then `F_a + dF` and the increment forms of the coordinates round within a small factor (~16)
-    of the direct `F(A_b)`, whatever the turn; and `A` inside `PLAIN_RANGE` in every state.
+    of the direct `F(A_b)`, whatever the turn; and `A` inside `plain_range` in every state.
     Every other body's joints take `careful_frames` (rare: the passes here read B bodies once,
     not N joints).
     """
@@ -179,7 +182,7 @@ def _plain_bodies(states: Array, linear: Array, rows: Iterable[int]) -> NDArray[
     for s in spanned[1:]:
         np.minimum(smallest, size[s], out=smallest)
         np.maximum(largest, size[s], out=largest)
-    lo, hi = PLAIN_RANGE
+    lo, hi = plain_range(states.dtype)
     plain = (smallest >= lo * lo) & (largest <= hi * hi)
     for row in rows:
         plain &= np.einsum("ij,ij->j", linear[row], linear[row]) <= (PLAIN_STEP * PLAIN_STEP) * size[STEPS[row][1]]
@@ -338,10 +341,11 @@ def edge_axis(edges: Array) -> Array:
     that of `d / |d|`.
     """
     d = edge_vector(edges)
+    lo, hi = plain_range(d.dtype)
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # the odd rows are redone below
         dd = dot(d, d)
         t = d / np.sqrt(dd)[:, None]
-    odd = np.flatnonzero(~((dd >= 2.0**-1000) & (dd <= 2.0**1000)))  # rare: their dot(d, d) lost digits or overflowed
+        odd = np.flatnonzero(~((dd >= lo) & (dd <= hi)))  # rare: their dot(d, d) lost digits or overflowed
     if odd.shape[0]:
         _, e = np.frexp(max_abs(d[odd]))
         t[odd] = unit(np.ldexp(d[odd], -e[:, None]))

@@ -19,6 +19,7 @@ import pytest
 
 from service.core import Bodies, Joints, evaluate
 from service.core.errors import InputError
+from service.core.kinematics import BodyTable
 from service.core.validate import checked_evaluate
 from tests.conftest import relerr
 from tests.reference import JointRef
@@ -390,3 +391,33 @@ def test_solve3_at_every_scale(k: float) -> None:
     assert np.isfinite(x[finite]).all()
     for n in np.flatnonzero(finite):
         assert relerr(x[n], want[n]) <= 1e-14
+
+
+# ---------------------------------------------------------------- careful and common joints side by side
+
+
+@pytest.mark.parametrize("uid", [669, 670])
+def test_careful_joints_in_a_large_batch_answer_as_alone(uid: int) -> None:
+    """Joints at extreme scales mixed with ordinary ones in one batch: each row is bitwise what the
+    joint answers alone (the careful rows are found, recomputed and put back in their places)."""
+    rng = np.random.default_rng(uid)
+    scenes: list[tuple[Bodies, Joints]] = []
+    for n in range(100):
+        scale = {} if n % 3 else {(int(rng.integers(2)), STATES[int(rng.integers(3))]): 10.0 ** rng.integers(-300, 301)}
+        scene = _scaled_scene(uid, 500 + n, scale)
+        if not isinstance(_answer(*scene), InputError):  # a prismatic slide may overflow: not this test's point
+            scenes.append(scene)
+    scenes = scenes[:24]
+    cat = lambda name: np.concatenate([getattr(b, name) for b, _ in scenes])  # noqa: E731
+    bodies = Bodies(cat("q"), cat("q_prev"), cat("q_ref"))
+    plain = BodyTable(bodies).plain
+    assert 0 < plain.sum() < plain.shape[0]  # both paths in the batch
+    ids = np.arange(2 * len(scenes)).reshape(-1, 2)
+    xs = [_answer(b, j) for b, j in scenes]
+    lower = np.array([x - 1.0 for x in xs])  # every joint active: derivatives for all rows
+    joints = Joints(uid, {670: 18, 669: 20}[uid], ids, np.concatenate([j.edges for _, j in scenes]), lower - 1.0, lower, np.ones(len(scenes)))
+    ev = checked_evaluate(bodies, [joints], outputs=("energy", "gradient"))
+    for n, (b, j) in enumerate(scenes):
+        one = checked_evaluate(b, [Joints(uid, j.base_uid, j.body_ids, j.edges, lower[n : n + 1] - 1.0, lower[n : n + 1], np.ones(1))], outputs=("energy", "gradient"))
+        assert ev.batches[0].x[n] == one.batches[0].x[0] == xs[n]
+        np.testing.assert_array_equal(ev.batches[0].gradient[n], one.batches[0].gradient[0])

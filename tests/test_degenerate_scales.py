@@ -417,6 +417,10 @@ def test_careful_joints_in_a_large_batch_answer_as_alone(uid: int) -> None:
     lower = np.array([x - 1.0 for x in xs])  # every joint active: derivatives for all rows
     joints = Joints(uid, {670: 18, 669: 20}[uid], ids, np.concatenate([j.edges for _, j in scenes]), lower - 1.0, lower, np.ones(len(scenes)))
     ev = checked_evaluate(bodies, [joints], outputs=("energy", "gradient"))
+    two = checked_evaluate(bodies, [joints, joints], outputs=("energy", "gradient"), threads=2)  # batches side by side
+    for r in two.batches:
+        np.testing.assert_array_equal(r.x, ev.batches[0].x)
+        np.testing.assert_array_equal(r.gradient, ev.batches[0].gradient)
     for n, (b, j) in enumerate(scenes):
         one = checked_evaluate(b, [Joints(uid, j.base_uid, j.body_ids, j.edges, lower[n : n + 1] - 1.0, lower[n : n + 1], np.ones(1))], outputs=("energy", "gradient"))
         assert ev.batches[0].x[n] == one.batches[0].x[0] == xs[n]

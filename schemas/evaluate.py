@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, FailFast, Field
 
 Output = Literal["energy", "gradient", "hessian"]
 HessianMode = Literal["exact", "psd"]
@@ -17,13 +17,15 @@ OUTPUTS: tuple[Output, ...] = ("energy", "gradient", "hessian")
 
 # allow_inf_nan=False: a 200 never carries NaN or Infinity, so none may come in (nor 1e400).
 # strict: a number is a JSON number (integers included), never a string such as "0.5".
+# FailFast: a list's first bad item ends its checks, so a body of a million bad rows gets a
+# handful of errors, not a million (the service lists at most MAX_FAULTS anyway).
 Real = Annotated[float, Field(strict=True, allow_inf_nan=False)]
-Dof = Annotated[list[Real], Field(min_length=12, max_length=12)]
-Vec3 = Annotated[list[Real], Field(min_length=3, max_length=3)]
-Edge = Annotated[list[Vec3], Field(min_length=2, max_length=2)]
+Dof = Annotated[list[Real], Field(min_length=12, max_length=12), FailFast()]
+Vec3 = Annotated[list[Real], Field(min_length=3, max_length=3), FailFast()]
+Edge = Annotated[list[Vec3], Field(min_length=2, max_length=2), FailFast()]
 # Integers are JSON integers (no 1.0, no "1", no true) that fit int64, as the binary encoding carries them.
 Int64 = Annotated[int, Field(strict=True, ge=-(2**63), le=2**63 - 1)]
-BodyPair = Annotated[list[Int64], Field(min_length=2, max_length=2)]
+BodyPair = Annotated[list[Int64], Field(min_length=2, max_length=2), FailFast()]
 
 
 class _Wire(BaseModel):
@@ -34,9 +36,9 @@ class _Wire(BaseModel):
 class Bodies(_Wire):
     """Every body once; joints refer to rows by index. Each row is 12 DOFs `[p, A row 0, A row 1, A row 2]`."""
 
-    q: list[Dof]
-    q_prev: list[Dof]
-    q_ref: list[Dof]
+    q: Annotated[list[Dof], FailFast()]
+    q_prev: Annotated[list[Dof], FailFast()]
+    q_ref: Annotated[list[Dof], FailFast()]
 
 
 class JointBatch(_Wire):
@@ -44,17 +46,17 @@ class JointBatch(_Wire):
 
     constitution_uid: Int64
     base_uid: Int64
-    body_ids: list[BodyPair]
-    edges: list[Edge]
-    lower: list[Real]
-    upper: list[Real]
-    strength: list[Real]
+    body_ids: Annotated[list[BodyPair], FailFast()]
+    edges: Annotated[list[Edge], FailFast()]
+    lower: Annotated[list[Real], FailFast()]
+    upper: Annotated[list[Real], FailFast()]
+    strength: Annotated[list[Real], FailFast()]
 
 
 class EvaluateRequest(_Wire):
     bodies: Bodies
-    batches: list[JointBatch]
-    outputs: Annotated[list[Output], Field(min_length=1)] = list(OUTPUTS)
+    batches: Annotated[list[JointBatch], FailFast()]
+    outputs: Annotated[list[Output], Field(min_length=1), FailFast()] = list(OUTPUTS)
     hessian_mode: HessianMode = "exact"
     active_only: Annotated[bool, Field(strict=True)] = False
 

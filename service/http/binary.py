@@ -14,7 +14,7 @@ import numpy as np
 from schemas import OUTPUTS
 from schemas import binary as wire
 from service.core import Bodies, Evaluation, Fault, InputError, Joints
-from service.core.errors import Loc
+from service.core.errors import MAX_FAULTS, Loc
 from service.http import limits
 
 MEDIA_TYPE = wire.MEDIA_TYPE
@@ -29,20 +29,53 @@ _INT64_RANGE = range(-(2**63), 2**63)
 _EMPTY = {"f": np.zeros((0, 12)), "i": np.zeros((0, 2), dtype=np.int64)}
 
 
+class _Map(dict):
+    """A msgpack map that repeated a key (last value kept, as `dict` does); `repeated` lists the keys."""
+
+    repeated: list[Any]
+
+
+def _pairs(pairs: list[tuple[Any, Any]]) -> dict[str, Any]:
+    """`object_pairs_hook` of the unpacker: a plain dict, or a `_Map` that remembers its repeated keys."""
+    d = dict(pairs)
+    if len(d) == len(pairs):
+        return d
+    m, seen = _Map(d), set()
+    m.repeated = [k for k, _ in pairs if k in seen or seen.add(k)]  # type: ignore[func-returns-value]
+    return m
+
+
 class _Reader:
-    """Walks the document's few structural levels (never its joints), collecting faults."""
+    """Walks the document's few structural levels (never its joints), collecting faults.
+
+    It stops at the `MAX_FAULTS`-th fault (raising them): a body of 300k bad batches costs
+    its unpacking and 20 faults' worth of walking, not 300k.
+    """
 
     def __init__(self) -> None:
         self.faults: list[Fault] = []
 
     def fault(self, loc: Loc, msg: str, type: str = "value_error") -> None:
         self.faults.append(Fault(loc, msg, type))
+        if len(self.faults) >= MAX_FAULTS:
+            raise InputError(self.faults)
+
+    def keys(self, obj: dict, loc: Loc) -> None:
+        """Faults for the keys `dict` hides: repeated ones and non-string ones (a msgpack `bin` key)."""
+        for k in getattr(obj, "repeated", ()):
+            self.fault((*loc, k), "Duplicate key: each key may appear once in a map", "duplicate_key")
+        for k in obj:
+            if not isinstance(k, str):
+                self.fault((*loc, k), f"Map keys must be msgpack str, got {type(k).__name__}", "key_type")
 
     def fields(self, obj: Any, loc: Loc, keys: dict[str, bool]) -> dict[str, Any]:
         if not isinstance(obj, dict):
             self.fault(loc, "Input should be a map (a msgpack map, as a JSON object)", "model_type")
             return {}
+        self.keys(obj, loc)
         for k in obj:
+            if not isinstance(k, str):
+                continue  # named above
             if k not in keys:
                 self.fault((*loc, k), "Extra inputs are not permitted", "extra_forbidden")
         for k, required in keys.items():
@@ -51,6 +84,11 @@ class _Reader:
         return {k: v for k, v in obj.items() if k in keys}
 
     def array(self, obj: Any, loc: Loc, dtype: str, ndim: int, empty: np.ndarray) -> np.ndarray:
+        if isinstance(obj, dict):
+            n = len(self.faults)
+            self.keys(obj, loc)
+            if len(self.faults) > n:
+                return empty
         try:
             return wire.unpack_array(obj, dtype, ndim)
         except ValueError as e:
@@ -67,13 +105,17 @@ class _Reader:
 def decode(body: bytes, max_joints: int) -> dict[str, Any]:
     """Keyword arguments of `service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`."""
     try:
-        doc = wire.loads(body)
+        doc = wire.loads(body, object_pairs_hook=_pairs)
     except ValueError as e:
         raise InputError([Fault((), str(e), "msgpack_invalid")]) from None
     r = _Reader()
     top = r.fields(doc, (), _REQUEST_KEYS)
-    raw_bodies = r.fields(top.get("bodies", {}), ("bodies",), _BODY_KEYS)
-    f = {k: r.array(raw_bodies.get(k), ("bodies", k), wire.FLOAT64, 2, _EMPTY["f"]) for k in _BODY_KEYS}
+    # A missing or malformed `bodies` is one fault, not four.
+    raw_bodies = r.fields(top["bodies"], ("bodies",), _BODY_KEYS) if "bodies" in top else {}
+    f = {
+        k: r.array(raw_bodies[k], ("bodies", k), wire.FLOAT64, 2, _EMPTY["f"]) if k in raw_bodies else _EMPTY["f"]
+        for k in _BODY_KEYS
+    }
     raw_batches = top.get("batches", [])
     if not isinstance(raw_batches, list):
         r.fault(("batches",), "Input should be a valid list", "list_type")

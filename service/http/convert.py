@@ -9,8 +9,9 @@ import orjson
 from pydantic import ValidationError
 
 from schemas import EvaluateRequest
-from service.core import Bodies, Evaluation, Joints
-from service.http import limits
+from service.core import Bodies, Evaluation, InputError, Joints
+from service.core.errors import MAX_FAULTS
+from service.http import jsonkeys, limits
 from service.http.errors import from_validation
 
 MEDIA_TYPE = "application/json"
@@ -22,11 +23,22 @@ def decode(body: bytes, max_joints: int) -> dict[str, Any]:
     Raises `HttpError` (413) for too many joints, `InputError` (422) for a malformed body.
     """
     limits.check_joints(limits.json_joints_upper_bound(body), max_joints)
+    # Repeated, unknown and missing keys first, on the bytes: at the cap, pydantic never runs.
+    key_faults, _ = jsonkeys.scan(body)
+    if len(key_faults) >= MAX_FAULTS:
+        raise InputError(key_faults)
     try:
         # Rust-side parse and validation straight from bytes; rejects NaN, Infinity and 1e400.
+        # The schema's lists are `FailFast`: a list's first bad item ends its checks (bounded errors).
         req = EvaluateRequest.model_validate_json(body)
     except ValidationError as e:
-        raise from_validation(e) from None
+        faults = from_validation(e).faults
+        if any(f.type == "json_invalid" for f in faults):
+            raise InputError(faults) from None  # the scan's findings mean nothing in a broken document
+        seen = {(f.loc, f.type) for f in key_faults}
+        raise InputError([*key_faults, *(f for f in faults if (f.loc, f.type) not in seen)]) from None
+    if key_faults:
+        raise InputError(key_faults)  # repeated keys, which pydantic let through (last wins)
     limits.check_joints(sum(len(j.body_ids) for j in req.batches), max_joints)
     return to_core(req)
 

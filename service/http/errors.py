@@ -1,6 +1,14 @@
-"""Every 4xx of the service in FastAPI's `{"detail": [{"loc", "msg", "type"}]}` format."""
+"""Every 4xx of the service in FastAPI's `{"detail": [{"loc", "msg", "type"}]}` format.
+
+`render` is the one place faults become JSON: whatever a decoder put in a fault (a msgpack
+`bin` key, a 2 MB misspelt key, a list of a million faults), the answer is JSON-safe and
+bounded: at most `MAX_FAULTS` faults, every `loc` element an `int` or a `str` of at most
+`MAX_KEY_CHARS` characters (longer ones cut, marked with `...`), every `msg` at most `MAX_MSG_CHARS`.
+"""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 from fastapi import Request
 from fastapi.responses import JSONResponse
@@ -8,6 +16,11 @@ from pydantic import ValidationError
 
 from service.core import Fault, InputError
 from service.core.errors import MAX_FAULTS
+
+MAX_KEY_CHARS = 64
+"""A `loc` element echoed back (an unknown key) is cut to this many characters plus `...`."""
+MAX_MSG_CHARS = 1024
+"""A message quoting the input (a dtype string, a shape) is cut to this many characters plus `...`."""
 
 
 class HttpError(Exception):
@@ -19,26 +32,44 @@ class HttpError(Exception):
         super().__init__("; ".join(f.msg for f in faults))
 
 
-def _body(faults: list[Fault], where: str = "body") -> dict:
-    return {"detail": [{"loc": [where, *f.loc], "msg": f.msg, "type": f.type} for f in faults]}
+def _cut(s: str, n: int) -> str:
+    return s if len(s) <= n else s[:n] + "..."
+
+
+def loc_element(x: object) -> int | str:
+    """`x` as a JSON-safe `loc` element: ints stay ints, `bytes` keys show as `b'...'`, all cut to size."""
+    if isinstance(x, int) and not isinstance(x, bool):
+        return x
+    if isinstance(x, str):
+        return _cut(x, MAX_KEY_CHARS)
+    return _cut(repr(x[: MAX_KEY_CHARS + 1] if isinstance(x, (bytes, bytearray)) else x), MAX_KEY_CHARS)
+
+
+def render(faults: Sequence[Fault], prefix: Sequence[str] = ()) -> dict:
+    """The `{"detail": [...]}` answer of `faults` (the first `MAX_FAULTS`), each `loc` after `prefix`."""
+    return {
+        "detail": [
+            {"loc": [*prefix, *map(loc_element, f.loc)], "msg": _cut(str(f.msg), MAX_MSG_CHARS), "type": str(f.type)}
+            for f in faults[:MAX_FAULTS]
+        ]
+    }
 
 
 async def input_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, InputError)
-    return JSONResponse(_body(exc.faults), status_code=422)
+    return JSONResponse(render(exc.faults, ("body",)), status_code=422)
 
 
 async def http_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, HttpError)
     # These faults carry their own full loc (["body"], ["header", "accept"], ...).
-    detail = [{"loc": list(f.loc), "msg": f.msg, "type": f.type} for f in exc.faults]
-    return JSONResponse({"detail": detail}, status_code=exc.status)
+    return JSONResponse(render(exc.faults), status_code=exc.status)
 
 
 def from_validation(e: ValidationError) -> InputError:
     """Pydantic's errors as core faults (same loc, same msg), without echoing the input back."""
     faults = [
         Fault(tuple(err["loc"]), err["msg"], err["type"])
-        for err in e.errors(include_url=False, include_input=False, include_context=False)[: 4 * MAX_FAULTS]
+        for err in e.errors(include_url=False, include_input=False, include_context=False)[:MAX_FAULTS]
     ]
     return InputError(faults)

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from fastapi import Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
 
 from service.core import Fault, InputError
@@ -64,6 +64,22 @@ async def http_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, HttpError)
     # These faults carry their own full loc (["body"], ["header", "accept"], ...).
     return JSONResponse(render(exc.faults), status_code=exc.status)
+
+
+CLIENT_CLOSED = 499
+"""Status recorded (metrics, access log) for a request whose client left before its body was read (nginx's 499)."""
+
+
+async def client_gone(request: Request, exc: Exception) -> Response:
+    """`ClientDisconnect` while reading the body: 408 if the body timed out, else 499 (nobody hears it).
+
+    Either way one access-log line at info and a 4xx in the metrics: not a 500 with a traceback.
+    """
+    timeout = request.scope.get("state", {}).get("body_timed_out")
+    if timeout is not None:
+        fault = Fault(("body",), f"request body not received within {timeout:g} s (JOINTLIMITS_BODY_TIMEOUT)", "timeout")
+        return JSONResponse(render([fault]), status_code=408, headers={"Connection": "close"})
+    return Response(status_code=CLIENT_CLOSED)
 
 
 def from_validation(e: ValidationError) -> InputError:

@@ -187,3 +187,25 @@ def test_key_scan_names_keys_and_stops_at_the_cap():
     # Braces and colons inside strings are not structure.
     faults, _ = jsonkeys.scan(b'{"bodies": {"q": [], "q_prev": [], "q_ref": []}, "batches": [], "outputs": ["{\\"a\\": 1}", "}"]}')
     assert faults == []
+
+
+@pytest.mark.parametrize(
+    ("doc", "loc"),
+    [
+        ({"bodies": {}, "batches": [{}] * 3_000_000}, ["body", "batches", 0, "constitution_uid"]),  # 3 MB
+        ({"bodies": [{}] * 3_000_000, "batches": []}, ["body", "bodies"]),  # not the batches: bounded all the same
+        ({"bodies": {}, "batches": [], "outputs": ["energy"] * 100_000}, ["body", "outputs"]),
+        ({"bodies": [[[[]] * 60] * 60], "batches": []}, ["body", "bodies"]),  # 3600 nested arrays in 4 KB
+    ],
+    ids=["3M_empty_batches", "3M_maps_as_bodies", "100k_outputs", "nested_arrays"],
+)
+def test_msgpack_floods_are_refused_before_they_are_built(roomy, doc, loc):
+    """msgpack turns 1 byte into a 64-byte dict: batches are unpacked one at a time (up to the fault
+    cap) and every other value holds at most MAX_CONTAINERS maps and arrays of MAX_ITEMS items."""
+    body = msgpack.packb(doc)
+    t = time.perf_counter()
+    r = post(roomy, body, B)
+    print(f"\n{len(body)} B msgpack flood -> {r.status_code} in {time.perf_counter() - t:.3f} s")
+    assert r.status_code == 422
+    assert loc in [d["loc"] for d in r.json()["detail"]], r.json()
+    assert len(r.json()["detail"]) <= MAX_FAULTS

@@ -1,7 +1,7 @@
 """Load and faults on a real 2-worker server on loopback (`service/loadtest.py` does the work).
 
-About 75 s in all: a 30 s mixed load (JOINTLIMITS_LOAD_SECONDS to change it), a flood of
-oversized requests, a worker killed under load, SIGTERM under load. The figures in the
+About 95 s in all: a 30 s mixed load (JOINTLIMITS_LOAD_SECONDS to change it), a flood of
+oversized requests, a worker killed under load, SIGTERM under load, a slowloris of 50 connections. The figures in the
 README come from `python -m service.loadtest --spawn --scenario all`, the same code.
 """
 

@@ -161,3 +161,24 @@ def test_a_client_leaving_mid_upload_counts_as_499_not_500(port):
     assert requests_counted(port, "499") == before["499"] + 1
     assert requests_counted(port, "500") == before["500"]
     assert httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200
+
+
+def test_cli_hands_the_timeouts_to_uvicorn_and_the_workers(monkeypatch):
+    import os
+
+    from service import cli
+
+    monkeypatch.setattr(os, "environ", {k: v for k, v in os.environ.items() if not k.startswith("JOINTLIMITS_")})
+    a = cli.build_parser().parse_args(["serve"])
+    assert (a.header_timeout, a.body_timeout) == (10.0, 30.0)
+    os.environ["JOINTLIMITS_HEADER_TIMEOUT"] = "2.5"
+    a = cli.build_parser().parse_args(["serve", "--body-timeout", "7", "--workers", "1"])
+    seen: dict = {}
+    monkeypatch.setattr(uvicorn, "run", lambda *args, **kwargs: seen.update(kwargs))
+    monkeypatch.setattr(cli.signal, "signal", lambda *args: None)
+    assert cli.serve(a) == 0
+    assert seen["http"] == "service.http.timeouts:ReadTimeoutProtocol"
+    assert timeouts.header_timeout_from_env() == 2.5 and Settings().body_timeout == 7.0
+    for bad in (["--header-timeout", "0"], ["--body-timeout", "-1"], ["--body-timeout", "inf"]):
+        with pytest.raises(SystemExit):
+            cli.build_parser().parse_args(["serve", *bad])

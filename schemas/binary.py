@@ -89,13 +89,10 @@ def _bin_header(n: int) -> bytes:
     return b"\xc6" + n.to_bytes(4, "big")
 
 
-def loads(body: bytes, object_pairs_hook: Any = None) -> Any:
-    """Decode a msgpack document; `ValueError` for anything that is not exactly one valid document.
-
-    `object_pairs_hook(pairs)` builds each map when given (the service uses it to see repeated keys).
-    """
+def loads(body: bytes) -> Any:
+    """Decode a msgpack document; `ValueError` for anything that is not exactly one valid document."""
     try:
-        # strict_map_key: keys are strings (or bin); raw=False: strings are UTF-8.
-        return msgpack.unpackb(body, raw=False, strict_map_key=True, object_pairs_hook=object_pairs_hook)
+        # strict_map_key: keys are strings; raw=False: strings are UTF-8.
+        return msgpack.unpackb(body, raw=False, strict_map_key=True)
     except Exception as e:  # msgpack raises several unrelated types for malformed input
         raise ValueError(f"body is not a valid msgpack document ({type(e).__name__}: {e})") from None

@@ -107,7 +107,7 @@ class _Reader:
 
 
 MAX_CONTAINERS = 64
-"""Maps and arrays one top-level value or one batch may hold (a batch has 12, `bodies` 7)."""
+"""Maps and arrays one top-level value or one batch may hold (a batch has 11, `bodies` 7)."""
 MAX_ITEMS = 4096
 """Items of one msgpack map or array (numbers travel as `bin`: a request's longest list is its `outputs`)."""
 

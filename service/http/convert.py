@@ -9,7 +9,7 @@ import orjson
 from pydantic import ValidationError
 
 from schemas import EvaluateRequest
-from service.core import Bodies, Evaluation, InputError, Joints
+from service.core import Bodies, Evaluation, Fault, InputError, Joints
 from service.core.errors import MAX_FAULTS
 from service.http import jsonkeys, limits
 from service.http.errors import from_validation
@@ -24,8 +24,16 @@ def decode(body: bytes, max_joints: int) -> dict[str, Any]:
     """
     limits.check_joints(limits.json_joints_upper_bound(body), max_joints)
     # Repeated, unknown and missing keys first, on the bytes: at the cap, pydantic never runs.
-    key_faults, _ = jsonkeys.scan(body)
+    keys = jsonkeys.scan(body)
+    key_faults = keys.faults
     if len(key_faults) >= MAX_FAULTS:
+        raise InputError(key_faults)
+    if keys.stray is not None and jsonkeys.keys_after(body, keys.stray[0], MAX_FAULTS) >= MAX_FAULTS:
+        # The scan stopped at an object no request holds, and enough keys follow to flood
+        # pydantic's list with unknown ones (the one error it does not bound): refuse here.
+        pos, loc, known_field = keys.stray
+        if known_field:
+            key_faults = [*key_faults, Fault(loc, "holds an object, where a request has numbers or lists", "model_type")]
         raise InputError(key_faults)
     try:
         # Rust-side parse and validation straight from bytes; rejects NaN, Infinity and 1e400.

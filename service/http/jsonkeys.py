@@ -38,6 +38,7 @@ _STRINGS = re.compile(_STR + rb"(?:\s*,\s*" + _STR + rb"(?!\s*:))*", re.S)
 _BRACES = re.compile(rb"[{}]")
 _COLON = re.compile(rb"\s*:\s*([\[{]?)")
 _KEY_END = re.compile(rb'"\s*:')
+_OBJECT_FIRST = re.compile(rb"\s*\{")
 
 # The objects of a request: their keys (True: required), and which key leads to which object.
 _TOP = {"bodies": True, "batches": True, "outputs": False, "hessian_mode": False, "active_only": False}
@@ -79,6 +80,8 @@ class KeyScan:
 def scan(body: bytes, cap: int = MAX_FAULTS) -> KeyScan:
     """The key faults of `body`; it stops at the `cap`-th fault, or at anything a valid body
     cannot hold (an object outside the request's own objects, a second document)."""
+    if not _OBJECT_FIRST.match(body):
+        return KeyScan([], True)  # not an object: pydantic names that, in one error
     s = _Scan(body, cap)
     try:
         pos = 0

@@ -75,10 +75,12 @@ def _bin_with(mutate) -> bytes:
 def test_render_makes_any_loc_json_safe_and_short():
     from service.core import Fault
 
-    out = render([Fault((b"\xff" * 10, "k" * 10_000, 3, True, 1.5), "m" * 10_000)], ("body",))
+    import numpy as np
+
+    out = render([Fault((b"\xff" * 10, "k" * 10_000, np.int64(3), True, 1.5), "m" * 10_000)], ("body",))
     loc = out["detail"][0]["loc"]
     json.dumps(out)  # no bytes, nothing unserialisable
-    assert loc[0] == "body" and loc[3] == 3 and all(isinstance(x, (int, str)) for x in loc)
+    assert loc[0] == "body" and loc[3] == 3 and type(loc[3]) is int and all(isinstance(x, (int, str)) for x in loc)
     assert loc[2] == "k" * MAX_KEY_CHARS + "..." and all(len(str(x)) <= MAX_KEY_CHARS + 3 for x in loc)
     assert len(out["detail"][0]["msg"]) < 1100
 

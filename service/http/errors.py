@@ -8,6 +8,7 @@ bounded: at most `MAX_FAULTS` faults, every `loc` element an `int` or a `str` of
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 
 from fastapi import Request
@@ -38,8 +39,8 @@ def _cut(s: str, n: int) -> str:
 
 def loc_element(x: object) -> int | str:
     """`x` as a JSON-safe `loc` element: ints stay ints, `bytes` keys show as `b'...'`, all cut to size."""
-    if isinstance(x, int) and not isinstance(x, bool):
-        return x
+    if isinstance(x, numbers.Integral) and not isinstance(x, bool):
+        return int(x)  # NumPy's integers too
     if isinstance(x, str):
         return _cut(x, MAX_KEY_CHARS)
     return _cut(repr(x[: MAX_KEY_CHARS + 1] if isinstance(x, (bytes, bytearray)) else x), MAX_KEY_CHARS)

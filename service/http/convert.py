@@ -45,8 +45,9 @@ def decode(body: bytes, max_joints: int) -> dict[str, Any]:
             raise InputError(faults) from None  # the scan's findings mean nothing in a broken document
         seen = {(f.loc, f.type) for f in key_faults}
         raise InputError([*key_faults, *(f for f in faults if (f.loc, f.type) not in seen)]) from None
-    if key_faults:
-        raise InputError(key_faults)  # repeated keys, which pydantic let through (last wins)
+    repeated = [f for f in key_faults if f.type == "duplicate_key"]
+    if repeated:
+        raise InputError(repeated)  # pydantic let them through (the last one wins)
     limits.check_joints(sum(len(j.body_ids) for j in req.batches), max_joints)
     return to_core(req)
 

@@ -76,7 +76,9 @@ async def client_gone(request: Request, exc: Exception) -> Response:
 
     Either way one access-log line at info and a 4xx in the metrics: not a 500 with a traceback.
     """
-    timeout = request.scope.get("state", {}).get("body_timed_out")
+    from service.http.timeouts import BODY_TIMED_OUT
+
+    timeout = request.scope.get("state", {}).get(BODY_TIMED_OUT)
     if timeout is not None:
         fault = Fault(("body",), f"request body not received within {timeout:g} s (JOINTLIMITS_BODY_TIMEOUT)", "timeout")
         return JSONResponse(render([fault]), status_code=408, headers={"Connection": "close"})

@@ -21,27 +21,27 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-DEFAULT_HEADER_TIMEOUT = 10.0
-DEFAULT_BODY_TIMEOUT = 30.0
 BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `client_gone`
 _408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"
 log = logging.getLogger("jointlimits.timeouts")
 
 
 def header_timeout_from_env() -> float:
-    return float(os.environ.get("JOINTLIMITS_HEADER_TIMEOUT", str(DEFAULT_HEADER_TIMEOUT)))
+    """`Settings().header_timeout`: JOINTLIMITS_HEADER_TIMEOUT, which `jointlimits serve` sets for its workers."""
+    from service.settings import Settings
+
+    return Settings().header_timeout
 
 
 class ReadTimeoutProtocol(HttpToolsProtocol):
     """uvicorn's httptools protocol with a deadline on each request head (`header_timeout` seconds)."""
 
-    header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read per connection (set by the CLI)
+    header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read per connection
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)

@@ -25,3 +25,13 @@ class Settings:
     keep_heap: bool = field(default_factory=lambda: _env("KEEP_HEAP", "true").strip().lower() not in ("0", "false", "no", "off"))
     """Keep freed memory in the worker's heap (`service.core.heap`): no page faults per request, at the
     price of holding the largest request's memory."""
+    # Admission by cost (service/http/limits.py, README "Limits"): checked before any evaluation.
+    max_batches: int = field(default_factory=lambda: int(_env("MAX_BATCHES", "4096")))
+    """Most batches in one request (each costs ~0.5 ms of fixed work); more answers 413."""
+    max_answer_bytes: int = field(default_factory=lambda: int(_env("MAX_ANSWER_BYTES", str(256 * 2**20))))
+    """Largest answer, bounded from joints x outputs x encoding before any work; larger answers 413."""
+    request_timeout: float = field(default_factory=lambda: float(_env("REQUEST_TIMEOUT", "60")))
+    """Seconds one evaluation may take (parse, core, encode); past it 503 with Retry-After."""
+    max_json_values: int = field(default_factory=lambda: int(_env("MAX_JSON_VALUES", "8000000")))
+    """Most values (numbers and list items, counted as commas + 1) in a JSON body: parsing costs ~80 bytes
+    and up to ~0.7 us each, whatever their length; more answers 413 before parsing. msgpack has no such cost."""

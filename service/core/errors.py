@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 Loc = tuple[str | int, ...]
@@ -25,3 +26,13 @@ class InputError(ValueError):
     def __init__(self, faults: list[Fault]) -> None:
         self.faults = faults
         super().__init__("; ".join(f"{'.'.join(map(str, f.loc))}: {f.msg}" for f in faults))
+
+
+class DeadlineExceeded(Exception):
+    """An evaluation passed its deadline (a `time.monotonic()` value) and stopped: no answer, no input fault."""
+
+
+def check_deadline(deadline: float | None) -> None:
+    """Raise `DeadlineExceeded` once `time.monotonic()` is past `deadline` (None: no deadline)."""
+    if deadline is not None and time.monotonic() > deadline:
+        raise DeadlineExceeded(f"deadline passed {time.monotonic() - deadline:.3f} s ago")

@@ -9,7 +9,7 @@ import numpy as np
 
 from service.core import assembly, penalty
 from service.core.constitution import Array, Constitution, Curvature
-from service.core.errors import Fault, InputError
+from service.core.errors import Fault, InputError, check_deadline
 from service.core.kinematics import (
     PREV_STEP,
     REF,
@@ -45,6 +45,7 @@ def evaluate(
     active_only: bool = False,
     dtype: type = np.float64,
     threads: int = 1,
+    deadline: float | None = None,
 ) -> Evaluation:
     """Energy, gradient and Hessian of every joint, as CONTRACT.md v1 defines them.
 
@@ -54,7 +55,9 @@ def evaluate(
     precision (a benchmark variant: ~1e-5 relative error; the wire is float64).
     `threads` > 1 evaluates the polar factors, the batches (or, for one batch, its
     derivative chunks) on that many threads, with bitwise the same results; the HTTP
-    service keeps 1, its worker processes already fill the cores.
+    service keeps 1, its worker processes already fill the cores. `deadline` (a
+    `time.monotonic()` value) is checked between batches and derivative chunks:
+    past it, `DeadlineExceeded` is raised.
     """
     outputs = tuple(outputs)
     bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
@@ -74,7 +77,7 @@ def evaluate(
     inner = threads if len(batches) == 1 else 1  # one level of threads: a pool never waits on itself
     results = run_all(
         [
-            partial(_evaluate_batch, b, j, table, want_g, want_h, hessian_mode == "psd", active_only, inner)
+            partial(_evaluate_batch, b, j, table, want_g, want_h, hessian_mode == "psd", active_only, inner, deadline)
             for b, j in enumerate(batches)
         ],
         threads,
@@ -111,7 +114,9 @@ def _evaluate_batch(
     psd: bool,
     active_only: bool,
     threads: int,
+    deadline: float | None = None,
 ) -> dict:
+    check_deadline(deadline)
     c = CONSTITUTIONS[joints.constitution_uid]
     pairs = np.ascontiguousarray(joints.body_ids.T)  # (2, N): contiguous indices gather 30% faster
     dtype = table.linear.dtype
@@ -148,6 +153,7 @@ def _evaluate_batch(
 
     def chunk(start: int) -> list[int]:
         """Differentiate active joints `start : start + CHUNK`; the rows among them that overflow."""
+        check_deadline(deadline)
         sel = active[start : start + CHUNK]
         pos = out_pos[start : start + CHUNK]
         # Contiguous rows (active_only, or a fully active stretch) are written in place.

@@ -151,21 +151,24 @@ def raise_if(faults: list[Fault]) -> None:
         raise InputError(faults)
 
 
-def checked_evaluate(bodies: Bodies, batches: Sequence[Joints], **options: Any) -> Evaluation:
+def checked_evaluate(
+    bodies: Bodies, batches: Sequence[Joints], deadline: float | None = None, **options: Any
+) -> Evaluation:
     """`service.core.evaluate` that never returns a non-finite number nor fails with a non-input error.
 
     What the HTTP shell and the SDK's local mode call. Overflow is expected with
     hostile numbers: warnings are silenced and every overflow becomes an
     `InputError` naming the joint. The PSD projection (an eigensolver) fails
     outright on a non-finite curvature; the exact mode then locates the joints.
+    `deadline` (a `time.monotonic()` value): past it, `DeadlineExceeded` (see `evaluate`).
     """
     from service.core.evaluate import evaluate  # evaluate imports this module
 
     with np.errstate(all="ignore"):
         try:
-            ev = evaluate(bodies, batches, **options)
+            ev = evaluate(bodies, batches, deadline=deadline, **options)
         except np.linalg.LinAlgError:
-            evaluate(bodies, batches, **{**options, "hessian_mode": "exact"})  # names the joints
+            evaluate(bodies, batches, deadline=deadline, **{**options, "hessian_mode": "exact"})  # names the joints
             raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
     raise_if(check_evaluation(ev))
     return ev

@@ -7,7 +7,10 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
 from service.core import Fault, InputError
-from service.core.errors import MAX_FAULTS
+from service.core.errors import MAX_FAULTS, DeadlineExceeded
+
+RETRY_AFTER_SECONDS = 5
+"""`Retry-After` of a 503 past the request deadline: the worker is free again at once, a busy pod soon."""
 
 
 class HttpError(Exception):
@@ -33,6 +36,17 @@ async def http_error_handler(request: Request, exc: Exception) -> JSONResponse:
     # These faults carry their own full loc (["body"], ["header", "accept"], ...).
     detail = [{"loc": list(f.loc), "msg": f.msg, "type": f.type} for f in exc.faults]
     return JSONResponse({"detail": detail}, status_code=exc.status)
+
+
+async def deadline_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, DeadlineExceeded)
+    timeout = request.app.state.settings.request_timeout
+    msg = (
+        f"the evaluation did not finish within the request timeout of {timeout:g} s (JOINTLIMITS_REQUEST_TIMEOUT) "
+        "and was stopped: retry later if the service is busy, or split the request"
+    )
+    detail = [{"loc": ["body"], "msg": msg, "type": "timeout"}]
+    return JSONResponse({"detail": detail}, status_code=503, headers={"Retry-After": str(RETRY_AFTER_SECONDS)})
 
 
 def from_validation(e: ValidationError) -> InputError:

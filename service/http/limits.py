@@ -1,4 +1,5 @@
-"""Request size limits: 413 before a body is parsed (bytes while it streams in, joints from the bytes)."""
+"""Request limits: 413 before a body is parsed (bytes while it streams in, joints from the bytes), and
+admission by cost (joints, batches, the answer's size) before any evaluation."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from fastapi import Request
 
 from service.core import Fault
 from service.http.errors import HttpError
+from service.settings import Settings
 
 # A per-joint list of the JSON body: `"lower": [ ... ]`. Its commas bound its length from above.
 _PER_JOINT_LIST = re.compile(rb'"(?:lower|upper|strength)"\s*:\s*\[([^\[\]]*)\]')
@@ -54,4 +56,93 @@ def check_joints(n_joints: int, max_joints: int) -> None:
             ("body", "batches"),
             f"request has {n_joints} joints; this service accepts at most {max_joints} per request "
             "(split the batch; the Python SDK does it for you)",
+        )
+
+
+# ------------------------------------------------------------------ admission by cost, before any work
+
+JSON_FLOAT_BYTES = 25
+"""Bound of one float in a JSON answer: the longest shortest-round-trip float64
+(`-2.2250738585072014e-308`, 24 characters) and its separator."""
+BINARY_FLOAT_BYTES = 8
+FLOATS_PER_JOINT = {"energy": 2, "gradient": 24, "hessian": 24 * 24}
+"""Floats one joint adds to the answer for each output; `energy` brings `x` along."""
+JSON_BRACKETS_PER_JOINT = {"energy": 0, "gradient": 3, "hessian": 3 * 24 + 3}
+"""`[`, `]` and a separator around each row of a joint's gradient (one row) and Hessian (24 rows and itself)."""
+BATCH_OVERHEAD_BYTES = 512
+"""Keys, array headers and brackets of one batch in either encoding (the measured figure is < 300)."""
+
+
+def answer_bytes(batch_joints: list[int], outputs: list[str] | tuple[str, ...], binary_answer: bool) -> int:
+    """Upper bound of the answer's size, from the request alone (before any work).
+
+    Every joint counts, `active_only` or not: which joints are active is known only
+    after evaluating them, and the bound must hold before. `index` costs 8 bytes
+    (binary) or its decimal digits and a separator (JSON); every output asked for adds
+    `FLOATS_PER_JOINT` floats per joint. Unknown outputs cost nothing (they are a 422).
+    """
+    wanted = [o for o in FLOATS_PER_JOINT if o in outputs or o == "energy"]
+    floats = sum(FLOATS_PER_JOINT[o] for o in wanted)
+    total = BATCH_OVERHEAD_BYTES  # total_energy and the document's own keys
+    for n in batch_joints:
+        if binary_answer:
+            per_joint = 8 + floats * BINARY_FLOAT_BYTES
+        else:
+            per_joint = len(str(max(n - 1, 0))) + 1 + floats * JSON_FLOAT_BYTES
+            per_joint += sum(JSON_BRACKETS_PER_JOINT[o] for o in wanted)
+        total += BATCH_OVERHEAD_BYTES + n * per_joint
+    return total
+
+
+def admit(
+    *,
+    joints: int | list[int],
+    batches: int,
+    outputs: list[str] | tuple[str, ...],
+    binary_answer: bool,
+    settings: Settings,
+) -> None:
+    """Refuse with 413 a request that would cost more than this service's bounds, before any work.
+
+    `joints`: joints per batch (a list) or their total alone (an int: then the answer is
+    bounded as if they were all in one batch, which is what a single count can say).
+    Raises `HttpError` (413) naming the bound, the figure and what to do.
+    """
+    per_batch = joints if isinstance(joints, list) else [joints]
+    check_joints(sum(per_batch), settings.max_joints)
+    if batches > settings.max_batches:
+        raise _too_large(
+            ("body", "batches"),
+            f"request has {batches} batches; this service accepts at most {settings.max_batches} per request "
+            "(JOINTLIMITS_MAX_BATCHES): merge batches of the same constitution, or split the request",
+        )
+    size = answer_bytes(per_batch, outputs, binary_answer)
+    if size > settings.max_answer_bytes:
+        encoding = "msgpack" if binary_answer else "JSON"
+        hint = "" if binary_answer else ", or ask for msgpack (Accept: application/msgpack, a third of JSON's bound)"
+        raise _too_large(
+            ("body", "outputs"),
+            f"the answer to this request may reach {size} bytes in {encoding} ({sum(per_batch)} joints x "
+            f"{', '.join(o for o in FLOATS_PER_JOINT if o in outputs or o == 'energy')}); this service answers "
+            f"at most {settings.max_answer_bytes} bytes (JOINTLIMITS_MAX_ANSWER_BYTES): split the batch, "
+            f"ask for fewer outputs{hint}. active_only does not lower this bound: it is checked before knowing "
+            "which joints are active",
+        )
+
+
+def check_json_values(body: bytes, max_values: int) -> None:
+    """Refuse a JSON body whose parse would cost too much, before parsing it (one C-speed count).
+
+    Parsing costs time (~0.2-0.7 us) and memory (~60-90 bytes as Python objects) per value,
+    whatever its length: `[0,0,...]` weighs 40 times its bytes, full-precision floats 3 times.
+    Every value but the last of each list or object is followed by a comma, so `commas + 1`
+    bounds the values from above for well-formed bodies.
+    """
+    values = body.count(b",") + 1
+    if values > max_values:
+        raise _too_large(
+            ("body",),
+            f"the JSON body holds up to {values} values (counted by its commas); this service parses at most "
+            f"{max_values} per JSON request (JOINTLIMITS_MAX_JSON_VALUES): send msgpack "
+            "(Content-Type: application/msgpack, no per-value cost), or split the request",
         )

@@ -34,5 +34,7 @@ class DeadlineExceeded(Exception):
 
 def check_deadline(deadline: float | None) -> None:
     """Raise `DeadlineExceeded` once `time.monotonic()` is past `deadline` (None: no deadline)."""
-    if deadline is not None and time.monotonic() > deadline:
-        raise DeadlineExceeded(f"deadline passed {time.monotonic() - deadline:.3f} s ago")
+    if deadline is not None:
+        late = time.monotonic() - deadline
+        if late > 0:
+            raise DeadlineExceeded(f"deadline passed {late:.3f} s ago")

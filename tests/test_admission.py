@@ -292,3 +292,25 @@ def test_a_real_evaluation_past_a_short_deadline_is_stopped():
     c = client(request_timeout=0.001)
     r = post(c, scene(30_000, batches=3), True, B)
     assert r.status_code == 503 and r.headers["Retry-After"]
+
+
+# ------------------------------------------------------------------ settings and flags agree
+
+
+def test_flags_default_to_the_settings_defaults_and_read_the_environment(monkeypatch):
+    from service import cli
+
+    names = ("max_batches", "max_answer_bytes", "max_json_values", "request_timeout")
+    for name in names:
+        monkeypatch.delenv("JOINTLIMITS_" + name.upper(), raising=False)
+    args, settings = cli.build_parser().parse_args(["serve"]), Settings()
+    assert [getattr(args, n) for n in names] == [getattr(settings, n) for n in names]
+    assert (args.max_batches, args.max_answer_bytes, args.max_json_values, args.request_timeout) == (4096, 256 * 2**20, 8_000_000, 60.0)
+    monkeypatch.setenv("JOINTLIMITS_MAX_ANSWER_BYTES", "1234")
+    monkeypatch.setenv("JOINTLIMITS_REQUEST_TIMEOUT", "2.5")
+    args = cli.build_parser().parse_args(["serve", "--max-batches", "7"])
+    assert (args.max_answer_bytes, args.request_timeout, args.max_batches) == (1234, 2.5, 7)
+    assert (Settings().max_answer_bytes, Settings().request_timeout) == (1234, 2.5)
+    for bad in (["--request-timeout", "0"], ["--max-answer-bytes", "-1"], ["--healthcheck-timeout", "0"]):
+        with pytest.raises(SystemExit):
+            cli.build_parser().parse_args(["serve", *bad])

@@ -17,7 +17,6 @@ import time
 
 import httpx
 import numpy as np
-import pytest
 
 from client import codec
 from service import cli

@@ -16,6 +16,10 @@ without it, `--url` names a service already running on 127.0.0.1. Scenarios:
   see no error; the supervisor replaces the worker.
 - `sigterm`: SIGTERM the server while every client has a slow request in flight: each of
   those requests completes with 200 and the server exits 0.
+- `answer`: while valid clients run, one request whose answer would exceed
+  `JOINTLIMITS_MAX_ANSWER_BYTES` (413 before any work) and one at that bound (200): the valid
+  clients keep getting 200s and no worker is restarted (its pids are compared). Needs a server
+  with the default limits (`--spawn` starts one).
 
 The client is a minimal HTTP/1.1 client on asyncio streams with pre-encoded requests, so
 that on a 2-core machine it takes as little CPU from the server as it can. Standard
@@ -645,12 +649,68 @@ def scenario_sigterm(server: Server, clients: int, slow_joints: int = 1000, toke
     }
 
 
+def answer_joints(max_answer_bytes: int = 256 * 2**20) -> tuple[int, int]:
+    """Joints of a `scene` with E+G+H whose JSON answer bound is just within / just over `max_answer_bytes`."""
+    from service.http.limits import answer_bytes
+
+    outputs = ("energy", "gradient", "hessian")
+    bound = lambda n: answer_bytes([(n + 1) // 2, n // 2], outputs, binary_answer=False)  # noqa: E731 (scene's two batches)
+    lo, hi = 1, 10**7
+    while lo < hi:  # the largest admitted count
+        m = (lo + hi + 1) // 2
+        lo, hi = (m, hi) if bound(m) <= max_answer_bytes else (lo, m - 1)
+    return lo, lo + 1
+
+
+def _one_json(port: int, body: bytes, timeout: float) -> tuple[int, float, int]:
+    """POST a JSON body over its own connection: status, seconds, answer bytes."""
+    import http.client
+
+    t = time.monotonic()
+    c = http.client.HTTPConnection(LOOPBACK, port, timeout=timeout)
+    try:
+        c.request("POST", "/v1/evaluate", body, {"Content-Type": "application/json"})
+        r = c.getresponse()
+        return r.status, round(time.monotonic() - t, 2), len(r.read())
+    finally:
+        c.close()
+
+
+def scenario_answer(
+    server: Server, clients: int, duration: float, max_answer_bytes: int = 256 * 2**20, token: str | None = None
+) -> dict[str, Any]:
+    """Valid clients run while one over-the-answer-bound request (413) and one at the bound (200) are sent."""
+    valid = [k for k in mixed_kinds(token) if k.name.startswith("valid")]
+    baseline = asyncio.run(run_load(server.port, valid, clients, duration / 2, seed=1))
+    at, over = answer_joints(max_answer_bytes)
+    big = {name: json.dumps(scene(n, seed=8, outside=1.0)).encode() for name, n in (("over_bound", over), ("at_bound", at))}
+    pids = server.worker_pids()
+    heavy: dict[str, Any] = {}
+
+    async def heavy_requests() -> None:
+        await asyncio.sleep(duration / 4)
+        for name, body in big.items():
+            status, seconds, size = await asyncio.to_thread(_one_json, server.port, body, 120.0)
+            heavy[name] = {"joints": at if name == "at_bound" else over, "body_bytes": len(body), "status": status, "seconds": seconds, "answer_bytes": size}
+
+    under = asyncio.run(run_load(server.port, valid, clients, duration, seed=3, during=heavy_requests))
+    time.sleep(1.0)  # the supervisor checks its workers every 0.5 s
+    return {
+        "valid_alone": baseline.summary(),
+        "valid_during": under.summary(),
+        "heavy": heavy,
+        "workers_before": pids,
+        "workers_after": server.worker_pids(),
+        "healthz_after": get(server.port, "/healthz")[0],
+    }
+
+
 # --------------------------------------------------------------------------- command line
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m service.loadtest", description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenario", choices=["mixed", "flood", "kill", "sigterm", "all"], default="mixed")
+    p.add_argument("--scenario", choices=["mixed", "flood", "kill", "sigterm", "answer", "all"], default="mixed")
     p.add_argument("--spawn", action="store_true", help="start `jointlimits serve` on a free loopback port")
     p.add_argument("--port", type=int, default=8000, help="port of a running service on 127.0.0.1 (without --spawn)")
     p.add_argument("--workers", type=int, default=2)
@@ -669,7 +729,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return Server(a.workers, limits, env)
 
     report: dict[str, Any] = {"workers": a.workers, "clients": a.clients, "duration_s": a.duration}
-    scenarios = ["mixed", "flood", "kill", "sigterm"] if a.scenario == "all" else [a.scenario]
+    scenarios = ["mixed", "flood", "kill", "sigterm", "answer"] if a.scenario == "all" else [a.scenario]
     for name in scenarios:
         if not a.spawn:
             if name in ("kill", "sigterm"):
@@ -684,7 +744,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             target: Any = _Running()
             report[name] = _run(name, target, a)
             continue
-        with spawned() as server:
+        # The answer drill needs the default limits (its heavy requests are over the flood's 1 MB bodies).
+        with Server(a.workers, [], env) if name == "answer" else spawned() as server:
             report[name] = _run(name, server, a)
     print(json.dumps(report, indent=2))
     return 0
@@ -697,6 +758,8 @@ def _run(name: str, server: Any, a: argparse.Namespace) -> dict[str, Any]:
         return scenario_flood(server, a.clients, min(a.duration, 10.0), a.max_body_bytes, a.max_joints, a.token)
     if name == "kill":
         return scenario_kill(server, a.clients, min(a.duration, 10.0), a.token)
+    if name == "answer":
+        return scenario_answer(server, a.clients, min(a.duration, 10.0), token=a.token)
     return scenario_sigterm(server, a.clients, token=a.token)
 
 

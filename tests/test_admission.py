@@ -314,3 +314,53 @@ def test_flags_default_to_the_settings_defaults_and_read_the_environment(monkeyp
     for bad in (["--request-timeout", "0"], ["--max-answer-bytes", "-1"], ["--healthcheck-timeout", "0"]):
         with pytest.raises(SystemExit):
             cli.build_parser().parse_args(["serve", *bad])
+
+
+# ------------------------------------------------------------------ the SDK splits by the same bounds
+
+
+@pytest.mark.parametrize("binary_client", [False, True])
+def test_sdk_splits_by_the_answer_bound_and_json_values(binary_client):
+    """The server tells its bounds; the SDK's parts all fit them, and the merged answer is the whole one."""
+    from client import Client, LocalClient
+    from tests.test_contract_live import serve
+
+    req = scene(600, batches=2, pairs=3)
+    cap = limits.answer_bytes([100], EGH, binary_answer=binary_client)  # ~100 joints with Hessians per part
+    settings = Settings(token=None, cors_origins=(), max_answer_bytes=cap, max_json_values=100 * 91)
+    with serve(settings) as url, Client(url, binary=binary_client) as c:
+        lim = c.constitutions().limits
+        assert (lim.max_answer_bytes, lim.max_json_values, lim.max_batches) == (cap, 100 * 91, settings.max_batches)
+        sent = []
+        with httpx_spy(sent):
+            got = c.evaluate(req)
+    want = LocalClient().evaluate(req)
+    assert 6 <= len(sent) <= 8 and set(sent) == {200}
+    assert got.total_energy == pytest.approx(want.total_energy, rel=1e-14)  # a sum of the parts' sums
+    for g, w in zip(got.batches, want.batches):
+        assert np.array_equal(g.x, w.x) and np.array_equal(g.hessian, w.hessian)
+
+
+def httpx_spy(statuses: list[int]):
+    """Record the status of every /v1/evaluate answer the SDK receives."""
+    import contextlib
+
+    import httpx
+
+    real = httpx.Client.send
+
+    def send(self, request, *a, **kw):
+        response = real(self, request, *a, **kw)
+        if request.url.path == "/v1/evaluate":
+            statuses.append(response.status_code)
+        return response
+
+    @contextlib.contextmanager
+    def patched():
+        httpx.Client.send = send
+        try:
+            yield
+        finally:
+            httpx.Client.send = real
+
+    return patched()

@@ -9,6 +9,7 @@ from fastapi import Request
 
 from service.core import Fault
 from service.http.errors import HttpError
+from schemas.answer import BATCH_OVERHEAD_BYTES, FLOATS_PER_JOINT, answer_bytes  # noqa: F401 (re-exported)
 from service.settings import Settings
 
 # A per-joint list of the JSON body: `"lower": [ ... ]`. Its commas bound its length from above.
@@ -60,39 +61,6 @@ def check_joints(n_joints: int, max_joints: int) -> None:
 
 
 # ------------------------------------------------------------------ admission by cost, before any work
-
-JSON_FLOAT_BYTES = 25
-"""Bound of one float in a JSON answer: the longest shortest-round-trip float64
-(`-2.2250738585072014e-308`, 24 characters) and its separator."""
-BINARY_FLOAT_BYTES = 8
-FLOATS_PER_JOINT = {"energy": 2, "gradient": 24, "hessian": 24 * 24}
-"""Floats one joint adds to the answer for each output; `energy` brings `x` along."""
-JSON_BRACKETS_PER_JOINT = {"energy": 0, "gradient": 3, "hessian": 3 * 24 + 3}
-"""`[`, `]` and a separator around each row of a joint's gradient (one row) and Hessian (24 rows and itself)."""
-BATCH_OVERHEAD_BYTES = 512
-"""Keys, array headers and brackets of one batch in either encoding (the measured figure is < 300)."""
-
-
-def answer_bytes(batch_joints: list[int], outputs: list[str] | tuple[str, ...], binary_answer: bool) -> int:
-    """Upper bound of the answer's size, from the request alone (before any work).
-
-    Every joint counts, `active_only` or not: which joints are active is known only
-    after evaluating them, and the bound must hold before. `index` costs 8 bytes
-    (binary) or its decimal digits and a separator (JSON); every output asked for adds
-    `FLOATS_PER_JOINT` floats per joint. Unknown outputs cost nothing (they are a 422).
-    """
-    wanted = [o for o in FLOATS_PER_JOINT if o in outputs or o == "energy"]
-    floats = sum(FLOATS_PER_JOINT[o] for o in wanted)
-    total = BATCH_OVERHEAD_BYTES  # total_energy and the document's own keys
-    for n in batch_joints:
-        if binary_answer:
-            per_joint = 8 + floats * BINARY_FLOAT_BYTES
-        else:
-            per_joint = len(str(max(n - 1, 0))) + 1 + floats * JSON_FLOAT_BYTES
-            per_joint += sum(JSON_BRACKETS_PER_JOINT[o] for o in wanted)
-        total += BATCH_OVERHEAD_BYTES + n * per_joint
-    return total
-
 
 def admit(
     *,

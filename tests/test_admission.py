@@ -7,7 +7,6 @@ is checked to hold against real and worst-case answers of both encodings.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import replace
 
@@ -17,6 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from client import JointBatch, codec, request_from_arrays
+from service import loadtest as lt
 from schemas import binary as wire
 from service.app import create_app
 from service.core import BatchResult, Evaluation, evaluate
@@ -30,20 +30,7 @@ EGH = ("energy", "gradient", "hessian")
 J, B = "application/json", "application/msgpack"
 
 
-def scene(n: int, batches: int = 1, outputs=EGH, active_only: bool = False, pairs: int = 1):
-    """`n` revolute joints on `pairs` body pairs, body 2k+1 turned by 0.7 about +z: every joint past its upper limit."""
-    eye = np.eye(3).reshape(9)
-    q_ref = np.array([np.r_[[2.0 * b, 0, 0], eye] for b in range(2 * pairs)])
-    q = q_ref.copy()
-    c, s = math.cos(0.7), math.sin(0.7)
-    q[1::2, 3:] = [c, -s, 0, s, c, 0, 0, 0, 1]
-    ids = np.arange(2 * pairs).reshape(pairs, 2)[np.arange(n) % pairs]
-    edges = np.zeros((n, 2, 3))
-    edges[:, :, 0] = q_ref[ids[:, :1], 0]
-    edges[:, 1, 2] = 1.0
-    parts = np.array_split(np.arange(n), batches)
-    joints = [JointBatch.of(670, ids[p], edges[p], np.full(len(p), -0.5), np.full(len(p), 0.5), np.full(len(p), 100.0)) for p in parts]
-    return request_from_arrays(q, joints, q_ref=q_ref, outputs=outputs, active_only=active_only)
+scene = lt.array_scene  # n revolute joints on body pairs, every one past its upper limit
 
 
 def client(**settings) -> TestClient:

@@ -26,15 +26,7 @@ from tests.test_admission import scene
 J, B = "application/json", "application/msgpack"
 
 
-def many_bodies_json(n_bodies: int) -> bytes:
-    """A legal JSON body whose cost is its bodies: `n_bodies` identity rows written as short integers, one joint."""
-    row = b"[0,0,0,1,0,0,0,1,0,0,0,1]"
-    rows = b",".join([row] * n_bodies)
-    return (
-        b'{"bodies":{"q":[' + rows + b'],"q_prev":[' + rows + b'],"q_ref":[' + rows + b']},"batches":[{"constitution_uid":670,'
-        b'"base_uid":18,"body_ids":[[0,1]],"edges":[[[0,0,0],[0,0,1]]],"lower":[-0.5],"upper":[0.5],"strength":[1]}],'
-        b'"outputs":["energy"]}'
-    )
+many_bodies_json = lt.short_values_json
 
 
 def test_the_supervisor_gets_the_health_check_timeout(monkeypatch):

@@ -351,3 +351,19 @@ def httpx_spy(statuses: list[int]):
             httpx.Client.send = real
 
     return patched()
+
+
+def test_batches_are_counted_before_they_are_read(no_work, monkeypatch):
+    """msgpack: refused before any batch is decoded; JSON: before parsing, by their braces."""
+    req = scene(9, batches=9, outputs=("energy",))
+
+    def no_batch(*a, **kw):
+        raise AssertionError("a batch was read")
+
+    monkeypatch.setattr(binary, "_batch", no_batch)
+    r = post(client(max_batches=8), req, True)
+    assert r.status_code == 413 and "has 9 batches" in r.json()["detail"][0]["msg"]
+    monkeypatch.setattr(convert.EvaluateRequest, "model_validate_json", no_batch)
+    r = post(client(max_batches=8), req, False)
+    assert r.status_code == 413
+    assert "up to 9 batches (counted by their braces)" in r.json()["detail"][0]["msg"]

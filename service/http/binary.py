@@ -64,8 +64,11 @@ class _Reader:
         return obj
 
 
-def decode(body: bytes, max_joints: int) -> dict[str, Any]:
-    """Keyword arguments of `service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`."""
+def decode(body: bytes, max_joints: int, max_batches: int | None = None) -> dict[str, Any]:
+    """Keyword arguments of `service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`.
+
+    More batches than `max_batches` is a 413 before any batch is read (each costs Python work here).
+    """
     try:
         doc = wire.loads(body)
     except ValueError as e:
@@ -78,6 +81,8 @@ def decode(body: bytes, max_joints: int) -> dict[str, Any]:
     if not isinstance(raw_batches, list):
         r.fault(("batches",), "Input should be a valid list", "list_type")
         raw_batches = []
+    if max_batches is not None:
+        limits.check_batches(len(raw_batches), max_batches)
     batches = [_batch(r, b, raw) for b, raw in enumerate(raw_batches)]
     outputs, hessian_mode, active_only = _options(r, top)
     if r.faults:

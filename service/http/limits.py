@@ -78,12 +78,7 @@ def admit(
     """
     per_batch = joints if isinstance(joints, list) else [joints]
     check_joints(sum(per_batch), settings.max_joints)
-    if batches > settings.max_batches:
-        raise _too_large(
-            ("body", "batches"),
-            f"request has {batches} batches; this service accepts at most {settings.max_batches} per request "
-            "(JOINTLIMITS_MAX_BATCHES): merge batches of the same constitution, or split the request",
-        )
+    check_batches(batches, settings.max_batches)
     size = answer_bytes(per_batch, outputs, binary_answer)
     if size > settings.max_answer_bytes:
         encoding = "msgpack" if binary_answer else "JSON"
@@ -96,6 +91,23 @@ def admit(
             f"ask for fewer outputs{hint}. active_only does not lower this bound: it is checked before knowing "
             "which joints are active",
         )
+
+
+def check_batches(n_batches: int, max_batches: int, counted_by: str = "") -> None:
+    """413 for more batches than `max_batches`; `counted_by` says how an estimate made before parsing was made."""
+    if n_batches > max_batches:
+        has = f"has up to {n_batches} batches ({counted_by})" if counted_by else f"has {n_batches} batches"
+        raise _too_large(
+            ("body", "batches"),
+            f"request {has}; this service accepts at most {max_batches} per request "
+            "(JOINTLIMITS_MAX_BATCHES): merge batches of the same constitution, or split the request",
+        )
+
+
+def json_batches_upper_bound(body: bytes) -> int:
+    """Batches of a valid JSON request, bounded from its bytes: each is an object, so it has a `{`
+    (the document and `bodies` have the two others; a `{` inside a string only overcounts junk)."""
+    return body.count(b"{") - 2
 
 
 def check_json_values(body: bytes, max_values: int) -> None:

@@ -59,7 +59,10 @@ def _evaluate(  # noqa: ANN001 (codec modules)
 ) -> bytes:
     if decoder is convert:  # the JSON parse costs per value, not per byte: bounded before it starts
         limits.check_json_values(body, settings.max_json_values)
-    kwargs = decoder.decode(body, settings.max_joints)
+        limits.check_batches(limits.json_batches_upper_bound(body), settings.max_batches, "counted by their braces")
+        kwargs = decoder.decode(body, settings.max_joints)
+    else:  # msgpack: batches counted before any of them is read
+        kwargs = decoder.decode(body, settings.max_joints, max_batches=settings.max_batches)
     check_deadline(deadline)
     # Admission by cost, before any evaluation: joints, batches, the answer's size in its encoding.
     limits.admit(

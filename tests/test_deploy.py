@@ -95,3 +95,20 @@ def test_memory_limit_follows_from_the_request_limits(monkeypatch):
     assert need <= limit, f"{workers} workers at these limits may need {need / 2**20:.0f} MiB > the {limit / 2**20:.0f} MiB limit"
     assert limit <= 1.5 * need, "the limit wastes memory the limits can never use; lower it or raise the limits"
     assert _quantity(CONTAINER["resources"]["requests"]["memory"]) <= limit
+
+
+def test_the_readmes_sizing_figures_are_the_rules(monkeypatch):
+    """README, "Sizing a pod": 2.6 GiB per worker and 5.4 GiB for 2 workers at the defaults; 902 MiB per worker in the manifest."""
+    from service import sizing
+    from service.settings import Settings
+
+    for name in [n for n in os.environ if n.startswith("JOINTLIMITS_")]:
+        monkeypatch.delenv(name)
+    readme = (ROOT / "README.md").read_text()
+    defaults = Settings()
+    assert f"a worker may reach {sizing.worker_bytes(defaults) / 2**30:.1f} GiB" in readme
+    assert f"2 workers need a {sizing.pod_bytes(defaults, 2) / 2**30:.1f} GiB pod" in readme
+    for name, value in ENV.items():
+        if value is not None:
+            monkeypatch.setenv(name, value)
+    assert f"{sizing.worker_bytes(Settings()) / 2**20:.0f} MiB per worker" in readme

@@ -140,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--max-json-values",
         type=_positive_int,
-        default=int(_env("MAX_JSON_VALUES", "8000000")),
+        default=int(_env("MAX_JSON_VALUES", "2000000")),
         help="most values (commas + 1) in a JSON body; more answers 413 before parsing (JOINTLIMITS_MAX_JSON_VALUES)",
     )
     s.add_argument(

@@ -745,6 +745,9 @@ def peak_cases() -> dict[str, Callable[[], tuple[bytes, str, str, int]]]:
         "answer_bound_json": lambda: at_answer(False, False),
         "answer_bound_json_request_msgpack_answer": lambda: at_answer(False, True),
         "json_values_bound": lambda: (short_values_json(s.max_json_values // 36 - 1), J, J, 1),
+        "json_values_bound_joints": lambda: (
+            enc(array_scene(s.max_json_values // 12, outputs=("energy",)), False), J, J, s.max_json_values // 12
+        ),
         "joints_bound_energy": lambda: (enc(array_scene(s.max_joints, outputs=("energy",)), True), B, B, s.max_joints),
         "body_bound_energy": at_body,
         "batches_bound": lambda: (enc(array_scene(s.max_batches, batches=s.max_batches), True), B, B, s.max_batches),

@@ -292,7 +292,7 @@ def test_flags_default_to_the_settings_defaults_and_read_the_environment(monkeyp
         monkeypatch.delenv("JOINTLIMITS_" + name.upper(), raising=False)
     args, settings = cli.build_parser().parse_args(["serve"]), Settings()
     assert [getattr(args, n) for n in names] == [getattr(settings, n) for n in names]
-    assert (args.max_batches, args.max_answer_bytes, args.max_json_values, args.request_timeout) == (4096, 256 * 2**20, 8_000_000, 60.0)
+    assert (args.max_batches, args.max_answer_bytes, args.max_json_values, args.request_timeout) == (4096, 256 * 2**20, 2_000_000, 60.0)
     monkeypatch.setenv("JOINTLIMITS_MAX_ANSWER_BYTES", "1234")
     monkeypatch.setenv("JOINTLIMITS_REQUEST_TIMEOUT", "2.5")
     args = cli.build_parser().parse_args(["serve", "--max-batches", "7"])

@@ -3,7 +3,8 @@
 uvicorn's supervisor pings each worker and kills one that does not answer within
 `--healthcheck-timeout`; the answer comes from a thread of the worker, which needs the
 GIL, and a JSON parse holds it throughout. Before the fix, a legal 93.6 MB JSON body
-(1.2e6 bodies, 43e6 values) held it past the old 5 s and the worker was SIGKILLed.
+(1.2e6 bodies, 43e6 values) held it past the old 5 s and the worker was SIGKILLed; a
+700k-joint JSON body (7.7e6 values, issue 9's probe) held it 12.5 s at a load average of 6.5.
 Now: the JSON parse is bounded before it starts (`JOINTLIMITS_MAX_JSON_VALUES`), the
 health check waits `JOINTLIMITS_HEALTHCHECK_TIMEOUT` (30 s, far above the longest
 admitted parse), JSON answers are written in GIL-releasing pieces. Slow (~30 s).
@@ -20,6 +21,7 @@ import numpy as np
 
 from client import codec
 from service import cli
+from service.settings import Settings
 from service import loadtest as lt
 from tests.test_admission import scene
 
@@ -56,17 +58,25 @@ def test_largest_legal_requests_neither_kill_nor_starve_a_worker():
     with lt.Server(workers=2) as server:
         pids = server.worker_pids()
         url = f"http://{lt.LOOPBACK}:{server.port}/v1/evaluate"
-        # Issue 9's probes: a 700k-joint energy-only JSON request, a 1e6-joint msgpack request answered in JSON.
-        for n, binary_request, answer in ((700_000, False, J), (1_000_000, True, J)):
-            body, ctype = codec.encode(scene(n, outputs=("energy",)), binary=binary_request)
-            r = httpx.post(url, content=body, headers={"Content-Type": ctype, "Accept": answer}, timeout=120)
+        # Issue 9's probes: a 700k-joint energy-only JSON request (7.7e6 values: now refused before
+        # parsing, the SDK splits it) and a 1e6-joint msgpack request answered in JSON (answered).
+        body, ctype = codec.encode(scene(700_000, outputs=("energy",)), binary=False)
+        r = httpx.post(url, content=body, headers={"Content-Type": ctype}, timeout=120)
+        assert r.status_code == 413 and "JOINTLIMITS_MAX_JSON_VALUES" in r.text
+        body, ctype = codec.encode(scene(1_000_000, outputs=("energy",)), binary=True)
+        r = httpx.post(url, content=body, headers={"Content-Type": ctype, "Accept": J}, timeout=120)
+        assert r.status_code == 200, r.text[:300]
+        x = np.asarray(r.json()["batches"][0]["x"])
+        assert x.shape == (1_000_000,) and np.allclose(x, 0.7, rtol=1e-13, atol=0)
+        # The largest JSON bodies admitted: short values (the most per byte) and joints (the most
+        # nested), each at the value bound: the longest GIL holds a request can cause.
+        at_bound = many_bodies_json(Settings().max_json_values // 36 - 1)
+        n = Settings().max_json_values // 12
+        joints, _ = codec.encode(scene(n, outputs=("energy",)), binary=False)
+        for body in (at_bound, joints):
+            assert body.count(b",") + 1 <= Settings().max_json_values
+            r = httpx.post(url, content=body, headers={"Content-Type": J}, timeout=120)
             assert r.status_code == 200, r.text[:300]
-            x = np.asarray(r.json()["batches"][0]["x"])
-            assert x.shape == (n,) and np.allclose(x, 0.7, rtol=1e-13, atol=0)
-        # A JSON body at the value bound parses (the longest admitted GIL hold); one past it is refused unparsed.
-        at_bound = many_bodies_json(222_000)
-        assert at_bound.count(b",") + 1 <= 8_000_000
-        assert httpx.post(url, content=at_bound, headers={"Content-Type": J}, timeout=120).status_code == 200
         r = httpx.post(url, content=many_bodies_json(1_200_000), headers={"Content-Type": J}, timeout=120)
         assert r.status_code == 413 and "JOINTLIMITS_MAX_JSON_VALUES" in r.text
         time.sleep(1.5)  # the supervisor pings every 0.5 s

@@ -11,6 +11,10 @@ shares one listening socket and respawns a worker that dies. Prometheus needs it
 multiprocess mode for `/metrics` to sum over them: unless `PROMETHEUS_MULTIPROC_DIR` is
 already set, a fresh directory is made for the run and removed afterwards.
 
+The supervisor kills a worker whose health ping goes unanswered for `--healthcheck-timeout`
+seconds; the answer needs the GIL, so the timeout must exceed the longest step that holds it
+(a JSON parse at `--max-json-values`, README "Limits and sizing a pod").
+
 SIGTERM / SIGINT shut down gracefully: stop accepting, finish in-flight requests (for at most
 `--graceful-timeout` seconds), exit 0.
 """
@@ -127,33 +131,33 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--max-batches",
         type=_positive_int,
-        default=int(_env("MAX_BATCHES", "4096")),
+        default=_env("MAX_BATCHES", "4096"),  # a string: argparse applies `type`, so a bad variable is refused too
         help="most batches in one request; more answers 413 (JOINTLIMITS_MAX_BATCHES)",
     )
     s.add_argument(
         "--max-answer-bytes",
         type=_positive_int,
-        default=int(_env("MAX_ANSWER_BYTES", str(256 * 2**20))),
+        default=_env("MAX_ANSWER_BYTES", str(256 * 2**20)),
         help="largest answer, bounded before any work from joints x outputs x encoding; larger answers 413 "
         "(JOINTLIMITS_MAX_ANSWER_BYTES)",
     )
     s.add_argument(
         "--max-json-values",
         type=_positive_int,
-        default=int(_env("MAX_JSON_VALUES", "2000000")),
+        default=_env("MAX_JSON_VALUES", "2000000"),
         help="most values (commas + 1) in a JSON body; more answers 413 before parsing (JOINTLIMITS_MAX_JSON_VALUES)",
     )
     s.add_argument(
         "--request-timeout",
         type=_positive_float,
-        default=float(_env("REQUEST_TIMEOUT", "60")),
+        default=_env("REQUEST_TIMEOUT", "60"),
         help="seconds an evaluation may take (parse, core, encode); past it 503 with Retry-After "
         "(JOINTLIMITS_REQUEST_TIMEOUT)",
     )
     s.add_argument(
         "--healthcheck-timeout",
         type=_positive_int,
-        default=int(_env("HEALTHCHECK_TIMEOUT", "30")),
+        default=_env("HEALTHCHECK_TIMEOUT", "30"),
         help="seconds uvicorn's supervisor waits for a worker's health ping before killing it; above the "
         "longest step that holds the GIL (a JSON parse at --max-json-values) (JOINTLIMITS_HEALTHCHECK_TIMEOUT)",
     )

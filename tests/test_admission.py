@@ -367,3 +367,11 @@ def test_batches_are_counted_before_they_are_read(no_work, monkeypatch):
     r = post(client(max_batches=8), req, False)
     assert r.status_code == 413
     assert "up to 9 batches (counted by their braces)" in r.json()["detail"][0]["msg"]
+
+
+def test_a_bad_variable_is_refused_like_a_bad_flag(monkeypatch):
+    from service import cli
+
+    monkeypatch.setenv("JOINTLIMITS_REQUEST_TIMEOUT", "0")
+    with pytest.raises(SystemExit):
+        cli.build_parser().parse_args(["serve"])

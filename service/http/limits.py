@@ -62,6 +62,7 @@ def check_joints(n_joints: int, max_joints: int) -> None:
 
 # ------------------------------------------------------------------ admission by cost, before any work
 
+
 def admit(
     *,
     joints: int | list[int],
@@ -113,7 +114,7 @@ def json_batches_upper_bound(body: bytes) -> int:
 def check_json_values(body: bytes, max_values: int) -> None:
     """Refuse a JSON body whose parse would cost too much, before parsing it (one C-speed count).
 
-    Parsing costs time (~0.2-0.7 us) and memory (~60-90 bytes as Python objects) per value,
+    Parsing costs time (0.2-2.5 us, more under load) and memory (~60-90 bytes as Python objects) per value,
     whatever its length: `[0,0,...]` weighs 40 times its bytes, full-precision floats 3 times.
     Every value but the last of each list or object is followed by a comma, so `commas + 1`
     bounds the values from above for well-formed bodies.

@@ -733,6 +733,8 @@ def peak_cases() -> dict[str, Callable[[], tuple[bytes, str, str, int]]]:
 
     def at_answer(binary_request: bool, binary_answer: bool) -> tuple[bytes, str, str, int]:
         n = joints_within(s.max_answer_bytes, EGH, binary_answer)
+        if not binary_request:  # a JSON body is bounded by its values too: 11 per joint, 72 per body pair
+            n = min(n, (s.max_json_values - 64) // 84)
         return enc(array_scene(n, pairs=n), binary_request), B if binary_request else J, B if binary_answer else J, n
 
     def at_body() -> tuple[bytes, str, str, int]:

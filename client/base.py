@@ -68,7 +68,10 @@ class BaseClient:
 
     def _job(self, request: Request, progress: bool | ProgressCallback | None) -> Job:
         """`request` in parts that fit `self._limits` (fetched by the caller: that is I/O)."""
-        parts = split.plan(request, transport.part_joints(self._limits, self.binary, self.max_joints_per_request))
+        n = transport.part_joints(
+            self._limits, self.binary, self.max_joints_per_request, request.outputs, len(request.batches)
+        )
+        parts = split.plan(request, n)
         report = resolve_progress(self.progress if progress is None else progress, len(parts))
         return Job(request, parts, report)
 

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import httpx
 
 from client import codec
 from client.errors import Fault, Unreachable, WrongURL
 from client.model import Evaluation
-from schemas import ConstitutionsResponse
+from schemas import OUTPUTS, ConstitutionsResponse, answer
 
 RETRYABLE = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError)
 """Connection failures only: the request never reached the server or the connection dropped
@@ -22,6 +24,10 @@ DEFAULT_PART_JOINTS = 20_000
 
 # Worst-case request bytes per joint: its arrays plus two bodies' three 12-DOF rows.
 _BYTES_PER_JOINT = {True: 8 * (2 + 6 + 3) + 2 * 3 * 12 * 8 + 64, False: 2 * 3 * 12 * 25 + 11 * 25 + 64}
+
+
+_JSON_VALUES_PER_JOINT = 11 + 2 * 3 * 12 + 8
+"""Worst-case values of one joint in a JSON body: its 11 numbers, two bodies' three 12-DOF rows, separators."""
 
 
 def headers(token: str | None, binary: bool) -> dict[str, str]:
@@ -60,12 +66,27 @@ class Retry:
         return pause
 
 
-def part_joints(limits: ConstitutionsResponse | None, binary: bool, user_max: int | None) -> int:
-    """Joints per request: the user's cap, else the default, within the server's joint and byte limits."""
+def part_joints(
+    limits: ConstitutionsResponse | None,
+    binary: bool,
+    user_max: int | None,
+    outputs: Sequence[str] = OUTPUTS,
+    batches: int = 1,
+) -> int:
+    """Joints per request: the user's cap, else the default, within the server's limits.
+
+    Those are its joints and body bytes, and where the server tells them, the bound of the
+    answer to `outputs` in this client's encoding (over `batches` batches) and a JSON body's values.
+    """
     n = user_max or DEFAULT_PART_JOINTS
     if limits is not None:
-        by_bytes = max(1, limits.limits.max_body_bytes // _BYTES_PER_JOINT[binary])
-        n = min(n, limits.limits.max_joints, by_bytes)
+        lim = limits.limits
+        by_bytes = max(1, lim.max_body_bytes // _BYTES_PER_JOINT[binary])
+        n = min(n, lim.max_joints, by_bytes)
+        if lim.max_answer_bytes is not None:
+            n = min(n, answer.joints_within(lim.max_answer_bytes, outputs, binary, max(1, batches)))
+        if lim.max_json_values is not None and not binary:
+            n = min(n, lim.max_json_values // _JSON_VALUES_PER_JOINT)
     return max(1, n)
 
 

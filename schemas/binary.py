@@ -82,7 +82,13 @@ def _chunks(obj: Any, packer: msgpack.Packer) -> list[bytes | memoryview]:
 
 
 def _bin_header(n: int) -> bytes:
-    """msgpack `bin 8/16/32` header (big-endian length, as msgpack specifies)."""
+    """msgpack `bin 8/16/32` header (big-endian length, as msgpack specifies).
+
+    msgpack has no bin longer than 2**32 - 1 bytes; the service's answer bound keeps far
+    below it (README, Limits), and a longer array is refused here rather than mis-encoded.
+    """
+    if n >= 2**32:
+        raise ValueError(f"an array of {n} bytes exceeds msgpack's largest bin (2**32 - 1 bytes): split it")
     if n < 2**8:
         return b"\xc4" + n.to_bytes(1, "big")
     if n < 2**16:

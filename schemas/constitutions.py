@@ -32,6 +32,12 @@ class Limits(BaseModel):
 
     max_body_bytes: int
     max_joints: int
+    # Admission by cost (README, "Limits"); None from a server that predates them.
+    max_batches: int | None = None
+    max_answer_bytes: int | None = None
+    """Bound of the answer from joints x outputs x encoding (`schemas.answer.answer_bytes`)."""
+    max_json_values: int | None = None
+    """Values (commas + 1) of a JSON body."""
 
 
 class ConstitutionsResponse(BaseModel):

@@ -11,6 +11,10 @@ shares one listening socket and respawns a worker that dies. Prometheus needs it
 multiprocess mode for `/metrics` to sum over them: unless `PROMETHEUS_MULTIPROC_DIR` is
 already set, a fresh directory is made for the run and removed afterwards.
 
+The supervisor kills a worker whose health ping goes unanswered for `--healthcheck-timeout`
+seconds; the answer needs the GIL, so the timeout must exceed the longest step that holds it
+(a JSON parse at `--max-json-values`, README "Limits and sizing a pod").
+
 SIGTERM / SIGINT shut down gracefully: stop accepting, finish in-flight requests (for at most
 `--graceful-timeout` seconds), exit 0.
 """
@@ -89,6 +93,13 @@ def _positive_float(value: str) -> float:
     return x
 
 
+def _positive_float(value: str) -> float:
+    x = float(value)
+    if not x > 0 or not math.isfinite(x):
+        raise argparse.ArgumentTypeError("must be a positive number of seconds")
+    return x
+
+
 def _bool(value: str) -> bool:
     v = value.strip().lower()
     if v in ("1", "true", "yes", "on"):
@@ -127,6 +138,40 @@ def build_parser() -> argparse.ArgumentParser:
         type=_positive_int,
         default=int(_env("MAX_JOINTS", "1000000")),
         help="most joints in one request; more answers 413 (JOINTLIMITS_MAX_JOINTS)",
+    )
+    # Admission by cost and the per-request deadline (README, "Limits").
+    s.add_argument(
+        "--max-batches",
+        type=_positive_int,
+        default=_env("MAX_BATCHES", "4096"),  # a string: argparse applies `type`, so a bad variable is refused too
+        help="most batches in one request; more answers 413 (JOINTLIMITS_MAX_BATCHES)",
+    )
+    s.add_argument(
+        "--max-answer-bytes",
+        type=_positive_int,
+        default=_env("MAX_ANSWER_BYTES", str(256 * 2**20)),
+        help="largest answer, bounded before any work from joints x outputs x encoding; larger answers 413 "
+        "(JOINTLIMITS_MAX_ANSWER_BYTES)",
+    )
+    s.add_argument(
+        "--max-json-values",
+        type=_positive_int,
+        default=_env("MAX_JSON_VALUES", "2000000"),
+        help="most values (commas + 1) in a JSON body; more answers 413 before parsing (JOINTLIMITS_MAX_JSON_VALUES)",
+    )
+    s.add_argument(
+        "--request-timeout",
+        type=_positive_float,
+        default=_env("REQUEST_TIMEOUT", "60"),
+        help="seconds an evaluation may take (parse, core, encode); past it 503 with Retry-After "
+        "(JOINTLIMITS_REQUEST_TIMEOUT)",
+    )
+    s.add_argument(
+        "--healthcheck-timeout",
+        type=_positive_int,
+        default=_env("HEALTHCHECK_TIMEOUT", "30"),
+        help="seconds uvicorn's supervisor waits for a worker's health ping before killing it; above the "
+        "longest step that holds the GIL (a JSON parse at --max-json-values) (JOINTLIMITS_HEALTHCHECK_TIMEOUT)",
     )
     s.add_argument(
         "--cors-origins",
@@ -207,6 +252,8 @@ def serve(args: argparse.Namespace) -> int:
     os.environ[ENV_PREFIX + "MAX_BODY_BYTES"] = str(args.max_body_bytes)
     os.environ[ENV_PREFIX + "MAX_JOINTS"] = str(args.max_joints)
     os.environ[ENV_PREFIX + "CORS_ORIGINS"] = args.cors_origins
+    for name in ("max_batches", "max_answer_bytes", "max_json_values", "request_timeout"):
+        os.environ[ENV_PREFIX + name.upper()] = str(getattr(args, name))
     os.environ[ENV_PREFIX + "KEEP_HEAP"] = "true" if args.keep_heap else "false"
     os.environ[ENV_PREFIX + "HEADER_TIMEOUT"] = str(args.header_timeout)  # read by ReadTimeoutProtocol
     os.environ[ENV_PREFIX + "BODY_TIMEOUT"] = str(args.body_timeout)
@@ -255,6 +302,8 @@ def serve(args: argparse.Namespace) -> int:
             timeout_graceful_shutdown=max(1, math.ceil(args.graceful_timeout)),
             timeout_keep_alive=max(1, math.ceil(args.keepalive_timeout)),
             backlog=args.backlog,
+            # The supervisor's ping is answered by a thread of the worker, which needs the GIL.
+            timeout_worker_healthcheck=args.healthcheck_timeout,
             server_header=False,
             http="service.http.timeouts:ReadTimeoutProtocol",  # uvicorn's httptools + a deadline on request heads
         )

@@ -20,6 +20,14 @@ without it, `--url` names a service already running on 127.0.0.1. Scenarios:
   body at one byte a second, while the clients send valid requests: each slow connection
   is closed within its read timeout (`--header-timeout`, `--body-timeout` of the spawned
   server), the valid clients keep their 200s.
+- `peak`: the largest request each limit admits (answer bound in both encodings, JSON values,
+  joints, body bytes, batches), each sent alone to a fresh 1-worker server: its time and the
+  worker's peak RSS (`VmHWM`), the figures behind the README's sizing rule. Builds its bodies
+  with NumPy and the SDK's codec (installed with the service).
+- `answer`: while valid clients run, one request whose answer would exceed
+  `JOINTLIMITS_MAX_ANSWER_BYTES` (413 before any work) and one at that bound (200): the valid
+  clients keep getting 200s and no worker is restarted (its pids are compared). Needs a server
+  with the default limits (`--spawn` starts one).
 
 The client is a minimal HTTP/1.1 client on asyncio streams with pre-encoded requests, so
 that on a 2-core machine it takes as little CPU from the server as it can. Standard
@@ -736,12 +744,177 @@ def scenario_slowloris(
     }
 
 
+EGH = ("energy", "gradient", "hessian")
+
+
+def array_scene(n: int, batches: int = 1, outputs: Sequence[str] = EGH, active_only: bool = False, pairs: int = 1) -> Any:
+    """A `client.Request` of `n` revolute joints on `pairs` body pairs, every one past its upper limit (active).
+
+    Body 2k+1 is turned by 0.7 about +z against body 2k, the range is [-0.5, 0.5]; joints go
+    round-robin over the pairs and are cut into `batches` consecutive batches. Vectorised (NumPy).
+    """
+    import numpy as np
+
+    from client import JointBatch, request_from_arrays
+
+    eye = np.eye(3).reshape(9)
+    q_ref = np.zeros((2 * pairs, 12))
+    q_ref[:, 0] = 2.0 * np.arange(2 * pairs)
+    q_ref[:, 3:] = eye
+    q = q_ref.copy()
+    c, s = math.cos(0.7), math.sin(0.7)
+    q[1::2, 3:] = [c, -s, 0, s, c, 0, 0, 0, 1]
+    ids = np.arange(2 * pairs).reshape(pairs, 2)[np.arange(n) % pairs]
+    edges = np.zeros((n, 2, 3))
+    edges[:, :, 0] = q_ref[ids[:, :1], 0]
+    edges[:, 1, 2] = 1.0
+    joints = [
+        JointBatch.of(670, ids[p], edges[p], np.full(len(p), -0.5), np.full(len(p), 0.5), np.full(len(p), 100.0))
+        for p in np.array_split(np.arange(n), batches)
+    ]
+    return request_from_arrays(q, joints, q_ref=q_ref, outputs=outputs, active_only=active_only)
+
+
+def short_values_json(n_bodies: int) -> bytes:
+    """A legal JSON body whose cost is its values: `n_bodies` identity rows of short integers, one joint."""
+    rows = b",".join([b"[0,0,0,1,0,0,0,1,0,0,0,1]"] * n_bodies)
+    return (
+        b'{"bodies":{"q":[' + rows + b'],"q_prev":[' + rows + b'],"q_ref":[' + rows + b']},"batches":[{"constitution_uid":670,'
+        b'"base_uid":18,"body_ids":[[0,1]],"edges":[[[0,0,0],[0,0,1]]],"lower":[-0.5],"upper":[0.5],"strength":[1]}],'
+        b'"outputs":["energy"]}'
+    )
+
+
+def peak_kib(pid: int) -> int | None:
+    """A process's peak resident set (`VmHWM`), KiB."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def _one(port: int, body: bytes, content_type: str, accept: str, timeout: float = 300.0) -> tuple[int, float, int]:
+    """POST a body over its own connection: status, seconds, answer bytes."""
+    import http.client
+
+    t = time.monotonic()
+    c = http.client.HTTPConnection(LOOPBACK, port, timeout=timeout)
+    try:
+        c.request("POST", "/v1/evaluate", body, {"Content-Type": content_type, "Accept": accept})
+        r = c.getresponse()
+        return r.status, round(time.monotonic() - t, 2), len(r.read())
+    finally:
+        c.close()
+
+
+def peak_cases() -> dict[str, Callable[[], tuple[bytes, str, str, int]]]:
+    """The largest request each limit of this environment's settings admits: (body, type, accept, joints)."""
+    from client import codec
+    from schemas.answer import joints_within
+    from service.settings import Settings
+
+    s = Settings()
+    J, B = "application/json", "application/msgpack"
+
+    def enc(req: Any, binary: bool) -> bytes:
+        return codec.encode(req, binary=binary)[0]
+
+    def at_answer(binary_request: bool, binary_answer: bool) -> tuple[bytes, str, str, int]:
+        n = joints_within(s.max_answer_bytes, EGH, binary_answer)
+        if not binary_request:  # a JSON body is bounded by its values too: 11 per joint, 72 per body pair
+            n = min(n, (s.max_json_values - 64) // 84)
+        return enc(array_scene(n, pairs=n), binary_request), B if binary_request else J, B if binary_answer else J, n
+
+    def at_body() -> tuple[bytes, str, str, int]:
+        n = min(s.max_joints, s.max_body_bytes // 88)
+        pairs = max(1, (s.max_body_bytes - 88 * n - 4096) // 576)
+        return enc(array_scene(n, outputs=("energy",), pairs=pairs), True), B, B, n
+
+    return {
+        "answer_bound_msgpack": lambda: at_answer(True, True),
+        "answer_bound_json": lambda: at_answer(False, False),
+        "answer_bound_json_request_msgpack_answer": lambda: at_answer(False, True),
+        "json_values_bound": lambda: (short_values_json(s.max_json_values // 36 - 1), J, J, 1),
+        "json_values_bound_joints": lambda: (
+            enc(array_scene(s.max_json_values // 12, outputs=("energy",)), False), J, J, s.max_json_values // 12
+        ),
+        "joints_bound_energy": lambda: (enc(array_scene(s.max_joints, outputs=("energy",)), True), B, B, s.max_joints),
+        "body_bound_energy": at_body,
+        "batches_bound": lambda: (enc(array_scene(s.max_batches, batches=s.max_batches), True), B, B, s.max_batches),
+    }
+
+
+def scenario_peak(env: dict[str, str] | None = None, cases: Sequence[str] | None = None) -> dict[str, Any]:
+    """Each case alone on a fresh 1-worker server: status, seconds, worker peak RSS before and after."""
+    out: dict[str, Any] = {}
+    for name, build in peak_cases().items():
+        if cases and name not in cases:
+            continue
+        body, content_type, accept, joints = build()
+        with Server(workers=1, env=env) as server:
+            pid = server.worker_pids()[0]
+            before = peak_kib(pid)
+            status, seconds, answer = _one(server.port, body, content_type, accept)
+            after = peak_kib(pid)
+        out[name] = {
+            "joints": joints, "body_bytes": len(body), "status": status, "seconds": seconds, "answer_bytes": answer,
+            "peak_rss_before_mib": round((before or 0) / 1024), "peak_rss_after_mib": round((after or 0) / 1024),
+        }  # fmt: skip
+        del body
+    return out
+
+
+def answer_joints(max_answer_bytes: int = 256 * 2**20) -> tuple[int, int]:
+    """Joints of a `scene` with E+G+H whose JSON answer bound is just within / just over `max_answer_bytes`."""
+    from service.http.limits import answer_bytes
+
+    outputs = ("energy", "gradient", "hessian")
+    bound = lambda n: answer_bytes([(n + 1) // 2, n // 2], outputs, binary_answer=False)  # noqa: E731 (scene's two batches)
+    lo, hi = 1, 10**7
+    while lo < hi:  # the largest admitted count
+        m = (lo + hi + 1) // 2
+        lo, hi = (m, hi) if bound(m) <= max_answer_bytes else (lo, m - 1)
+    return lo, lo + 1
+
+
+def scenario_answer(
+    server: Server, clients: int, duration: float, max_answer_bytes: int = 256 * 2**20, token: str | None = None
+) -> dict[str, Any]:
+    """Valid clients run while one over-the-answer-bound request (413) and one at the bound (200) are sent."""
+    valid = [k for k in mixed_kinds(token) if k.name.startswith("valid")]
+    baseline = asyncio.run(run_load(server.port, valid, clients, duration / 2, seed=1))
+    at, over = answer_joints(max_answer_bytes)
+    big = {name: json.dumps(scene(n, seed=8, outside=1.0)).encode() for name, n in (("over_bound", over), ("at_bound", at))}
+    pids = server.worker_pids()
+    heavy: dict[str, Any] = {}
+
+    async def heavy_requests() -> None:
+        await asyncio.sleep(duration / 4)
+        for name, body in big.items():
+            status, seconds, size = await asyncio.to_thread(_one, server.port, body, "application/json", "application/json", 120.0)
+            heavy[name] = {"joints": at if name == "at_bound" else over, "body_bytes": len(body), "status": status, "seconds": seconds, "answer_bytes": size}
+
+    under = asyncio.run(run_load(server.port, valid, clients, duration, seed=3, during=heavy_requests))
+    time.sleep(1.0)  # the supervisor checks its workers every 0.5 s
+    return {
+        "valid_alone": baseline.summary(),
+        "valid_during": under.summary(),
+        "heavy": heavy,
+        "workers_before": pids,
+        "workers_after": server.worker_pids(),
+        "healthz_after": get(server.port, "/healthz")[0],
+    }
+
+
 # --------------------------------------------------------------------------- command line
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m service.loadtest", description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenario", choices=["mixed", "flood", "kill", "sigterm", "slowloris", "all"], default="mixed")
+    p.add_argument("--scenario", choices=["mixed", "flood", "kill", "sigterm", "slowloris", "answer", "peak", "all"], default="mixed")
     p.add_argument("--spawn", action="store_true", help="start `jointlimits serve` on a free loopback port")
     p.add_argument("--port", type=int, default=8000, help="port of a running service on 127.0.0.1 (without --spawn)")
     p.add_argument("--workers", type=int, default=2)
@@ -764,7 +937,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return Server(a.workers, limits, env)
 
     report: dict[str, Any] = {"workers": a.workers, "clients": a.clients, "duration_s": a.duration}
-    scenarios = ["mixed", "flood", "kill", "sigterm", "slowloris"] if a.scenario == "all" else [a.scenario]
+    scenarios = ["mixed", "flood", "kill", "sigterm", "slowloris", "answer"] if a.scenario == "all" else [a.scenario]
+    if a.scenario == "peak":  # each case on its own fresh server
+        if not a.spawn:
+            p.error("--scenario peak needs --spawn (it reads the worker's peak memory)")
+        print(json.dumps({"peak": scenario_peak(env)}, indent=2))
+        return 0
     for name in scenarios:
         if not a.spawn:
             if name in ("kill", "sigterm"):
@@ -779,7 +957,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             target: Any = _Running()
             report[name] = _run(name, target, a)
             continue
-        with spawned() as server:
+        # The answer drill needs the default limits (its heavy requests are over the flood's 1 MB bodies).
+        with Server(a.workers, [], env) if name == "answer" else spawned() as server:
             report[name] = _run(name, server, a)
     print(json.dumps(report, indent=2))
     return 0
@@ -794,6 +973,8 @@ def _run(name: str, server: Any, a: argparse.Namespace) -> dict[str, Any]:
         return scenario_kill(server, a.clients, min(a.duration, 10.0), a.token)
     if name == "slowloris":
         return scenario_slowloris(server, a.clients, a.slow, a.header_timeout, a.body_timeout, a.token)
+    if name == "answer":
+        return scenario_answer(server, a.clients, min(a.duration, 10.0), token=a.token)
     return scenario_sigterm(server, a.clients, token=a.token)
 
 

@@ -30,3 +30,13 @@ class Settings:
     (enforced by `service.http.timeouts.ReadTimeoutProtocol`, which `jointlimits serve` runs)."""
     body_timeout: float = field(default_factory=lambda: float(_env("BODY_TIMEOUT", "30")))
     """Seconds from a request's head to the end of its body; then 408 and the connection closed."""
+    # Admission by cost (service/http/limits.py, README "Limits"): checked before any evaluation.
+    max_batches: int = field(default_factory=lambda: int(_env("MAX_BATCHES", "4096")))
+    """Most batches in one request (each costs ~0.5 ms of fixed work); more answers 413."""
+    max_answer_bytes: int = field(default_factory=lambda: int(_env("MAX_ANSWER_BYTES", str(256 * 2**20))))
+    """Largest answer, bounded from joints x outputs x encoding before any work; larger answers 413."""
+    request_timeout: float = field(default_factory=lambda: float(_env("REQUEST_TIMEOUT", "60")))
+    """Seconds one evaluation may take (parse, core, encode); past it 503 with Retry-After."""
+    max_json_values: int = field(default_factory=lambda: int(_env("MAX_JSON_VALUES", "2000000")))
+    """Most values (numbers and list items, counted as commas + 1) in a JSON body: parsing costs ~90 bytes
+    and 0.2-2.5 us each (more under load), whatever their length; more answers 413 before parsing."""

@@ -14,7 +14,7 @@ import pytest
 from client import AsyncClient, Client, LocalClient
 from schemas import binary as wire
 from tests.conftest import GOLDEN, relerr
-from tests.test_contract_live import live, sdk_request  # noqa: F401 (fixture)
+from tests.test_contract_live import LIMITS, live, sdk_request  # noqa: F401 (fixture)
 
 TOL = 1e-12
 FIELDS = ("index", "x", "energy", "gradient", "hessian")
@@ -122,7 +122,11 @@ def test_discovery_lists_both_constitutions_with_spec_names(live):
         assert {n: names[n]["field"] for n in state[uid]} == state[uid]
         assert names[next(iter(state[uid]))]["default"] == 0.0  # the offset
     assert {a["unit"] for a in by_uid[670]["attributes"]} >= {"rad"}
-    assert body["limits"] == {"max_body_bytes": 2_000_000, "max_joints": 400}
+    assert body["limits"] == {
+        "max_body_bytes": 2_000_000,
+        "max_joints": 400,
+        **{k: getattr(LIMITS, k) for k in ("max_batches", "max_answer_bytes", "max_json_values")},
+    }
     assert Client(live).constitutions().model_dump() == body
     assert [c.uid for c in LocalClient().constitutions().constitutions] == [c["uid"] for c in body["constitutions"]]
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import yaml
@@ -65,3 +66,49 @@ def test_runs_as_the_images_non_root_user():
     assert CONTAINER["securityContext"]["readOnlyRootFilesystem"] is True
     # ... so /tmp (tempfile's directory, where the Prometheus multiprocess files go) must be writable.
     assert any(m["mountPath"] == "/tmp" for m in CONTAINER["volumeMounts"])
+
+
+def _quantity(q: str) -> int:
+    """A Kubernetes memory quantity in bytes (`2Gi`, `512Mi`, `1G`, plain bytes)."""
+    units = {"Ki": 2**10, "Mi": 2**20, "Gi": 2**30, "Ti": 2**40, "K": 10**3, "M": 10**6, "G": 10**9, "T": 10**12}
+    for suffix, factor in units.items():
+        if q.endswith(suffix) and q[: -len(suffix)].isdigit():
+            return int(q[: -len(suffix)]) * factor
+    return int(q)
+
+
+def test_memory_limit_follows_from_the_request_limits(monkeypatch):
+    """The pod's memory limit holds every worker at the peak its limits admit (service.sizing), and not far more."""
+    from service import sizing
+    from service.settings import Settings
+
+    for name in [n for n in os.environ if n.startswith("JOINTLIMITS_")]:
+        monkeypatch.delenv(name)
+    for name, value in ENV.items():
+        if value is not None:
+            monkeypatch.setenv(name, value)
+    settings = Settings()  # the container's settings: the manifest's env over the defaults
+    workers = int(ENV["JOINTLIMITS_WORKERS"])
+    tmpfs = sum(_quantity(v["emptyDir"]["sizeLimit"]) for v in POD["volumes"] if v.get("emptyDir", {}).get("medium") == "Memory")
+    need = sizing.pod_bytes(settings, workers) + tmpfs  # an in-memory emptyDir counts against the limit
+    limit = _quantity(CONTAINER["resources"]["limits"]["memory"])
+    assert need <= limit, f"{workers} workers at these limits may need {need / 2**20:.0f} MiB > the {limit / 2**20:.0f} MiB limit"
+    assert limit <= 1.5 * need, "the limit wastes memory the limits can never use; lower it or raise the limits"
+    assert _quantity(CONTAINER["resources"]["requests"]["memory"]) <= limit
+
+
+def test_the_readmes_sizing_figures_are_the_rules(monkeypatch):
+    """README, "Sizing a pod": 2.6 GiB per worker and 5.4 GiB for 2 workers at the defaults; 902 MiB per worker in the manifest."""
+    from service import sizing
+    from service.settings import Settings
+
+    for name in [n for n in os.environ if n.startswith("JOINTLIMITS_")]:
+        monkeypatch.delenv(name)
+    readme = (ROOT / "README.md").read_text()
+    defaults = Settings()
+    assert f"a worker may reach {sizing.worker_bytes(defaults) / 2**30:.1f} GiB" in readme
+    assert f"2 workers need a {sizing.pod_bytes(defaults, 2) / 2**30:.1f} GiB pod" in readme
+    for name, value in ENV.items():
+        if value is not None:
+            monkeypatch.setenv(name, value)
+    assert f"{sizing.worker_bytes(Settings()) / 2**20:.0f} MiB per worker" in readme

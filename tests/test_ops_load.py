@@ -1,7 +1,8 @@
 """Load and faults on a real 2-worker server on loopback (`service/loadtest.py` does the work).
 
-About 95 s in all: a 30 s mixed load (JOINTLIMITS_LOAD_SECONDS to change it), a flood of
-oversized requests, a worker killed under load, SIGTERM under load, a slowloris of 50 connections. The figures in the
+About 110 s in all: a 30 s mixed load (JOINTLIMITS_LOAD_SECONDS to change it), a flood of
+oversized requests, a worker killed under load, SIGTERM under load, a slowloris of 50 connections,
+an oversized answer under load. The figures in the
 README come from `python -m service.loadtest --spawn --scenario all`, the same code.
 """
 
@@ -111,3 +112,19 @@ def test_slowloris_connections_are_closed_and_normal_clients_unaffected():
     assert valid["dropped"] == 0 and valid["connection_errors"] == 0
     assert valid["p99_ms"] < max(2000.0, 5 * r["valid_alone"]["p99_ms"])
     assert r["healthz_after"] == 200
+
+
+def test_oversized_answer_while_clients_run_is_refused_and_nobody_suffers():
+    """One request over the answer bound (413 before any work) and one at it (200), under load, default limits."""
+    with lt.Server(workers=2) as s:
+        r = lt.scenario_answer(s, clients=8, duration=8)
+        for part in ("valid_alone", "valid_during"):
+            show(part, r[part])
+        print("\nheavy: " + json.dumps(r["heavy"]))
+        assert r["heavy"]["over_bound"]["status"] == 413
+        assert r["heavy"]["at_bound"]["status"] == 200 and r["heavy"]["at_bound"]["answer_bytes"] > 0
+        valid = r["valid_during"]
+        assert valid["requests"] > 0 and set(valid["statuses"]) == {"200"}
+        assert valid["server_errors_5xx"] == 0 and valid["dropped"] == 0 and valid["connection_errors"] == 0
+        assert r["workers_after"] == r["workers_before"], "a worker was killed and replaced"
+        assert r["healthz_after"] == 200 and s.proc.poll() is None

@@ -23,8 +23,9 @@ from tests.test_contract_live import serve
 from tests.test_errors_http import base_request, edit, edit_body, with_batch
 
 README_PATH = Path(__file__).resolve().parent.parent / "README.md"
-# The limits the table's 413 rows quote: the default body limit, a 400-joint limit.
-SETTINGS = Settings(max_body_bytes=256 * 2**20, max_joints=400, token=None, cors_origins=())
+# The limits the table's 413 rows quote: the default body, batch and JSON-value limits, a 400-joint
+# limit, a 1 MiB answer bound (the base request's answer is ~80 KB).
+SETTINGS = Settings(max_body_bytes=256 * 2**20, max_joints=400, max_answer_bytes=2**20, token=None, cors_origins=())
 J = "application/json"
 
 
@@ -97,13 +98,26 @@ def _nan_json(url: str) -> httpx.Response:
                       headers={"Content-Type": J})
 
 
-def _many_joints(url: str) -> httpx.Response:
-    r = base_request()
-    b = r.batches[1]
-    n = 401 - len(r.batches[0])
-    many = replace(b, body_ids=np.tile(b.body_ids[:1], (n, 1)), edges=np.tile(b.edges[:1], (n, 1, 1)),
-                   lower=np.full(n, -0.1), upper=np.full(n, 0.2), strength=np.ones(n))
-    return _sdk(lambda r: with_batch(r, 1, **{k: getattr(many, k) for k in ("body_ids", "edges", "lower", "upper", "strength")}))(url)
+def _joints(n: int) -> Callable[[str], httpx.Response]:
+    """The base request with `n` joints in all (batch 1 grown), as JSON."""
+    def send(url: str) -> httpx.Response:
+        r = base_request()
+        b = r.batches[1]
+        k = n - len(r.batches[0])
+        many = replace(b, body_ids=np.tile(b.body_ids[:1], (k, 1)), edges=np.tile(b.edges[:1], (k, 1, 1)),
+                       lower=np.full(k, -0.1), upper=np.full(k, 0.2), strength=np.ones(k))
+        fields = {f: getattr(many, f) for f in ("body_ids", "edges", "lower", "upper", "strength")}
+        return _sdk(lambda r: with_batch(r, 1, **fields))(url)
+    return send
+
+
+def _past_deadline(url: str) -> httpx.Response:
+    """The base request on a server whose request timeout has passed before the core starts."""
+    with serve(replace(SETTINGS, request_timeout=1e-9)) as other:
+        return _sdk(lambda r: r)(other)
+
+
+EMPTY_BATCH = {"constitution_uid": 670, "body_ids": [], "edges": [], "lower": [], "upper": []}
 
 
 # The table's first column -> the request that shows it.
@@ -127,9 +141,14 @@ CASES: dict[str, Callable[[str], httpx.Response]] = {
     "invalid JSON / msgpack": _raw(b'{"bodies": ', J),
     "malformed binary array": _doc(_set("bodies", "q", "shape", value=[2, 12]), binary=True),
     "body over `JOINTLIMITS_MAX_BODY_BYTES` (by header or while streaming)": _declared_length(300_000_000),
-    "more joints than `JOINTLIMITS_MAX_JOINTS` (counted before parsing)": _many_joints,
+    "more joints than `JOINTLIMITS_MAX_JOINTS` (counted before parsing)": _joints(401),
     "`Content-Type` neither JSON nor msgpack": _raw(b"{}", "text/plain"),
     "`Accept` names neither": _doc(lambda doc: None, Accept="text/html"),
+    "answer bound (joints x outputs x encoding) over `JOINTLIMITS_MAX_ANSWER_BYTES`, before any work": _joints(100),
+    "more batches than `JOINTLIMITS_MAX_BATCHES`": _doc(_set("batches", value=[EMPTY_BATCH] * 4097)),
+    "JSON body with more values than `JOINTLIMITS_MAX_JSON_VALUES` (commas + 1, before parsing)": _raw(
+        b'{"bodies": {"q": [' + b"0," * 2_000_000 + b"0]}}", J),
+    "evaluation past `JOINTLIMITS_REQUEST_TIMEOUT`": _past_deadline,
     "a key twice in one object / map (JSON or msgpack)": _twice("lower"),
     "a msgpack map key that is not a `str` (e.g. `bin`)": _doc(
         lambda doc: doc["batches"][0].__setitem__(b"lower", doc["batches"][0].pop("lower")), binary=True),

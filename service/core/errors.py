@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 from schemas.errors import NONFINITE_MSG, NONFINITE_TYPE  # noqa: F401 (the wire's words for a NaN, said on every path)
@@ -46,3 +47,15 @@ class FaultLog:
     def raise_if_any(self) -> None:
         if self.faults:
             raise InputError(self.faults)
+
+
+class DeadlineExceeded(Exception):
+    """An evaluation passed its deadline (a `time.monotonic()` value) and stopped: no answer, no input fault."""
+
+
+def check_deadline(deadline: float | None) -> None:
+    """Raise `DeadlineExceeded` once `time.monotonic()` is past `deadline` (None: no deadline)."""
+    if deadline is not None:
+        late = time.monotonic() - deadline
+        if late > 0:
+            raise DeadlineExceeded(f"deadline passed {late:.3f} s ago")

@@ -11,7 +11,7 @@ import numpy as np
 
 from service.core import assembly, penalty
 from service.core.constitution import Array, Constitution, Curvature
-from service.core.errors import MAX_FAULTS, Fault
+from service.core.errors import MAX_FAULTS, Fault, check_deadline
 from service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames
 from service.core.parallel import run_all
 from service.core.validate import nonfinite_rows, raise_if
@@ -39,12 +39,14 @@ def differentiate(
     psd: bool,
     active_only: bool,
     threads: int,
+    deadline: float | None = None,
 ) -> dict:
     """Energy (N,) of batch `b` at its frames `F` (N, 4, 3) and coordinate `x` (N,), and the asked-for
     derivatives of its active joints: the fields of a `BatchResult`, plus `all_energy` (N,).
 
     `v` (N, 4, 3) the body-local vectors; `lo`, `up` (N,) the bounds on `x`, `s` (N,) the strengths.
-    Raises `InputError` naming the joints whose energy or derivatives overflow.
+    Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
+    past `deadline` (a `time.monotonic()` value), checked before each derivative chunk.
     """
     dtype = F.dtype
     energy = penalty.energy(x, lo, up, s)
@@ -58,6 +60,7 @@ def differentiate(
 
     def chunk(start: int) -> list[int]:
         """Differentiate active joints `start : start + CHUNK`; the rows among them that overflow."""
+        check_deadline(deadline)
         sel = active[start : start + CHUNK]
         pos = out_pos[start : start + CHUNK]
         # Contiguous rows (active_only, or a fully active stretch) are written in place.

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.core.constitution import Array, Constitution
-from service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError
+from service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
 from service.core.evaluate import _increments, collapsed_faults, differentiate
 from service.core.kinematics import (
     PREV_STEP,
@@ -113,15 +113,27 @@ class PreparedScene:
         outputs: Iterable[str] = OUTPUTS,
         hessian_mode: str = "exact",
         active_only: bool = False,
+        deadline: float | None = None,
     ) -> Evaluation:
         """Energy, gradient and Hessian of every joint at `q` (B, 12), as CONTRACT.md defines them.
 
         Raises `InputError` naming every fault (bad `q`: loc ("bodies", "q", i); a configuration
         without derivatives or that overflows: the joint); never returns NaN or Infinity.
+        `deadline` (a `time.monotonic()` value) is checked between batches and derivative chunks:
+        past it, `DeadlineExceeded`.
         """
-        return self._evaluate(np.asarray(q, dtype=np.float64), tuple(outputs), hessian_mode, active_only, checked=False)
+        q = np.asarray(q, dtype=np.float64)
+        return self._evaluate(q, tuple(outputs), hessian_mode, active_only, checked=False, deadline=deadline)
 
-    def _evaluate(self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool, checked: bool) -> Evaluation:
+    def _evaluate(
+        self,
+        q: Array,
+        outputs: tuple[str, ...],
+        hessian_mode: str,
+        active_only: bool,
+        checked: bool,
+        deadline: float | None = None,
+    ) -> Evaluation:
         log = FaultLog()
         log.add(check_options(outputs, hessian_mode))
         if not checked:
@@ -132,14 +144,16 @@ class PreparedScene:
         # exact mode then locates the joints.
         with np.errstate(all="ignore"):
             try:
-                ev = self._run(q, outputs, hessian_mode, active_only)
+                ev = self._run(q, outputs, hessian_mode, active_only, deadline)
             except np.linalg.LinAlgError:
-                self._run(q, outputs, "exact", active_only)
+                self._run(q, outputs, "exact", active_only, deadline)
                 raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
         raise_if(check_evaluation(ev))
         return ev
 
-    def _run(self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool) -> Evaluation:
+    def _run(
+        self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool, deadline: float | None = None
+    ) -> Evaluation:
         # The steps x takes now: all of them (v1), or from q_prev alone once the angle is a state.
         self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
@@ -148,7 +162,7 @@ class PreparedScene:
         psd = hessian_mode == "psd"
         results = run_all(
             [
-                partial(self._evaluate_batch, b, jb, want_g, want_h, psd, active_only, inner)
+                partial(self._evaluate_batch, b, jb, want_g, want_h, psd, active_only, inner, deadline)
                 for b, jb in enumerate(self._batches)
             ],
             threads,
@@ -210,11 +224,20 @@ class PreparedScene:
         return x, states[-1], _last_state(careful)
 
     def _evaluate_batch(
-        self, b: int, jb: _Batch, want_g: bool, want_h: bool, psd: bool, active_only: bool, threads: int
+        self,
+        b: int,
+        jb: _Batch,
+        want_g: bool,
+        want_h: bool,
+        psd: bool,
+        active_only: bool,
+        threads: int,
+        deadline: float | None = None,
     ) -> dict:
+        check_deadline(deadline)
         x, F, careful = self._x(jb, self._step(jb, jb.row, jb.r_origin))
         raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful))[:MAX_FAULTS])
-        r = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads)
+        r = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline)
         r["coordinate"] = _plus_offset(r["x"], jb.offset, r["index"] if active_only else None)
         return r
 
@@ -435,6 +458,7 @@ def evaluate(
     active_only: bool = False,
     dtype: type = np.float64,
     threads: int = 1,
+    deadline: float | None = None,
 ) -> Evaluation:
     """Energy, gradient and Hessian of every joint, as CONTRACT.md (v1, v1.1) defines them: the
     stateless call, `prepare(bodies, batches).evaluate(bodies.q, ...)`.
@@ -445,7 +469,8 @@ def evaluate(
     single precision (a benchmark variant: ~1e-5 relative error; the wire is float64). `threads`
     > 1 evaluates the polar factors, the batches (or, for one batch, its derivative chunks) on
     that many threads, with bitwise the same results; the HTTP service keeps 1, its worker
-    processes already fill the cores.
+    processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
+    `DeadlineExceeded` (checked between batches and derivative chunks).
     """
     outputs = tuple(outputs)
     bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
@@ -454,4 +479,4 @@ def evaluate(
     log.add(check_bodies(bodies))
     log.raise_if_any()
     scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
-    return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True)
+    return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True, deadline=deadline)

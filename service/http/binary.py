@@ -19,6 +19,7 @@ from schemas import evaluate as models
 from service.core import Bodies, Evaluation, Fault, InputError, Joints
 from service.core.errors import MAX_FAULTS, Loc
 from service.http import limits
+from service.http.errors import HttpError
 from service.http.convert import base_uid_of, strength_of
 
 MEDIA_TYPE = wire.MEDIA_TYPE
@@ -143,7 +144,7 @@ class _Checked(list):
     """The request's batches, each already checked (`_batch`) as it was unpacked."""
 
 
-def _unpack(body: bytes, r: _Reader) -> Any:
+def _unpack(body: bytes, r: _Reader, max_batches: int | None = None) -> Any:
     """The document, its top-level `batches` unpacked and checked one batch at a time.
 
     A body of 30M empty maps as batches would otherwise become 30M dicts (~2 GB) before the
@@ -187,7 +188,10 @@ def _unpack(body: bytes, r: _Reader) -> Any:
                 if k in doc:
                     repeated.append(k)
                 if k == "batches" and u.tell() < len(body) and body[u.tell()] in _ARRAY_HEADERS:
-                    doc[k] = _Checked(_batch(r, b, value(("batches", b))) for b in range(u.read_array_header()))
+                    n_batches = u.read_array_header()
+                    if max_batches is not None:  # a 413 before any batch is read: each costs Python work
+                        limits.check_batches(n_batches, max_batches)
+                    doc[k] = _Checked(_batch(r, b, value(("batches", b))) for b in range(n_batches))
                 else:
                     doc[k] = value((k,))
             if repeated:
@@ -195,17 +199,20 @@ def _unpack(body: bytes, r: _Reader) -> Any:
                 doc.repeated = repeated
         if u.tell() != len(body):
             raise ValueError(f"{len(body) - u.tell()} bytes after the document")
-    except InputError:
-        raise  # the fault cap, reached inside the batches
+    except (InputError, HttpError):
+        raise  # the fault cap, reached inside the batches; too many batches
     except Exception as e:  # msgpack raises several unrelated types for malformed input
         raise InputError([Fault((), f"body is not a valid msgpack document ({type(e).__name__}: {e})", "msgpack_invalid")]) from None
     return doc
 
 
-def decode(body: bytes, max_joints: int) -> dict[str, Any]:
-    """Keyword arguments of `service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`."""
+def decode(body: bytes, max_joints: int, max_batches: int | None = None) -> dict[str, Any]:
+    """Keyword arguments of `service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`.
+
+    More batches than `max_batches` is a 413 before any batch is read (each costs Python work here).
+    """
     r = _Reader()
-    doc = _unpack(body, r)
+    doc = _unpack(body, r, max_batches)
     top = r.fields(doc, (), _REQUEST_KEYS)
     # A missing or malformed `bodies` is one fault, not four.
     raw_bodies = r.fields(top["bodies"], ("bodies",), _BODY_KEYS) if "bodies" in top else {}

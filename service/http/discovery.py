@@ -10,5 +10,11 @@ from service.settings import Settings
 
 def constitutions(settings: Settings) -> ConstitutionsResponse:
     infos = [describe(uid, c.name, c.base_uid) for uid, c in sorted(CONSTITUTIONS.items(), reverse=True)]
-    limits = Limits(max_body_bytes=settings.max_body_bytes, max_joints=settings.max_joints)
+    limits = Limits(
+        max_body_bytes=settings.max_body_bytes,
+        max_joints=settings.max_joints,
+        max_batches=settings.max_batches,
+        max_answer_bytes=settings.max_answer_bytes,
+        max_json_values=settings.max_json_values,
+    )
     return ConstitutionsResponse(constitutions=infos, limits=limits)

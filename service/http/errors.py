@@ -17,7 +17,10 @@ from pydantic import ValidationError
 
 from service.core import Fault, InputError
 from schemas.errors import validation_items
-from service.core.errors import MAX_FAULTS
+from service.core.errors import MAX_FAULTS, DeadlineExceeded
+
+RETRY_AFTER_SECONDS = 5
+"""`Retry-After` of a 503 past the request deadline: the worker is free again at once, a busy pod soon."""
 
 MAX_KEY_CHARS = 64
 """A `loc` element echoed back (an unknown key) is cut to this many characters plus `...`."""
@@ -84,6 +87,17 @@ async def client_gone(request: Request, exc: Exception) -> Response:
         fault = Fault(("body",), f"request body not received within {timeout:g} s (JOINTLIMITS_BODY_TIMEOUT)", "timeout")
         return JSONResponse(render([fault]), status_code=408, headers={"Connection": "close"})
     return Response(status_code=CLIENT_CLOSED)
+
+
+async def deadline_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, DeadlineExceeded)
+    timeout = request.app.state.settings.request_timeout
+    msg = (
+        f"the evaluation did not finish within the request timeout of {timeout:g} s (JOINTLIMITS_REQUEST_TIMEOUT) "
+        "and was stopped: retry later if the service is busy, or split the request"
+    )
+    detail = [{"loc": ["body"], "msg": msg, "type": "timeout"}]
+    return JSONResponse({"detail": detail}, status_code=503, headers={"Retry-After": str(RETRY_AFTER_SECONDS)})
 
 
 def from_validation(e: ValidationError) -> InputError:

@@ -35,9 +35,18 @@ def error_responses() -> dict[int | str, dict[str, Any]]:
     content = {"application/json": {"schema": schema}}
     return {
         406: {"description": "Accept names no supported encoding", "content": content},
-        413: {"description": "Body or joint count over the configured limit", "content": content},
+        413: {
+            "description": "Over a configured limit, before any work: body bytes, joints, batches, "
+            "the answer's size bound, or a JSON body's values",
+            "content": content,
+        },
         415: {"description": "Content-Type is neither JSON nor msgpack", "content": content},
         422: {"description": "Malformed or physically meaningless input; loc names the field", "content": content},
+        503: {
+            "description": "The evaluation passed the request timeout and was stopped; see Retry-After",
+            "content": content,
+            "headers": {"Retry-After": {"schema": {"type": "integer"}, "description": "seconds"}},
+        },
     }
 
 

@@ -98,6 +98,10 @@ FIELDS: dict[str, dict[str, str]] = {
     "Limits": {
         "max_body_bytes": "Largest request body accepted, in bytes (JOINTLIMITS_MAX_BODY_BYTES).",
         "max_joints": "Most joints, over all batches, in one request (JOINTLIMITS_MAX_JOINTS).",
+        "max_batches": "Most batches in one request (JOINTLIMITS_MAX_BATCHES).",
+        "max_answer_bytes": "Largest answer, bounded from joints x outputs x encoding before any work "
+        "(JOINTLIMITS_MAX_ANSWER_BYTES; schemas/answer.py computes the bound).",
+        "max_json_values": "Most values (commas + 1) in a JSON body, counted before parsing (JOINTLIMITS_MAX_JSON_VALUES).",
     },
     "ErrorItem": {
         "loc": "Where: starts with body (or header), then field, batch, joint, element, e.g. "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
@@ -9,8 +11,10 @@ from starlette.requests import ClientDisconnect
 
 from schemas import ConstitutionsResponse, EvaluateResponse
 from service.core import InputError, evaluate
+from service.core.errors import DeadlineExceeded, check_deadline
 from service.http import binary, convert, discovery, limits, negotiate, openapi
-from service.http.errors import HttpError, client_gone, http_error_handler, input_error_handler
+from service.http.errors import HttpError, client_gone, deadline_handler, http_error_handler, input_error_handler
+from service.settings import Settings
 
 router = APIRouter()
 CODECS = {negotiate.JSON: convert, negotiate.BINARY: binary}
@@ -43,13 +47,31 @@ async def evaluate_joints(request: Request) -> Response:
     decoder = CODECS[negotiate.request_type(request.headers.get("content-type"))]
     answer = negotiate.response_type(request.headers.get("accept"), decoder.MEDIA_TYPE)
     body = await limits.read_body(request, settings.max_body_bytes)
+    # The deadline covers the work (parse, core, encode), not the upload (read timeouts bound that).
+    deadline = time.monotonic() + settings.request_timeout
     # Parsing and NumPy run in a worker thread, so the event loop stays free.
-    content = await run_in_threadpool(_evaluate, body, decoder, CODECS[answer], settings.max_joints, request.state)
+    content = await run_in_threadpool(_evaluate, body, decoder, CODECS[answer], settings, request.state, deadline)
     return Response(content, media_type=answer)
 
 
-def _evaluate(body: bytes, decoder, encoder, max_joints: int, state=None) -> bytes:  # noqa: ANN001 (codec modules)
-    kwargs = decoder.decode(body, max_joints)
+def _evaluate(  # noqa: ANN001 (codec modules)
+    body: bytes, decoder, encoder, settings: Settings, state=None, deadline: float | None = None
+) -> bytes:
+    if decoder is convert:  # the JSON parse costs per value, not per byte: bounded before it starts
+        limits.check_json_values(body, settings.max_json_values)
+        limits.check_batches(limits.json_batches_upper_bound(body), settings.max_batches, "counted by their braces")
+        kwargs = decoder.decode(body, settings.max_joints)
+    else:  # msgpack: batches counted before any of them is read
+        kwargs = decoder.decode(body, settings.max_joints, max_batches=settings.max_batches)
+    check_deadline(deadline)
+    # Admission by cost, before any evaluation: joints, batches, the answer's size in its encoding.
+    limits.admit(
+        joints=[len(j.body_ids) for j in kwargs["batches"]],
+        batches=len(kwargs["batches"]),
+        outputs=kwargs["outputs"],
+        binary_answer=encoder is binary,
+        settings=settings,
+    )
     if state is not None:  # joint counts for the access log and metrics (service/observability.py)
         by_uid: dict[int, int] = {}
         for j in kwargs["batches"]:
@@ -57,7 +79,9 @@ def _evaluate(body: bytes, decoder, encoder, max_joints: int, state=None) -> byt
         state.joints_by_constitution = by_uid
         state.joints = sum(by_uid.values())
     # The core, with its guard that no answer carries NaN or Infinity (overflow is a 422 naming the joint).
-    return encoder.encode(evaluate(**kwargs))
+    ev = evaluate(**kwargs, deadline=deadline)
+    check_deadline(deadline)
+    return encoder.encode(ev)
 
 
 def install(app: FastAPI) -> None:
@@ -66,6 +90,7 @@ def install(app: FastAPI) -> None:
     app.add_exception_handler(InputError, input_error_handler)
     app.add_exception_handler(HttpError, http_error_handler)
     app.add_exception_handler(ClientDisconnect, client_gone)  # 499 / 408, not a 500 with a traceback
+    app.add_exception_handler(DeadlineExceeded, deadline_handler)
     build = app.openapi
 
     def openapi_with_components() -> dict:

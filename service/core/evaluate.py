@@ -33,7 +33,7 @@ from service.core.validate import (
     raise_if,
 )
 
-CHUNK = 4096
+CHUNK = 1024
 """Active joints differentiated at once: bounds temporaries to a few MB whatever the batch size."""
 
 
@@ -141,9 +141,11 @@ def _evaluate_batch(
 
     active = np.flatnonzero((penalty.gap(x, lo, up)[0] > 0) & (s > 0))
     n = active.shape[0] if active_only else x.shape[0]
-    # Inactive rows are exact zeros that were never differentiated (calloc: untouched pages stay free).
-    gradient = np.zeros((n, 24), dtype=dtype) if want_g else None
-    hessian = np.zeros((n, 24, 24), dtype=dtype) if want_h else None
+    # Inactive rows are exact zeros that were never differentiated (calloc: untouched pages stay free);
+    # when every row is differentiated each is written once, with no zero-fill before.
+    alloc = np.empty if active.shape[0] == n else np.zeros
+    gradient = alloc((n, 24), dtype=dtype) if want_g else None
+    hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
     out_pos = np.arange(n) if active_only else active
 
     def chunk(start: int) -> list[int]:
@@ -194,20 +196,20 @@ def _derivatives(
     """Gradient (M, 24) of active joints; their Hessian (M, 24, 24) into `h_out` if given."""
     _, dE, d2E = penalty.derivatives(x, lo, up, s)
     dx, curvature = c.derivatives(F, second=h_out is not None)
-    grad = dE[:, None] * assembly.gradient(c.alpha, v, dx)
     if h_out is None:
-        return grad
+        return dE[:, None] * assembly.gradient(c.alpha, v, dx)
     if psd:
         projected = c.projected_curvature(dE, curvature)
         if projected is None:  # the generic route: a 12 x 12 eigensolver per joint
             basis, lam = assembly.psd_projection(dE[:, None, None] * curvature.dense())
             m = lam.shape[0]
-            projected = Curvature(kron=np.zeros((m, 4, 4), lam.dtype), basis=basis, coef=lam[:, :, None] * np.eye(12, dtype=lam.dtype))
-        # The projection already carries E': the chain rule sees E' = 1 and dx as an extra factor.
-        assembly.hessian(c.alpha, v, Curvature(projected.kron, projected.basis, projected.coef), np.ones_like(dE), d2E, h_out, dx=dx)
+            projected = Curvature(kron=np.zeros((m, 4, 4), lam.dtype), basis=basis, coef=lam[:, :, None] * np.eye(12, dtype=lam.dtype),
+                                  kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)), diagonal=True)
+        # The projection already carries E': the chain rule sees E' = 1 (E'' dx dx^T beside it, PSD as it is).
+        Jdx = assembly.hessian(c.alpha, v, projected, np.ones_like(dE), d2E, h_out, dx=dx)
     else:
-        assembly.hessian(c.alpha, v, curvature, dE, d2E, h_out)
-    return grad
+        Jdx = assembly.hessian(c.alpha, v, curvature, dE, d2E, h_out)
+    return dE[:, None] * Jdx  # J^T dx comes with the Hessian's factors
 
 
 def _raise_collapsed(b: int, c: Constitution, F: dict[str, Array]) -> None:

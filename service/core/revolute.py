@@ -67,6 +67,22 @@ def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Ar
     return np.arctan2(ds * c - dc * s, c2 * c + s2 * s), (c2, s2)
 
 
+def _kron_vectors(cos_t: Array, sin_t: Array, signs: Array) -> Array:
+    """Eigenvectors (N, m, 4) of K's involution J (sign +1 or -1 each, `signs` (m,) or (N, m)), unnormalised:
+    (e_1, sigma R^T e_1) and (e_2, sigma R^T e_2) with R = [[-sin, cos], [-cos, -sin]] the i-j block of J."""
+    n = cos_t.shape[0]
+    signs = np.broadcast_to(signs, (n, signs.shape[-1]))
+    m = signs.shape[1]
+    f = np.zeros((n, m, 4), dtype=cos_t.dtype)
+    first = np.arange(m) % 2 == 0  # e_1 then e_2 per sign
+    sc, ss = signs * cos_t[:, None], signs * sin_t[:, None]
+    f[:, first, 0] = 1.0
+    f[:, ~first, 1] = 1.0
+    f[:, first, 2], f[:, first, 3] = -ss[:, first], sc[:, first]
+    f[:, ~first, 2], f[:, ~first, 3] = -sc[:, ~first], -ss[:, ~first]
+    return f
+
+
 class Revolute:
     uid = 670
     base_uid = 18
@@ -119,7 +135,14 @@ class Revolute:
         coef[:, 1, 1] = -coef[:, 0, 0]
         coef[:, 0, 1] = coef[:, 1, 0] = (s * s - c * c) / r4
         kron = x_c[:, None, None] * _COS_PAIRS + x_s[:, None, None] * _SIN_PAIRS  # (N, 4, 4)
-        return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1))
+        # K = lambda0 (P_+ - P_-), lambda0 = 1 / (2 r): see the PSD notes; f_e unnormalised (|f_e|^2 = 2).
+        r = np.sqrt(r2)
+        weights = np.empty((n, 4), dtype=F.dtype)
+        weights[:, :2] = (0.25 / r)[:, None]
+        weights[:, 2:] = -weights[:, :2]
+        factors = _kron_vectors(c / r, s / r, np.array([1.0, 1.0, -1.0, -1.0], dtype=F.dtype))
+        return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1),
+                             kron_factors=(weights, factors))
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
         """The PSD part of `dE d2x/dF2` in closed form (derivation in the PSD notes of the module docstring).
@@ -160,7 +183,9 @@ class Revolute:
         # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
         kron = (0.5 * dE)[:, None, None] * curvature.kron
         kron += (mu / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
-        return Curvature(kron=kron, basis=basis, coef=coef)
+        weights = np.repeat((0.25 * mu / r)[:, None], 2, axis=1)
+        vectors = _kron_vectors(cos_t[:, 0, 0], sin_t[:, 0, 0], np.stack([sign[:, 0, 0], sign[:, 0, 0]], axis=1))
+        return Curvature(kron=kron, basis=basis, coef=coef, kron_factors=(weights, vectors), diagonal=True)
 
 
 REVOLUTE = Revolute()

@@ -60,7 +60,8 @@ def test_factors_match_the_dense_chain_rule(c, psd: bool, seed: int):
     M = M + d2E[:, None, None] * dxv[:, :, None] * dxv[:, None, :]
     want = np.einsum("nai,nab,nbj->nij", J, M, J)
     out = np.empty((n, 24, 24))
-    Jdx = assembly.hessian(c.alpha, v, curvature, dE_used, d2E, out, dx=dx)
+    Jdx, finite = assembly.hessian(c.alpha, v, curvature, dE_used, d2E, out, dx=dx)
+    assert finite
     assert np.array_equal(out, out.transpose(0, 2, 1))  # bitwise
     err = np.abs(out - want).max(axis=(1, 2)) / np.abs(want).max(axis=(1, 2))
     assert err.max() <= TOL, (err.max(), int(err.argmax()))
@@ -92,3 +93,13 @@ def test_gradient_matches_the_dense_chain_rule():
         dF = rng.normal(size=(50, 3, 4, 3))  # a leading axis of several vectors per joint
         want = np.einsum("nai,nka->nki", dense_J(c.alpha, v), dF.reshape(50, 3, 12))
         np.testing.assert_allclose(assembly.gradient(c.alpha, v, dF), want, rtol=0, atol=1e-14 * np.abs(want).max())
+
+
+def test_finite_flag_is_false_when_products_may_overflow():
+    """Factors above 1e150 may overflow in the product: the flag sends the caller to check `out`."""
+    v, dx, curvature, dE, d2E = inputs(PRISMATIC, 20, 6)
+    out = np.empty((20, 24, 24))
+    _, finite = assembly.hessian(PRISMATIC.alpha, v * 1e160, curvature, dE, d2E, out)
+    assert not finite and not np.isfinite(out).all()
+    _, finite = assembly.hessian(PRISMATIC.alpha, v, curvature, dE, d2E, out)
+    assert finite and np.isfinite(out).all()

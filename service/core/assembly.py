@@ -23,6 +23,9 @@ import numpy as np
 
 from service.core.constitution import Array, Curvature
 
+FINITE_FACTOR = 1e150
+"""Below this, p <= 64 products of two factors and their sum stay finite (p 1e300 < 1.8e308)."""
+
 
 def gradient(alpha: Array, v: Array, dF: Array) -> Array:
     """`J^T dF`: (N, ..., 24) in DOF order from vectors `dF` (N, ..., 4, 3) in F; `v` (N, 4, 3)."""
@@ -49,19 +52,21 @@ def hessian(
     `curvature` is `d2x/dF2` (after a PSD projection it already carries E': pass `dE = 1`). `dx`
     (N, 4, 3) only when `curvature.dx_coef` is None. The Hessian is `X^T diag(s) X` with `X`
     (N, p, 24) signed rank-1 factors (`s` in {-1, 0, 1}): one small GEMM per joint.
-    Returns `J^T dx` (N, 24), a by-product of the factors (the gradient over E').
+    Returns `J^T dx` (N, 24), a by-product of the factors (the gradient over E'), and whether every
+    entry of `out` is finite for sure (no check of `out` needed): |X| < 1e150, so no product overflows.
     """
-    X, sign, Jdx = factors(alpha, v, curvature, dE, d2E, dx)
+    X, sign, Jdx, bound = factors(alpha, v, curvature, dE, d2E, dx)
     # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
     # in the same order: the product is bitwise symmetric without a symmetrising pass.
     np.matmul((X * sign[:, :, None]).transpose(0, 2, 1), X, out=out)
-    return Jdx
+    return Jdx, bool(bound < FINITE_FACTOR)
 
 
 def factors(
     alpha: Array, v: Array, curvature: Curvature, dE: Array, d2E: Array, dx: Array | None = None
-) -> tuple[Array, Array, Array]:
-    """Factors `X` (N, p, 24) and signs (N, p) with `X^T diag(sign) X` the Hessian of `hessian`; `J^T dx` (N, 24).
+) -> tuple[Array, Array, Array, float]:
+    """Factors `X` (N, p, 24) and signs (N, p) with `X^T diag(sign) X` the Hessian of `hessian`; `J^T dx`
+    (N, 24); max |X| (NaN if any entry is NaN).
 
     Low rank: `S = E' C + E'' t t^T` (or `E'' dx dx^T` beside it) as `sum_e lam_e z_e z_e^T` over
     combinations `z_e` of the chained basis. Kronecker: `E' K = sum_e w_e f_e f_e^T`, so
@@ -101,7 +106,8 @@ def factors(
     sign = np.empty((n, k + 3 * m), dtype=dtype)
     np.sign(lam, out=sign[:, :k])
     sign[:, k:].reshape(n, m, 3)[...] = np.sign(w)[:, :, None]
-    return X.reshape(n, k + 3 * m, 24), sign, Jdx
+    bound = max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0))  # X holds these values and zeros
+    return X.reshape(n, k + 3 * m, 24), sign, Jdx, bound
 
 
 def _low_rank(curvature: Curvature, Y: Array, k0: int, dE: Array, d2E: Array) -> tuple[Array, Array, Array]:

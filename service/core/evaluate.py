@@ -157,10 +157,15 @@ def _evaluate_batch(
         h_out = None
         if want_h:
             h_out = hessian[pos[0] : pos[-1] + 1] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
-        g = _derivatives(c, F[sel], v[sel], x[sel], lo[sel], up[sel], s[sel], h_out, psd)
-        # Only active rows can overflow: checked while they are still in cache.
-        bad = (nonfinite_rows(g) if want_g else []) + (nonfinite_rows(h_out) if want_h else [])
-        if want_g:
+        g, h_finite = _derivatives(c, F[sel], v[sel], x[sel], lo[sel], up[sel], s[sel], h_out, psd)
+        # Only active rows can overflow: checked while they are still in cache (the Hessian only
+        # when its factors do not already bound it).
+        bad = nonfinite_rows(g) if want_g else []
+        if want_h and not h_finite:
+            bad += nonfinite_rows(h_out)
+        if want_g and contiguous:
+            gradient[pos[0] : pos[-1] + 1] = g
+        elif want_g:
             gradient[pos] = g
         if want_h and not contiguous:
             hessian[pos] = h_out
@@ -192,12 +197,13 @@ def _evaluate_batch(
 
 def _derivatives(
     c: Constitution, F: Array, v: Array, x: Array, lo: Array, up: Array, s: Array, h_out: Array | None, psd: bool
-) -> Array:
-    """Gradient (M, 24) of active joints; their Hessian (M, 24, 24) into `h_out` if given."""
+) -> tuple[Array, bool]:
+    """Gradient (M, 24) of active joints; their Hessian (M, 24, 24) into `h_out` if given, and whether it
+    is finite for sure (False: check it)."""
     _, dE, d2E = penalty.derivatives(x, lo, up, s)
     dx, curvature = c.derivatives(F, second=h_out is not None)
     if h_out is None:
-        return dE[:, None] * assembly.gradient(c.alpha, v, dx)
+        return dE[:, None] * assembly.gradient(c.alpha, v, dx), True
     if psd:
         projected = c.projected_curvature(dE, curvature)
         if projected is None:  # the generic route: a 12 x 12 eigensolver per joint
@@ -206,10 +212,10 @@ def _derivatives(
             projected = Curvature(kron=np.zeros((m, 4, 4), lam.dtype), basis=basis, coef=lam[:, :, None] * np.eye(12, dtype=lam.dtype),
                                   kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)), diagonal=True)
         # The projection already carries E': the chain rule sees E' = 1 (E'' dx dx^T beside it, PSD as it is).
-        Jdx = assembly.hessian(c.alpha, v, projected, np.ones_like(dE), d2E, h_out, dx=dx)
+        Jdx, finite = assembly.hessian(c.alpha, v, projected, np.ones_like(dE), d2E, h_out, dx=dx)
     else:
-        Jdx = assembly.hessian(c.alpha, v, curvature, dE, d2E, h_out)
-    return dE[:, None] * Jdx  # J^T dx comes with the Hessian's factors
+        Jdx, finite = assembly.hessian(c.alpha, v, curvature, dE, d2E, h_out)
+    return dE[:, None] * Jdx, finite  # J^T dx comes with the Hessian's factors
 
 
 def _raise_collapsed(b: int, c: Constitution, F: dict[str, Array]) -> None:

@@ -10,6 +10,7 @@ from client.progress import ProgressCallback
 from schemas import ConstitutionsResponse, Limits
 from schemas.constitutions import describe
 from service import core
+from service.core import assembled
 from service.core.validate import checked_evaluate
 
 
@@ -51,11 +52,13 @@ class LocalClient:
                 active_only=request.active_only,
                 threads=self.threads,
             )
+            ev = assembled.apply(ev, len(request.q), joints, request.layout, request.active_only)
         except core.InputError as e:
             raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults]) from None
         if callable(progress):
             progress(request.n_joints, request.n_joints)
         return Evaluation(
+            assembled=ev.assembled,
             total_energy=ev.total_energy,
             batches=[
                 BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian) for r in ev.batches

@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 Output = Literal["energy", "gradient", "hessian"]
 HessianMode = Literal["exact", "psd"]
+Layout = Literal["joints", "bodies"]
 OUTPUTS: tuple[Output, ...] = ("energy", "gradient", "hessian")
 
 # allow_inf_nan=False: a 200 never carries NaN or Infinity, so none may come in (nor 1e400).
@@ -57,6 +58,8 @@ class EvaluateRequest(_Wire):
     outputs: Annotated[list[Output], Field(min_length=1)] = list(OUTPUTS)
     hessian_mode: HessianMode = "exact"
     active_only: Annotated[bool, Field(strict=True)] = False
+    layout: Layout = "joints"
+    """"bodies": the gradient and Hessian summed per body (`assembled`), batches without them."""
 
 
 class BatchResult(_Wire):
@@ -68,6 +71,16 @@ class BatchResult(_Wire):
     hessian: list[list[list[float]]] | None = None
 
 
+class AssembledResult(_Wire):
+    """`layout="bodies"`: gradient per body (B, 12); Hessian blocks (K, 12, 12) at body pairs rows <= cols."""
+
+    gradient: list[list[float]] | None = None
+    rows: list[int] | None = None
+    cols: list[int] | None = None
+    blocks: list[list[list[float]]] | None = None
+
+
 class EvaluateResponse(_Wire):
     total_energy: float
     batches: list[BatchResult]
+    assembled: AssembledResult | None = None

@@ -19,7 +19,8 @@ from service.http import limits
 
 MEDIA_TYPE = wire.MEDIA_TYPE
 
-_REQUEST_KEYS = {"bodies": True, "batches": True, "outputs": False, "hessian_mode": False, "active_only": False}
+_REQUEST_KEYS = {"bodies": True, "batches": True, "outputs": False, "hessian_mode": False, "active_only": False,
+                 "layout": False}
 _BODY_KEYS = {"q": True, "q_prev": True, "q_ref": True}
 _JOINT_ARRAYS = {"body_ids": (wire.INT64, 2), "edges": (wire.FLOAT64, 3)} | {
     k: (wire.FLOAT64, 1) for k in ("lower", "upper", "strength")
@@ -80,6 +81,7 @@ def decode(body: bytes, max_joints: int) -> dict[str, Any]:
         raw_batches = []
     batches = [_batch(r, b, raw) for b, raw in enumerate(raw_batches)]
     outputs, hessian_mode, active_only = _options(r, top)
+    layout = _layout(r, top)
     if r.faults:
         raise InputError(r.faults)
     limits.check_joints(sum(j.body_ids.shape[0] for j in batches), max_joints)
@@ -89,6 +91,7 @@ def decode(body: bytes, max_joints: int) -> dict[str, Any]:
         outputs=outputs,
         hessian_mode=hessian_mode,
         active_only=active_only,
+        layout=layout,
     )
 
 
@@ -127,6 +130,14 @@ def _options(r: _Reader, top: dict[str, Any]) -> tuple[list[str], str, bool]:
     return outputs, hessian_mode, active_only
 
 
+def _layout(r: _Reader, top: dict[str, Any]) -> str:
+    layout = top.get("layout", "joints")
+    if layout not in ("joints", "bodies"):
+        r.fault(("layout",), "Input should be 'joints' or 'bodies'", "literal_error")
+        return "joints"
+    return layout
+
+
 def encode(ev: Evaluation) -> bytes:
     """The response document: arrays as raw little-endian buffers (one copy each, into the message)."""
     batches = []
@@ -142,4 +153,9 @@ def encode(ev: Evaluation) -> bytes:
             if a is not None:
                 out[k] = wire.pack_array(a, wire.FLOAT64)
         batches.append(out)
-    return wire.dumps({"total_energy": float(ev.total_energy), "batches": batches})
+    doc: dict[str, Any] = {"total_energy": float(ev.total_energy), "batches": batches}
+    if ev.assembled is not None:  # layout="bodies"
+        a = ev.assembled
+        doc["assembled"] = {k: wire.pack_array(getattr(a, k), wire.INT64 if k in ("rows", "cols") else wire.FLOAT64)
+                            for k in ("gradient", "rows", "cols", "blocks") if getattr(a, k) is not None}
+    return wire.dumps(doc)

@@ -52,6 +52,7 @@ def to_core(req: EvaluateRequest) -> dict[str, Any]:
         outputs=req.outputs,
         hessian_mode=req.hessian_mode,
         active_only=req.active_only,
+        layout=req.layout,
     )
 
 
@@ -65,7 +66,11 @@ def to_wire(ev: Evaluation) -> dict[str, Any]:
         if r.hessian is not None:
             out["hessian"] = r.hessian
         batches.append(out)
-    return dict(total_energy=ev.total_energy, batches=batches)
+    doc = dict(total_energy=ev.total_energy, batches=batches)
+    if ev.assembled is not None:  # layout="bodies"
+        a = ev.assembled
+        doc["assembled"] = {k: getattr(a, k) for k in ("gradient", "rows", "cols", "blocks") if getattr(a, k) is not None}
+    return doc
 
 
 def encode(ev: Evaluation) -> bytes:
@@ -74,7 +79,7 @@ def encode(ev: Evaluation) -> bytes:
     The core guarantees finite numbers; orjson would write a stray NaN as `null`, never as `NaN`.
     """
     doc = to_wire(ev)
-    for b in doc["batches"]:
+    for b in doc["batches"] + [doc.get("assembled", {})]:
         for k, v in b.items():
             if isinstance(v, np.ndarray):
                 b[k] = np.ascontiguousarray(v)  # orjson serialises C-ordered arrays only

@@ -68,19 +68,20 @@ def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Ar
 
 
 def _kron_vectors(cos_t: Array, sin_t: Array, signs: Array) -> Array:
-    """Eigenvectors (N, m, 4) of K's involution J (sign +1 or -1 each, `signs` (m,) or (N, m)), unnormalised:
-    (e_1, sigma R^T e_1) and (e_2, sigma R^T e_2) with R = [[-sin, cos], [-cos, -sin]] the i-j block of J."""
+    """Eigenvectors (N, m, 4) of K's involution J (sign +1 or -1 each, `signs` (m,) or (N, m), m even, the
+    pairs alike), unnormalised: (e_1, sigma R^T e_1) and (e_2, sigma R^T e_2) with R = [[-sin, cos], [-cos, -sin]]
+    the i-j block of J. Rows 0, 2, .. take e_1, rows 1, 3, .. e_2."""
     n = cos_t.shape[0]
-    signs = np.broadcast_to(signs, (n, signs.shape[-1]))
-    m = signs.shape[1]
-    f = np.zeros((n, m, 4), dtype=cos_t.dtype)
-    first = np.arange(m) % 2 == 0  # e_1 then e_2 per sign
-    sc, ss = signs * cos_t[:, None], signs * sin_t[:, None]
-    f[:, first, 0] = 1.0
-    f[:, ~first, 1] = 1.0
-    f[:, first, 2], f[:, first, 3] = -ss[:, first], sc[:, first]
-    f[:, ~first, 2], f[:, ~first, 3] = -sc[:, ~first], -ss[:, ~first]
-    return f
+    sigma = np.broadcast_to(signs, (n, signs.shape[-1]))[:, 0::2]  # (N, m / 2)
+    sc, ss = sigma * cos_t[:, None], sigma * sin_t[:, None]
+    f = np.zeros((n, sigma.shape[1], 2, 4), dtype=cos_t.dtype)  # (joint, pair, e_1 or e_2, block)
+    f[:, :, 0, 0] = 1.0
+    f[:, :, 1, 1] = 1.0
+    np.negative(ss, out=f[:, :, 0, 2])
+    f[:, :, 0, 3] = sc
+    np.negative(sc, out=f[:, :, 1, 2])
+    np.negative(ss, out=f[:, :, 1, 3])
+    return f.reshape(n, -1, 4)
 
 
 class Revolute:

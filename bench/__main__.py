@@ -46,7 +46,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true",
                     help="at the largest size only energy and E+G+H exact; no psd variants, no 'frames precomputed' JAX "
-                         "flavour, no active-only, memory or HTTP; smaller accuracy cases: under 60 s")
+                         "flavour, no active-only, memory or HTTP; smaller accuracy cases: about a minute on an idle 2-core machine")
     ap.add_argument("--sizes", type=int, nargs="+", default=SIZES, metavar="N",
                     help="core sizes in joints (default: 100 1000 10000 100000); the largest is where peers, "
                          "float32, ratios, active-only and memory are measured, and the full run also times "

@@ -28,7 +28,7 @@ def decode(body: bytes, max_joints: int) -> dict[str, Any]:
     except ValidationError as e:
         raise from_validation(e) from None
     limits.check_joints(sum(len(j.body_ids) for j in req.batches), max_joints)
-    return to_core(req)
+    return {**to_core(req), "layout": req.layout}  # layout is the shell's (service/core/assembled.py), not evaluate's
 
 
 def to_core(req: EvaluateRequest) -> dict[str, Any]:
@@ -52,7 +52,6 @@ def to_core(req: EvaluateRequest) -> dict[str, Any]:
         outputs=req.outputs,
         hessian_mode=req.hessian_mode,
         active_only=req.active_only,
-        layout=req.layout,
     )
 
 

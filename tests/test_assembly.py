@@ -96,10 +96,15 @@ def test_gradient_matches_the_dense_chain_rule():
 
 
 def test_finite_flag_is_false_when_products_may_overflow():
-    """Factors above 1e150 may overflow in the product: the flag sends the caller to check `out`."""
+    """Factors above sqrt(max / 64) may overflow in the product: the flag sends the caller to check `out`."""
     v, dx, curvature, dE, d2E = inputs(PRISMATIC, 20, 6)
     out = np.empty((20, 24, 24))
     _, finite = assembly.hessian(PRISMATIC.alpha, v * 1e160, curvature, dE, d2E, out)
     assert not finite and not np.isfinite(out).all()
     _, finite = assembly.hessian(PRISMATIC.alpha, v, curvature, dE, d2E, out)
     assert finite and np.isfinite(out).all()
+
+
+def test_finite_bound_follows_the_dtype():
+    assert assembly.finite_factor(np.float64) ** 2 * assembly.MAX_FACTORS <= np.finfo(np.float64).max
+    assert 1e18 < assembly.finite_factor(np.float32) < 1e19

@@ -23,8 +23,13 @@ import numpy as np
 
 from service.core.constitution import Array, Curvature
 
-FINITE_FACTOR = 1e150
-"""Below this, p <= 64 products of two factors and their sum stay finite (p 1e300 < 1.8e308)."""
+MAX_FACTORS = 64
+"""At most this many factors per joint (14 for the revolute joint): `finite_factor` relies on it."""
+
+
+def finite_factor(dtype: type) -> float:
+    """Below this bound on |X|, the sum of `MAX_FACTORS` products of two factors stays finite in `dtype`."""
+    return float(np.sqrt(np.finfo(dtype).max / MAX_FACTORS))
 
 
 def gradient(alpha: Array, v: Array, dF: Array) -> Array:
@@ -53,13 +58,14 @@ def hessian(
     (N, 4, 3) only when `curvature.dx_coef` is None. The Hessian is `X^T diag(s) X` with `X`
     (N, p, 24) signed rank-1 factors (`s` in {-1, 0, 1}): one small GEMM per joint.
     Returns `J^T dx` (N, 24), a by-product of the factors (the gradient over E'), and whether every
-    entry of `out` is finite for sure (no check of `out` needed): |X| < 1e150, so no product overflows.
+    entry of `out` is finite for sure (no check of `out` needed): |X| below `finite_factor`, so no sum of
+    products overflows.
     """
     X, sign, Jdx, bound = factors(alpha, v, curvature, dE, d2E, dx)
     # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
     # in the same order: the product is bitwise symmetric without a symmetrising pass.
     np.matmul((X * sign[:, :, None]).transpose(0, 2, 1), X, out=out)
-    return Jdx, bool(bound < FINITE_FACTOR)
+    return Jdx, bool(bound < finite_factor(X.dtype)) and X.shape[1] <= MAX_FACTORS
 
 
 def factors(

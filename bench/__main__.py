@@ -2,9 +2,10 @@
 
 Everything is measured in one run on this machine, peers side by side; the report (Markdown,
 JSON, PNG) goes to bench/results/ (report.* for the full run, quick.* for --quick). The last
-line printed is `speedup_vs_autodiff_egh=<X> speedup_vs_autodiff_e=<Y>`: core / JAX throughput
-at the largest size (1e5 by default), E+G+H exact and energy only (nan without the JAX peer); the
-core on the faster of 1 thread and all cores, JAX on all cores (its default).
+line printed is `speedup_vs_autodiff_egh=<X> speedup_vs_autodiff_e=<Y> speedup_all_active_egh=<Z>`:
+core / JAX throughput at the largest size (1e5 by default), E+G+H exact and energy only on the
+typical scene, then E+G+H exact on the scene with every joint outside its range (nan without the
+JAX peer); the core on the faster of 1 thread and all cores, JAX on all cores (its default).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from service.core.heap import keep_heap
 
 GOLDEN = Path(__file__).resolve().parent.parent / "tests" / "golden_cases.json"
 OUTSIDE = 0.1  # fraction of joints past a limit in the timing scenes
+ALL_ACTIVE = 1.0  # the hard case beside it: a mechanism pushed against its stops, every joint differentiated
 SIZES = [100, 1_000, 10_000, 100_000]
 HTTP_SIZES = (10, 1_000, 10_000)  # joints per request, fixed by the issue whatever --sizes says
 MODES = ["e", "eg", "egh", "psd"]
@@ -44,7 +46,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true",
                     help="at the largest size only energy and E+G+H exact; no psd variants, no 'frames precomputed' JAX "
-                         "flavour, no active-only, memory or HTTP; smaller accuracy cases: under 60 s")
+                         "flavour, no active-only, memory or HTTP; smaller accuracy cases: about a minute on an idle 2-core machine")
     ap.add_argument("--sizes", type=int, nargs="+", default=SIZES, metavar="N",
                     help="core sizes in joints (default: 100 1000 10000 100000); the largest is where peers, "
                          "float32, ratios, active-only and memory are measured, and the full run also times "
@@ -130,7 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     res["machine"] = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python "
                       f"{platform.python_version()}, NumPy {np.__version__}, JAX {res.get('jax_version', '-')}; "
                       f"medians of {reps} repetitions after one warm-up")
-    res["scene"] = f"half #670 half #669, {OUTSIDE:.0%} of joints outside their range (5% for active-only)"
+    res["scene"] = (f"half #670 half #669, {OUTSIDE:.0%} of joints outside their range (5% for active-only); "
+                    f"beside it at the largest size, every joint outside ({ALL_ACTIVE:.0%}, 'all active')")
 
     # ---------------------------------------------------------------- core in-process
     res["core_modes"] = [M.MODE_NAMES[m] for m in MODES]
@@ -229,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
     t_best = {m: min(t_core[m], t_mt[m]) for m in ("egh", "e")}
     res["speedup"] = {m: (t_peer[(jname, m)] / t_best[m] if (jname, m) in t_peer else None) for m in ("egh", "e")}
 
+    res["all_active"] = _all_active(JaxPeer, n_big, quick, reps)
+    _all_active_variants(res)
     if not quick:
         res["active"] = _active_only(n_big, reps)
         log(f"active: {res['active']}")
@@ -242,14 +247,57 @@ def main(argv: list[str] | None = None) -> int:
     files = report.write(res, "quick" if quick else "report", args.out, with_plot)
     log("wrote " + ", ".join(str(f) for f in files))
     print(report.markdown(res))
-    print(speedup_line(res["speedup"]))
+    print(speedup_line(res["speedup"], res["all_active"]["speedup"]))
     return 0
 
 
-def speedup_line(speedup: dict[str, float | None]) -> str:
+def speedup_line(speedup: dict[str, float | None], all_active: dict[str, float | None] | None = None) -> str:
     """The run's last line: core / JAX throughput at the largest size, nan where JAX did not run."""
-    x, y = (float("nan") if speedup.get(m) is None else speedup[m] for m in ("egh", "e"))
-    return f"speedup_vs_autodiff_egh={x:.2f} speedup_vs_autodiff_e={y:.2f}"
+    nan = float("nan")
+    x, y = (nan if speedup.get(m) is None else speedup[m] for m in ("egh", "e"))
+    z = (all_active or {}).get("egh")
+    return (f"speedup_vs_autodiff_egh={x:.2f} speedup_vs_autodiff_e={y:.2f} "
+            f"speedup_all_active_egh={nan if z is None else z:.2f}")
+
+
+def _all_active(JaxPeer: Any, n: int, quick: bool, reps: int) -> dict[str, Any]:
+    """Every joint outside its range at `n` joints: the core (1 thread and all cores), JAX (its fair flavour)
+    and the memory-write floor, median seconds per mode; ratios of throughput, core at its faster thread count."""
+    scene = make_scene(n, ALL_ACTIVE, seed=n % 89)
+    modes = ["e", "egh"] if quick else ["e", "egh", "psd"]
+    core1 = {m: M.median_time(M.core_call(*scene, m), reps) for m in modes}
+    coreT = {m: M.median_time(M.core_call(*scene, m, threads=THREADS), reps) for m in modes} if THREADS > 1 else core1
+    core = {m: min(core1[m], coreT[m]) for m in modes}
+    log(f"all active N={n}: core 1 thread {core1}, {THREADS} threads {coreT}")
+    jax: dict[str, float] = {}
+    if JaxPeer is not None:
+        for psd in (False,) if quick else (False, True):
+            peer = JaxPeer(*scene, same_work=True, psd=psd)
+            for m in ["egh"] if psd else ["e", "egh"]:
+                jax["psd" if psd else m] = M.median_time(lambda p=peer, m=m: p(m), reps)
+            del peer
+        log(f"all active N={n}: JAX {jax}")
+    floor = M.median_time(M.floor_call(n, "egh"), reps)
+    return {"n": n, "fraction": ALL_ACTIVE, "core_1": core1, "core_threads": coreT, "core": core, "jax": jax,
+            "floor_egh": floor, "threads": THREADS,
+            "speedup": {m: (jax[m] / core[m] if m in jax else None) for m in modes},
+            "floor_fraction_egh": floor / core["egh"],
+            "psd_over_exact": core["psd"] / core["egh"] if "psd" in core else None}
+
+
+def _all_active_variants(res: dict[str, Any]) -> None:
+    """The all-active timings as variants (table and plot), each with the error of its typical-scene twin:
+    the accuracy cases do not depend on the timing scene."""
+    a, n = res["all_active"], res["n_big"]
+    by_name = {v["name"]: v for v in res["variants"]}
+    pairs = [(report.CORE, a["core"], "egh", "e"), ("core float64 psd", a["core"], "psd", None),
+             (report.JAX, a["jax"], "egh", "e"), (report.JAX + " psd", a["jax"], "psd", None)]
+    for name, t, m, me in pairs:
+        twin = by_name.get(name)
+        if twin is None or m not in t:
+            continue
+        res["variants"].append({"name": name + report.ALL_ACTIVE, "egh_jps": n / t[m],
+                                "e_jps": n / t[me] if me else None, "err": twin["err"], "err_hard": twin["err_hard"]})
 
 
 def _active_only(n: int, reps: int) -> dict[str, Any]:

@@ -2,7 +2,7 @@
 
 A run's results are one dict (`res`, built by bench/__main__.py); the keys this module reads:
 command, machine, scene, n_big, core_modes, core {N: [seconds per mode or None]}, peers, variants,
-ratios, speedup {"egh", "e"}, targets, notes, and optionally http, active, memory.
+ratios, speedup {"egh", "e"}, targets, notes, and optionally all_active, http, active, memory.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ EPS = 2.0**-52  # float64 machine epsilon: errors are also shown in its units
 CORE = "core float64 exact"  # the variant the targets are about
 JAX = "JAX jit(vmap), same inputs"  # the peer they are measured against
 FLOOR = "memory-write floor"  # a speed bound that computes nothing: no error, not on the Pareto front
+ALL_ACTIVE = ", all active"  # suffix of a variant timed on the scene with every joint outside its range
 
 
 def core_threads(threads: int) -> str:
@@ -172,6 +173,43 @@ def _core_lines(res: dict[str, Any]) -> list[str]:
     return _table(["N", *res["core_modes"]], rows)
 
 
+def all_active_targets(a: dict[str, Any]) -> list[dict[str, Any]]:
+    """Issue 11's targets on the all-active scene `a` (res["all_active"]): speed against JAX, share of the
+    memory-write floor, psd against exact."""
+    n, rows = count(a["n"]), []
+    sp = a["speedup"]
+    for m, want, what in (("egh", 5.0, "E+G+H exact"), ("e", 3.0, "energy")):
+        target = f"{what} at {n}, every joint active, vs JAX (same inputs)"
+        if sp.get(m) is None:
+            rows.append(_not_measured(5, target, f">= {want:g}x", "JAX peer not run"))
+        else:
+            rows.append(_at_least(5, target, sp[m], want, "{:.2f}x"))
+    rows.append(_at_least(5, f"E+G+H exact at {n}, every joint active: share of the memory-write floor",
+                          a["floor_fraction_egh"], 0.15, "{:.0%}"))
+    r = a.get("psd_over_exact")
+    target = f"E+G+H psd / exact time at {n}, every joint active"
+    rows.append(_not_measured(5, target, "<= 2x", "full run only") if r is None else
+                _verdict(5, target, f"{r:.2f}x", "<= 2x", None if r <= 2.0 else r / 2.0))
+    return rows
+
+
+def _all_active_lines(a: dict[str, Any]) -> list[str]:
+    modes = [m for m in ("e", "egh", "psd") if m in a["core"]]
+    names = {"e": "energy", "egh": "E+G+H exact", "psd": "E+G+H psd"}
+    rows = [[names[m], f"{a['core_1'][m]:.3g}", f"{a['core_threads'][m]:.3g}", _fmt(a["jax"].get(m)),
+             _fmt(a["speedup"].get(m), ".2f") + ("x" if a["speedup"].get(m) is not None else "")] for m in modes]
+    rows.append(["memory-write floor (E+G+H output)", f"{a['floor_egh']:.3g}", "", "",
+                 f"core at {a['floor_fraction_egh']:.0%} of it"])
+    t = all_active_targets(a)
+    return [f"{count(a['n'])} joints, half #670 half #669, every one outside its range (each differentiated), "
+            "median seconds; ratio: JAX time / the core's faster of 1 and "
+            f"{a['threads']} threads.", "",
+            *_table(["mode", "core, 1 thread", f"core, {a['threads']} threads", "JAX jit(vmap), same inputs", "ratio"],
+                    rows), "",
+            *_table(["target", "measured", "required", "status"],
+                    [[r["target"], r["measured"], r["required"], r["status"]] for r in t])]
+
+
 def markdown(res: dict[str, Any]) -> str:
     """The whole report as Markdown (every optional section only when its measurement ran)."""
     n = count(res["n_big"])
@@ -179,6 +217,8 @@ def markdown(res: dict[str, Any]) -> str:
     lines += _section("Targets", *_target_lines(res))
     lines += _section(f"Speed and error per variant (throughput at {n} joints)", *_variant_lines(res))
     lines += _section("Core in-process, median seconds (joints/s)", *_core_lines(res))
+    if res.get("all_active"):
+        lines += _section("Every joint active (a mechanism against its stops)", *_all_active_lines(res["all_active"]))
     lines += _section("Peers, median seconds", *_table(
         ["peer", "N", "mode", "s", "joints/s"],
         [[p["peer"], count(p["n"]), p["mode"], f"{p['t']:.3g}", f"{p['n'] / p['t']:.3g}"] for p in res["peers"]]))
@@ -244,13 +284,16 @@ def plot(res: dict[str, Any], path: Path) -> None:
             pts.append((v["err"]["H"], v["egh_jps"]))
             names.append(v["name"])
     fig, ax = plt.subplots(figsize=(9, 6))
-    front = pareto(pts)
+    # The front is over the typical scene's variants: an all-active point is the same code on more work.
+    typical = [i for i, name in enumerate(names) if not name.endswith(ALL_ACTIVE)]
+    front = [typical[i] for i in pareto([pts[i] for i in typical])]
     ys = [s for _, s in pts]
     heights = label_heights(pts, 0.045 * (np.log10(max(ys) / min(ys)) + 1)) if pts else []
     for i, ((e, s), name, h) in enumerate(zip(pts, names, heights)):
         color = "C3" if i in front else "C0"
-        ax.scatter(e, s, s=60, zorder=3, marker="o" if name.startswith("core") else "s",
-                   color="none" if name.endswith("psd") else color, edgecolors=color, linewidths=1.5)
+        marker = "^" if name.endswith(ALL_ACTIVE) else "o" if name.startswith("core") else "s"
+        ax.scatter(e, s, s=60, zorder=3, marker=marker,
+                   color="none" if "psd" in name else color, edgecolors=color, linewidths=1.5)
         # Labels to the right, lifted clear of their neighbours; a thin line back to a lifted label's point.
         ax.annotate(name, (e, s), xytext=(e * 2.5, 10**h), fontsize=8, va="bottom",
                     arrowprops=dict(arrowstyle="-", color="0.6", lw=0.5) if h > np.log10(s) + 1e-9 else None)
@@ -268,7 +311,8 @@ def plot(res: dict[str, Any], path: Path) -> None:
     ax.set_xlabel("max normwise relative error of the Hessian vs the 50-digit reference (well-conditioned cases)")
     ax.set_ylabel(f"E+G+H throughput at {count(res['n_big'])} joints (joints/s)")
     ax.set_title(f"Speed against error ({res['command']})\n"
-                 "circles: core, squares: peers; hollow: psd Hessian (against the psd reference)", fontsize=10)
+                 "circles: core, squares: peers, triangles: every joint active; hollow: psd Hessian "
+                 "(against the psd reference)", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()

@@ -8,7 +8,7 @@ import numpy as np
 import orjson
 
 from client.errors import ServiceError
-from client.model import BatchResult, Evaluation, Request
+from client.model import Assembled, BatchResult, Evaluation, Request
 from schemas import binary as wire
 
 JSON = "application/json"
@@ -46,6 +46,7 @@ def _document(request: Request, f64: Any, i64: Any) -> dict[str, Any]:
         "outputs": list(request.outputs),
         "hessian_mode": request.hessian_mode,
         "active_only": bool(request.active_only),
+        **({"layout": request.layout} if request.layout != "joints" else {}),  # the default stays off the wire
     }
 
 
@@ -60,6 +61,7 @@ def decode(content: bytes, content_type: str) -> Evaluation:
             _SHAPES[ndim]
         )
     return Evaluation(
+        assembled=_assembled(doc.get("assembled"), content_type),
         total_energy=float(doc["total_energy"]),
         batches=[
             BatchResult(
@@ -74,6 +76,23 @@ def decode(content: bytes, content_type: str) -> Evaluation:
             for b in doc["batches"]
         ],
     )
+
+
+def _assembled(a: dict[str, Any] | None, content_type: str) -> Assembled | None:
+    """`layout="bodies"`: the per-body answer; `n_bodies` is set by the caller (from its Request)."""
+    if a is None:
+        return None
+    binary = content_type.split(";")[0].strip().lower() in wire.MEDIA_TYPES
+
+    def arr(k: str, tail: tuple[int, ...], dtype: str = wire.FLOAT64) -> np.ndarray | None:
+        if k not in a:
+            return None
+        if binary:
+            return wire.unpack_array(a[k], dtype, 1 + len(tail))
+        return np.asarray(a[k], dtype=np.dtype(dtype)).reshape((-1, *tail))
+
+    return Assembled(-1, arr("gradient", (12,)), arr("rows", (), wire.INT64), arr("cols", (), wire.INT64),
+                     arr("blocks", (12, 12)))
 
 
 def error(status: int, content: bytes) -> ServiceError:

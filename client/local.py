@@ -74,12 +74,14 @@ class LocalClient:
                 hessian_mode=request.hessian_mode,
                 active_only=request.active_only,
                 threads=self.threads,
+                layout=request.layout,
             )
         except core.InputError as e:
             raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults], where="invalid input") from None
         if callable(progress):
             progress(request.n_joints, request.n_joints)
         return Evaluation(
+            assembled=ev.assembled,
             total_energy=ev.total_energy,
             batches=[
                 BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate)

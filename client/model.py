@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from schemas import OUTPUTS
+from service.core.assembled import Assembled  # noqa: F401 (re-exported: Evaluation.assembled)
 
 Array = NDArray[np.float64]
 REVOLUTE_LIMIT, PRISMATIC_LIMIT = 670, 669
@@ -82,6 +83,8 @@ class Request:
     outputs: tuple[str, ...] = OUTPUTS
     hessian_mode: str = "exact"
     active_only: bool = False
+    layout: str = "joints"
+    """"bodies": `Evaluation.assembled` holds the gradient and Hessian summed per body; batches carry none."""
 
     @property
     def n_joints(self) -> int:
@@ -184,6 +187,8 @@ class Evaluation:
 
     total_energy: float
     batches: list[BatchResult] = field(default_factory=list)
+    assembled: Assembled | None = None
+    """With `layout="bodies"`: `.gradient` (B, 12), `.rows`, `.cols`, `.blocks` (K, 12, 12), `.matrix()` (scipy)."""
 
     def batch(self, constitution_uid: int) -> BatchResult:
         """The first batch of a constitution (a `Scene` makes one per constitution)."""

@@ -12,7 +12,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from client.errors import Fault, ServiceError
-from client.model import BatchResult, Evaluation, JointBatch, Request
+from client.model import Assembled, BatchResult, Evaluation, JointBatch, Request
+from service.core.assembled import reduce_pairs
 
 
 @dataclass(frozen=True)
@@ -81,8 +82,9 @@ def _rows(b: JointBatch, start: int, stop: int) -> JointBatch:
 
 def merge(request: Request, parts: list[Part], results: list[Evaluation]) -> Evaluation:
     """One `Evaluation` as if the request had been sent whole (total energy summed part by part)."""
+    assembled = _merge_assembled(request, parts, results)
     if len(parts) == 1 and parts[0].bodies is None:
-        return results[0]
+        return replace(results[0], assembled=assembled)
     pieces: list[list[BatchResult]] = [[] for _ in request.batches]
     for part, ev in zip(parts, results):
         for k, start, r in zip(part.batches, part.starts, ev.batches):
@@ -103,7 +105,26 @@ def merge(request: Request, parts: list[Part], results: list[Evaluation]) -> Eva
                 coordinate=cat("coordinate"),
             )
         )
-    return Evaluation(total_energy=float(sum(ev.total_energy for ev in results)), batches=merged)
+    return Evaluation(total_energy=float(sum(ev.total_energy for ev in results)), batches=merged, assembled=assembled)
+
+
+def _merge_assembled(request: Request, parts: list[Part], results: list[Evaluation]) -> Assembled | None:
+    """`layout="bodies"`: the parts' per-body answers in the original body rows, summed."""
+    if not results or results[0].assembled is None:
+        return None
+    n_bodies = int(np.shape(request.q)[0])
+    each = [(p.bodies if p.bodies is not None else np.arange(n_bodies), ev.assembled) for p, ev in zip(parts, results)]
+    out = Assembled(n_bodies)
+    if each[0][1].gradient is not None:
+        out.gradient = np.zeros((n_bodies, 12))
+        for keep, a in each:
+            np.add.at(out.gradient, keep, a.gradient)
+    if each[0][1].blocks is not None:
+        # keep is sorted: renumbering keeps rows <= cols.
+        out.rows, out.cols, out.blocks = reduce_pairs(
+            np.concatenate([keep[a.rows] for keep, a in each]), np.concatenate([keep[a.cols] for keep, a in each]),
+            np.concatenate([a.blocks for _, a in each]))
+    return out
 
 
 def relocate(part: Part, e: ServiceError) -> ServiceError:

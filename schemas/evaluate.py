@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, FailFast, Field, WithJsonSchema
 
 Output = Literal["energy", "gradient", "hessian"]
 HessianMode = Literal["exact", "psd"]
+Layout = Literal["joints", "bodies"]
 OUTPUTS: tuple[Output, ...] = ("energy", "gradient", "hessian")
 
 # Non-finite numbers (NaN, Infinity, 1e400, and `null`, which is what most JSON writers make of a
@@ -73,6 +74,8 @@ class EvaluateRequest(_Wire):
     outputs: Annotated[list[Output], Field(min_length=1), FailFast()] = list(OUTPUTS)
     hessian_mode: HessianMode = "exact"
     active_only: Annotated[bool, Field(strict=True)] = False
+    layout: Layout = "joints"
+    """"bodies": the gradient and Hessian summed per body (`assembled`), batches without them."""
 
 
 class BatchResult(_Wire):
@@ -86,6 +89,16 @@ class BatchResult(_Wire):
     hessian: list[list[list[float]]] | None = None
 
 
+class AssembledResult(_Wire):
+    """`layout="bodies"`: gradient per body (B, 12); Hessian blocks (K, 12, 12) at body pairs rows <= cols."""
+
+    gradient: list[list[float]] | None = None
+    rows: list[int] | None = None
+    cols: list[int] | None = None
+    blocks: list[list[list[float]]] | None = None
+
+
 class EvaluateResponse(_Wire):
     total_energy: float
     batches: list[BatchResult]
+    assembled: AssembledResult | None = None

@@ -18,7 +18,8 @@ from bench.scenes import make_scene, shifted
 from service.core import evaluate
 
 FIELDS = ("energy", "gradient", "hessian")
-SPEEDUP_LINE = re.compile(r"speedup_vs_autodiff_egh=(nan|\d+\.\d\d) speedup_vs_autodiff_e=(nan|\d+\.\d\d)")
+SPEEDUP_LINE = re.compile(r"speedup_vs_autodiff_egh=(nan|\d+\.\d\d) speedup_vs_autodiff_e=(nan|\d+\.\d\d) "
+                          r"speedup_all_active_egh=(nan|\d+\.\d\d)")
 
 
 def core_rows(bodies, batches, **kw) -> list[dict[str, np.ndarray]]:
@@ -68,16 +69,58 @@ def synthetic_result() -> dict:
                            "joints_per_s": 3.6e5, "p50_ms": 27.0, "p99_ms": 31.0, "bytes_per_joint": 700.0}]},
         "active": {"n": 100_000, "fraction": 0.05, "full": 0.1, "active_only": 0.08, "all_active": 0.5},
         "memory": {"n": 100_000, "peak": 600 * 2**20, "output": 460 * 2**20},
+        "all_active": all_active_result(),
         "notes": ["a note"],
     }
     res["targets"] = report.targets(res)
     return res
 
 
+def all_active_result(psd: float | None = 0.3) -> dict:
+    """res["all_active"] as bench/__main__.py builds it (psd None: a --quick run)."""
+    core = {"e": 0.03, "egh": 0.2, **({"psd": psd} if psd else {})}
+    jax = {"e": 0.1, "egh": 0.9, **({"psd": 2.0} if psd else {})}
+    return {"n": 100_000, "fraction": 1.0, "core_1": dict(core), "core_threads": {m: 2 * t for m, t in core.items()},
+            "core": core, "jax": jax, "floor_egh": 0.02, "threads": 2,
+            "speedup": {m: jax[m] / core[m] for m in core}, "floor_fraction_egh": 0.02 / core["egh"],
+            "psd_over_exact": psd / core["egh"] if psd else None}
+
+
+def test_all_active_targets_are_issue_11s():
+    rows = {t["target"]: t for t in report.all_active_targets(all_active_result())}
+    assert len(rows) == 4
+    status = "\n".join(f"{k} {t['status']}" for k, t in rows.items())
+    assert re.search(r"E\+G\+H exact at 1e5, every joint active, vs JAX.*\*\*missed\*\* by 1\.11x", status)  # 4.5x < 5x
+    assert re.search(r"energy at 1e5, every joint active, vs JAX.* \*\*met\*\*", status)  # 3.33x
+    assert re.search(r"share of the memory-write floor \*\*missed\*\* by 1\.50x", status)  # 10% < 15%
+    assert re.search(r"psd / exact .* \*\*met\*\*", status)  # 1.5x <= 2x
+    quick = {t["target"]: t for t in report.all_active_targets({**all_active_result(None), "jax": {},
+                                                                 "speedup": {"e": None, "egh": None}})}
+    assert [t["met"] for t in quick.values()] == [None, None, False, None]  # no JAX; psd not run
+    assert "full run only" in list(quick.values())[3]["status"]
+
+
+def test_all_active_section_in_markdown():
+    md = report.markdown(synthetic_result())
+    sec = md.split("## Every joint active")[1].split("\n## ")[0]
+    assert "| E+G+H exact | 0.2 | 0.4 | 0.9 | 4.50x |" in sec
+    assert "| E+G+H psd | 0.3 | 0.6 | 2 | 6.67x |" in sec
+    assert "core at 10% of it" in sec
+
+
+def test_plot_draws_the_all_active_variants(tmp_path: Path):
+    pytest.importorskip("matplotlib")
+    res = synthetic_result()
+    res["variants"].append({**res["variants"][0], "name": report.CORE + report.ALL_ACTIVE, "egh_jps": 5e5})
+    report.plot(res, tmp_path / "p.png")
+    assert (tmp_path / "p.png").stat().st_size > 10_000
+
+
 def test_markdown_renders_every_section_and_honest_targets():
     res = synthetic_result()
     md = report.markdown(res)
     for title in ("# Speed against error", "## Targets", "## Speed and error per variant", "## Core in-process",
+                  "## Every joint active",
                   "## Peers", "## Ratios", "## HTTP on loopback", "## Model only what a scene needs",
                   "## Peak memory", "## Notes"):
         assert title in md, title
@@ -202,6 +245,8 @@ def test_bench_runs_end_to_end_at_tiny_sizes(tmp_path: Path, capsys: pytest.Capt
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json", "report.md"]
     md = (tmp_path / "report.md").read_text()
     assert "## Targets" in md and "core float64 psd" in md and "## Peak memory" in md
+    assert "## Every joint active" in md and "| E+G+H psd |" in md
+    assert "core float64 exact" + report.ALL_ACTIVE in md  # the all-active variant in the speed/error table
     # Nothing written into bench/results/.
     now = {p: p.stat().st_mtime_ns for p in report.RESULTS.glob("*")} if report.RESULTS.exists() else {}
     assert now == results

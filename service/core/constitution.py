@@ -29,12 +29,18 @@ class Curvature:
     `C` (N, k, k) symmetric. `dx_coef` (N, k) says `dx/dF = dx_coef . U` when the
     gradient lies in span(U) (None otherwise): the chain rule then needs no extra
     factor for the `E'' dx dx^T` term. Never formed as 12 x 12 on the fast paths.
+
+    `kron_factors` = (weights (N, m), vectors (N or 1, m, 4)) with `K = sum_e w_e f_e f_e^T`, when the
+    constitution knows them (else the assembly takes K's eigen-decomposition); `diagonal` says `C` is
+    diagonal. The Hessian is assembled from such signed rank-1 factors in one product.
     """
 
     kron: Array
     basis: Array
     coef: Array
     dx_coef: Array | None = None
+    kron_factors: tuple[Array, Array] | None = None
+    diagonal: bool = False
 
     def dense(self) -> Array:
         """(N, 12, 12): the generic form, for the eigensolver of the PSD projection."""

@@ -16,7 +16,7 @@ from service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames
 from service.core.parallel import run_all
 from service.core.validate import nonfinite_rows, raise_if
 
-CHUNK = 4096
+CHUNK = 1024
 """Active joints differentiated at once: bounds temporaries to a few MB whatever the batch size."""
 
 
@@ -53,9 +53,11 @@ def differentiate(
 
     active = np.flatnonzero((penalty.gap(x, lo, up)[0] > 0) & (s > 0))
     n = active.shape[0] if active_only else x.shape[0]
-    # Inactive rows are exact zeros that were never differentiated (calloc: untouched pages stay free).
-    gradient = np.zeros((n, 24), dtype=dtype) if want_g else None
-    hessian = np.zeros((n, 24, 24), dtype=dtype) if want_h else None
+    # Inactive rows are exact zeros that were never differentiated (calloc: untouched pages stay free);
+    # when every row is differentiated each is written once, with no zero-fill before.
+    alloc = np.empty if active.shape[0] == n else np.zeros
+    gradient = alloc((n, 24), dtype=dtype) if want_g else None
+    hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
     out_pos = np.arange(n) if active_only else active
 
     def chunk(start: int) -> list[int]:
@@ -68,10 +70,15 @@ def differentiate(
         h_out = None
         if want_h:
             h_out = hessian[pos[0] : pos[-1] + 1] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
-        g = _derivatives(c, F[sel], v[sel], x[sel], lo[sel], up[sel], s[sel], h_out, psd)
-        # Only active rows can overflow: checked while they are still in cache.
-        bad = (nonfinite_rows(g) if want_g else []) + (nonfinite_rows(h_out) if want_h else [])
-        if want_g:
+        g, h_finite = _derivatives(c, F[sel], v[sel], x[sel], lo[sel], up[sel], s[sel], h_out, psd)
+        # Only active rows can overflow: checked while they are still in cache (the Hessian only
+        # when its factors do not already bound it).
+        bad = nonfinite_rows(g) if want_g else []
+        if want_h and not h_finite:
+            bad += nonfinite_rows(h_out)
+        if want_g and contiguous:
+            gradient[pos[0] : pos[-1] + 1] = g
+        elif want_g:
             gradient[pos] = g
         if want_h and not contiguous:
             hessian[pos] = h_out
@@ -103,24 +110,25 @@ def differentiate(
 
 def _derivatives(
     c: Constitution, F: Array, v: Array, x: Array, lo: Array, up: Array, s: Array, h_out: Array | None, psd: bool
-) -> Array:
-    """Gradient (M, 24) of active joints; their Hessian (M, 24, 24) into `h_out` if given."""
+) -> tuple[Array, bool]:
+    """Gradient (M, 24) of active joints; their Hessian (M, 24, 24) into `h_out` if given, and whether it
+    is finite for sure (False: check it)."""
     _, dE, d2E = penalty.derivatives(x, lo, up, s)
     dx, curvature = c.derivatives(F, second=h_out is not None)
-    grad = dE[:, None] * assembly.gradient(c.alpha, v, dx)
     if h_out is None:
-        return grad
+        return dE[:, None] * assembly.gradient(c.alpha, v, dx), True
     if psd:
         projected = c.projected_curvature(dE, curvature)
         if projected is None:  # the generic route: a 12 x 12 eigensolver per joint
             basis, lam = assembly.psd_projection(dE[:, None, None] * curvature.dense())
             m = lam.shape[0]
-            projected = Curvature(kron=np.zeros((m, 4, 4), lam.dtype), basis=basis, coef=lam[:, :, None] * np.eye(12, dtype=lam.dtype))
-        # The projection already carries E': the chain rule sees E' = 1 and dx as an extra factor.
-        assembly.hessian(c.alpha, v, Curvature(projected.kron, projected.basis, projected.coef), np.ones_like(dE), d2E, h_out, dx=dx)
+            projected = Curvature(kron=np.zeros((m, 4, 4), lam.dtype), basis=basis, coef=lam[:, :, None] * np.eye(12, dtype=lam.dtype),
+                                  kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)), diagonal=True)
+        # The projection already carries E': the chain rule sees E' = 1 (E'' dx dx^T beside it, PSD as it is).
+        Jdx, finite = assembly.hessian(c.alpha, v, projected, np.ones_like(dE), d2E, h_out, dx=dx)
     else:
-        assembly.hessian(c.alpha, v, curvature, dE, d2E, h_out)
-    return grad
+        Jdx, finite = assembly.hessian(c.alpha, v, curvature, dE, d2E, h_out)
+    return dE[:, None] * Jdx, finite  # J^T dx comes with the Hessian's factors
 
 
 def collapsed_faults(

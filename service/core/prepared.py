@@ -21,6 +21,7 @@ from functools import partial
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.core import assembled
 from service.core.constitution import Array, Constitution
 from service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
 from service.core.evaluate import _increments, collapsed_faults, differentiate
@@ -459,6 +460,7 @@ def evaluate(
     dtype: type = np.float64,
     threads: int = 1,
     deadline: float | None = None,
+    layout: str = "joints",
 ) -> Evaluation:
     """Energy, gradient and Hessian of every joint, as CONTRACT.md (v1, v1.1) defines them: the
     stateless call, `prepare(bodies, batches).evaluate(bodies.q, ...)`.
@@ -470,13 +472,17 @@ def evaluate(
     > 1 evaluates the polar factors, the batches (or, for one batch, its derivative chunks) on
     that many threads, with bitwise the same results; the HTTP service keeps 1, its worker
     processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
-    `DeadlineExceeded` (checked between batches and derivative chunks).
+    `DeadlineExceeded` (checked between batches and derivative chunks). `layout` "bodies" answers
+    the gradient and Hessian summed per body (`service.core.assembled`) instead of per joint.
     """
     outputs = tuple(outputs)
     bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
     log = FaultLog()
     log.add(check_options(outputs, hessian_mode))
+    log.add(assembled.check_layout(layout))
     log.add(check_bodies(bodies))
     log.raise_if_any()
-    scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
-    return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True, deadline=deadline)
+    arrays = [_as_arrays(j) for j in batches]
+    scene = _prepare(bodies, arrays, threads, dtype, own=False)
+    ev = scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True, deadline=deadline)
+    return assembled.apply(ev, scene.n_bodies, arrays, layout, active_only)

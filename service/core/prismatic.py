@@ -25,6 +25,7 @@ _PAIRS = 0.5 * (np.outer(_D, _S) + np.outer(_S, _D))  # (4, 4) block coefficient
 # eigenvalues +-1, so the PSD part of dE PAIRS is |dE| u u^T, u chosen by the sign of dE.
 _U_PLUS = 0.5 * (_D + _S)
 _U_MINUS = 0.5 * (_D - _S)
+_UU = np.stack([_U_PLUS, _U_MINUS])[None]  # (1, 2, 4): PAIRS = u+ u+^T - u- u-^T, the chain rule's factors
 
 
 def _theta2(F: Array) -> Array:
@@ -83,13 +84,16 @@ class Prismatic:
             return dx, None
         # Rank-1 factor for E'' dx dx^T is dx itself (coefficient 0 in d2x).
         kron = np.broadcast_to(_PAIRS.astype(F.dtype), (n, 4, 4))
-        return dx, Curvature(kron=kron, basis=dx[:, None], coef=np.zeros((n, 1, 1), F.dtype), dx_coef=np.ones((n, 1), F.dtype))
+        factors = (np.broadcast_to(np.array([1.0, -1.0], F.dtype), (n, 2)), _UU.astype(F.dtype))
+        return dx, Curvature(kron=kron, basis=dx[:, None], coef=np.zeros((n, 1, 1), F.dtype),
+                             dx_coef=np.ones((n, 1), F.dtype), kron_factors=factors)
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
         u = np.where((dE >= 0)[:, None], _U_PLUS, _U_MINUS)  # (N, 4)
         kron = np.abs(dE)[:, None, None] * (u[:, :, None] * u[:, None, :])
         n = dE.shape[0]
-        return Curvature(kron=kron, basis=curvature.basis, coef=np.zeros((n, 1, 1), dE.dtype), dx_coef=curvature.dx_coef)
+        return Curvature(kron=kron, basis=curvature.basis, coef=np.zeros((n, 1, 1), dE.dtype), dx_coef=curvature.dx_coef,
+                         kron_factors=(np.abs(dE)[:, None], u[:, None]))
 
 
 PRISMATIC = Prismatic()

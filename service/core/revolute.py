@@ -7,6 +7,27 @@ F = [B_i, N_i, B_j, N_j], with B_k = A_k b_k, N_k = A_k n_k, and
 so that turning body j by +phi about +t relative to body i gives x = +phi.
 x is atan2(sin, cos) measured incrementally: its derivatives in (cos, sin) are
 those of the polar angle, d(x) = (cos d(sin) - sin d(cos)) / r^2.
+
+PSD notes (`projected_curvature`). With z_k = B_k + i N_k in C^3, w = c + i s = z_i^H z_j / 2 =
+r e^{i theta} and x = Im log w, so d2x = Im(dz_i^H dz_j / w) - Im((dw / w)^2). In R^12:
+
+    d2x/dF2 = (K (x) I_3) - (a b^T + b a^T) / r^2,
+
+a = r grad x = cos_t g_s - sin_t g_c, b = r grad log r = cos_t g_c + sin_t g_s (g_c, g_s the
+gradients of c, s). K (x) I_3 = lambda0 J with lambda0 = 1 / (2 r) and J a symmetric involution
+(J^2 = I, eigenvalues +-1 on two 6-dim spaces, projectors P_+- = (I +- J) / 2). With
+rho^2 = |F|^2 / 4 >= r: |a| = |b| = rho, a . b = 0, a . J a = b . J b = 0, b . J a = r.
+The span S of P_+-(b +- a) (<= 4 dims) is J-invariant and holds a, b; on its complement the
+matrix is lambda0 J. In the orthogonal basis P_+(b + a), P_+(b - a), P_-(b + a), P_-(b - a)
+the matrix on S splits into two 2 x 2 blocks, +-(rho^2 [[1, 0], [0, 1]] + q [[0, 1], [1, 0]]) / (2 r^2),
+q = sqrt(rho^4 - r^2). So the spectrum is +-1 / (2 r) (4 times each, generically) and
++-(rho^2 +- q) / (2 r^2), and with sigma = sign(E'), mu = |E'|, h1 = P_sigma(b + sigma a),
+h3 = P_-sigma(b - sigma a), d = b - sigma a, the PSD part of E' d2x/dF2 is exactly
+
+    mu [ lambda0 P_sigma - (h1 h1^T + h3 h3^T) / (2 r (rho^2 + r)) + d d^T / (2 r^2) ],
+
+finite for every r > 0 (the degenerate rho^2 = r, a complex-parallel frame, included).
+tests/test_psd_revolute.py checks it against `numpy.linalg.eigh`.
 """
 
 from __future__ import annotations
@@ -130,7 +151,31 @@ def _polar_derivatives(F: Array, second: bool) -> tuple[Array, Curvature | None]
     coef[:, 1, 1] = -coef[:, 0, 0]
     coef[:, 0, 1] = coef[:, 1, 0] = (s * s - c * c) / r4
     kron = x_c[:, None, None] * _COS_PAIRS + x_s[:, None, None] * _SIN_PAIRS  # (N, 4, 4)
-    return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1))
+    # K = lambda0 (P_+ - P_-), lambda0 = 1 / (2 r): see the PSD notes; f_e unnormalised (|f_e|^2 = 2).
+    r = np.sqrt(r2)
+    weights = np.empty((n, 4), dtype=F.dtype)
+    weights[:, :2] = (0.25 / r)[:, None]
+    weights[:, 2:] = -weights[:, :2]
+    factors = _kron_vectors(c / r, s / r, np.array([1.0, 1.0, -1.0, -1.0], dtype=F.dtype))
+    return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1),
+                         kron_factors=(weights, factors))
+
+
+def _kron_vectors(cos_t: Array, sin_t: Array, signs: Array) -> Array:
+    """Eigenvectors (N, m, 4) of K's involution J (sign +1 or -1 each, `signs` (m,) or (N, m), m even, the
+    pairs alike), unnormalised: (e_1, sigma R^T e_1) and (e_2, sigma R^T e_2) with R = [[-sin, cos], [-cos, -sin]]
+    the i-j block of J. Rows 0, 2, .. take e_1, rows 1, 3, .. e_2."""
+    n = cos_t.shape[0]
+    sigma = np.broadcast_to(signs, (n, signs.shape[-1]))[:, 0::2]  # (N, m / 2)
+    sc, ss = sigma * cos_t[:, None], sigma * sin_t[:, None]
+    f = np.zeros((n, sigma.shape[1], 2, 4), dtype=cos_t.dtype)  # (joint, pair, e_1 or e_2, block)
+    f[:, :, 0, 0] = 1.0
+    f[:, :, 1, 1] = 1.0
+    np.negative(ss, out=f[:, :, 0, 2])
+    f[:, :, 0, 3] = sc
+    np.negative(sc, out=f[:, :, 1, 2])
+    np.negative(ss, out=f[:, :, 1, 3])
+    return f.reshape(n, -1, 4)
 
 
 class Revolute:
@@ -191,10 +236,53 @@ class Revolute:
                 curvature.kron[bad] = np.ldexp(cv_b.kron, -(eb[:, :, None] + eb[:, None, :]))
                 curvature.basis[bad] = np.ldexp(cv_b.basis, -eb[:, None, :, None])
                 curvature.coef[bad], curvature.dx_coef[bad] = cv_b.coef, cv_b.dx_coef
+                # K = sum_m w_m f_m f_m^T: each block k of the factors scales as K's rows do.
+                curvature.kron_factors[0][bad] = cv_b.kron_factors[0]
+                curvature.kron_factors[1][bad] = np.ldexp(cv_b.kron_factors[1], -eb[:, None, :])
         return dx, curvature
 
-    def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature | None:
-        return None  # the rank-2 update mixes with K (x) I_3: the 12 x 12 eigensolver decides
+    def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
+        """The PSD part of `dE d2x/dF2` in closed form (derivation in the PSD notes of the module docstring).
+
+        `curvature` as `derivatives` returns it (g_c, g_s in `basis`, K in `kron`). Holds for every
+        frame with r > 0, which validation guarantees (collapsed frames are rejected): no eigensolver.
+        Returns kron (N, 4, 4), basis (N, 3, 4, 3) = (h1, h3, d), coef (N, 3, 3) diagonal.
+        """
+        n = dE.shape[0]
+        g_c, g_s = curvature.basis[:, 0], curvature.basis[:, 1]
+        x_c, x_s = curvature.dx_coef[:, 0], curvature.dx_coef[:, 1]  # -s / r^2, c / r^2
+        r = 1.0 / np.hypot(x_c, x_s)
+        cos_t, sin_t = (x_s * r)[:, None, None], (-x_c * r)[:, None, None]  # w = r e^{i theta}
+        rho2 = np.einsum("nkc,nkc->n", g_c, g_c)  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
+        sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype)[:, None, None]
+        mu = np.abs(dE)
+        b = cos_t * g_c + sin_t * g_s  # r grad(log r)
+        a = cos_t * g_s - sin_t * g_c  # r grad(x)
+        u = b + sign * a
+        d = b - sign * a
+
+        def J(v: Array) -> Array:
+            """`(K / lambda0) (x) I_3` on v (N, 4, 3): an involution, eigenvalues +-1."""
+            out = np.empty_like(v)
+            out[:, 0] = cos_t[:, 0] * v[:, 3] - sin_t[:, 0] * v[:, 2]
+            out[:, 1] = -cos_t[:, 0] * v[:, 2] - sin_t[:, 0] * v[:, 3]
+            out[:, 2] = -cos_t[:, 0] * v[:, 1] - sin_t[:, 0] * v[:, 0]
+            out[:, 3] = cos_t[:, 0] * v[:, 0] - sin_t[:, 0] * v[:, 1]
+            return out
+
+        basis = np.empty((n, 3, 4, 3), dtype=dE.dtype)
+        basis[:, 0] = 0.5 * (u + sign * J(u))  # h1 = P_sigma u
+        basis[:, 1] = 0.5 * (d - sign * J(d))  # h3 = P_-sigma d
+        basis[:, 2] = d
+        coef = np.zeros((n, 3, 3), dtype=dE.dtype)
+        coef[:, 0, 0] = coef[:, 1, 1] = -mu / (2.0 * r * (rho2 + r))
+        coef[:, 2, 2] = mu / (2.0 * r * r)
+        # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
+        kron = (0.5 * dE)[:, None, None] * curvature.kron
+        kron += (mu / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
+        weights = np.repeat((0.25 * mu / r)[:, None], 2, axis=1)
+        vectors = _kron_vectors(cos_t[:, 0, 0], sin_t[:, 0, 0], np.stack([sign[:, 0, 0], sign[:, 0, 0]], axis=1))
+        return Curvature(kron=kron, basis=basis, coef=coef, kron_factors=(weights, vectors), diagonal=True)
 
 
 REVOLUTE = Revolute()

@@ -55,3 +55,5 @@ class BatchResult:
 class Evaluation:
     total_energy: float
     batches: list[BatchResult] = field(default_factory=list)
+    assembled: object | None = None
+    """`service.core.assembled.Assembled` when asked for `layout="bodies"`."""

@@ -226,6 +226,7 @@ def decode(body: bytes, max_joints: int, max_batches: int | None = None) -> dict
             r.fault(("batches",), "Input should be a valid list", "list_type")
         batches = []
     outputs, hessian_mode, active_only = _options(r, top)
+    layout = _layout(r, top)
     if r.faults:
         raise InputError(r.faults)
     limits.check_joints(sum(j.body_ids.shape[0] for j in batches), max_joints)
@@ -235,6 +236,7 @@ def decode(body: bytes, max_joints: int, max_batches: int | None = None) -> dict
         outputs=outputs,
         hessian_mode=hessian_mode,
         active_only=active_only,
+        layout=layout,
     )
 
 
@@ -277,6 +279,14 @@ def _options(r: _Reader, top: dict[str, Any]) -> tuple[list[str], str, bool]:
     return outputs, hessian_mode, active_only
 
 
+def _layout(r: _Reader, top: dict[str, Any]) -> str:
+    layout = top.get("layout", "joints")
+    if layout not in ("joints", "bodies"):
+        r.fault(("layout",), "Input should be 'joints' or 'bodies'", "literal_error")
+        return "joints"
+    return layout
+
+
 def encode(ev: Evaluation) -> bytes:
     """The response document: arrays as raw little-endian buffers (one copy each, into the message)."""
     batches = []
@@ -293,4 +303,9 @@ def encode(ev: Evaluation) -> bytes:
             if a is not None:
                 out[k] = wire.pack_array(a, wire.FLOAT64)
         batches.append(out)
-    return wire.dumps({"total_energy": float(ev.total_energy), "batches": batches})
+    doc: dict[str, Any] = {"total_energy": float(ev.total_energy), "batches": batches}
+    if ev.assembled is not None:  # layout="bodies"
+        a = ev.assembled
+        doc["assembled"] = {k: wire.pack_array(getattr(a, k), wire.INT64 if k in ("rows", "cols") else wire.FLOAT64)
+                            for k in ("gradient", "rows", "cols", "blocks") if getattr(a, k) is not None}
+    return wire.dumps(doc)

@@ -97,6 +97,7 @@ def to_core(req: EvaluateRequest) -> dict[str, Any]:
         outputs=req.outputs,
         hessian_mode=req.hessian_mode,
         active_only=req.active_only,
+        layout=req.layout,
     )
 
 
@@ -113,7 +114,11 @@ def to_wire(ev: Evaluation) -> dict[str, Any]:
         if r.hessian is not None:
             out["hessian"] = r.hessian
         batches.append(out)
-    return dict(total_energy=ev.total_energy, batches=batches)
+    doc = dict(total_energy=ev.total_energy, batches=batches)
+    if ev.assembled is not None:  # layout="bodies"
+        a = ev.assembled
+        doc["assembled"] = {k: getattr(a, k) for k in ("gradient", "rows", "cols", "blocks") if getattr(a, k) is not None}
+    return doc
 
 
 FLOATS_PER_PIECE = 2**18
@@ -132,13 +137,23 @@ def encode(ev: Evaluation) -> bytes:
     doc = to_wire(ev)
     out: list[bytes | memoryview] = [b'{"total_energy":', orjson.dumps(doc["total_energy"]), b',"batches":[']
     for i, b in enumerate(doc["batches"]):
-        out.append(b"," if i else b"")
-        for j, (k, v) in enumerate(b.items()):
-            out += [b'{"' if j == 0 else b',"', k.encode(), b'":']
-            out += _array_pieces(v) if isinstance(v, np.ndarray) else [orjson.dumps(v)]
-        out.append(b"}")
-    out.append(b"]}")
+        out += [b","] if i else []
+        out += _object(b)
+    out.append(b"]")
+    if "assembled" in doc:  # layout="bodies": the per-body gradient and the block-sparse Hessian
+        out += [b',"assembled":', *_object(doc["assembled"])]
+    out.append(b"}")
     return b"".join(out)
+
+
+def _object(d: dict[str, Any]) -> list[bytes | memoryview]:
+    """A JSON object of scalars and arrays, each array in pieces (`_array_pieces`)."""
+    out: list[bytes | memoryview] = [b"{"]
+    for j, (k, v) in enumerate(d.items()):
+        out += [b',"' if j else b'"', k.encode(), b'":']
+        out += _array_pieces(v) if isinstance(v, np.ndarray) else [orjson.dumps(v)]
+    out.append(b"}")
+    return out
 
 
 def _array_pieces(a: np.ndarray) -> list[bytes | memoryview]:

@@ -20,6 +20,8 @@ FIELDS: dict[str, dict[str, str]] = {
     "EvaluateRequest": {
         "bodies": "Every body once, as three (B, 12) arrays; joints refer to bodies by row (0-based).",
         "batches": "Groups of joints, one constitution each; several batches may share a constitution.",
+        "layout": "'joints' (default): gradient and Hessian per joint, in each batch. 'bodies': summed per body "
+        "over the whole request, in `assembled` (the batches then carry index, x, coordinate, energy only).",
         "outputs": "What to compute, at least one of energy, gradient, hessian (default: all three). x and "
         "energy are always answered.",
         "hessian_mode": "exact: the true Hessian (not positive semi-definite in general); psd: the 12 x 12 "
@@ -62,6 +64,16 @@ FIELDS: dict[str, dict[str, str]] = {
         "total_energy": "Sum of every joint's energy, all batches (including the joints active_only leaves out, "
         "which are 0).",
         "batches": "One entry per request batch, in request order.",
+        "assembled": "With layout 'bodies' only: the gradient and Hessian summed per body over every joint.",
+    },
+    "AssembledResult": {
+        "gradient": "(B, 12) dE/dq_b per body b (all joints summed), in the DOF order [p, A row 0, A row 1, A row 2]. "
+        "Present when outputs has gradient.",
+        "rows": "(K,) body index of each Hessian block's rows; rows <= cols, sorted by (row, col); one entry per "
+        "pair of bodies coupled by a joint outside its range. Present when outputs has hessian.",
+        "cols": "(K,) body index of each Hessian block's columns (see rows).",
+        "blocks": "(K, 12, 12) d2E/dq_row dq_col summed over joints; the full (12B, 12B) matrix is these blocks "
+        "plus the transposes of the off-diagonal ones (rows != cols).",
     },
     "BatchResult": {
         "constitution_uid": "The request batch's constitution (670 or 669).",
@@ -143,8 +155,8 @@ EXAMPLE_RESPONSE: dict[str, Any] = {
             "energy": [0.7999999999999995],
             "gradient": [[
                 0.0, 0.0, 0.0, 0.0, 5.999999999999997, 0.0, -5.999999999999997, 0.0,
-                0.0, -0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -3.8653061234261443,
-                -4.589053123706929, 0.0, 4.589053123706929, -3.8653061234261443, -0.0, 0.0, 0.0, 0.0,
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -3.8653061234261443,
+                -4.589053123706929, 0.0, 4.589053123706929, -3.8653061234261443, 0.0, 0.0, 0.0, 0.0,
             ]],
         }
     ],

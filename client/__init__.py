@@ -8,9 +8,18 @@ core in-process with the same API. Server faults raise `ServiceError` / `Invalid
 """
 
 from client.aio import AsyncClient
-from client.errors import Fault, InvalidInput, ServiceError, TooLarge
+from client.errors import Fault, InvalidInput, ServiceError, TooLarge, Unreachable, WrongURL
 from client.local import LocalClient
-from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, BatchResult, Evaluation, JointBatch, Request
+from client.model import (
+    PRISMATIC_LIMIT,
+    REVOLUTE_LIMIT,
+    BatchResult,
+    Evaluation,
+    Joint,
+    JointBatch,
+    JointResult,
+    Request,
+)
 from client.scene import Scene, dofs, request_from_arrays
 from client.sync import Client
 
@@ -23,12 +32,16 @@ __all__ = [
     "Evaluation",
     "Fault",
     "InvalidInput",
+    "Joint",
     "JointBatch",
+    "JointResult",
     "LocalClient",
     "Request",
     "Scene",
     "ServiceError",
     "TooLarge",
+    "Unreachable",
+    "WrongURL",
     "dofs",
     "request_from_arrays",
 ]

@@ -21,7 +21,7 @@ from service.core import Bodies, Joints, evaluate  # checked itself (one code pa
 from service.core.errors import InputError
 from service.core.kinematics import BodyTable
 from tests.conftest import relerr
-from tests.reference import JointRef
+from bench.reference import JointRef
 from tests.scenes import pack, random_rotation, random_unit, rotation_about
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 

@@ -51,6 +51,8 @@ def _from_wire(req: EvaluateRequest) -> Request:
             upper=f64(j.upper),
             strength=np.full(len(j.body_ids), STRENGTH_DEFAULT) if j.strength is None else f64(j.strength),
             base_uid=j.base_uid,
+            offset=None if j.offset is None else f64(j.offset),
+            prev_coordinate=None if j.prev_coordinate is None else f64(j.prev_coordinate),
         )
         for j in req.batches
     ]

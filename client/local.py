@@ -84,7 +84,7 @@ class LocalClient:
             assembled=ev.assembled,
             total_energy=ev.total_energy,
             batches=[
-                BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate)
+                BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, coordinate=r.coordinate)
                 for r in ev.batches
             ],
         ).sized(request)

@@ -128,6 +128,8 @@ class JointResult:
     energy: float
     gradient: Array | None
     hessian: Array | None
+    coordinate: float | None = None
+    """v1.1: x + offset (None where `x` is, or from a v1 server)."""
 
 
 @dataclass(repr=False)
@@ -172,8 +174,9 @@ class BatchResult:
         at = int(np.searchsorted(index, k))  # index is ascending (rows in request order)
         if at < index.size and index[at] == k:
             pick = lambda a: None if a is None else a[at]  # noqa: E731
+            coordinate = None if self.coordinate is None else float(self.coordinate[at])
             return JointResult(self.constitution_uid, k, float(self.x[at]), float(self.energy[at]),
-                               pick(self.gradient), pick(self.hessian))
+                               pick(self.gradient), pick(self.hessian), coordinate)
         if self.size is None and (index.size == 0 or k > index[-1]):
             raise IndexError(f"joint {k} is not in this answer (its batch size is unknown)")
         zeros = lambda a, shape: None if a is None else np.zeros(shape)  # noqa: E731

@@ -72,7 +72,7 @@ def test_bad_q_is_an_input_error_naming_the_body() -> None:
     q[1, 4] = np.inf
     with pytest.raises(InputError) as e:
         scene.evaluate(q)
-    assert [f.loc for f in e.value.faults] == [("bodies", "q", 1, 4)]
+    assert [f.loc for f in e.value.faults] == [("bodies", "q", 1, 4)]  # to the element, as JSON locates it
     with pytest.raises(InputError) as e:
         scene.evaluate(q[:1])
     assert [f.loc for f in e.value.faults] == [("bodies", "q")]

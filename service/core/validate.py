@@ -194,7 +194,7 @@ def check_update_values(b: int, index: np.ndarray, values: dict[str, np.ndarray]
     if faults:
         return faults
     for name, a in values.items():
-        faults += [Fault(at(name, int(index[j])), "is not a finite number") for j in nonfinite_rows(a)]
+        faults += [Fault(at(name, int(index[j])), NONFINITE_MSG, NONFINITE_TYPE) for j in nonfinite_rows(a)]
     return faults
 
 

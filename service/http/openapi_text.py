@@ -46,9 +46,9 @@ FIELDS: dict[str, dict[str, str]] = {
         "edges": "(N, 2, 3) each joint's edge [p0, p1] in world space at q_ref: the axis t = (p1 - p0) / "
         "|p1 - p0| is the revolute axis (670) or the sliding direction (669), p0 the prismatic anchor. "
         f"{ROWS}",
-        "lower": "(N,) lower bound l of x: radians for 670, the DOFs' length unit for 669; l <= upper. "
-        f"{ROWS}",
-        "upper": f"(N,) upper bound u of x, same units as lower. {ROWS}",
+        "lower": "(N,) lower bound of the coordinate x + offset: radians for 670, the DOFs' length unit for "
+        f"669; lower <= upper. The penalty's l is lower - offset (lower itself without offset). {ROWS}",
+        "upper": f"(N,) upper bound of the coordinate x + offset, same units as lower (u = upper - offset). {ROWS}",
         "strength": "(N,) penalty strength s >= 0 (energy unit) of E = s ((x - u)/(u - l))^3 above, "
         "s ((l - x)/(u - l))^3 below, s |x - l|^3 when u == l. Optional: absent, every joint gets 1.0 "
         f"(the reference engine's default; never null). {ROWS}",

@@ -12,6 +12,7 @@ from client.errors import Fault, InvalidInput, ServiceError, TooLarge
 from client.local import LocalClient
 from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, BatchResult, Evaluation, JointBatch, Request
 from client.scene import Scene, dofs, request_from_arrays
+from client.session import SessionClosed
 from client.sync import Client
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "Request",
     "Scene",
     "ServiceError",
+    "SessionClosed",
     "TooLarge",
     "dofs",
     "request_from_arrays",

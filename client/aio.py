@@ -11,6 +11,8 @@ from client import split, transport
 from client.base import DEFAULT_URL, BaseClient
 from client.model import Evaluation, Request
 from client.progress import ProgressCallback
+from client.session import ws_url
+from client.session_aio import AsyncSession
 from schemas import ConstitutionsResponse
 
 
@@ -63,6 +65,11 @@ class AsyncClient(BaseClient):
             return job.receive(part, response)
 
         return job.merge(await asyncio.gather(*(run(part) for part in job.parts)))
+
+    def session(self, request: Request) -> AsyncSession:
+        """`async with client.session(r) as s:` (or `s = await client.session(r)`): `Client.session`, awaitable."""
+        return AsyncSession(ws_url(self._http_options["base_url"]), request, binary=self.binary,
+                            timeout=self._session_timeout(), headers=self._session_headers())
 
     async def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry()

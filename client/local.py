@@ -7,6 +7,7 @@ from types import TracebackType
 from client.errors import Fault, InvalidInput
 from client.model import BatchResult, Evaluation, Request
 from client.progress import ProgressCallback
+from client.session_local import LocalSession
 from schemas import ConstitutionsResponse, Limits
 from schemas.constitutions import describe
 from service import core
@@ -61,6 +62,10 @@ class LocalClient:
                 BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian) for r in ev.batches
             ],
         )
+
+    def session(self, request: Request) -> LocalSession:
+        """`Client.session`'s API in-process, on the core's prepared scene (bitwise the same numbers)."""
+        return LocalSession(request, threads=self.threads)
 
     def close(self) -> None:
         pass

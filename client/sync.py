@@ -11,6 +11,8 @@ from client import transport
 from client.base import DEFAULT_URL, BaseClient
 from client.model import Evaluation, Request
 from client.progress import ProgressCallback
+from client.session import ws_url
+from client.session_sync import Session
 from schemas import ConstitutionsResponse
 
 
@@ -64,6 +66,11 @@ class Client(BaseClient):
             self._limits = self.constitutions()
         job = self._job(request, progress)
         return job.merge([job.receive(part, self._send(self._evaluate_request(part))) for part in job.parts])
+
+    def session(self, request: Request) -> Session:
+        """A session on the server's prepared scene of `request` (README "Sessions"): `with client.session(r) as s:`."""
+        return Session(ws_url(self._http_options["base_url"]), request, binary=self.binary,
+                       timeout=self._session_timeout(), headers=self._session_headers())
 
     def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry()

@@ -139,6 +139,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds an idle keep-alive connection stays open; keep it above your load balancer's "
         "idle timeout (JOINTLIMITS_KEEPALIVE_TIMEOUT)",
     )
+    s.add_argument(
+        "--max-sessions",
+        type=_positive_int,
+        default=int(_env("MAX_SESSIONS", "64")),
+        help="open WebSocket sessions per worker; one more is closed with code 4429 (JOINTLIMITS_MAX_SESSIONS)",
+    )
+    s.add_argument(
+        "--max-frame-bytes",
+        type=_positive_int,
+        default=int(_env("MAX_FRAME_BYTES", str(64 * 2**20))),
+        help="largest session message; larger closes the session with code 1009 (JOINTLIMITS_MAX_FRAME_BYTES)",
+    )
+    s.add_argument(
+        "--session-idle-seconds",
+        type=float,
+        default=float(_env("SESSION_IDLE_SECONDS", "300")),
+        help="a session without a message for this long is closed with code 4408 (JOINTLIMITS_SESSION_IDLE_SECONDS)",
+    )
     s.add_argument("--backlog", type=_positive_int, default=int(_env("BACKLOG", "2048")), help="listen backlog (JOINTLIMITS_BACKLOG)")
     s.add_argument(
         "--log-level",
@@ -181,6 +199,9 @@ def serve(args: argparse.Namespace) -> int:
     os.environ[ENV_PREFIX + "MAX_JOINTS"] = str(args.max_joints)
     os.environ[ENV_PREFIX + "CORS_ORIGINS"] = args.cors_origins
     os.environ[ENV_PREFIX + "KEEP_HEAP"] = "true" if args.keep_heap else "false"
+    os.environ[ENV_PREFIX + "MAX_SESSIONS"] = str(args.max_sessions)
+    os.environ[ENV_PREFIX + "MAX_FRAME_BYTES"] = str(args.max_frame_bytes)
+    os.environ[ENV_PREFIX + "SESSION_IDLE_SECONDS"] = str(args.session_idle_seconds)
     if args.token_file:
         token = Path(args.token_file).read_text().strip()
         if not token:
@@ -226,6 +247,8 @@ def serve(args: argparse.Namespace) -> int:
             timeout_graceful_shutdown=max(1, math.ceil(args.graceful_timeout)),
             timeout_keep_alive=max(1, math.ceil(args.keepalive_timeout)),
             backlog=args.backlog,
+            ws_max_size=args.max_frame_bytes,  # uvicorn refuses a larger message itself (1009) before buffering it
+            ws_per_message_deflate=False,  # float64 arrays barely compress: deflate would only cost CPU
             server_header=False,
         )
     finally:

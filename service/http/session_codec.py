@@ -115,6 +115,17 @@ def _id(r: binary._Reader, v: Any) -> int | str | None:
     return r.int64(v, ("id",))
 
 
+def message_id(frame: Frame) -> int | str | None:
+    """The `id` of a message that could not be decoded, if it has a readable one (its fault reply repeats it)."""
+    try:
+        doc = orjson.loads(frame) if isinstance(frame, str) else wire.loads(frame)
+    except (orjson.JSONDecodeError, ValueError):
+        return None
+    v = doc.get("id") if isinstance(doc, dict) else None
+    ok = (isinstance(v, int) and not isinstance(v, bool) and -(2**63) <= v < 2**63) or (isinstance(v, str) and len(v) <= 128)
+    return v if ok else None
+
+
 # ------------------------------------------------------------------ replies
 
 

@@ -127,6 +127,8 @@ async def _serve(websocket: WebSocket, settings: Settings, metrics: Metrics) -> 
                 reply = await _answer(session, message, binary_frame, settings)
         except (InputError, HttpError) as e:
             outcome = "fault"
+            if mid is None and session is not None:
+                mid = codec.message_id(frame)
             reply = codec.encode(codec.error(e, mid), binary_frame)
             if kind == "open" and isinstance(e, HttpError) and e.status == 413:
                 await _send(websocket, reply)

@@ -11,7 +11,6 @@ from client.session_local import LocalSession
 from schemas import ConstitutionsResponse, Limits
 from schemas.constitutions import describe
 from service import core
-from service.core.validate import checked_evaluate
 
 
 class LocalClient:
@@ -44,7 +43,7 @@ class LocalClient:
             for b in request.batches
         ]
         try:
-            ev = checked_evaluate(
+            ev = core.evaluate(
                 bodies=core.Bodies(request.q, request.q_prev, request.q_ref),
                 batches=joints,
                 outputs=request.outputs,

@@ -385,8 +385,6 @@ def test_threads_keep_the_callers_error_state() -> None:
     (no RuntimeWarning escapes from the workers)."""
     import warnings
 
-    from service.core.validate import checked_evaluate
-
     sc = scene(4)
     b = sc.batches[0]
     s = b.strength.copy()
@@ -398,5 +396,5 @@ def test_threads_keep_the_callers_error_state() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         with pytest.raises(InputError) as err:
-            checked_evaluate(**sc.core_args(), threads=2)
+            evaluate(**sc.core_args(), threads=2)
     assert err.value.faults[0].loc == ("batches", 0, "strength", 0)

@@ -25,3 +25,22 @@ class InputError(ValueError):
     def __init__(self, faults: list[Fault]) -> None:
         self.faults = faults
         super().__init__("; ".join(f"{'.'.join(map(str, f.loc))}: {f.msg}" for f in faults))
+
+
+class FaultLog:
+    """The faults of one request, at most `MAX_FAULTS` in all (across batches and checks)."""
+
+    def __init__(self) -> None:
+        self.faults: list[Fault] = []
+
+    def add(self, faults: list[Fault]) -> None:
+        self.faults += faults[: MAX_FAULTS - len(self.faults)]
+
+    @property
+    def full(self) -> bool:
+        """True once the cap is reached: the pipeline stops checking."""
+        return len(self.faults) >= MAX_FAULTS
+
+    def raise_if_any(self) -> None:
+        if self.faults:
+            raise InputError(self.faults)

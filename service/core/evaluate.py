@@ -1,88 +1,23 @@
-"""Evaluate joint-limit energies, gradients and Hessians for a scene: the one entry point of the core."""
+"""A batch's energies and the derivatives of its active joints, from its frames and coordinates.
+
+The pipeline that validates and forms frames and coordinates is `service.core.prepared`.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
 from functools import partial
 
 import numpy as np
 
 from service.core import assembly, penalty
 from service.core.constitution import Array, Constitution, Curvature
-from service.core.errors import Fault, InputError
-from service.core.kinematics import (
-    PREV_STEP,
-    REF,
-    STEP,
-    STEPS,
-    TOTAL_STEP,
-    BodyTable,
-    frame_quantities,
-    relative_position,
-)
+from service.core.errors import MAX_FAULTS, Fault
+from service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP
 from service.core.parallel import run_all
-from service.core.registry import CONSTITUTIONS
-from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
-from service.core.validate import (
-    MAX_FAULTS,
-    check_bodies,
-    check_joints,
-    check_options,
-    check_rotations,
-    nonfinite_rows,
-    raise_if,
-)
+from service.core.validate import nonfinite_rows, raise_if
 
 CHUNK = 4096
 """Active joints differentiated at once: bounds temporaries to a few MB whatever the batch size."""
-
-
-def evaluate(
-    bodies: Bodies,
-    batches: Sequence[Joints],
-    outputs: Iterable[str] = OUTPUTS,
-    hessian_mode: str = "exact",
-    active_only: bool = False,
-    dtype: type = np.float64,
-    threads: int = 1,
-) -> Evaluation:
-    """Energy, gradient and Hessian of every joint, as CONTRACT.md v1 defines them.
-
-    Raises `InputError` naming every fault found. Only the outputs asked for are
-    computed, and only joints outside their range are differentiated. `dtype`
-    np.float32 runs everything after validation and the polar factors in single
-    precision (a benchmark variant: ~1e-5 relative error; the wire is float64).
-    `threads` > 1 evaluates the polar factors, the batches (or, for one batch, its
-    derivative chunks) on that many threads, with bitwise the same results; the HTTP
-    service keeps 1, its worker processes already fill the cores.
-    """
-    outputs = tuple(outputs)
-    bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
-    faults = check_options(outputs, hessian_mode) + check_bodies(bodies)
-    raise_if(faults)
-    batches = [_as_arrays(j) for j in batches]
-    # Only the increments of A (and the states they span) that the batches' constitutions read.
-    used = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
-    table = BodyTable(bodies, dtype, threads, rows={row for c in used for row in _increments(c)})
-    n_bodies = bodies.q.shape[0]
-    faults = check_rotations(table.ratio)
-    for b, joints in enumerate(batches):
-        faults += check_joints(b, joints, n_bodies)
-    raise_if(faults)
-
-    want_g, want_h = "gradient" in outputs, "hessian" in outputs
-    inner = threads if len(batches) == 1 else 1  # one level of threads: a pool never waits on itself
-    results = run_all(
-        [
-            partial(_evaluate_batch, b, j, table, want_g, want_h, hessian_mode == "psd", active_only, inner)
-            for b, j in enumerate(batches)
-        ],
-        threads,
-    )
-    total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
-    if not np.isfinite(total):
-        raise InputError([Fault(("batches",), "the total energy overflows float64")])
-    return Evaluation(total_energy=total, batches=[BatchResult(**r) for r in results])
 
 
 def _increments(c: Constitution) -> tuple[int, ...]:
@@ -90,53 +25,28 @@ def _increments(c: Constitution) -> tuple[int, ...]:
     return (TOTAL_STEP,) if c.telescopes else (PREV_STEP, STEP)
 
 
-def _as_arrays(j: Joints) -> Joints:
-    return Joints(
-        constitution_uid=int(j.constitution_uid),
-        base_uid=int(j.base_uid),
-        body_ids=np.asarray(j.body_ids, dtype=np.int64),
-        edges=np.asarray(j.edges, dtype=np.float64),
-        lower=np.asarray(j.lower, dtype=np.float64),
-        upper=np.asarray(j.upper, dtype=np.float64),
-        strength=np.asarray(j.strength, dtype=np.float64),
-    )
-
-
-def _evaluate_batch(
+def differentiate(
     b: int,
-    joints: Joints,
-    table: BodyTable,
+    c: Constitution,
+    F: Array,
+    v: Array,
+    x: Array,
+    lo: Array,
+    up: Array,
+    s: Array,
     want_g: bool,
     want_h: bool,
     psd: bool,
     active_only: bool,
     threads: int,
 ) -> dict:
-    c = CONSTITUTIONS[joints.constitution_uid]
-    pairs = np.ascontiguousarray(joints.body_ids.T)  # (2, N): contiguous indices gather 30% faster
-    dtype = table.linear.dtype
-    points = bool(c.alpha.any())
-    rows = _increments(c)
-    A_ref = table.linear_of(pairs, REF)
-    p = {state: table.positions_of(pairs, state) for row in rows for state in STEPS[row]} if points else {}
-    v = c.local_vectors(joints.edges.astype(dtype, copy=False), p.get(0), A_ref, table.rotations(pairs))
-    # Body j from body i in each state (points only), then frames at q_ref and their increments.
-    r = {state: relative_position(ps) for state, ps in p.items()}
-    F_ref = frame_quantities(r.get(0), A_ref, c.alpha, v)
+    """Energy (N,) of batch `b` at its frames `F` (N, 4, 3) and coordinate `x` (N,), and the asked-for
+    derivatives of its active joints: the fields of a `BatchResult`, plus `all_energy` (N,).
 
-    def step(row: int) -> Array:
-        s0, s1 = STEPS[row]
-        return frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.alpha, v)
-
-    steps = [step(row) for row in rows]
-    # F at q_prev (if used) and at q: where each step starts, the collapse check, the derivatives.
-    states = [F_ref]
-    for dF in steps:
-        states.append(states[-1] + dF)
-    x = c.coordinate(states[:-1], steps)
-    _raise_collapsed(b, c, dict(zip(("q_ref", "q_prev", "q") if len(states) == 3 else ("q_ref", "q"), states)))
-    F = states[-1]
-    lo, up, s = (a.astype(dtype, copy=False) for a in (joints.lower, joints.upper, joints.strength))
+    `v` (N, 4, 3) the body-local vectors; `lo`, `up` (N,) the bounds on `x`, `s` (N,) the strengths.
+    Raises `InputError` naming the joints whose energy or derivatives overflow.
+    """
+    dtype = F.dtype
     energy = penalty.energy(x, lo, up, s)
 
     active = np.flatnonzero((penalty.gap(x, lo, up)[0] > 0) & (s > 0))
@@ -210,9 +120,9 @@ def _derivatives(
     return grad
 
 
-def _raise_collapsed(b: int, c: Constitution, F: dict[str, Array]) -> None:
-    """Joints whose frame collapses in any state of `F` ((N, 4, 3) by state name)."""
-    faults = [
+def collapsed_faults(b: int, c: Constitution, F: dict[str, Array]) -> list[Fault]:
+    """Joints of batch `b` whose frame collapses in any state of `F` ((N, 4, 3) by state name)."""
+    return [
         Fault(
             ("batches", b, "body_ids", int(j)),
             f"the joint frame collapses at {state} (cos = sin = 0): the angle and its derivatives do not exist",
@@ -220,4 +130,3 @@ def _raise_collapsed(b: int, c: Constitution, F: dict[str, Array]) -> None:
         for state, Fs in F.items()
         for j in np.flatnonzero(c.collapsed(Fs))[:MAX_FAULTS]
     ]
-    raise_if(faults)

@@ -86,6 +86,7 @@ class BodyTable:
         dofs = np.empty((3, 12, n), dtype=dtype)  # (q_ref, q_prev, q; DOF; body): one transposed copy per state
         for s in {0, *(s for row in rows for s in STEPS[row])}:
             dofs[s] = q[s].T
+        self.dofs = dofs  # (state; DOF; body), the unfilled states garbage
         self.positions = dofs[:, :3]  # (state; xyz; body)
         self.linear = np.empty((4, 9, n), dtype=dtype)  # (REF..TOTAL_STEP; A[r, c]; body)
         self.linear[REF] = dofs[0, 3:]

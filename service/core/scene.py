@@ -31,11 +31,16 @@ class Joints:
     lower: Array  # (N,)
     upper: Array  # (N,)
     strength: Array  # (N,)
+    offset: Array | None = None  # (N,) v1.1: coordinate = x + offset; lower/upper bound the coordinate (None: 0)
+    prev_coordinate: Array | None = None  # (N,) v1.1, 670 only: the committed coordinate at q_prev (None: from q_prev)
 
 
 @dataclass
 class BatchResult:
-    """Rows `index` (M,) of a request batch: `x`, `energy` (M,), `gradient` (M, 24), `hessian` (M, 24, 24)."""
+    """Rows `index` (M,) of a request batch: `x`, `energy`, `coordinate` (M,), `gradient` (M, 24), `hessian` (M, 24, 24).
+
+    `coordinate` (v1.1) is `x + offset`, the coordinate the limits bound.
+    """
 
     constitution_uid: int
     index: NDArray[np.int64]
@@ -43,6 +48,7 @@ class BatchResult:
     energy: Array
     gradient: Array | None = None
     hessian: Array | None = None
+    coordinate: Array | None = None
 
 
 @dataclass

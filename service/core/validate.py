@@ -1,21 +1,25 @@
 """Checks that need arithmetic, vectorised over joints; each fault names batch, field and joint.
 
 Shapes of wire requests are already enforced by `schemas`; they are checked
-again here because the in-process API takes arbitrary arrays.
+again here because the in-process API takes arbitrary arrays. The checks are
+leaves: they return faults and evaluate nothing; the pipeline (`service.core.prepared`)
+calls them in order and caps the faults of a request (`errors.FaultLog`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
-
 import numpy as np
+from numpy.typing import NDArray
 
 from service.core.errors import MAX_FAULTS, Fault, InputError
 from service.core.kinematics import dot
 from service.core.polar import SINGULAR_RATIO
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
+
+REVOLUTE_UID = 670
+"""The one constitution with a state (`prev_coordinate`): its angle leaves (-pi, pi] over time steps."""
 
 HESSIAN_MODES = ("exact", "psd")
 
@@ -45,16 +49,21 @@ def check_options(outputs: Sequence[str], hessian_mode: str) -> list[Fault]:
     return faults
 
 
-def check_bodies(bodies: Bodies) -> list[Fault]:
+def check_bodies(bodies: Bodies, names: Sequence[str] = ("q", "q_prev", "q_ref")) -> list[Fault]:
+    """Shape (B, 12) and finiteness of the states `names`; B is the first named state's row count."""
+    first = getattr(bodies, names[0])
+    n = np.shape(first)[0] if np.ndim(first) else 0
     faults: list[Fault] = []
-    n = np.shape(bodies.q)[0] if np.ndim(bodies.q) else 0
-    for name in ("q", "q_prev", "q_ref"):
-        a = getattr(bodies, name)
-        if a.ndim != 2 or a.shape[1] != 12 or a.shape[0] != n:
-            faults.append(Fault(("bodies", name), f"must be {n} rows of 12 numbers, got shape {a.shape}"))
-            continue
-        faults += [Fault(("bodies", name, i), "contains a non-finite number") for i in nonfinite_rows(a)]
+    for name in names:
+        faults += check_dofs(name, getattr(bodies, name), n)
     return faults
+
+
+def check_dofs(name: str, a: np.ndarray, n: int) -> list[Fault]:
+    """One state `a` of the bodies: (n, 12) finite numbers (`loc` ("bodies", name, row))."""
+    if a.ndim != 2 or a.shape[1] != 12 or a.shape[0] != n:
+        return [Fault(("bodies", name), f"must be {n} rows of 12 numbers, got shape {a.shape}")]
+    return [Fault(("bodies", name, i), "contains a non-finite number") for i in nonfinite_rows(a)]
 
 
 def check_rotations(rotation_ratio: np.ndarray) -> list[Fault]:
@@ -86,6 +95,16 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
         "upper": (joints.upper, (n,)),
         "strength": (joints.strength, (n,)),
     }
+    # v1.1's optional per-joint lists.
+    state = {k: a for k in ("offset", "prev_coordinate") if (a := getattr(joints, k)) is not None}
+    shapes |= {k: (a, (n,)) for k, a in state.items()}
+    if "prev_coordinate" in state and c.uid != REVOLUTE_UID:
+        return [
+            Fault(
+                at("prev_coordinate"),
+                f"applies to revolute joints ({REVOLUTE_UID}) only: the {c.name} coordinate is absolute and has no state",
+            )
+        ]
     faults = [
         Fault(at(name), f"must have shape {want} (one row per joint of body_ids), got {a.shape}")
         for name, (a, want) in shapes.items()
@@ -93,7 +112,7 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     ]
     if faults:
         return faults
-    for name in ("edges", "lower", "upper", "strength"):
+    for name in ("edges", "lower", "upper", "strength", *state):
         faults += [Fault(at(name, j), "is not a finite number") for j in nonfinite_rows(getattr(joints, name))]
     ids = joints.body_ids
     faults += [
@@ -112,6 +131,8 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
         for j in _where(lo > up)
     ]
     faults += [Fault(at("strength", j), f"strength {float(s[j])!r} < 0: must be >= 0") for j in _where(s < 0)]
+    if "offset" in state:
+        faults += check_offset(b, lo, up, state["offset"], np.arange(n))
     with np.errstate(over="ignore", invalid="ignore"):
         # The same arithmetic as the constitutions' unit axis, so exactly the edges it cannot normalise.
         d = joints.edges[:, 1] - joints.edges[:, 0]
@@ -124,6 +145,63 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
         Fault(at("edges", j), "edge too long: |p1 - p0| overflows float64") for j in _where(~np.isfinite(length))
     ]
     return faults
+
+
+def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarray, index: NDArray[np.int64]) -> list[Fault]:
+    """Joints `index` (M,) whose bounds relative to the offset (`lower - offset`, `upper - offset`) overflow."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        bad = ~(np.isfinite(lower - offset) & np.isfinite(upper - offset))
+    return [
+        Fault(("batches", b, "offset", int(index[j])), "lower - offset or upper - offset overflows float64")
+        for j in _where(bad)
+    ]
+
+
+def check_update_index(b: int, n_batches: int, n_joints: int, index: np.ndarray) -> list[Fault]:
+    """The joints `index` of an update of batch `b`: distinct, in range (the batch has `n_joints`)."""
+    at = lambda *loc: ("batches", b, *loc)  # noqa: E731
+    if not 0 <= b < n_batches:
+        return [Fault(("batches", b), f"no batch {b}: the scene has {n_batches} batches")]
+    if index.ndim != 1 or not np.issubdtype(index.dtype, np.integer):
+        return [Fault(at("index"), f"must be a 1-d array of joint indices, got {index.dtype} of shape {index.shape}")]
+    faults = [
+        Fault(at("index", i), f"joint index {int(index[i])} out of range [0, {n_joints})")
+        for i in _where((index < 0) | (index >= n_joints))
+    ]
+    if not faults and np.unique(index).shape[0] != index.shape[0]:
+        faults.append(Fault(at("index"), "names a joint more than once"))
+    return faults
+
+
+def check_update_values(b: int, index: np.ndarray, values: dict[str, np.ndarray]) -> list[Fault]:
+    """The new `values` (name -> (M,)) of joints `index` (M,) of batch `b`: one finite number per index."""
+    at = lambda *loc: ("batches", b, *loc)  # noqa: E731
+    faults = [
+        Fault(at(name), f"must have shape {index.shape} (one entry per index), got {a.shape}")
+        for name, a in values.items()
+        if a.shape != index.shape
+    ]
+    if faults:
+        return faults
+    for name, a in values.items():
+        faults += [Fault(at(name, int(index[j])), "is not a finite number") for j in nonfinite_rows(a)]
+    return faults
+
+
+def check_update_ranges(
+    b: int, index: np.ndarray, lower: np.ndarray, upper: np.ndarray, strength: np.ndarray, offset: np.ndarray
+) -> list[Fault]:
+    """Joints `index` (M,) of batch `b` with their values after an update, each (M,): the request's range checks."""
+    at = lambda *loc: ("batches", b, *loc)  # noqa: E731
+    faults = [
+        Fault(at("lower", int(index[j])), f"lower {float(lower[j])!r} > upper {float(upper[j])!r}: the range is empty")
+        for j in _where(lower > upper)
+    ]
+    faults += [
+        Fault(at("strength", int(index[j])), f"strength {float(strength[j])!r} < 0: must be >= 0")
+        for j in _where(strength < 0)
+    ]
+    return faults + check_offset(b, lower, upper, offset, index)
 
 
 def check_evaluation(ev: Evaluation) -> list[Fault]:
@@ -141,6 +219,12 @@ def check_evaluation(ev: Evaluation) -> list[Fault]:
         for b, r in enumerate(ev.batches)
         for i in _where(~np.isfinite(r.x))
     ]
+    faults += [
+        Fault(("batches", b, "offset", int(r.index[i])), "the coordinate x + offset overflows float64")
+        for b, r in enumerate(ev.batches)
+        if r.coordinate is not None
+        for i in _where(np.isfinite(r.x) & ~np.isfinite(r.coordinate))
+    ]
     if not faults and not np.isfinite(ev.total_energy):
         faults.append(Fault(("batches",), "the total energy overflows float64"))
     return faults[:MAX_FAULTS]
@@ -149,23 +233,3 @@ def check_evaluation(ev: Evaluation) -> list[Fault]:
 def raise_if(faults: list[Fault]) -> None:
     if faults:
         raise InputError(faults)
-
-
-def checked_evaluate(bodies: Bodies, batches: Sequence[Joints], **options: Any) -> Evaluation:
-    """`service.core.evaluate` that never returns a non-finite number nor fails with a non-input error.
-
-    What the HTTP shell and the SDK's local mode call. Overflow is expected with
-    hostile numbers: warnings are silenced and every overflow becomes an
-    `InputError` naming the joint. The PSD projection (an eigensolver) fails
-    outright on a non-finite curvature; the exact mode then locates the joints.
-    """
-    from service.core.evaluate import evaluate  # evaluate imports this module
-
-    with np.errstate(all="ignore"):
-        try:
-            ev = evaluate(bodies, batches, **options)
-        except np.linalg.LinAlgError:
-            evaluate(bodies, batches, **{**options, "hessian_mode": "exact"})  # names the joints
-            raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
-    raise_if(check_evaluation(ev))
-    return ev

@@ -7,8 +7,7 @@ from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
 
 from schemas import ConstitutionsResponse, EvaluateResponse
-from service.core import InputError
-from service.core.validate import checked_evaluate
+from service.core import InputError, evaluate
 from service.http import binary, convert, discovery, limits, negotiate, openapi
 from service.http.errors import HttpError, http_error_handler, input_error_handler
 
@@ -57,7 +56,7 @@ def _evaluate(body: bytes, decoder, encoder, max_joints: int, state=None) -> byt
         state.joints_by_constitution = by_uid
         state.joints = sum(by_uid.values())
     # The core, with its guard that no answer carries NaN or Infinity (overflow is a 422 naming the joint).
-    return encoder.encode(checked_evaluate(**kwargs))
+    return encoder.encode(evaluate(**kwargs))
 
 
 def install(app: FastAPI) -> None:

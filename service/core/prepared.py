@@ -1,0 +1,393 @@
+"""A prepared scene: what does not depend on `q`, computed once, then any `q` evaluated (CONTRACT.md v1.1).
+
+`prepare` validates the static data (`q_prev`, `q_ref`, the joints), takes the polar
+factors, the body-local vectors, the frames at `q_ref` (and at `q_prev`), and the state:
+`q_prev` and the committed angles. `PreparedScene.evaluate(q)` then forms only the
+frames' step to `q`. The stateless `evaluate` is "prepare, evaluate once": one code path.
+
+The state of a revolute joint is its accumulated angle `theta` at `q_prev` (the coordinate
+minus the offset). Without a `prev_coordinate` and before any commit it is not stored: `x`
+is then summed over the steps `q_ref -> q_prev -> q` exactly as contract v1 computes it,
+so a v1 request gets bit-identical numbers. A telescoping coordinate (the prismatic slide)
+depends on `q` and `q_ref` alone and has no state.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from functools import partial
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from service.core.constitution import Array, Constitution
+from service.core.errors import Fault, FaultLog, InputError
+from service.core.evaluate import _increments, collapsed_faults, differentiate
+from service.core.kinematics import PREV_STEP, REF, STEPS, BodyTable, frame_quantities, relative_position
+from service.core.parallel import run_all
+from service.core.registry import CONSTITUTIONS
+from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
+from service.core.validate import (
+    check_bodies,
+    check_dofs,
+    check_evaluation,
+    check_joints,
+    check_options,
+    check_rotations,
+    check_update_index,
+    check_update_ranges,
+    check_update_values,
+    raise_if,
+)
+
+# 2 pi in two parts (Cody-Waite): `k * _TWO_PI_HI` is exact for |k| < 2**26 (26 trailing zero bits),
+# so `rem` of a many-turn angle loses nothing to the rounding of 2 pi.
+_TWO_PI_HI = float.fromhex("0x1.921fb54000000p+2")
+_TWO_PI_LO = (2 * np.pi - _TWO_PI_HI) + 2.4492935982947064e-16  # 2 pi - fl(2 pi), to double precision
+
+
+def rem(y: Array) -> Array:
+    """The representative of `y` (N,) modulo 2 pi closest to 0 (ties either way)."""
+    k = np.rint(y / (2 * np.pi))
+    return (y - k * _TWO_PI_HI) - k * _TWO_PI_LO
+
+
+@dataclass
+class _Batch:
+    """One batch's static data and state; arrays (N,) unless said."""
+
+    c: Constitution
+    pairs: NDArray[np.intp]  # (2, N) bodies i and j of each joint
+    v: Array  # (N, 4, 3) body-local vectors
+    F_ref: Array  # (N, 4, 3) frames at q_ref
+    starts: list[Array]  # frames where each step of `x` starts (F_ref, then F at q_prev if used)
+    fixed: list[Array]  # the steps before the last one (which goes to q): they do not depend on q
+    origin: int  # the body table state the last step starts from (0: q_ref, 1: q_prev)
+    r_origin: Array | None  # (N, 3) body j from body i in that state (points only)
+    lower: Array  # the request's bounds on the coordinate, float64 (owned: `update` writes them)
+    upper: Array
+    strength: Array
+    offset: Array
+    lo: Array  # the penalty's bounds on x (lower - offset, upper - offset) and strength, in the scene's dtype
+    up: Array
+    s: Array
+    theta: Array | None  # the committed angle at q_prev (coordinate - offset), None: summed over the steps
+
+
+class PreparedScene:
+    """A scene prepared once (`prepare`): evaluate any `q`, commit time steps, update limits.
+
+    Not thread-safe: one scene serves one caller at a time (a session, a solver loop).
+    """
+
+    def __init__(self, table: BodyTable, batches: list[_Batch], threads: int) -> None:
+        self._table = table
+        self._batches = batches
+        self._threads = threads
+        self._dtype = table.linear.dtype
+        self.n_bodies: int = table.dofs.shape[2]
+        self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches]
+
+    # ---------------------------------------------------------------- evaluate
+
+    def evaluate(
+        self,
+        q: ArrayLike,
+        outputs: Iterable[str] = OUTPUTS,
+        hessian_mode: str = "exact",
+        active_only: bool = False,
+    ) -> Evaluation:
+        """Energy, gradient and Hessian of every joint at `q` (B, 12), as CONTRACT.md defines them.
+
+        Raises `InputError` naming every fault (bad `q`: loc ("bodies", "q", i); a configuration
+        without derivatives or that overflows: the joint); never returns NaN or Infinity.
+        """
+        return self._evaluate(np.asarray(q, dtype=np.float64), tuple(outputs), hessian_mode, active_only, checked=False)
+
+    def _evaluate(self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool, checked: bool) -> Evaluation:
+        log = FaultLog()
+        log.add(check_options(outputs, hessian_mode))
+        if not checked:
+            log.add(check_dofs("q", q, self.n_bodies))
+        log.raise_if_any()
+        # Overflow is expected with hostile numbers: every overflow becomes an `InputError` naming the
+        # joint. The PSD projection (an eigensolver) fails outright on a non-finite curvature; the
+        # exact mode then locates the joints.
+        with np.errstate(all="ignore"):
+            try:
+                ev = self._run(q, outputs, hessian_mode, active_only)
+            except np.linalg.LinAlgError:
+                self._run(q, outputs, "exact", active_only)
+                raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
+        raise_if(check_evaluation(ev))
+        return ev
+
+    def _run(self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool) -> Evaluation:
+        dofs = self._step_table(q)
+        want_g, want_h = "gradient" in outputs, "hessian" in outputs
+        threads = self._threads
+        inner = threads if len(self._batches) == 1 else 1  # one level of threads: a pool never waits on itself
+        psd = hessian_mode == "psd"
+        results = run_all(
+            [
+                partial(self._evaluate_batch, b, jb, dofs, want_g, want_h, psd, active_only, inner)
+                for b, jb in enumerate(self._batches)
+            ],
+            threads,
+        )
+        total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
+        if not np.isfinite(total):
+            raise InputError([Fault(("batches",), "the total energy overflows float64")])
+        return Evaluation(total_energy=total, batches=[BatchResult(**r) for r in results])
+
+    def _step_table(self, q: Array, origins: Iterable[int] | None = None) -> dict[int, Array]:
+        """`q` (B, 12) for the steps to it: key -1 its DOFs (12, B), key `s` `A(q) - A(state s)` (9, B)
+        for each state a step starts at (`origins`, default the batches' own: 0 q_ref, 1 q_prev)."""
+        dofs = np.empty((12, self.n_bodies), dtype=self._dtype)
+        dofs[...] = q.T
+        out = {-1: dofs}
+        for origin in {jb.origin for jb in self._batches} if origins is None else origins:
+            out[origin] = np.subtract(dofs[3:], self._table.dofs[origin, 3:])
+        return out
+
+    def _step(self, jb: _Batch, dofs: dict[int, Array]) -> Array:
+        """The frames' step (N, 4, 3) from the batch's origin state to `q`."""
+        r = None
+        if jb.r_origin is not None:
+            p = np.take(dofs[-1][:3], jb.pairs, axis=1).transpose(2, 1, 0)
+            r = relative_position(p) - jb.r_origin
+        return frame_quantities(r, BodyTable._matrices(dofs[jb.origin], jb.pairs), jb.c.alpha, jb.v)
+
+    def _x(self, jb: _Batch, dF: Array) -> Array:
+        """The joint coordinate `x` (N,) at `q` from the last step `dF`."""
+        if jb.theta is None:
+            return jb.c.coordinate(jb.starts, jb.fixed + [dF])
+        return jb.theta + jb.c.coordinate(jb.starts[-1:], [dF])
+
+    def _evaluate_batch(
+        self, b: int, jb: _Batch, dofs: dict[int, Array], want_g: bool, want_h: bool, psd: bool, active_only: bool, threads: int
+    ) -> dict:
+        dF = self._step(jb, dofs)
+        x = self._x(jb, dF)
+        F = jb.starts[-1] + dF
+        raise_if(collapsed_faults(b, jb.c, {"q": F}))
+        r = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads)
+        r["coordinate"] = r["x"] + (jb.offset[r["index"]] if active_only else jb.offset)
+        return r
+
+    # ---------------------------------------------------------------- state
+
+    def commit(self, q: ArrayLike) -> list[Array]:
+        """End a time step at the accepted `q` (B, 12); the committed coordinates, one (N,) per batch.
+
+        Per revolute joint, as the contract: `r := r + rem(DeltaTheta(q, q_ref) - r)`, coordinate
+        `r + offset`; a telescoping coordinate (prismatic) commits `x(q) + offset`. Then `q_prev := q`.
+        All or nothing: a bad `q` or a collapsed frame raises `InputError` and changes nothing.
+        """
+        q = np.asarray(q, dtype=np.float64)
+        raise_if(check_dofs("q", q, self.n_bodies))
+        with np.errstate(all="ignore"):
+            dofs = self._step_table(q, origins=(0,))
+            log, new = FaultLog(), []
+            for b, jb in enumerate(self._batches):
+                F_q, x = self._from_ref(jb, dofs)
+                log.add(collapsed_faults(b, jb.c, {"q": F_q}))
+                if not jb.c.telescopes:
+                    r = self._angle(jb)
+                    x = r + rem(x - r)
+                new.append((F_q, x))
+            log.raise_if_any()
+            for jb, (F_q, x) in zip(self._batches, new):
+                if not jb.c.telescopes:
+                    jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (origin 1)
+            self._table.dofs[1] = dofs[-1]
+            return [x + jb.offset for jb, (_, x) in zip(self._batches, new)]
+
+    def _from_ref(self, jb: _Batch, dofs: dict[int, Array]) -> tuple[Array, Array]:
+        """Frames (N, 4, 3) at `q` and the coordinate from `q_ref` in one step (DeltaTheta(q, q_ref), or the slide)."""
+        r = None
+        if jb.c.alpha.any():
+            p = np.take(dofs[-1][:3], jb.pairs, axis=1).transpose(2, 1, 0)
+            p_ref = np.take(self._table.dofs[REF, :3], jb.pairs, axis=1).transpose(2, 1, 0)
+            r = relative_position(p) - relative_position(p_ref)
+        dF = frame_quantities(r, BodyTable._matrices(dofs[0], jb.pairs), jb.c.alpha, jb.v)
+        return jb.F_ref + dF, jb.c.coordinate([jb.F_ref], [dF])
+
+    def _angle(self, jb: _Batch) -> Array:
+        """The committed angle at q_prev: `theta`, or DeltaTheta(q_prev, q_ref) before any commit."""
+        if jb.theta is not None:
+            return jb.theta
+        return jb.c.coordinate(jb.starts[:1], jb.fixed[:1])
+
+    def coordinates(self) -> list[Array]:
+        """The committed coordinates at `q_prev`, one (N,) per batch (`x(q_prev) + offset`)."""
+        out = []
+        with np.errstate(all="ignore"):
+            for jb in self._batches:
+                if jb.c.telescopes:
+                    x = self._from_ref(jb, self._step_table(self._table.dofs[1].T, origins=(0,)))[1]
+                else:
+                    x = self._angle(jb)
+                out.append(x + jb.offset)
+        return out
+
+    def update(
+        self,
+        batch: int,
+        index: ArrayLike,
+        lower: ArrayLike | None = None,
+        upper: ArrayLike | None = None,
+        strength: ArrayLike | None = None,
+        offset: ArrayLike | None = None,
+    ) -> None:
+        """Set the limits, strengths or offsets of joints `index` (M,) of `batch`, each (M,) if given.
+
+        Validated as a request is (`InputError`, loc ("batches", batch, "lower", j)); all or
+        nothing. A new offset keeps the joint's physical angle: its coordinate moves with the offset.
+        """
+        index = np.asarray(index)
+        if index.dtype == object or index.size == 0:
+            index = index.astype(np.int64)
+        given = dict(lower=lower, upper=upper, strength=strength, offset=offset)
+        values = {k: np.asarray(v, dtype=np.float64) for k, v in given.items() if v is not None}
+        n = self.batch_sizes[batch] if 0 <= batch < len(self._batches) else 0
+        raise_if(check_update_index(batch, len(self._batches), n, index))
+        raise_if(check_update_values(batch, index, values))
+        jb = self._batches[batch]
+        after = {k: values[k] if k in values else getattr(jb, k)[index] for k in ("lower", "upper", "strength", "offset")}
+        raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
+        for k, a in after.items():
+            getattr(jb, k)[index] = a
+        jb.lo[index] = after["lower"] - after["offset"]
+        jb.up[index] = after["upper"] - after["offset"]
+        jb.s[index] = after["strength"]
+
+
+def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtype: type = np.float64) -> PreparedScene:
+    """A scene prepared for evaluating many `q`: `bodies.q_prev`, `bodies.q_ref` (B, 12) and the joints.
+
+    Raises `InputError` naming every fault of the static data. `bodies.q` is not used.
+    `threads` > 1 takes the polar factors and later evaluations on that many threads (bitwise
+    the same numbers). `dtype` np.float32 is the benchmark's single-precision variant.
+    """
+    q_prev, q_ref = (np.array(a, dtype=np.float64) for a in (bodies.q_prev, bodies.q_ref))
+    log = FaultLog()
+    log.add(check_bodies(Bodies(q_prev, q_prev, q_ref), names=("q_ref", "q_prev")))
+    log.raise_if_any()
+    return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype)
+
+
+def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type) -> PreparedScene:
+    """`prepare` of bodies whose states are already checked, and joints as arrays."""
+    used = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
+    # q_prev is always in the table: the state a commit replaces.
+    rows = {PREV_STEP} | {row for c in used for row in _increments(c)[:-1]}
+    table = BodyTable(bodies, dtype, threads, rows=rows)
+    n_bodies = bodies.q_ref.shape[0]
+    log = FaultLog()
+    log.add(check_rotations(table.ratio))
+    for b, joints in enumerate(batches):
+        if log.full:
+            break
+        log.add(check_joints(b, joints, n_bodies))
+    log.raise_if_any()
+    with np.errstate(all="ignore"):
+        prepared = [_prepare_batch(b, j, table, log) for b, j in enumerate(batches)]
+    log.raise_if_any()
+    return PreparedScene(table, prepared, threads)
+
+
+def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog) -> _Batch:
+    c = CONSTITUTIONS[joints.constitution_uid]
+    pairs = np.ascontiguousarray(joints.body_ids.T)  # (2, N): contiguous indices gather 30% faster
+    dtype = table.linear.dtype
+    points = bool(c.alpha.any())
+    rows = _increments(c)
+    A_ref = table.linear_of(pairs, REF)
+    origin = STEPS[rows[-1]][0]
+    states = {0, origin} | {s for row in rows[:-1] for s in STEPS[row]}
+    r = {s: relative_position(table.positions_of(pairs, s)) for s in states} if points else {}
+    p_ref = table.positions_of(pairs, 0) if points else None
+    v = c.local_vectors(joints.edges.astype(dtype, copy=False), p_ref, A_ref, table.rotations(pairs))
+    F_ref = frame_quantities(r.get(0), A_ref, c.alpha, v)
+    # The steps before the last one (q_ref -> q_prev) and where each starts.
+    starts, fixed = [F_ref], []
+    for row in rows[:-1]:
+        s0, s1 = STEPS[row]
+        dF = frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.alpha, v)
+        fixed.append(dF)
+        starts.append(starts[-1] + dF)
+    names = ("q_ref", "q_prev")[: len(starts)]
+    log.add(collapsed_faults(b, c, dict(zip(names, starts))))
+    n = pairs.shape[1]
+    offset = joints.offset if joints.offset is not None else np.zeros(n)
+    theta = None
+    if joints.prev_coordinate is not None:
+        theta = (joints.prev_coordinate - offset).astype(dtype, copy=False)
+    lower, upper, strength = (np.array(a, dtype=np.float64) for a in (joints.lower, joints.upper, joints.strength))
+    offset = np.array(offset, dtype=np.float64)
+    return _Batch(
+        c=c,
+        pairs=pairs,
+        v=v,
+        F_ref=F_ref,
+        starts=starts,
+        fixed=fixed,
+        origin=origin,
+        r_origin=r.get(origin),
+        lower=lower,
+        upper=upper,
+        strength=strength,
+        offset=offset,
+        # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
+        lo=(lower - offset).astype(dtype, copy=False),
+        up=(upper - offset).astype(dtype, copy=False),
+        s=strength.astype(dtype, copy=True),
+        theta=theta,
+    )
+
+
+def _as_arrays(j: Joints, copy: bool = False) -> Joints:
+    f64 = lambda a: None if a is None else np.array(a, dtype=np.float64, copy=copy or None)  # noqa: E731
+    return Joints(
+        constitution_uid=int(j.constitution_uid),
+        base_uid=int(j.base_uid),
+        body_ids=np.array(j.body_ids, dtype=np.int64, copy=copy or None),
+        edges=f64(j.edges),
+        lower=f64(j.lower),
+        upper=f64(j.upper),
+        strength=f64(j.strength),
+        offset=f64(j.offset),
+        prev_coordinate=f64(j.prev_coordinate),
+    )
+
+
+def evaluate(
+    bodies: Bodies,
+    batches: Sequence[Joints],
+    outputs: Iterable[str] = OUTPUTS,
+    hessian_mode: str = "exact",
+    active_only: bool = False,
+    dtype: type = np.float64,
+    threads: int = 1,
+) -> Evaluation:
+    """Energy, gradient and Hessian of every joint, as CONTRACT.md (v1, v1.1) defines them: the
+    stateless call, `prepare(bodies, batches).evaluate(bodies.q, ...)`.
+
+    Raises `InputError` naming every fault found (at most `MAX_FAULTS`); never returns NaN or
+    Infinity. Only the outputs asked for are computed, and only joints outside their range are
+    differentiated. `dtype` np.float32 runs everything after validation and the polar factors in
+    single precision (a benchmark variant: ~1e-5 relative error; the wire is float64). `threads`
+    > 1 evaluates the polar factors, the batches (or, for one batch, its derivative chunks) on
+    that many threads, with bitwise the same results; the HTTP service keeps 1, its worker
+    processes already fill the cores.
+    """
+    outputs = tuple(outputs)
+    bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
+    log = FaultLog()
+    log.add(check_options(outputs, hessian_mode))
+    log.add(check_bodies(bodies))
+    log.raise_if_any()
+    scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype)
+    return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True)

@@ -14,10 +14,7 @@ from client.model import Array, BatchResult, Evaluation, Request
 from client.session import SessionClosed, SessionState, options
 from service import core
 
-try:  # the prepared scene of branch i10-core; its stand-in until that is merged
-    from service.core.prepared import prepare
-except ImportError:  # pragma: no cover
-    from service.core.prepared_shim import prepare
+from service.core.prepared import prepare
 
 T = TypeVar("T")
 URL = "local://in-process"
@@ -25,10 +22,11 @@ URL = "local://in-process"
 
 def core_batches(request: Request) -> list[core.Joints]:
     """The request's batches as the core's `Joints` (copies: the session's own copy of the scene changes with updates)."""
-    c = np.array
+    c = lambda a: None if a is None else np.array(a)  # noqa: E731
     return [
         core.Joints(constitution_uid=b.constitution_uid, base_uid=b.base_uid if b.base_uid is not None else -1,
-                    body_ids=c(b.body_ids), edges=c(b.edges), lower=c(b.lower), upper=c(b.upper), strength=c(b.strength))
+                    body_ids=c(b.body_ids), edges=c(b.edges), lower=c(b.lower), upper=c(b.upper), strength=c(b.strength),
+                    offset=c(getattr(b, "offset", None)), prev_coordinate=c(getattr(b, "prev_coordinate", None)))
         for b in request.batches
     ]
 
@@ -46,7 +44,9 @@ def _call(fn: Callable[[], T]) -> T:
         with np.errstate(all="ignore"):
             return fn()
     except core.InputError as e:
-        raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults]) from None
+        # A session message's `q` is a top-level field, as the server names it: ("bodies", "q", i) -> ("q", i).
+        locs = [f.loc[1:] if f.loc[:2] == ("bodies", "q") else f.loc for f in e.faults]
+        raise InvalidInput(422, [Fault(("body", *loc), f.msg, f.type) for loc, f in zip(locs, e.faults)]) from None
 
 
 class LocalSession:

@@ -154,9 +154,10 @@ FAULTS = [
     ({"kind": "dance"}, ["body", "kind"]),
     ({"kind": "update", "batch": 0, "index": [1], "lower": [9.0]}, ["body", "batches", 0, "lower", 1]),
     ({"kind": "update", "batch": 0, "index": [1], "strength": [-1.0]}, ["body", "batches", 0, "strength", 1]),
-    ({"kind": "update", "batch": 5, "index": [0], "lower": [0.0]}, ["body", "batch"]),
-    ({"kind": "update", "batch": 0, "index": [3], "lower": [0.0]}, ["body", "index", 0]),
-    ({"kind": "update", "batch": 0, "index": [0, 1], "lower": [0.0]}, ["body", "lower"]),
+    # An update's faults name the scene's batch, field and joint, as the opening request would.
+    ({"kind": "update", "batch": 5, "index": [0], "lower": [0.0]}, ["body", "batches", 5]),
+    ({"kind": "update", "batch": 0, "index": [3], "lower": [0.0]}, ["body", "batches", 0, "index", 0]),
+    ({"kind": "update", "batch": 0, "index": [0, 1], "lower": [0.0]}, ["body", "batches", 0, "lower"]),
     ({"kind": "evaluate", "q": Q, "extra": 1}, ["body", "extra"]),
 ]  # fmt: skip
 

@@ -159,6 +159,11 @@ def encode_evaluation(ev: Evaluation, binary_frame: bool, id: int | str | None) 
     return (orjson.dumps(head)[:-1] + b"," + body[1:]).decode()
 
 
+def at_message_q(e: InputError) -> InputError:
+    """The core names a bad `q` as in a request (`("bodies", "q", i)`); in a session message it is `("q", i)`."""
+    return InputError([Fault(f.loc[1:], f.msg, f.type) if f.loc[:2] == ("bodies", "q") else f for f in e.faults])
+
+
 def error(exc: InputError | HttpError, id: int | str | None) -> dict[str, Any]:
     """A fault reply: HTTP's 4xx body (`detail`, every `loc` starting with "body") with its `status`."""
     if isinstance(exc, HttpError):  # these faults carry their full loc already

@@ -28,10 +28,7 @@ from service.http.errors import HttpError
 from service.observability import ACCESS_LOGGER, Metrics
 from service.settings import Settings
 
-try:  # the prepared scene of branch i10-core; its stand-in until that is merged
-    from service.core.prepared import PreparedScene, prepare
-except ImportError:  # pragma: no cover
-    from service.core.prepared_shim import PreparedScene, prepare
+from service.core.prepared import PreparedScene, prepare
 
 router = APIRouter()
 log = logging.getLogger(ACCESS_LOGGER)
@@ -209,9 +206,12 @@ async def _answer(session: Session, m: codec.Message, binary_frame: bool, settin
 
 
 async def _run(session: Session, fn: Callable[[], T]) -> T:
-    if session.joints <= INLINE_JOINTS:
-        return fn()
-    return await run_in_threadpool(fn)
+    try:
+        if session.joints <= INLINE_JOINTS:
+            return fn()
+        return await run_in_threadpool(fn)
+    except InputError as e:
+        raise codec.at_message_q(e) from None
 
 
 def _log(websocket: WebSocket, started: float, reason: str, code: int) -> None:

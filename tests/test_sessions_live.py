@@ -1,0 +1,171 @@
+"""Sessions through the SDK against a real uvicorn on 127.0.0.1: the same numbers as POST /v1/evaluate and the
+in-process modes (bitwise, golden cases), async, auth, bounds as `SessionClosed`, and reopening after a drop."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from client import AsyncClient, Client, InvalidInput, JointBatch, LocalClient, ServiceError, SessionClosed, request_from_arrays
+from schemas import session as proto
+from service.settings import Settings
+from tests.conftest import GOLDEN
+from tests.test_contract_live import LIMITS, sdk_request, serve
+
+FIELDS = ("index", "x", "energy", "gradient", "hessian")
+
+
+@pytest.fixture(scope="module")
+def live():
+    with serve() as url:
+        yield url
+
+
+def same(a, b) -> None:
+    """Bitwise the same evaluation."""
+    assert a.total_energy == b.total_energy
+    assert len(a.batches) == len(b.batches)
+    for ra, rb in zip(a.batches, b.batches):
+        assert ra.constitution_uid == rb.constitution_uid
+        for f in FIELDS:
+            fa, fb = getattr(ra, f), getattr(rb, f)
+            assert (fa is None) == (fb is None), f
+            if fa is not None:
+                assert fa.shape == fb.shape and fa.tobytes() == fb.tobytes(), f
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["msgpack", "json"])
+def test_golden_cases_are_bitwise_the_same_by_session_http_and_local(live, binary):
+    client, local = Client(live, binary=binary), LocalClient()
+    for case in GOLDEN:
+        req = sdk_request(case["request"])
+        want = client.evaluate(req)
+        same(local.evaluate(req), want)
+        with client.session(req) as s, local.session(req) as ls:
+            same(s.evaluate(req.q), want)
+            same(ls.evaluate(req.q), want)
+            # Another mode than the opening request's, per call.
+            for kw in ({"hessian_mode": "psd"}, {"outputs": ("energy",), "active_only": True}):
+                other = client.evaluate(type(req)(**{**req.__dict__, **kw}))
+                same(s.evaluate(req.q, **kw), other)
+                same(ls.evaluate(req.q, **kw), other)
+
+
+def chain(n: int = 4, turn: float = 0.7):
+    """`n` revolute joints about z between consecutive bodies, body k turned by k * turn; limits +-0.5."""
+    def pose(a):
+        c, s = np.cos(a), np.sin(a)
+        return np.array([0, 0, 0, c, -s, 0, s, c, 0, 0, 0, 1.0])
+    q = np.array([pose(k * turn) for k in range(n + 1)])
+    ref = np.array([pose(0.0)] * (n + 1))
+    ids = [[k, k + 1] for k in range(n)]
+    edges = [[[0, 0, 0], [0, 0, 1]]] * n
+    return request_from_arrays(q, [JointBatch.of(670, ids, edges, -0.5, 0.5, 10.0)], q_prev=ref, q_ref=ref), pose
+
+
+def test_async_session_has_the_same_numbers(live):
+    req, _ = chain()
+    want = Client(live).evaluate(req)
+
+    async def run():
+        async with AsyncClient(live).session(req) as s:
+            same(await s.evaluate(req.q), want)
+            coords = await s.commit(req.q)
+            with pytest.raises(InvalidInput) as e:
+                await s.evaluate(req.q[:2])
+            assert e.value.loc == ("body", "q")
+            await s.update(0, [1], upper=[2.0])
+            return coords, await s.evaluate(req.q, outputs=("energy",))
+        
+    coords, after = asyncio.run(run())
+    np.testing.assert_allclose(coords[0], want.batches[0].x, rtol=1e-14)
+    with LocalClient().session(req) as ls:
+        ls.commit(req.q)
+        ls.update(0, [1], upper=[2.0])
+        same(after, ls.evaluate(req.q, outputs=("energy",)))
+
+    async def awaited():
+        s = await AsyncClient(live).session(req)
+        try:
+            return await s.evaluate(req.q)
+        finally:
+            await s.close()
+
+    same(asyncio.run(awaited()), want)
+
+
+def test_the_bearer_token_on_the_upgrade():
+    req, _ = chain()
+    with serve(Settings(max_body_bytes=2_000_000, max_joints=400, token="s3cret", cors_origins=())) as url:
+        with pytest.raises(ServiceError) as e:
+            Client(url).session(req)
+        assert e.value.status == 401 and not isinstance(e.value, SessionClosed)
+        with Client(url, token="s3cret").session(req) as s:
+            assert s.evaluate(req.q).total_energy > 0
+
+
+def test_bounds_close_the_session_with_their_code():
+    req, _ = chain()
+    big, _ = chain(50)
+    settings = Settings(max_body_bytes=2_000_000, max_joints=20, token=None, cors_origins=(), max_sessions=1,
+                        max_frame_bytes=20_000)
+    with serve(settings) as url:
+        client = Client(url)
+        with client.session(req) as s:
+            with pytest.raises(SessionClosed) as e:
+                client.session(req)
+            assert e.value.code == proto.TOO_MANY_SESSIONS and url.replace("http", "ws") in str(e.value)
+            assert s.evaluate(req.q).total_energy > 0  # the first one is unaffected
+        with pytest.raises(ServiceError) as e:
+            client.session(big)  # 50 joints > 20: a 413 fault, then the close
+        assert e.value.status == 413
+        with client.session(req) as s:
+            with pytest.raises(SessionClosed) as e:
+                s.evaluate(np.zeros((300, 12)))  # 28.8 kB > 20 kB
+            assert e.value.code == proto.MESSAGE_TOO_BIG
+
+
+def test_a_client_that_disappears_is_closed_by_the_idle_timer_and_reopens():
+    req, pose = chain()
+    settings = Settings(max_body_bytes=2_000_000, max_joints=400, token=None, cors_origins=(), session_idle_seconds=0.5)
+    with serve(settings) as url:
+        s = Client(url).session(req)
+        q = req.q.copy()
+        q[2] = pose(0.8)
+        s.commit(q)
+        time.sleep(1.5)
+        with pytest.raises(SessionClosed) as e:
+            s.evaluate(q)
+        assert e.value.code == proto.IDLE_TIMEOUT and "ws://127.0.0.1" in str(e.value)
+        s.reopen()
+        with Client(url).session(req) as ref:
+            ref.commit(q)
+            same(s.evaluate(q), ref.evaluate(q))
+        s.close()
+
+
+def test_reopening_after_a_dropped_connection_loses_nothing(live):
+    """Steps past a half turn, a drop, a reopen: the same numbers as a session that never dropped."""
+    req, pose = chain(2)
+    q = req.q.copy()
+    with Client(live).session(req) as s, LocalClient().session(req) as ref:
+        for k in range(1, 8):  # body 2 turns 0.5 rad per step: 3.5 rad in all, past pi
+            q[2] = pose(0.5 * k)
+            assert s.commit(q)[0].tobytes() == ref.commit(q)[0].tobytes()
+        s.update(0, [1], upper=[3.0])
+        ref.update(0, [1], upper=[3.0])
+        s._ws.socket.shutdown(socket.SHUT_RDWR)  # the network drops the connection
+        with pytest.raises(SessionClosed) as e:
+            s.evaluate(q)
+        assert e.value.url == s.url
+        s.reopen()
+        assert np.array_equal(s.q_prev, q)
+        q[2] = pose(3.7)
+        same(s.evaluate(q), ref.evaluate(q))
+        assert s.commit(q)[0].tobytes() == ref.commit(q)[0].tobytes()
+        # The committed angle is the true one (past pi), not its wrapped value.
+        assert abs(ref.coordinates[0][1] - 3.7) < 1e-12

@@ -14,6 +14,7 @@ from schemas import binary as wire
 JSON = "application/json"
 BINARY = wire.MEDIA_TYPE
 _PER_JOINT = ("edges", "lower", "upper", "strength")
+_OPTIONAL = ("offset", "prev_coordinate")  # v1.1, sent only when given
 _SHAPES = {1: (-1,), 2: (-1, 24), 3: (-1, 24, 24)}  # x / energy / index, gradient, hessian
 
 
@@ -38,6 +39,7 @@ def _document(request: Request, f64: Any, i64: Any) -> dict[str, Any]:
                 "base_uid": int(b.base_uid if b.base_uid is not None else -1),
                 "body_ids": i64(b.body_ids),
                 **{k: f64(getattr(b, k)) for k in _PER_JOINT},
+                **{k: f64(a) for k in _OPTIONAL if (a := getattr(b, k, None)) is not None},
             }
             for b in request.batches
         ],
@@ -67,6 +69,7 @@ def decode(content: bytes, content_type: str) -> Evaluation:
                 energy=arr(b["energy"], 1),
                 gradient=arr(b["gradient"], 2) if "gradient" in b else None,
                 hessian=arr(b["hessian"], 3) if "hessian" in b else None,
+                coordinate=arr(b["coordinate"], 1) if "coordinate" in b else None,
             )
             for b in doc["batches"]
         ],

@@ -39,6 +39,8 @@ class LocalClient:
                 lower=b.lower,
                 upper=b.upper,
                 strength=b.strength,
+                offset=b.offset,
+                prev_coordinate=b.prev_coordinate,
             )
             for b in request.batches
         ]
@@ -58,7 +60,8 @@ class LocalClient:
         return Evaluation(
             total_energy=ev.total_energy,
             batches=[
-                BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian) for r in ev.batches
+                BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate)
+                for r in ev.batches
             ],
         )
 

@@ -17,7 +17,8 @@ BASE_UID = {REVOLUTE_LIMIT: 18, PRISMATIC_LIMIT: 20}
 @dataclass
 class JointBatch:
     """N joints of one constitution. `body_ids` (N, 2), `edges` (N, 2, 3) world space at q_ref,
-    `lower`, `upper`, `strength` (N,)."""
+    `lower`, `upper`, `strength` (N,); v1.1, optional: `offset` (N,) (coordinate = x + offset; the
+    limits bound the coordinate) and, for 670, `prev_coordinate` (N,) (the committed coordinate at q_prev)."""
 
     constitution_uid: int
     body_ids: NDArray[np.int64]
@@ -27,6 +28,8 @@ class JointBatch:
     strength: Array
     base_uid: int | None = None
     """Defaults to the constitution's base joint (18 for 670, 20 for 669)."""
+    offset: Array | None = None
+    prev_coordinate: Array | None = None
 
     def __post_init__(self) -> None:
         if self.base_uid is None:
@@ -41,8 +44,15 @@ class JointBatch:
         lower: ArrayLike,
         upper: ArrayLike,
         strength: ArrayLike = 1.0,
+        *,
+        offset: ArrayLike | None = None,
+        prev_coordinate: ArrayLike | None = None,
     ) -> JointBatch:
-        """From array-likes; scalar `lower`, `upper`, `strength` apply to every joint."""
+        """From array-likes; scalar `lower`, `upper`, `strength`, `offset`, `prev_coordinate` apply to every joint.
+
+        A solver that keeps its own state commits a time step by passing the `coordinate` it got at
+        the accepted `q` as the next step's `prev_coordinate` (with `q_prev` := that `q`).
+        """
         ids = np.asarray(body_ids, dtype=np.int64).reshape(-1, 2)
         n = ids.shape[0]
         per_joint = lambda v: np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy()  # noqa: E731
@@ -53,6 +63,8 @@ class JointBatch:
             lower=per_joint(lower),
             upper=per_joint(upper),
             strength=per_joint(strength),
+            offset=None if offset is None else per_joint(offset),
+            prev_coordinate=None if prev_coordinate is None else per_joint(prev_coordinate),
         )
 
     def __len__(self) -> int:
@@ -78,7 +90,8 @@ class Request:
 
 @dataclass
 class BatchResult:
-    """Rows `index` (M,) of a request batch: `x`, `energy` (M,), `gradient` (M, 24), `hessian` (M, 24, 24).
+    """Rows `index` (M,) of a request batch: `x`, `energy` (M,), `gradient` (M, 24), `hessian` (M, 24, 24),
+    and `coordinate` (M,) = x + offset (v1.1; None from a v1 server).
 
     Gradients and Hessians are in the DOFs `[q_i, q_j]` of the joint's two bodies.
     """
@@ -89,6 +102,7 @@ class BatchResult:
     energy: Array
     gradient: Array | None = None
     hessian: Array | None = None
+    coordinate: Array | None = None
 
 
 @dataclass

@@ -60,17 +60,37 @@ class Scene:
         return len(self._q) - 1
 
     def add_revolute_limit(
-        self, i: int, j: int, p0: ArrayLike, p1: ArrayLike, lower: float, upper: float, strength: float = STRENGTH_DEFAULT
+        self,
+        i: int,
+        j: int,
+        p0: ArrayLike,
+        p1: ArrayLike,
+        lower: float,
+        upper: float,
+        strength: float = STRENGTH_DEFAULT,
+        *,
+        offset: float = 0.0,
     ) -> int:
         """#670 on the revolute joint of bodies `i`, `j` about the edge `p0 -> p1` (world, at ref); angles in rad.
-        Returns the joint's row in the 670 batch."""
-        return self._add(REVOLUTE_LIMIT, i, j, p0, p1, lower, upper, strength)
+        `offset` is the spec's `init_angle`: the reported coordinate is x + offset, which `lower` and
+        `upper` bound. Returns the joint's row in the 670 batch."""
+        return self._add(REVOLUTE_LIMIT, i, j, p0, p1, lower, upper, strength, offset)
 
     def add_prismatic_limit(
-        self, i: int, j: int, p0: ArrayLike, p1: ArrayLike, lower: float, upper: float, strength: float = STRENGTH_DEFAULT
+        self,
+        i: int,
+        j: int,
+        p0: ArrayLike,
+        p1: ArrayLike,
+        lower: float,
+        upper: float,
+        strength: float = STRENGTH_DEFAULT,
+        *,
+        offset: float = 0.0,
     ) -> int:
-        """#669 on the prismatic joint of bodies `i`, `j` sliding along `p0 -> p1`. Returns its row in the 669 batch."""
-        return self._add(PRISMATIC_LIMIT, i, j, p0, p1, lower, upper, strength)
+        """#669 on the prismatic joint of bodies `i`, `j` sliding along `p0 -> p1`; `offset` is the spec's
+        `init_distance` (as for `add_revolute_limit`). Returns its row in the 669 batch."""
+        return self._add(PRISMATIC_LIMIT, i, j, p0, p1, lower, upper, strength, offset)
 
     def _add(self, uid: int, i: int, j: int, p0: ArrayLike, p1: ArrayLike, *limits: float) -> int:
         rows = self._joints.setdefault(uid, [])
@@ -83,8 +103,10 @@ class Scene:
         """The request: one batch per constitution, in the order first used; bodies in the order added."""
         batches = []
         for uid, rows in self._joints.items():
-            ids, edges, lower, upper, strength = zip(*rows)
-            batches.append(JointBatch.of(uid, ids, [np.stack(e) for e in edges], lower, upper, strength))
+            ids, edges, lower, upper, strength, offset = zip(*rows)
+            # v1.1's offsets only where one is set: a scene without them makes a v1 request.
+            off = offset if any(o != 0.0 for o in offset) else None
+            batches.append(JointBatch.of(uid, ids, [np.stack(e) for e in edges], lower, upper, strength, offset=off))
         stack = lambda rows: np.array(rows, dtype=np.float64).reshape(-1, 12)  # noqa: E731
         return Request(
             q=stack(self._q),

@@ -66,6 +66,7 @@ def _part(request: Request, pieces: list[tuple[int, int, int]]) -> Part:
 
 
 def _rows(b: JointBatch, start: int, stop: int) -> JointBatch:
+    optional = lambda a: None if a is None else np.asarray(a)[start:stop]  # noqa: E731
     return replace(
         b,
         body_ids=np.asarray(b.body_ids)[start:stop],
@@ -73,6 +74,8 @@ def _rows(b: JointBatch, start: int, stop: int) -> JointBatch:
         lower=np.asarray(b.lower)[start:stop],
         upper=np.asarray(b.upper)[start:stop],
         strength=np.asarray(b.strength)[start:stop],
+        offset=optional(b.offset),
+        prev_coordinate=optional(b.prev_coordinate),
     )
 
 
@@ -97,6 +100,7 @@ def merge(request: Request, parts: list[Part], results: list[Evaluation]) -> Eva
                 energy=cat("energy"),
                 gradient=cat("gradient"),
                 hessian=cat("hessian"),
+                coordinate=cat("coordinate"),
             )
         )
     return Evaluation(total_energy=float(sum(ev.total_energy for ev in results)), batches=merged)

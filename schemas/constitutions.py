@@ -12,7 +12,8 @@ class Attribute(BaseModel):
     field: str
     unit: str
     default: float | None
-    """The reference engine's default (the SDK's scene builder applies it); `None`: required."""
+    """The reference engine's default (the SDK's scene builder applies it); `None`: required, except
+    `prev_coordinate` (v1.1, optional), whose default is derived from `q_prev` as contract v1 does."""
     description: str
 
 
@@ -44,6 +45,9 @@ _COORDINATES = {
     670: ("rad", "relative angle of body j about the edge axis +t (right-hand rule), incremental"),
     669: ("length unit of the DOFs", "relative slide of body j along the edge axis +t"),
 }
+# v1.1: the spec attributes of the joint's state, by constitution (CONTRACT.md, "Contract v1.1").
+_OFFSET_NAMES = {670: "init_angle", 669: "init_distance"}
+_STATEFUL = {670: "angle"}
 STRENGTH_DEFAULT = 1.0
 """The reference engine's default `limit/strength` (`apply_to(sc, lower, upper, strength = 1)`)."""
 
@@ -58,14 +62,52 @@ def describe(uid: int, name: str, base_uid: int) -> ConstitutionInfo:
         base_name=_BASE_NAMES.get(base_uid, ""),
         coordinate=f"{meaning} [{unit}]" if unit else meaning,
         attributes=[
-            Attribute(name="limit/lower", field="lower", unit=unit, default=None, description="lower bound l of x; l <= u"),
-            Attribute(name="limit/upper", field="upper", unit=unit, default=None, description="upper bound u of x"),
+            Attribute(
+                name="limit/lower",
+                field="lower",
+                unit=unit,
+                default=None,
+                description="lower bound of the coordinate x + offset (absolute); lower <= upper",
+            ),
+            Attribute(
+                name="limit/upper", field="upper", unit=unit, default=None, description="upper bound of the coordinate x + offset"
+            ),
             Attribute(
                 name="limit/strength",
                 field="strength",
                 unit="energy unit",
                 default=STRENGTH_DEFAULT,
-                description="penalty strength s >= 0 of E = s (gap / (u - l))^3 (s |x - l|^3 when u == l)",
+                description="penalty strength s >= 0 of E = s (gap / (u - l))^3 (s |x - l|^3 when u == l), "
+                "l = lower - offset, u = upper - offset",
             ),
+            *_state_attributes(uid, unit),
         ],
     )
+
+
+def _state_attributes(uid: int, unit: str) -> list[Attribute]:
+    """v1.1: the offset (`init_angle` / `init_distance`) and, for the revolute joint, its unwrapped `angle`."""
+    out = []
+    if uid in _OFFSET_NAMES:
+        out.append(
+            Attribute(
+                name=_OFFSET_NAMES[uid],
+                field="offset",
+                unit=unit,
+                default=0.0,
+                description="the coordinate at q_ref: the reported coordinate is x + offset (v1.1)",
+            )
+        )
+    if uid in _STATEFUL:
+        out.append(
+            Attribute(
+                name=_STATEFUL[uid],
+                field="prev_coordinate",
+                unit=unit,
+                default=None,
+                description="optional: the committed, continuously unwrapped coordinate at q_prev (any number of "
+                "turns); x = (prev_coordinate - offset) + DeltaTheta(q, q_prev). Without it x starts from "
+                "DeltaTheta(q_prev, q_ref) (v1.1)",
+            )
+        )
+    return out

@@ -1,4 +1,4 @@
-"""Pydantic models of `POST /v1/evaluate` (CONTRACT.md, wire contract v1).
+"""Pydantic models of `POST /v1/evaluate` (CONTRACT.md, wire contract v1 and v1.1).
 
 Shapes are checked here (row lengths, pairs, triples); everything that needs
 arithmetic (finiteness, ranges, singular frames) is checked by the core so that
@@ -49,6 +49,12 @@ class JointBatch(_Wire):
     lower: list[Real]
     upper: list[Real]
     strength: list[Real]
+    offset: list[Real] | None = None
+    """v1.1 (both constitutions, default 0): the spec's `init_angle` / `init_distance`; coordinate =
+    x + offset, and `lower` / `upper` bound the coordinate."""
+    prev_coordinate: list[Real] | None = None
+    """v1.1 (670 only): the committed, unwrapped coordinate at `q_prev` (the spec's `angle`); then
+    x = (prev_coordinate - offset) + DeltaTheta(q, q_prev)."""
 
 
 class EvaluateRequest(_Wire):
@@ -63,6 +69,8 @@ class BatchResult(_Wire):
     constitution_uid: int
     index: list[int]
     x: list[float]
+    coordinate: list[float]
+    """v1.1: x + offset, per reported joint."""
     energy: list[float]
     gradient: list[list[float]] | None = None
     hessian: list[list[list[float]]] | None = None

@@ -114,10 +114,13 @@ def test_discovery_lists_both_constitutions_with_spec_names(live):
     by_uid = {c["uid"]: c for c in body["constitutions"]}
     assert by_uid[670]["base_uid"] == 18 and by_uid[670]["name"] == "AffineBodyRevoluteJointLimit"
     assert by_uid[669]["base_uid"] == 20 and by_uid[669]["name"] == "AffineBodyPrismaticJointLimit"
-    for c in by_uid.values():
+    state = {670: {"init_angle": "offset", "angle": "prev_coordinate"}, 669: {"init_distance": "offset"}}  # v1.1
+    for uid, c in by_uid.items():
         names = {a["name"]: a for a in c["attributes"]}
-        assert set(names) == {"limit/lower", "limit/upper", "limit/strength"}
+        assert set(names) == {"limit/lower", "limit/upper", "limit/strength", *state[uid]}
         assert names["limit/strength"]["default"] == 1.0 and names["limit/lower"]["default"] is None
+        assert {n: names[n]["field"] for n in state[uid]} == state[uid]
+        assert names[next(iter(state[uid]))]["default"] == 0.0  # the offset
     assert {a["unit"] for a in by_uid[670]["attributes"]} >= {"rad"}
     assert body["limits"] == {"max_body_bytes": 2_000_000, "max_joints": 400}
     assert Client(live).constitutions().model_dump() == body

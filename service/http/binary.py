@@ -22,9 +22,10 @@ MEDIA_TYPE = wire.MEDIA_TYPE
 _REQUEST_KEYS = {"bodies": True, "batches": True, "outputs": False, "hessian_mode": False, "active_only": False}
 _BODY_KEYS = {"q": True, "q_prev": True, "q_ref": True}
 _JOINT_ARRAYS = {"body_ids": (wire.INT64, 2), "edges": (wire.FLOAT64, 3)} | {
-    k: (wire.FLOAT64, 1) for k in ("lower", "upper", "strength")
+    k: (wire.FLOAT64, 1) for k in ("lower", "upper", "strength", "offset", "prev_coordinate")
 }
-_BATCH_KEYS = {"constitution_uid": True, "base_uid": True} | {k: True for k in _JOINT_ARRAYS}
+_OPTIONAL = {"offset", "prev_coordinate"}  # v1.1
+_BATCH_KEYS = {"constitution_uid": True, "base_uid": True} | {k: k not in _OPTIONAL for k in _JOINT_ARRAYS}
 _INT64_RANGE = range(-(2**63), 2**63)
 _EMPTY = {"f": np.zeros((0, 12)), "i": np.zeros((0, 2), dtype=np.int64)}
 
@@ -108,6 +109,8 @@ def _batch(r: _Reader, b: int, raw: Any) -> Joints:
         lower=arrays.get("lower", np.zeros(0)),
         upper=arrays.get("upper", np.zeros(0)),
         strength=arrays.get("strength", np.zeros(0)),
+        offset=arrays.get("offset"),
+        prev_coordinate=arrays.get("prev_coordinate"),
     )
 
 
@@ -135,6 +138,7 @@ def encode(ev: Evaluation) -> bytes:
             "constitution_uid": res.constitution_uid,
             "index": wire.pack_array(res.index, wire.INT64),
             "x": wire.pack_array(res.x, wire.FLOAT64),
+            **({} if res.coordinate is None else {"coordinate": wire.pack_array(res.coordinate, wire.FLOAT64)}),
             "energy": wire.pack_array(res.energy, wire.FLOAT64),
         }
         for k in ("gradient", "hessian"):

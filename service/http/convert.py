@@ -46,6 +46,8 @@ def to_core(req: EvaluateRequest) -> dict[str, Any]:
                 lower=np.asarray(j.lower, dtype=np.float64),
                 upper=np.asarray(j.upper, dtype=np.float64),
                 strength=np.asarray(j.strength, dtype=np.float64),
+                offset=None if j.offset is None else np.asarray(j.offset, dtype=np.float64),
+                prev_coordinate=None if j.prev_coordinate is None else np.asarray(j.prev_coordinate, dtype=np.float64),
             )
             for j in req.batches
         ],
@@ -56,10 +58,13 @@ def to_core(req: EvaluateRequest) -> dict[str, Any]:
 
 
 def to_wire(ev: Evaluation) -> dict[str, Any]:
-    """The response body of contract v1 as NumPy arrays; `gradient`/`hessian` only when computed."""
+    """The response body of contract v1.1 as NumPy arrays; `gradient`/`hessian` only when computed."""
     batches = []
     for r in ev.batches:
-        out: dict[str, Any] = dict(constitution_uid=r.constitution_uid, index=r.index, x=r.x, energy=r.energy)
+        out: dict[str, Any] = dict(constitution_uid=r.constitution_uid, index=r.index, x=r.x)
+        if r.coordinate is not None:
+            out["coordinate"] = r.coordinate
+        out["energy"] = r.energy
         if r.gradient is not None:
             out["gradient"] = r.gradient
         if r.hessian is not None:

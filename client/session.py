@@ -59,7 +59,6 @@ class SessionState:
         self.request = replace(request, batches=[copy.deepcopy(b) for b in request.batches])
         self.q_prev: Array = np.array(request.q_prev, dtype=np.float64)
         self.coordinates: list[Array] = []
-        self.offsets: list[Array] = [np.zeros(len(b)) for b in request.batches]
         self.bytes_sent = self.bytes_received = 0
 
     # ---------------------------------------------------------------- frames out
@@ -146,8 +145,9 @@ class SessionState:
         for k, v in values.items():
             if v is None:
                 continue
-            target = self.offsets[batch] if k == "offset" else getattr(b, k)
-            target[idx] = np.asarray(v, dtype=np.float64).reshape(-1)
+            if getattr(b, k) is None:  # an offset given for the first time: the others stay 0
+                setattr(b, k, np.zeros(len(b)))
+            getattr(b, k)[idx] = np.asarray(v, dtype=np.float64).reshape(-1)
 
     def _array(self, v: Any) -> Array:
         if isinstance(v, dict):
@@ -160,11 +160,9 @@ class SessionState:
         """A request that opens a session in this one's committed state: `q_prev` and `q` the last committed
         `q`, the scene as updated, the committed angles of revolute joints as `prev_coordinate` (contract v1.1)."""
         batches = []
-        for b, offset, coords in zip(self.request.batches, self.offsets, self.coordinates or [None] * len(self.offsets)):
+        for b, coords in zip(self.request.batches, self.coordinates or [None] * len(self.request.batches)):
             nb = copy.deepcopy(b)
-            if hasattr(nb, "offset"):
-                nb.offset = offset.copy()
-            if hasattr(nb, "prev_coordinate") and coords is not None and nb.constitution_uid == REVOLUTE_LIMIT:
+            if coords is not None and nb.constitution_uid == REVOLUTE_LIMIT:  # a slide is absolute: no state
                 nb.prev_coordinate = coords.copy()
             batches.append(nb)
         q = self.q_prev.copy()

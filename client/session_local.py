@@ -26,7 +26,7 @@ def core_batches(request: Request) -> list[core.Joints]:
     return [
         core.Joints(constitution_uid=b.constitution_uid, base_uid=b.base_uid if b.base_uid is not None else -1,
                     body_ids=c(b.body_ids), edges=c(b.edges), lower=c(b.lower), upper=c(b.upper), strength=c(b.strength),
-                    offset=c(getattr(b, "offset", None)), prev_coordinate=c(getattr(b, "prev_coordinate", None)))
+                    offset=c(b.offset), prev_coordinate=c(b.prev_coordinate))
         for b in request.batches
     ]
 
@@ -34,7 +34,7 @@ def core_batches(request: Request) -> list[core.Joints]:
 def result(ev: core.Evaluation) -> Evaluation:
     return Evaluation(
         total_energy=ev.total_energy,
-        batches=[BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian) for r in ev.batches],
+        batches=[BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate) for r in ev.batches],
     )
 
 

@@ -64,7 +64,9 @@ class Session:
 
     def _open(self) -> None:
         try:
-            self._ws = connect(self.url, additional_headers=self.headers, open_timeout=self.timeout, **CONNECT_OPTIONS)
+            # `legacy=True`: websockets 17's explicit "return the connection" (closed by us, not by a `with`).
+            self._ws = connect(self.url, additional_headers=self.headers, open_timeout=self.timeout, legacy=True,
+                               **CONNECT_OPTIONS)
         except Exception as e:
             raise handshake_error(self.url, e) from None
         self.state.opened(self._exchange(self.state.open_frame()))

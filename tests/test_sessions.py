@@ -312,3 +312,18 @@ def test_a_client_going_away_mid_session_ends_it_cleanly():
         assert time.monotonic() < deadline, text
         time.sleep(0.01)
     assert 'reason="error"' not in text
+
+
+def test_the_readme_hex_example_is_what_the_service_sends():
+    from pathlib import Path
+
+    from service.http import session_codec
+
+    text = (Path(__file__).parent.parent / "README.md").read_text()
+    block = text.split("For a scene of one revolute batch of one joint", 1)[1].split("```\n", 2)[1]
+    dump = bytes.fromhex(" ".join(line.split("  ")[0] for line in block.splitlines()))
+    reply = session_codec.encode({"kind": "committed", "coordinates": [np.array([0.7]), np.zeros(0)]}, True)
+    assert dump == reply and len(reply) == 89
+    assert msgpack.unpackb(pack({"kind": "commit", "q": np.zeros((2, 12))}))["q"]["data"] == bytes(192)
+    assert pack({"kind": "commit", "q": np.zeros((2, 12))})[:42].hex() == (
+        "82a46b696e64a6636f6d6d6974a17183a56474797065a33c6638a5736861706592020ca464617461c4c0")

@@ -8,8 +8,11 @@ rather than from hand-derived formulas. The revolute angle is differentiated as
 `atan2` partials. The chain rule `F -> q` uses `J = dF/dq` built from the
 definition `F_k = alpha_k p + A v_k`, explicitly and sparsely.
 
-Use `reference_request(request)` for a whole CONTRACT v1 request dict, or
-`JointRef` for one joint (e.g. to finite-difference the reference energy).
+Use `reference_request(request)` for a whole CONTRACT v1 / v1.1 request dict, or
+`JointRef` for one joint (e.g. to finite-difference the reference energy). v1.1's
+`offset` shifts the bounds (`l = lower - offset`, `u = upper - offset`, exactly, at 50 digits)
+and the reported `coordinate = x + offset`; `prev_coordinate` replaces the accumulated angle
+`DeltaTheta(q_prev, q_ref)` by `prev_coordinate - offset`.
 """
 
 from __future__ import annotations
@@ -200,11 +203,14 @@ class JointResult:
     gradient: list
     hessian_exact: Mat
     hessian_psd: Mat
+    coordinate: Any = None
+    """x + offset (v1.1)."""
 
     def as_float(self) -> dict[str, np.ndarray]:
         f = lambda a: np.array([[float(v) for v in row] for row in a] if isinstance(a[0], list) else [float(v) for v in a])  # noqa: E731
         return dict(
             x=float(self.x),
+            coordinate=float(self.x if self.coordinate is None else self.coordinate),
             energy=float(self.energy),
             gradient=f(self.gradient),
             hessian_exact=f(self.hessian_exact),
@@ -266,10 +272,13 @@ class JointRef:
             F.append([Av[r] + p[r] for r in range(3)] if self.alpha[k] else Av)
         return F
 
-    def _x_value(self, F: list, F_prev: list, F_ref: list) -> Any:
+    def _x_value(self, F: list, F_prev: list, F_ref: list, theta_prev: Any = None) -> Any:
+        """x; `theta_prev` (v1.1, 670: prev_coordinate - offset) replaces DeltaTheta(q_prev, q_ref)."""
         if self.uid == 670:
             cs_prev = _cos_sin(F_prev)
-            return _delta_theta(cs_prev, _cos_sin(F_ref)) + _delta_theta(_cos_sin(F), cs_prev)
+            if theta_prev is None:
+                theta_prev = _delta_theta(cs_prev, _cos_sin(F_ref))
+            return theta_prev + _delta_theta(_cos_sin(F), cs_prev)
         th_prev = _theta(F_prev)
         return (th_prev - _theta(F_ref)) + (_theta(F) - th_prev)
 
@@ -316,16 +325,21 @@ class JointRef:
         upper: float,
         strength: float,
         derivatives: bool = True,
+        offset: float = 0.0,
+        prev_coordinate: float | None = None,
     ) -> JointResult:
-        """x, E and (if asked) the gradient and both Hessians w.r.t. [q_i, q_j]."""
+        """x, E and (if asked) the gradient and both Hessians w.r.t. [q_i, q_j]; v1.1's `offset` and
+        `prev_coordinate` (670 only) as CONTRACT.md defines them."""
         with mp.workdps(DPS):
+            off = mpf(float(offset))
+            theta_prev = None if prev_coordinate is None else mpf(float(prev_coordinate)) - off
             F = self.frames(*q)
-            x = self._x_value(F, self.frames(*q_prev), self.frames(*q_ref))
-            E, dE, d2E = penalty_jet(x, lower, upper, strength)
+            x = self._x_value(F, self.frames(*q_prev), self.frames(*q_ref), theta_prev)
+            E, dE, d2E = penalty_jet(x, mpf(float(lower)) - off, mpf(float(upper)) - off, strength)
             zero_g = [mpf(0)] * 24
             zero_h = [[mpf(0)] * 24 for _ in range(24)]
             if not derivatives or dE == 0:
-                return JointResult(x, E, zero_g, zero_h, [row[:] for row in zero_h])
+                return JointResult(x, E, zero_g, zero_h, [row[:] for row in zero_h], x + off)
             xj = self._x_jet(F)
             dx, Hx = xj.grad(12), xj.hess(12)
             rank1 = [[d2E * dx[a] * dx[b] for b in range(12)] for a in range(12)]
@@ -338,7 +352,7 @@ class JointRef:
             for f, row in enumerate(J):
                 for col, coef in row:
                     grad[col] += dE * dx[f] * coef
-            return JointResult(x, E, grad, _congruence(J, M_exact), _congruence(J, M_psd))
+            return JointResult(x, E, grad, _congruence(J, M_exact), _congruence(J, M_psd), x + off)
 
 
 def _psd(M: Mat) -> Mat:
@@ -372,25 +386,32 @@ def _congruence(J: list[list[tuple[int, Any]]], M: Mat) -> Mat:
 
 
 def reference_request(request: Mapping[str, Any], derivatives: bool = True) -> list[dict[str, Any]]:
-    """Every joint of a CONTRACT v1 request dict, per batch, as float64 arrays rounded from 50 digits.
+    """Every joint of a CONTRACT v1 / v1.1 request dict, per batch, as float64 arrays rounded from 50 digits.
 
-    Each batch: `x`, `energy` (N,), `gradient` (N, 24), `hessian_exact`, `hessian_psd` (N, 24, 24),
-    and `mp` (the `JointResult`s). Inactive joints have exact zeros.
+    Each batch: `x`, `coordinate`, `energy` (N,), `gradient` (N, 24), `hessian_exact`, `hessian_psd`
+    (N, 24, 24), and `mp` (the `JointResult`s). Inactive joints have exact zeros.
     """
     bodies = request["bodies"]
     q, q_prev, q_ref = (np.asarray(bodies[k], dtype=np.float64) for k in ("q", "q_prev", "q_ref"))
     out = []
     for batch in request["batches"]:
         res = []
-        for (i, j), edge, lo, up, s in zip(batch["body_ids"], batch["edges"], batch["lower"], batch["upper"], batch["strength"]):
+        n = len(batch["body_ids"])
+        offsets = batch.get("offset") or [0.0] * n
+        prev = batch.get("prev_coordinate") or [None] * n
+        rows = zip(batch["body_ids"], batch["edges"], batch["lower"], batch["upper"], batch["strength"], offsets, prev)
+        for (i, j), edge, lo, up, s, off, pc in rows:
             ref = JointRef(int(batch["constitution_uid"]), q_ref[i], q_ref[j], edge)
-            res.append(ref.evaluate((q[i], q[j]), (q_prev[i], q_prev[j]), (q_ref[i], q_ref[j]), lo, up, s, derivatives))
+            res.append(
+                ref.evaluate((q[i], q[j]), (q_prev[i], q_prev[j]), (q_ref[i], q_ref[j]), lo, up, s, derivatives, off, pc)
+            )
         flo = [r.as_float() for r in res]
         n = len(flo)
         out.append(
             dict(
                 constitution_uid=int(batch["constitution_uid"]),
                 x=np.array([f["x"] for f in flo]),
+                coordinate=np.array([f["coordinate"] for f in flo]),
                 energy=np.array([f["energy"] for f in flo]),
                 gradient=np.array([f["gradient"] for f in flo]).reshape(n, 24),
                 hessian_exact=np.array([f["hessian_exact"] for f in flo]).reshape(n, 24, 24),

@@ -255,3 +255,22 @@ def test_local_mode_has_the_same_api_and_numbers(live):
     with LocalClient(binary=True, timeout=5) as local, Client(live) as remote:
         _same_rows(local.evaluate(request), remote.evaluate(request))
         assert local.constitutions().constitutions == remote.constitutions().constitutions
+
+
+def test_split_carries_the_v11_state_per_joint(live):
+    """offset and prev_coordinate are sliced with their joints; coordinate is merged with x."""
+    request = chain(300, 1000, seed=5)
+    rng = np.random.default_rng(5)
+    rev, pri = request.batches
+    request.batches = [
+        replace(rev, offset=rng.uniform(-1, 1, len(rev)), prev_coordinate=rng.uniform(-20, 20, len(rev))),
+        replace(pri, offset=rng.uniform(-1, 1, len(pri))),
+    ]
+    with Client(live) as client:  # 400 joints per request: three parts
+        ev = client.evaluate(request)
+    local = LocalClient().evaluate(request)
+    _same_rows(ev, local)
+    for r, l in zip(ev.batches, local.batches):
+        np.testing.assert_array_equal(r.coordinate, l.coordinate)
+    off = request.batches[0].offset
+    np.testing.assert_array_equal(local.batches[0].coordinate, local.batches[0].x + off)

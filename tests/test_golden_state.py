@@ -103,3 +103,15 @@ def test_coordinate_sits_next_to_x_in_both_encodings():
         keys = list(doc["batches"][0])
         assert keys[keys.index("x") + 1] == "coordinate"
     assert as_msgpack["batches"][0]["coordinate"]["dtype"] == "<f8"
+
+
+def test_reference_reproduces_the_state_cases(case):
+    """The project's own 50-digit reference, extended with offset and prev_coordinate, agrees with the cases."""
+    from tests.reference import reference_request
+
+    ref = reference_request(case["request"])
+    mode = "hessian_" + case["request"]["hessian_mode"]
+    for got, want in zip(ref, case["expect"]):
+        for f in FIELDS:
+            # Both sides are 50-digit answers rounded to float64: a few ulps apart at most.
+            assert relerr(got[mode if f == "hessian" else f], want[f]) <= 1e-15, f

@@ -12,7 +12,7 @@ import asyncio
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -39,13 +39,14 @@ INLINE_JOINTS = 256
 the evaluation (tens of microseconds). Larger ones run in a worker thread, so the loop stays free."""
 
 
-def admit(settings: Settings, n_joints: int, outputs: tuple[str, ...] = ("energy",)) -> None:
-    """The one admission check of a session's work: at open (the scene) and before each evaluate.
+def admit(settings: Settings, batch_joints: list[int], outputs: Sequence[str], binary_answer: bool) -> None:
+    """The one admission check of a session's work: the opening scene, then each `evaluate` (its outputs).
 
-    Raises `HttpError` 413. Bounds the scene's joints by `max_joints`, as HTTP bounds a request;
-    point it at HTTP's cost admission where there is one (the same joints, the same outputs).
+    Raises `HttpError` 413 (a fault reply; at open, then close 4413). Today it bounds the scene's
+    joints by `max_joints`, as HTTP bounds a request. Where HTTP admits by cost (branch i9-admit's
+    `limits.admit(joints=, batches=, outputs=, binary_answer=, settings=)`) this is its one call.
     """
-    limits.check_joints(n_joints, settings.max_joints)
+    limits.check_joints(sum(batch_joints), settings.max_joints)
 
 
 class Closing(Exception):
@@ -171,8 +172,8 @@ async def _send(websocket: WebSocket, reply: codec.Frame) -> None:
 async def _open(frame: codec.Frame, settings: Settings) -> tuple[Session, codec.Frame]:
     def work() -> tuple[Session, codec.Frame]:
         kwargs = codec.decode_open(frame, settings.max_joints)
-        n = sum(int(j.body_ids.shape[0]) for j in kwargs["batches"])
-        admit(settings, n)
+        batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
+        admit(settings, batch_joints, kwargs["outputs"], isinstance(frame, bytes))
         scene = prepare(kwargs["bodies"], kwargs["batches"])
         defaults = {k: kwargs[k] for k in ("outputs", "hessian_mode", "active_only")}
         opened = {
@@ -182,7 +183,7 @@ async def _open(frame: codec.Frame, settings: Settings) -> tuple[Session, codec.
             "coordinates": scene.coordinates(),
             "limits": {"max_frame_bytes": settings.max_frame_bytes, "idle_seconds": settings.session_idle_seconds},
         }
-        return Session(scene, defaults, n), codec.encode(opened, isinstance(frame, bytes))
+        return Session(scene, defaults, sum(batch_joints)), codec.encode(opened, isinstance(frame, bytes))
 
     return await run_in_threadpool(work)
 
@@ -191,7 +192,7 @@ async def _answer(session: Session, m: codec.Message, binary_frame: bool, settin
     scene = session.scene
     if m.kind == proto.EVALUATE:
         options = {**session.defaults, **m.options}
-        admit(settings, session.joints, tuple(options["outputs"]))
+        admit(settings, list(scene.batch_sizes), options["outputs"], binary_frame)
         ev: Evaluation = await _run(session, lambda: scene.evaluate(m.q, **options))
         return codec.encode_evaluation(ev, binary_frame, m.id)
     if m.kind == proto.COMMIT:

@@ -169,3 +169,24 @@ def test_reopening_after_a_dropped_connection_loses_nothing(live):
         assert s.commit(q)[0].tobytes() == ref.commit(q)[0].tobytes()
         # The committed angle is the true one (past pi), not its wrapped value.
         assert abs(s.coordinates[0][1] - 3.5) < 1e-12
+
+
+def test_jointlimits_serve_passes_the_session_bounds():
+    """`jointlimits serve --max-frame-bytes --max-sessions --session-idle-seconds` reach every worker; uvicorn's own
+    message limit (`ws_max_size`, set from --max-frame-bytes) closes with 1009 too."""
+    from service.loadtest import LOOPBACK, Server
+    from tests.test_cli import console_script
+
+    req, _ = chain()
+    server = Server(workers=1, command=console_script(),
+                    extra_args=["--max-frame-bytes", "20000", "--max-sessions", "1", "--session-idle-seconds", "30"])
+    with server:
+        client = Client(f"http://{LOOPBACK}:{server.port}")
+        with client.session(req) as s:
+            assert s.evaluate(req.q).total_energy > 0
+            with pytest.raises(SessionClosed) as e:
+                client.session(req)
+            assert e.value.code == proto.TOO_MANY_SESSIONS
+            with pytest.raises(SessionClosed) as e:
+                s.evaluate(np.zeros((300, 12)))
+            assert e.value.code == proto.MESSAGE_TOO_BIG

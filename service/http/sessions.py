@@ -88,7 +88,7 @@ async def sessions(websocket: WebSocket) -> None:
         reason, code = "client", proto.NORMAL
     except Closing as c:
         reason, code = c.metric, c.code
-        await websocket.close(c.code, c.reason)
+        await _close(websocket, c.code, c.reason)
     except WebSocketDisconnect as d:
         reason, code = ("client" if d.code == proto.NORMAL else "disconnect"), d.code
     except asyncio.CancelledError:
@@ -96,7 +96,7 @@ async def sessions(websocket: WebSocket) -> None:
         raise
     except Exception:
         logging.getLogger("jointlimits").exception("session failed")
-        await websocket.close(proto.INTERNAL_ERROR, "internal error")
+        await _close(websocket, proto.INTERNAL_ERROR, "internal error")
     finally:
         state.open_sessions -= 1
         metrics.sessions_open.dec()
@@ -160,6 +160,14 @@ async def _receive(websocket: WebSocket, settings: Settings) -> codec.Frame:
             "frame_too_large",
         )
     return frame
+
+
+async def _close(websocket: WebSocket, code: int, reason: str) -> None:
+    """Close with `code`; a client already gone has nothing left to tell. A close reason holds 123 bytes."""
+    try:
+        await websocket.close(code, reason.encode()[:123].decode(errors="ignore"))
+    except (RuntimeError, OSError, WebSocketDisconnect):
+        pass
 
 
 async def _send(websocket: WebSocket, reply: codec.Frame) -> None:

@@ -327,3 +327,19 @@ def test_the_readme_hex_example_is_what_the_service_sends():
     assert msgpack.unpackb(pack({"kind": "commit", "q": np.zeros((2, 12))}))["q"]["data"] == bytes(192)
     assert pack({"kind": "commit", "q": np.zeros((2, 12))})[:42].hex() == (
         "82a46b696e64a6636f6d6d6974a17183a56474797065a33c6638a5736861706592020ca464617461c4c0")
+
+
+def test_a_scene_over_the_inline_size_is_evaluated_in_a_thread_with_the_same_numbers():
+    from service.http.sessions import INLINE_JOINTS
+
+    body = scene(INLINE_JOINTS + 44, seed=5)
+    c = app()
+    http = c.post("/v1/evaluate", json={**body, "hessian_mode": "psd"}).json()
+    with c.websocket_connect(PATH) as ws:
+        s = Binary(ws)
+        assert s.send(body)["batch_sizes"] == [150, 150]
+        ev = s.send({"kind": "evaluate", "q": body["bodies"]["q"], "hessian_mode": "psd"})
+        del ev["kind"]
+        same(ev, http)
+        reply = s.send({"kind": "commit", "q": body["bodies"]["q"][:-1]})
+        assert reply["status"] == 422 and reply["detail"][0]["loc"] == ["body", "q"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from types import TracebackType
 from typing import Any
 
@@ -46,6 +47,7 @@ class Session:
         self.state = SessionState(request, url, binary)
         self.timeout, self.headers = timeout, dict(headers or {})
         self._ws: ClientConnection | None = None
+        self._stack = ExitStack()
         self._open()
 
     @property
@@ -64,9 +66,10 @@ class Session:
 
     def _open(self) -> None:
         try:
-            # `legacy=True`: websockets 17's explicit "return the connection" (closed by us, not by a `with`).
-            self._ws = connect(self.url, additional_headers=self.headers, open_timeout=self.timeout, legacy=True,
-                               **CONNECT_OPTIONS)
+            # websockets 17 wants its connection used as a context manager: entered here, exited by `_drop`.
+            self._stack = ExitStack()
+            self._ws = self._stack.enter_context(
+                connect(self.url, additional_headers=self.headers, open_timeout=self.timeout, **CONNECT_OPTIONS))
         except Exception as e:
             raise handshake_error(self.url, e) from None
         self.state.opened(self._exchange(self.state.open_frame()))
@@ -78,7 +81,7 @@ class Session:
             self._ws.send(frame)
             return self._ws.recv(timeout=self.timeout)
         except ConnectionClosed as e:
-            self._ws = None
+            self._drop()
             raise closed_error(self.url, e) from None
         except TimeoutError:
             self._drop()
@@ -110,8 +113,8 @@ class Session:
 
     def _drop(self) -> None:
         if self._ws is not None:
-            self._ws.close()
             self._ws = None
+            self._stack.close()
 
     def close(self) -> None:
         """Ask the server to close (code 1000); closing a closed session does nothing."""

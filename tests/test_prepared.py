@@ -281,3 +281,16 @@ def test_update_offset_keeps_the_angle_and_moves_the_coordinate() -> None:
     assert abs(scene.coordinates()[0][0] - 3.0) <= 1e-15
     r = scene.evaluate(_q(1.1)).batches[0]
     assert abs(r.x[0] - 1.1) <= 1e-15 and abs(r.coordinate[0] - 3.1) <= 1e-15
+
+
+def test_checks_are_leaves() -> None:
+    """validate.py imports neither the pipeline (prepared) nor the derivative code (evaluate), at any level."""
+    import ast
+    from pathlib import Path
+
+    import service.core.validate as validate
+
+    tree = ast.parse(Path(validate.__file__).read_text())
+    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    assert not imported & {"service.core.evaluate", "service.core.prepared", "service.core"}

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from service.core.constitution import Array, Constitution
 from service.core.errors import Fault, FaultLog, InputError
 from service.core.evaluate import _increments, collapsed_faults, differentiate
-from service.core.kinematics import PREV_STEP, REF, STEPS, BodyTable, frame_quantities, relative_position
+from service.core.kinematics import PREV_STEP, REF, STEPS, TOTAL_STEP, BodyTable, frame_quantities, relative_position
 from service.core.parallel import run_all
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
@@ -63,7 +63,8 @@ class _Batch:
     F_ref: Array  # (N, 4, 3) frames at q_ref
     starts: list[Array]  # frames where each step of `x` starts (F_ref, then F at q_prev if used)
     fixed: list[Array]  # the steps before the last one (which goes to q): they do not depend on q
-    origin: int  # the body table state the last step starts from (0: q_ref, 1: q_prev)
+    row: int  # the body table's increment row of the last step (to q): STEP or TOTAL_STEP
+    origin: int  # the state it starts from (0: q_ref, 1: q_prev)
     r_origin: Array | None  # (N, 3) body j from body i in that state (points only)
     lower: Array  # the request's bounds on the coordinate, float64 (owned: `update` writes them)
     upper: Array
@@ -124,14 +125,14 @@ class PreparedScene:
         return ev
 
     def _run(self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool) -> Evaluation:
-        dofs = self._step_table(q)
+        self._load(q, {jb.row for jb in self._batches})
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
         threads = self._threads
         inner = threads if len(self._batches) == 1 else 1  # one level of threads: a pool never waits on itself
         psd = hessian_mode == "psd"
         results = run_all(
             [
-                partial(self._evaluate_batch, b, jb, dofs, want_g, want_h, psd, active_only, inner)
+                partial(self._evaluate_batch, b, jb, want_g, want_h, psd, active_only, inner)
                 for b, jb in enumerate(self._batches)
             ],
             threads,
@@ -141,23 +142,21 @@ class PreparedScene:
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
         return Evaluation(total_energy=total, batches=[BatchResult(**r) for r in results])
 
-    def _step_table(self, q: Array, origins: Iterable[int] | None = None) -> dict[int, Array]:
-        """`q` (B, 12) for the steps to it: key -1 its DOFs (12, B), key `s` `A(q) - A(state s)` (9, B)
-        for each state a step starts at (`origins`, default the batches' own: 0 q_ref, 1 q_prev)."""
-        dofs = np.empty((12, self.n_bodies), dtype=self._dtype)
-        dofs[...] = q.T
-        out = {-1: dofs}
-        for origin in {jb.origin for jb in self._batches} if origins is None else origins:
-            out[origin] = np.subtract(dofs[3:], self._table.dofs[origin, 3:])
-        return out
+    def _load(self, q: Array, rows: Iterable[int]) -> None:
+        """`q` (B, 12) into the body table's state 2 (scratch: the table's states 0, 1 are `q_ref`,
+        `q_prev`) and the increments `rows` of `A` to it (`STEP` from q_prev, `TOTAL_STEP` from q_ref)."""
+        t = self._table
+        t.dofs[2] = q.T
+        for row in rows:
+            a, b = STEPS[row]
+            np.subtract(t.dofs[b, 3:], t.dofs[a, 3:], out=t.linear[row])
 
-    def _step(self, jb: _Batch, dofs: dict[int, Array]) -> Array:
-        """The frames' step (N, 4, 3) from the batch's origin state to `q`."""
-        r = None
-        if jb.r_origin is not None:
-            p = np.take(dofs[-1][:3], jb.pairs, axis=1).transpose(2, 1, 0)
-            r = relative_position(p) - jb.r_origin
-        return frame_quantities(r, BodyTable._matrices(dofs[jb.origin], jb.pairs), jb.c.alpha, jb.v)
+    def _step(self, jb: _Batch, row: int, r_origin: Array | None) -> Array:
+        """The frames' increment (N, 4, 3) over the table's increment `row` to `q` (loaded), from the
+        state where body j sits at `r_origin` (N, 3) from body i (points only)."""
+        t = self._table
+        r = None if r_origin is None else relative_position(t.positions_of(jb.pairs, 2)) - r_origin
+        return frame_quantities(r, t.linear_of(jb.pairs, row), jb.c.alpha, jb.v)
 
     def _x(self, jb: _Batch, dF: Array) -> Array:
         """The joint coordinate `x` (N,) at `q` from the last step `dF`."""
@@ -166,9 +165,9 @@ class PreparedScene:
         return jb.theta + jb.c.coordinate(jb.starts[-1:], [dF])
 
     def _evaluate_batch(
-        self, b: int, jb: _Batch, dofs: dict[int, Array], want_g: bool, want_h: bool, psd: bool, active_only: bool, threads: int
+        self, b: int, jb: _Batch, want_g: bool, want_h: bool, psd: bool, active_only: bool, threads: int
     ) -> dict:
-        dF = self._step(jb, dofs)
+        dF = self._step(jb, jb.row, jb.r_origin)
         x = self._x(jb, dF)
         F = jb.starts[-1] + dF
         raise_if(collapsed_faults(b, jb.c, {"q": F}))
@@ -188,10 +187,10 @@ class PreparedScene:
         q = np.asarray(q, dtype=np.float64)
         raise_if(check_dofs("q", q, self.n_bodies))
         with np.errstate(all="ignore"):
-            dofs = self._step_table(q, origins=(0,))
+            self._load(q, (TOTAL_STEP,))
             log, new = FaultLog(), []
             for b, jb in enumerate(self._batches):
-                F_q, x = self._from_ref(jb, dofs)
+                F_q, x = self._from_ref(jb)
                 log.add(collapsed_faults(b, jb.c, {"q": F_q}))
                 if not jb.c.telescopes:
                     r = self._angle(jb)
@@ -201,17 +200,16 @@ class PreparedScene:
             for jb, (F_q, x) in zip(self._batches, new):
                 if not jb.c.telescopes:
                     jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (origin 1)
-            self._table.dofs[1] = dofs[-1]
+            self._table.dofs[1] = self._table.dofs[2]
             return [x + jb.offset for jb, (_, x) in zip(self._batches, new)]
 
-    def _from_ref(self, jb: _Batch, dofs: dict[int, Array]) -> tuple[Array, Array]:
-        """Frames (N, 4, 3) at `q` and the coordinate from `q_ref` in one step (DeltaTheta(q, q_ref), or the slide)."""
-        r = None
+    def _from_ref(self, jb: _Batch) -> tuple[Array, Array]:
+        """Frames (N, 4, 3) at `q` (loaded with `TOTAL_STEP`) and the coordinate from `q_ref` in one
+        step (DeltaTheta(q, q_ref), or the slide)."""
+        r_ref = None
         if jb.c.alpha.any():
-            p = np.take(dofs[-1][:3], jb.pairs, axis=1).transpose(2, 1, 0)
-            p_ref = np.take(self._table.dofs[REF, :3], jb.pairs, axis=1).transpose(2, 1, 0)
-            r = relative_position(p) - relative_position(p_ref)
-        dF = frame_quantities(r, BodyTable._matrices(dofs[0], jb.pairs), jb.c.alpha, jb.v)
+            r_ref = jb.r_origin if jb.origin == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
+        dF = self._step(jb, TOTAL_STEP, r_ref)
         return jb.F_ref + dF, jb.c.coordinate([jb.F_ref], [dF])
 
     def _angle(self, jb: _Batch) -> Array:
@@ -226,7 +224,8 @@ class PreparedScene:
         with np.errstate(all="ignore"):
             for jb in self._batches:
                 if jb.c.telescopes:
-                    x = self._from_ref(jb, self._step_table(self._table.dofs[1].T, origins=(0,)))[1]
+                    self._load(self._table.dofs[1].T, (TOTAL_STEP,))
+                    x = self._from_ref(jb)[1]
                 else:
                     x = self._angle(jb)
                 out.append(x + jb.offset)
@@ -334,6 +333,7 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog) -> _
         F_ref=F_ref,
         starts=starts,
         fixed=fixed,
+        row=rows[-1],
         origin=origin,
         r_origin=r.get(origin),
         lower=lower,

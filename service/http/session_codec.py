@@ -89,7 +89,7 @@ def _decode_binary(frame: bytes) -> Message:
         raise InputError([Fault((), str(e).replace("body is", "message is"), "msgpack_invalid")]) from None
     r = binary._Reader()  # the binary transport's own reader: same checks, same messages
     kind = doc.get("kind") if isinstance(doc, dict) else None
-    if kind not in proto.KEYS:
+    if not isinstance(kind, str) or kind not in proto.KEYS:
         r.fault(("kind",), f"must be one of {', '.join(proto.KEYS)}", "union_tag_invalid")
         raise InputError(r.faults)
     fields = r.fields(doc, (), proto.KEYS[kind])

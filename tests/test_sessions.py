@@ -223,6 +223,16 @@ def closed(ws) -> dict:
             return msg
 
 
+def assert_counted(c: TestClient, reason: str) -> None:
+    """The session's end is counted under `reason` (the handler counts it once its close is sent)."""
+    line = f'jointlimits_sessions_total{{reason="{reason}"}} 1.0'
+    deadline = time.monotonic() + 10
+    while line not in (text := c.get("/metrics").text):
+        assert time.monotonic() < deadline, text
+        time.sleep(0.01)
+    assert "jointlimits_sessions_open 0.0" in text
+
+
 def test_too_many_sessions_on_a_worker():
     c = app(max_sessions=1)
     with c.websocket_connect(PATH) as first:
@@ -242,6 +252,7 @@ def test_oversized_frame_closes_with_1009():
         ws.send_bytes(b"\x00" * 20_001)
         msg = closed(ws)
         assert msg["code"] == proto.MESSAGE_TOO_BIG and "at most 20000" in msg["reason"]
+    assert_counted(c, "frame_too_large")
 
 
 def test_idle_session_closes_with_4408():
@@ -252,6 +263,7 @@ def test_idle_session_closes_with_4408():
         msg = closed(ws)
         assert msg["code"] == proto.IDLE_TIMEOUT and "no message for 0.3 s" in msg["reason"]
         assert time.monotonic() - t >= 0.25
+    assert_counted(c, "idle")
 
 
 def test_scene_over_the_joint_limit_is_refused_and_closed():
@@ -261,6 +273,7 @@ def test_scene_over_the_joint_limit_is_refused_and_closed():
         assert reply["kind"] == "error" and reply["status"] == 413
         assert reply["detail"][0]["loc"] == ["body", "batches"] and "at most 5" in reply["detail"][0]["msg"]
         assert closed(ws)["code"] == proto.SCENE_TOO_LARGE
+    assert_counted(c, "scene_too_large")
 
 
 def test_metrics_count_sessions_and_messages():

@@ -55,6 +55,27 @@ def test_golden_cases_are_bitwise_the_same_by_session_http_and_local(live, binar
                 same(ls.evaluate(req.q, **kw), other)
 
 
+def test_v1_1_state_cases_are_bitwise_the_same_by_session_and_http(live):
+    """The 50-digit state cases (offset, prev_coordinate): a session opened with them answers as HTTP does."""
+    from tests.test_golden_state import CASES, _sdk_request
+
+    for binary in (True, False):
+        client = Client(live, binary=binary)
+        for case in CASES:
+            req = _sdk_request(case["request"])
+            want = client.evaluate(req)
+            with client.session(req) as s, LocalClient().session(req) as ls:
+                same(s.evaluate(req.q), want)
+                same(ls.evaluate(req.q), want)
+                # The opened coordinates are the state at q_prev: prev_coordinate where it is given, kept as
+                # (prev_coordinate - offset) + offset, so within one rounding of each (an ulp of the larger).
+                for b, coords in zip(req.batches, s.coordinates):
+                    if b.prev_coordinate is not None:
+                        p = np.asarray(b.prev_coordinate, dtype=np.float64)
+                        o = np.zeros_like(p) if b.offset is None else np.asarray(b.offset, dtype=np.float64)
+                        assert np.all(np.abs(coords - p) <= 2.3e-16 * (np.abs(p) + 2 * np.abs(o)))
+
+
 def chain(n: int = 4, turn: float = 0.7):
     """`n` revolute joints about z between consecutive bodies, body k turned by k * turn; limits +-0.5."""
     def pose(a):

@@ -36,10 +36,10 @@ def live():
         yield url
 
 
-def drive(session, steps: int) -> list[tuple[float, float, float, float]]:
-    """(true angle, coordinate at q, energy at q, committed coordinate) per step of STEP rad."""
+def drive(session, steps: int, start: int = 0) -> list[tuple[float, float, float, float]]:
+    """(true angle, coordinate at q, energy at q, committed coordinate) per step of STEP rad, after `start` steps."""
     rows = []
-    for k in range(1, steps + 1):
+    for k in range(start + 1, start + steps + 1):
         q = np.array([pose(0.0), pose(STEP * k)])
         ev = session.evaluate(q, outputs=("energy",))
         b = ev.batches[0]
@@ -114,3 +114,18 @@ def test_damped_newton_on_the_session_decreases_the_objective(live):
         # The coordinate at the solution is between the limit and the target, in the multi-turn frame.
         coord = ev.batches[0].coordinate[0]
         assert UPPER < coord < 2.5 * 2 * np.pi + 0.6 + OFFSET
+
+
+def test_reopening_mid_screw_keeps_the_turns(live):
+    """A session dropped after 2 turns and reopened from what the client kept: the same coordinate (the state
+    travels as prev_coordinate = r + offset and comes back as (r + offset) - offset: within an ulp of 13 rad)."""
+    with Client(live).session(request()) as s, LocalClient().session(request()) as ref:
+        drive(s, 32)
+        drive(ref, 32)
+        s._ws.close()  # the connection ends under the session
+        s.reopen()
+        rows, want = drive(s, 10, 32), drive(ref, 10, 32)
+    for (angle, c, e, k), (_, c_ref, e_ref, k_ref) in zip(rows, want):
+        assert abs(c - c_ref) <= 4e-15 * abs(c_ref) and abs(k - k_ref) <= 4e-15 * abs(k_ref)
+        assert abs(e - e_ref) <= 1e-12 * max(e_ref, 1e-300) or e == e_ref
+        assert abs(c - (angle + OFFSET)) < 1e-11

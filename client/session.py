@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike
 
 from client import codec
 from client.errors import Fault, ServiceError
-from client.model import REVOLUTE_LIMIT, Array, Evaluation, JointBatch, Request
+from client.model import REVOLUTE_LIMIT, Array, Evaluation, Request
 from schemas import binary as wire
 from schemas import session as proto
 
@@ -178,4 +178,4 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
     }
 
 
-__all__ = ["JointBatch", "SessionClosed", "SessionState", "options", "ws_url"]
+__all__ = ["SessionClosed", "SessionState", "options", "ws_url"]

@@ -23,7 +23,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
-from schemas.evaluate import OUTPUTS, Dof, HessianMode, Int64, Output, Real
+from schemas.evaluate import Dof, HessianMode, Int64, Output, Real
 
 PATH = "/v1/sessions"
 
@@ -96,7 +96,6 @@ KEYS: dict[str, dict[str, bool]] = {
 __all__ = [
     "CLIENT_MESSAGE",
     "KEYS",
-    "OUTPUTS",
     "PATH",
     "ClientMessage",
     "CloseMessage",

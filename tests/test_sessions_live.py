@@ -14,7 +14,7 @@ from client import AsyncClient, Client, InvalidInput, JointBatch, LocalClient, S
 from schemas import session as proto
 from service.settings import Settings
 from tests.conftest import GOLDEN
-from tests.test_contract_live import LIMITS, sdk_request, serve
+from tests.test_contract_live import sdk_request, serve
 
 FIELDS = ("index", "x", "coordinate", "energy", "gradient", "hessian")
 

@@ -136,8 +136,10 @@ class SessionState:
         return self.coordinates
 
     def updated(self, frame: Frame, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
-        self.read(frame, proto.UPDATED)
+        doc = self.read(frame, proto.UPDATED)
         self.apply_update(batch, index, values)
+        if "coordinates" in doc:  # the batch's committed coordinates after a change of offsets
+            self.coordinates[batch] = self._array(doc["coordinates"])
 
     def apply_update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
         """The server accepted the update: the local copy of the scene follows it."""

@@ -96,6 +96,8 @@ class LocalSession:
         given = {k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in values.items() if v is not None}
         _call(lambda: scene.update(int(batch), np.asarray(index, dtype=np.int64).reshape(-1), **given))
         self.state.apply_update(batch, index, values)
+        if offset is not None:  # a new offset moves the batch's committed coordinates with it
+            self.state.coordinates[batch] = np.array(scene.coordinates()[batch])
 
     def request_for_reopen(self) -> Request:
         return self.state.request_for_reopen()

@@ -129,3 +129,15 @@ def test_reopening_mid_screw_keeps_the_turns(live):
         assert abs(c - c_ref) <= 4e-15 * abs(c_ref) and abs(k - k_ref) <= 4e-15 * abs(k_ref)
         assert abs(e - e_ref) <= 1e-12 * max(e_ref, 1e-300) or e == e_ref
         assert abs(c - (angle + OFFSET)) < 1e-11
+
+
+@pytest.mark.parametrize("mode", ["local", "msgpack", "json"])
+def test_an_offset_update_moves_the_committed_coordinate_and_survives_a_reopen(live, mode):
+    client = LocalClient() if mode == "local" else Client(live, binary=mode == "msgpack")
+    with client.session(request()) as s:
+        drive(s, 20)  # 8 rad
+        s.update(0, [0], offset=[1.0])
+        assert abs(s.coordinates[0][0] - (8.0 + 1.0)) < 1e-11  # same physical angle, new offset
+        s.reopen()
+        (angle, coordinate, _, committed), = drive(s, 1, 20)
+        assert abs(coordinate - (angle + 1.0)) < 1e-11 and abs(committed - (angle + 1.0)) < 1e-11

@@ -209,6 +209,8 @@ async def _answer(session: Session, m: codec.Message, binary_frame: bool, settin
     else:  # update
         await _run(session, lambda: scene.update(m.batch, m.index, **m.values))
         reply = {"kind": proto.UPDATED, "batch": m.batch, "joints": int(m.index.shape[0])}
+        if "offset" in m.values:  # a new offset moves the batch's committed coordinates with it
+            reply["coordinates"] = scene.coordinates()[m.batch]
     if m.id is not None:
         reply["id"] = m.id
     return codec.encode(reply, binary_frame)

@@ -211,3 +211,30 @@ def test_jointlimits_serve_passes_the_session_bounds():
             with pytest.raises(SessionClosed) as e:
                 s.evaluate(np.zeros((300, 12)))
             assert e.value.code == proto.MESSAGE_TOO_BIG
+
+
+def test_async_session_reopens_after_a_drop(live):
+    req, pose = chain(2)
+    q = req.q.copy()
+
+    async def run():
+        async with AsyncClient(live).session(req) as s:
+            for k in range(1, 9):
+                q[2] = pose(0.5 * k)
+                await s.commit(q)
+            await s._ws.close(1001)  # the connection ends under the session
+            with pytest.raises(SessionClosed) as e:
+                await s.evaluate(q)
+            assert e.value.url == s.url
+            await s.reopen()
+            q[2] = pose(4.2)
+            return await s.evaluate(q), await s.commit(q)
+
+    got, coords = asyncio.run(run())
+    with LocalClient().session(req) as ref:
+        for k in range(1, 9):
+            q[2] = pose(0.5 * k)
+            ref.commit(q)
+        q[2] = pose(4.2)
+        same(got, ref.evaluate(q))
+        assert coords[0].tobytes() == ref.commit(q)[0].tobytes()

@@ -199,15 +199,15 @@ def serve(args: argparse.Namespace) -> int:
     os.environ[ENV_PREFIX + "MAX_JOINTS"] = str(args.max_joints)
     os.environ[ENV_PREFIX + "CORS_ORIGINS"] = args.cors_origins
     os.environ[ENV_PREFIX + "KEEP_HEAP"] = "true" if args.keep_heap else "false"
-    os.environ[ENV_PREFIX + "MAX_SESSIONS"] = str(args.max_sessions)
-    os.environ[ENV_PREFIX + "MAX_FRAME_BYTES"] = str(args.max_frame_bytes)
-    os.environ[ENV_PREFIX + "SESSION_IDLE_SECONDS"] = str(args.session_idle_seconds)
     if args.token_file:
         token = Path(args.token_file).read_text().strip()
         if not token:
             print(f"jointlimits: token file {args.token_file} is empty", file=sys.stderr)
             return 2
         os.environ[ENV_PREFIX + "TOKEN"] = token
+
+    for name in ("max_sessions", "max_frame_bytes", "session_idle_seconds"):  # WebSocket sessions
+        os.environ[ENV_PREFIX + name.upper()] = str(getattr(args, name))
 
     from service.settings import Settings
 
@@ -243,12 +243,12 @@ def serve(args: argparse.Namespace) -> int:
             workers=args.workers,
             log_config=log_config(args.log_level, args.access_log),
             log_level=args.log_level,
+            ws_max_size=args.max_frame_bytes,  # uvicorn refuses a larger message itself (1009) before buffering it
+            ws_per_message_deflate=False,  # float64 arrays barely compress: deflate would only cost CPU
             access_log=False,  # ours (JSON, with request id and joints) replaces uvicorn's
             timeout_graceful_shutdown=max(1, math.ceil(args.graceful_timeout)),
             timeout_keep_alive=max(1, math.ceil(args.keepalive_timeout)),
             backlog=args.backlog,
-            ws_max_size=args.max_frame_bytes,  # uvicorn refuses a larger message itself (1009) before buffering it
-            ws_per_message_deflate=False,  # float64 arrays barely compress: deflate would only cost CPU
             server_header=False,
         )
     finally:

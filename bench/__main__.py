@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     quick, reps = args.quick, max(5, args.reps)
     sizes = sorted(set(args.sizes))
     if args.sessions_only:
-        return _sessions_only(args, sizes, reps)
+        return S.only(command(args), sizes, reps, args.out, with_wire=not args.no_http)
     n_big = sizes[-1]
     t_start = time.perf_counter()
     res: dict[str, Any] = {"command": command(args), "n_big": n_big,
@@ -254,20 +254,6 @@ def main(argv: list[str] | None = None) -> int:
     log("wrote " + ", ".join(str(f) for f in files))
     print(report.markdown(res))
     print(speedup_line(res["speedup"]))
-    return 0
-
-
-def _sessions_only(args: argparse.Namespace, sizes: list[int], reps: int) -> int:
-    """`--sessions-only`: bench/sessions.py alone, its report in DIR/sessions.*."""
-    keep_heap()  # as the service runs
-    res: dict[str, Any] = {"command": command(args), "machine": f"{platform.processor() or platform.machine()}, "
-                           f"{os.cpu_count()} cores, Python {platform.python_version()}, NumPy {np.__version__}; "
-                           f"in-process: medians of {reps} after one warm-up"}
-    res["sessions"] = S.run(sizes, reps, with_wire=not args.no_http)
-    res["targets"] = S.targets(res["sessions"])
-    log("wrote " + ", ".join(str(f) for f in S.write(res, args.out)))
-    for t in res["targets"]:
-        print(f"{t['target']}: {t['measured']} ({t['status']})")
     return 0
 
 

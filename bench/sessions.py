@@ -184,3 +184,22 @@ def write(res: dict[str, Any], out: Path, stem: str = "sessions") -> list[Path]:
     md.write_text("\n".join(text) + "\n")
     js.write_text(json.dumps(res, indent=1, default=float))
     return [md, js]
+
+
+def only(command: str, sizes: list[int], reps: int, out: Path, with_wire: bool) -> int:
+    """`python -m bench --sessions-only`: this module alone, its report in `out`/sessions.*."""
+    import os
+    import platform
+
+    from service.core.heap import keep_heap
+
+    keep_heap()  # as the service runs
+    res: dict[str, Any] = {"command": command, "machine": f"{platform.processor() or platform.machine()}, "
+                           f"{os.cpu_count()} cores, Python {platform.python_version()}, NumPy {np.__version__}; "
+                           f"in-process: medians of {reps} after one warm-up"}
+    res["sessions"] = run(sizes, reps, with_wire)
+    res["targets"] = targets(res["sessions"])
+    log("wrote " + ", ".join(str(f) for f in write(res, out)))
+    for t in res["targets"]:
+        print(f"{t['target']}: {t['measured']} ({t['status']})")
+    return 0

@@ -122,24 +122,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma-separated origins allowed by CORS; empty = CORS off (JOINTLIMITS_CORS_ORIGINS)",
     )
     s.add_argument(
-        "--token-file",
-        default=_env("TOKEN_FILE", "") or None,
-        help="file holding the bearer token required on /v1/* (JOINTLIMITS_TOKEN_FILE; or JOINTLIMITS_TOKEN itself)",
-    )
-    s.add_argument(
-        "--graceful-timeout",
-        type=float,
-        default=float(_env("GRACEFUL_TIMEOUT", "30")),
-        help="seconds in-flight requests get to finish after SIGTERM (JOINTLIMITS_GRACEFUL_TIMEOUT)",
-    )
-    s.add_argument(
-        "--keepalive-timeout",
-        type=float,
-        default=float(_env("KEEPALIVE_TIMEOUT", "75")),
-        help="seconds an idle keep-alive connection stays open; keep it above your load balancer's "
-        "idle timeout (JOINTLIMITS_KEEPALIVE_TIMEOUT)",
-    )
-    s.add_argument(
         "--max-sessions",
         type=_positive_int,
         default=int(_env("MAX_SESSIONS", "64")),
@@ -156,6 +138,24 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=float(_env("SESSION_IDLE_SECONDS", "300")),
         help="a session without a message for this long is closed with code 4408 (JOINTLIMITS_SESSION_IDLE_SECONDS)",
+    )
+    s.add_argument(
+        "--token-file",
+        default=_env("TOKEN_FILE", "") or None,
+        help="file holding the bearer token required on /v1/* (JOINTLIMITS_TOKEN_FILE; or JOINTLIMITS_TOKEN itself)",
+    )
+    s.add_argument(
+        "--graceful-timeout",
+        type=float,
+        default=float(_env("GRACEFUL_TIMEOUT", "30")),
+        help="seconds in-flight requests get to finish after SIGTERM (JOINTLIMITS_GRACEFUL_TIMEOUT)",
+    )
+    s.add_argument(
+        "--keepalive-timeout",
+        type=float,
+        default=float(_env("KEEPALIVE_TIMEOUT", "75")),
+        help="seconds an idle keep-alive connection stays open; keep it above your load balancer's "
+        "idle timeout (JOINTLIMITS_KEEPALIVE_TIMEOUT)",
     )
     s.add_argument("--backlog", type=_positive_int, default=int(_env("BACKLOG", "2048")), help="listen backlog (JOINTLIMITS_BACKLOG)")
     s.add_argument(

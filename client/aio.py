@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 import httpx
 
@@ -11,9 +12,11 @@ from client import split, transport
 from client.base import DEFAULT_URL, BaseClient
 from client.model import Evaluation, Request
 from client.progress import ProgressCallback
-from client.session import ws_url
-from client.session_aio import AsyncSession
 from schemas import ConstitutionsResponse
+
+
+if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
+    from client.session_aio import AsyncSession
 
 
 class AsyncClient(BaseClient):
@@ -68,8 +71,11 @@ class AsyncClient(BaseClient):
 
     def session(self, request: Request) -> AsyncSession:
         """`async with client.session(r) as s:` (or `s = await client.session(r)`): `Client.session`, awaitable."""
-        return AsyncSession(ws_url(self._http_options["base_url"]), request, binary=self.binary,
-                            timeout=self._session_timeout(), headers=self._session_headers())
+        from client.session import connection_options  # imported here: HTTP alone never loads websockets
+        from client.session_aio import AsyncSession
+
+        o = connection_options(dict(self._http_options))
+        return AsyncSession(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"])
 
     async def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry()

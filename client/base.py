@@ -58,14 +58,6 @@ class BaseClient:
         content, content_type = codec.encode(part.request, self.binary)
         return self._http.build_request("POST", "/v1/evaluate", content=content, headers={"Content-Type": content_type})
 
-    def _session_headers(self) -> dict[str, str]:
-        """The upgrade request's headers: the bearer token, if any (sessions choose their encoding per message)."""
-        return {k: v for k, v in self._http_options["headers"].items() if k == "Authorization"}
-
-    def _session_timeout(self) -> float | None:
-        t = self._http_options["timeout"]
-        return t.read if isinstance(t, httpx.Timeout) else t
-
     def _retry(self) -> transport.Retry:
         return transport.Retry(self.retries, self.backoff)
 

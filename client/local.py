@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 from client.errors import Fault, InvalidInput
 from client.model import BatchResult, Evaluation, Request
 from client.progress import ProgressCallback
-from client.session_local import LocalSession
 from schemas import ConstitutionsResponse, Limits
 from schemas.constitutions import describe
 from service import core
+
+
+if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
+    from client.session_local import LocalSession
 
 
 class LocalClient:
@@ -67,6 +71,8 @@ class LocalClient:
 
     def session(self, request: Request) -> LocalSession:
         """`Client.session`'s API in-process, on the core's prepared scene (bitwise the same numbers)."""
+        from client.session_local import LocalSession
+
         return LocalSession(request, threads=self.threads)
 
     def close(self) -> None:

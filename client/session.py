@@ -41,6 +41,16 @@ class SessionClosed(ServiceError):
         Exception.__init__(self, f"session at {url} {what}; reopen() continues from the last commit")
 
 
+def connection_options(http_options: dict[str, Any]) -> dict[str, Any]:
+    """A session's URL, upgrade headers (the bearer token, if any) and timeout from an HTTP client's options."""
+    t = http_options["timeout"]
+    return {
+        "url": ws_url(str(http_options["base_url"])),
+        "headers": {k: v for k, v in http_options["headers"].items() if k == "Authorization"},
+        "timeout": getattr(t, "read", t),  # an httpx.Timeout's read timeout, or the number itself
+    }
+
+
 def ws_url(base_url: str) -> str:
     """The sessions endpoint of an HTTP base URL: http -> ws, https -> wss."""
     base = base_url.rstrip("/")
@@ -180,4 +190,4 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
     }
 
 
-__all__ = ["SessionClosed", "SessionState", "options", "ws_url"]
+__all__ = ["SessionClosed", "SessionState", "connection_options", "options", "ws_url"]

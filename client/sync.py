@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 import httpx
 
@@ -11,9 +12,11 @@ from client import transport
 from client.base import DEFAULT_URL, BaseClient
 from client.model import Evaluation, Request
 from client.progress import ProgressCallback
-from client.session import ws_url
-from client.session_sync import Session
 from schemas import ConstitutionsResponse
+
+
+if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
+    from client.session_sync import Session
 
 
 class Client(BaseClient):
@@ -69,8 +72,11 @@ class Client(BaseClient):
 
     def session(self, request: Request) -> Session:
         """A session on the server's prepared scene of `request` (README "Sessions"): `with client.session(r) as s:`."""
-        return Session(ws_url(self._http_options["base_url"]), request, binary=self.binary,
-                       timeout=self._session_timeout(), headers=self._session_headers())
+        from client.session import connection_options  # imported here: HTTP alone never loads websockets
+        from client.session_sync import Session
+
+        o = connection_options(dict(self._http_options))
+        return Session(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"])
 
     def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry()

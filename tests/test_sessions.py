@@ -356,3 +356,13 @@ def test_a_scene_over_the_inline_size_is_evaluated_in_a_thread_with_the_same_num
         same(ev, http)
         reply = s.send({"kind": "commit", "q": body["bodies"]["q"][:-1]})
         assert reply["status"] == 422 and reply["detail"][0]["loc"] == ["body", "q"]
+
+
+def test_pipelined_messages_are_answered_in_order():
+    c = app()
+    with c.websocket_connect(PATH) as ws:
+        Json(ws).send(BODY)
+        for i, doc in enumerate([{"kind": "evaluate", "q": Q}, {"kind": "commit", "q": Q[:1]}, {"kind": "commit", "q": Q}]):
+            ws.send_text(json.dumps({**doc, "id": i}))
+        replies = [json.loads(ws.receive_text()) for _ in range(3)]
+    assert [(r["id"], r["kind"]) for r in replies] == [(0, "evaluation"), (1, "error"), (2, "committed")]

@@ -294,3 +294,33 @@ def test_checks_are_leaves() -> None:
     imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     assert not imported & {"service.core.evaluate", "service.core.prepared", "service.core"}
+
+
+# ---------------------------------------------------------------- frames at every scale (issue 9's careful frames)
+
+
+@pytest.mark.parametrize("k", [1e-300, 1e-100, 1e-12, 1e12, 1e300])
+@pytest.mark.parametrize("uid", [670, 669])
+def test_prepared_scene_forms_careful_frames_at_every_scale(k: float, uid: int) -> None:
+    """A_j scaled by k in some states: the prepared scene answers as the stateless call (bitwise) at
+    several q, and commits the scale-free angle."""
+    from tests.test_degenerate_scales import TURN, Z_EDGE, _joint, _revolute_probe
+
+    edge = Z_EDGE if uid == 670 else np.array([[0.0, 0, 0], [1.0, 0, 0]])
+    joints = _joint(uid, edge)
+    bodies = _revolute_probe({"q_ref": np.eye(3), "q_prev": k * np.eye(3), "q": k * TURN})
+    scene = prepare(bodies, [joints])
+    for q in (bodies.q, _revolute_probe({"q": TURN}).q, _revolute_probe({"q": 1e-3 * k * TURN}).q):
+        # The same answer, or the same refusal (derivatives ~ 1/k^2 overflow at the smallest scales).
+        try:
+            want = evaluate(Bodies(q, bodies.q_prev, bodies.q_ref), [joints])
+        except InputError as e:
+            with pytest.raises(InputError) as got:
+                scene.evaluate(q)
+            assert got.value.faults == e.faults
+            continue
+        _same(scene.evaluate(q), want)
+    if uid == 670:
+        for angle in (0.7, 2.5, 4.0, 6.5):  # turns of < pi per commit, A_j at scale k
+            (coord,) = scene.commit(_revolute_probe({"q": k * rotation_about(Z, angle)}).q)
+            assert abs(coord[0] - angle) <= 1e-12 * angle

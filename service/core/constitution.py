@@ -8,10 +8,13 @@ and one line in `service.core.registry`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from service.core.kinematics import CarefulFrames
 
 Array = NDArray[np.float64]
 
@@ -59,18 +62,23 @@ class Constitution(Protocol):
         """
         ...
 
-    def coordinate(self, starts: list[Array], steps: list[Array]) -> Array:
+    def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:
         """Joint coordinate `x` (N,) in incremental form, from the frames' steps.
 
         `steps` are the increments `F(q_prev - q_ref), F(q - q_prev)`, or `[F(q - q_ref)]` when
         `telescopes`; `starts` the frames where each step starts (`F` at `q_ref`, then at
         `q_prev`); all (N, 4, 3). Taking `x` as increments of bilinear forms keeps its error
-        relative to the step, not to the size of the scene.
+        relative to the step, not to the size of the scene. The joints `careful.idx` (steps as
+        large as the frames, or frames at the edge of float64) take `x` from `careful` instead,
+        in whichever form rounds better there.
         """
         ...
 
     def collapsed(self, F: Array) -> NDArray[np.bool_]:
-        """(N,) True where `x` has no derivatives at this `F`."""
+        """(N,) True where `x` has no derivatives at this `F` (or is decided by rounding alone).
+
+        Must not depend on the scale of `F`'s frame vectors where `x` does not.
+        """
         ...
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:

@@ -12,7 +12,7 @@ import numpy as np
 from service.core import assembly, penalty
 from service.core.constitution import Array, Constitution, Curvature
 from service.core.errors import MAX_FAULTS, Fault
-from service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP
+from service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames
 from service.core.parallel import run_all
 from service.core.validate import nonfinite_rows, raise_if
 
@@ -120,13 +120,21 @@ def _derivatives(
     return grad
 
 
-def collapsed_faults(b: int, c: Constitution, F: dict[str, Array]) -> list[Fault]:
-    """Joints of batch `b` whose frame collapses in any state of `F` ((N, 4, 3) by state name)."""
-    return [
-        Fault(
-            ("batches", b, "body_ids", int(j)),
-            f"the joint frame collapses at {state} (cos = sin = 0): the angle and its derivatives do not exist",
-        )
-        for state, Fs in F.items()
-        for j in np.flatnonzero(c.collapsed(Fs))[:MAX_FAULTS]
-    ]
+def collapsed_faults(
+    b: int, c: Constitution, names: tuple[str, ...], states: list[Array], careful: CarefulFrames | None = None
+) -> list[Fault]:
+    """Joints of batch `b` whose frame collapses in any state (`states` (N, 4, 3) named by `names`);
+    `careful` joints judged on their scaled frames (`careful.states`, in the same order)."""
+    faults = []
+    for s, (name, F) in enumerate(zip(names, states)):
+        bad = c.collapsed(F)
+        if careful is not None:
+            bad[careful.idx] = c.collapsed(careful.states[s])
+        faults += [
+            Fault(
+                ("batches", b, "body_ids", int(j)),
+                f"the joint frame collapses at {name} (cos and sin within rounding of 0): the angle and its derivatives do not exist",
+            )
+            for j in np.flatnonzero(bad)[:MAX_FAULTS]
+        ]
+    return faults[:MAX_FAULTS]

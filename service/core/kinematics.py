@@ -16,6 +16,7 @@ from the origin from losing digits to its translation.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -43,14 +44,35 @@ def solve3(A: Array, b: Array) -> list[Array]:
     """Components of `A^-1 b` (each (...,)) for `A` (..., 3, 3), `b` (..., 3), by cofactors.
 
     `A^-1 = C^T / det`: a 3 x 3 LAPACK call per joint costs more than these passes,
-    which read `A` in place, whatever its layout.
+    which read `A` in place, whatever its layout. Where `det` (~|A|^3) or a product leaves
+    float64's comfortable range (|A| beyond ~1e+-100), those rows are solved again with
+    `A` scaled by a power of two (exact): `A^-1 b = 2^-e (2^-e A)^-1 b`.
     """
+    x, det = _solve3_cofactors(A, b)
+    with np.errstate(all="ignore"):
+        bad = ~((np.abs(det) >= _DET_MIN) & (np.abs(det) <= _DET_MAX) & np.isfinite(x[0] + x[1] + x[2]))
+    if bad.any():
+        idx = np.nonzero(bad)
+        A_bad = A[idx]  # (M, 3, 3)
+        _, e = np.frexp(np.abs(A_bad).max(axis=(-2, -1)))
+        scaled, _ = _solve3_cofactors(np.ldexp(A_bad, -e[:, None, None]), b[idx])
+        for k in range(3):
+            x[k][idx] = np.ldexp(scaled[k], -e)
+    return x
+
+
+_DET_MIN, _DET_MAX = 2.0**-900, 2.0**900
+"""`det` of a 3 x 3 `A` inside this range keeps its cofactors (~det^(2/3)) normal numbers."""
+
+
+def _solve3_cofactors(A: Array, b: Array) -> tuple[list[Array], Array]:
     C = [
         [A[..., i, k] * A[..., j, l] - A[..., i, l] * A[..., j, k] for k, l in ((1, 2), (2, 0), (0, 1))]
         for i, j in ((1, 2), (2, 0), (0, 1))
     ]
     det = A[..., 0, 0] * C[0][0] + A[..., 0, 1] * C[0][1] + A[..., 0, 2] * C[0][2]
-    return [(C[0][c] * b[..., 0] + C[1][c] * b[..., 1] + C[2][c] * b[..., 2]) / det for c in range(3)]
+    with np.errstate(all="ignore"):
+        return [(C[0][c] * b[..., 0] + C[1][c] * b[..., 1] + C[2][c] * b[..., 2]) / det for c in range(3)], det
 
 
 def component_major(n: int, shape: tuple[int, ...], dtype: type = np.float64) -> Array:
@@ -88,11 +110,13 @@ class BodyTable:
             dofs[s] = q[s].T
         self.dofs = dofs  # (state; DOF; body), the unfilled states garbage
         self.positions = dofs[:, :3]  # (state; xyz; body)
+        self.states = dofs[:, 3:]  # (state; A[r, c]; body): A itself in each spanned state
         self.linear = np.empty((4, 9, n), dtype=dtype)  # (REF..TOTAL_STEP; A[r, c]; body)
         self.linear[REF] = dofs[0, 3:]
         for row in rows:
             a, b = STEPS[row]
             np.subtract(dofs[b, 3:], dofs[a, 3:], out=self.linear[row])
+        self.plain = _plain_bodies(self.states, self.linear, rows)
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         A_ref = self.linear[REF] if self.linear.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
         parts = np.array_split(A_ref, threads, axis=1) if threads > 1 else [A_ref]
@@ -107,6 +131,14 @@ class BodyTable:
         """
         return np.take(self.positions[state], pairs, axis=1).transpose(2, 1, 0)
 
+    def plain_joints(self, pairs: NDArray[np.intp]) -> NDArray[np.bool_]:
+        """(N,) True where both bodies of joints `pairs` (2, N) are `plain` (see `_plain_bodies`)."""
+        return np.take(self.plain, pairs).all(axis=0)
+
+    def linear_at(self, pairs: NDArray[np.intp], state: int) -> Array:
+        """`A` (N, 2, 3, 3) of joints `pairs` (2, N) in `state` (0: q_ref, 1: q_prev, 2: q; spanned states only)."""
+        return self._matrices(self.states[state], pairs)
+
     def linear_of(self, pairs: NDArray[np.intp], row: int) -> Array:
         """`A` (N, 2, 3, 3) of joints `pairs` (2, N) at `q_ref` (`REF`) or its increment `row`."""
         return self._matrices(self.linear[row], pairs)
@@ -119,6 +151,126 @@ class BodyTable:
     def _matrices(rows: Array, pairs: NDArray[np.intp]) -> Array:
         g = np.take(rows, pairs, axis=1)  # (9, 2, N)
         return g.reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
+
+
+PLAIN_RANGE = (2.0**-200, 2.0**200)
+"""`|A|` (Frobenius) of a body in every state inside this range keeps every product the joint
+coordinates and their derivatives form (up to ~|A|^8) a normal float64 number."""
+
+
+PLAIN_STEP = 2.0
+"""A step `dA` up to this times `A` (Frobenius) keeps the common path: any turn of a body of steady
+scale (`|R - I| <= sqrt(8) < 2 |R|`), not a body shrunk or grown by orders of magnitude in one step."""
+
+
+def _plain_bodies(states: Array, linear: Array, rows: Iterable[int]) -> NDArray[np.bool_]:
+    """(B,) True for a body whose frames the common path forms well: `F_a + dF` at each state.
+
+    That needs each step's increment at most `PLAIN_STEP` times `A` where it ends (Frobenius norms):
+    then `F_a + dF` and the increment forms of the coordinates round within a small factor (~16)
+    of the direct `F(A_b)`, whatever the turn; and `A` inside `PLAIN_RANGE` in every state.
+    Every other body's joints take `careful_frames` (rare: the passes here read B bodies once,
+    not N joints).
+    """
+    spanned = sorted({s for row in rows for s in STEPS[row]} | {0})
+    # Squared Frobenius norms (one fused pass each), compared squared.
+    size = {s: np.einsum("ij,ij->j", states[s], states[s]) for s in spanned}
+    smallest, largest = size[spanned[0]].copy(), size[spanned[0]].copy()
+    for s in spanned[1:]:
+        np.minimum(smallest, size[s], out=smallest)
+        np.maximum(largest, size[s], out=largest)
+    lo, hi = PLAIN_RANGE
+    plain = (smallest >= lo * lo) & (largest <= hi * hi)
+    for row in rows:
+        plain &= np.einsum("ij,ij->j", linear[row], linear[row]) <= (PLAIN_STEP * PLAIN_STEP) * size[STEPS[row][1]]
+    return plain
+
+
+@dataclass
+class CarefulFrames:
+    """Frames of joints `idx` (M,) from `A` scaled by powers of two (exact), for configurations at the
+    edge of float64 or with steps larger than the frames (`_plain_bodies` says which).
+
+    A joint coordinate that only depends on the directions of each body's frame vectors (the
+    revolute angle) reads them scaled; `unscaled` gives the frames themselves. Frames with
+    points (`alpha` nonzero) are not scaled (every exponent 0).
+    `exponents[s]` (M, 2): body i's and j's frames in state `s` are scaled by `2^-e` in `states[s]`
+    (direct, `F(A_s)`, largest |2^-e A_s| entry in [0.5, 1)). `starts[k]`, `steps[k]`: step `k`'s
+    starting frames and increment in one scaling common to its two states.
+    """
+
+    idx: NDArray[np.intp]
+    exponents: list[NDArray[np.int_]]
+    states: list[Array]
+    starts: list[Array]
+    steps: list[Array]
+
+    def unscaled(self, state: int) -> Array:
+        """`F(A_s)` (M, 4, 3) unscaled (exact unless it under- or overflows)."""
+        e = self.exponents[state][:, BLOCK_BODY, None]  # (M, 4, 1)
+        return np.ldexp(self.states[state], e)
+
+
+def _exponents(A: Array) -> NDArray[np.int_]:
+    """(M, 2): `e` with the largest entry of each `2^-e A` (M, 2, 3, 3) in [0.5, 1) (0 for A = 0)."""
+    return np.frexp(np.abs(A).max(axis=(-2, -1)))[1]
+
+
+def _scaled_frames(r: Array | None, A: Array, e: NDArray[np.int_], alpha: Array, v: Array) -> Array:
+    """`frame_quantities` of bodies `A` (M, 2, 3, 3), body j at `r` (M, 3), each body scaled by `2^-e` (M, 2)."""
+    rs = None if r is None else np.ldexp(r, -e[:, 1, None])
+    return frame_quantities(rs, np.ldexp(A, -e[:, :, None, None]), alpha, v)
+
+
+def careful_frames(
+    table: BodyTable, pairs: NDArray[np.intp], rows: tuple[int, ...], alpha: Array, v: Array, idx: NDArray[np.intp]
+) -> CarefulFrames:
+    """`CarefulFrames` of joints `idx` (M,) of `pairs` (2, N) with local vectors `v` (N, 4, 3), over the steps `rows`."""
+    sub = np.ascontiguousarray(pairs[:, idx])
+    v = v[idx]
+    states = sorted({s for row in rows for s in STEPS[row]})
+    A = {s: table.linear_at(sub, s) for s in states}
+    r = {s: relative_position(table.positions_of(sub, s)) for s in states} if alpha.any() else {}
+    # Frames with points (the anchors: r + A c) stay unscaled: a power of two common to r and A
+    # could push r to 0 next to a large A, and their coordinate is not scale-invariant anyway.
+    e = {s: np.zeros((idx.shape[0], 2), dtype=np.int32) if r else _exponents(A[s]) for s in states}
+    starts, steps = [], []
+    for row in rows:
+        a, b = STEPS[row]
+        common = np.maximum(e[a], e[b])  # both states' A (and so the step) at most ~1 once scaled
+        starts.append(_scaled_frames(r.get(a), A[a], common, alpha, v))
+        steps.append(_scaled_frames(r[b] - r[a] if r else None, table.linear_of(sub, row), common, alpha, v))
+    direct = [_scaled_frames(r.get(s), A[s], e[s], alpha, v) for s in states]
+    return CarefulFrames(idx, [e[s] for s in states], direct, starts, steps)
+
+
+def state_frames(
+    table: BodyTable,
+    pairs: NDArray[np.intp],
+    rows: tuple[int, ...],
+    alpha: Array,
+    v: Array,
+    F_ref: Array,
+    steps: list[Array],
+) -> tuple[list[Array], CarefulFrames | None]:
+    """Each state's frames (N, 4, 3) (`q_ref`, then the end of each step in `rows`), and the careful frames.
+
+    A state's frames are `F_a + dF` (the previous state's plus the step: no extra gather) where
+    that rounds within a small factor of the direct `F(A_s)`, i.e. for joints of `plain` bodies;
+    every other joint's are the direct ones, formed from `A_s` scaled by a power of two (a step
+    as large as the frame, e.g. `A_ref = 1e300 I` and `q_prev = I`, leaves nothing of `F_a + dF`).
+    """
+    states = [F_ref]
+    with np.errstate(over="ignore", invalid="ignore"):  # only where `careful` replaces them below
+        for dF in steps:
+            states.append(states[-1] + dF)
+    idx = np.flatnonzero(~table.plain_joints(pairs))
+    if idx.shape[0] == 0:
+        return states, None
+    careful = careful_frames(table, pairs, rows, alpha, v, idx)
+    for s, F in enumerate(states):
+        F[idx] = careful.unscaled(s)
+    return states, careful
 
 
 def frame_quantities(r: Array | None, A: Array, alpha: Array, v: Array) -> Array:
@@ -177,12 +329,37 @@ def to_local(R: Array, w: Array) -> Array:
 
 
 def edge_axis(edges: Array) -> Array:
-    """Unit joint axis `t` (N, 3), component-major, of edges `p0 -> p1` (N, 2, 3)."""
+    """Unit joint axis `t` (N, 3), component-major, of edges `p0 -> p1` (N, 2, 3).
+
+    The difference is scaled by a power of two (exact) to a largest component in [0.5, 1)
+    before its length is taken: `dot(d, d)` of an edge of 1e-160 would be subnormal (and lose
+    digits) and of 1e160 infinite. Every edge with a nonzero, finite `p1 - p0` has an axis
+    (`validate.check_joints` refuses the others); for ordinary edges the result is bitwise
+    that of `d / |d|`.
+    """
+    d = edge_vector(edges)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # the odd rows are redone below
+        dd = dot(d, d)
+        t = d / np.sqrt(dd)[:, None]
+    odd = np.flatnonzero(~((dd >= 2.0**-1000) & (dd <= 2.0**1000)))  # rare: their dot(d, d) lost digits or overflowed
+    if odd.shape[0]:
+        _, e = np.frexp(max_abs(d[odd]))
+        t[odd] = unit(np.ldexp(d[odd], -e[:, None]))
+    return t
+
+
+def edge_vector(edges: Array) -> Array:
+    """`p1 - p0` (N, 3), component-major, of edges (N, 2, 3)."""
     d = component_major(edges.shape[0], (3,), edges.dtype)
     np.subtract(edges[:, 1], edges[:, 0], out=d)
-    return unit(d)
+    return d
+
+
+def max_abs(v: Array) -> Array:
+    """Largest component magnitude (N,) of each row of `v` (N, 3)."""
+    return np.maximum(np.maximum(np.abs(v[:, 0]), np.abs(v[:, 1])), np.abs(v[:, 2]))
 
 
 def unit(v: Array) -> Array:
-    """Each row of `v` (N, 3) over its length, in `v`'s layout."""
+    """Each row of `v` (N, 3) over its length, in `v`'s layout (rows of moderate length: see `edge_axis`)."""
     return v / np.sqrt(dot(v, v))[:, None]

@@ -22,9 +22,21 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.core.constitution import Array, Constitution
-from service.core.errors import Fault, FaultLog, InputError
+from service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError
 from service.core.evaluate import _increments, collapsed_faults, differentiate
-from service.core.kinematics import PREV_STEP, REF, STEPS, TOTAL_STEP, BodyTable, frame_quantities, relative_position
+from service.core.kinematics import (
+    PREV_STEP,
+    REF,
+    STEPS,
+    TOTAL_STEP,
+    BodyTable,
+    CarefulFrames,
+    careful_frames,
+    frame_quantities,
+    _plain_bodies,
+    relative_position,
+    state_frames,
+)
 from service.core.parallel import run_all
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
@@ -63,17 +75,20 @@ class _Batch:
     F_ref: Array  # (N, 4, 3) frames at q_ref
     starts: list[Array]  # frames where each step of `x` starts (F_ref, then F at q_prev if used)
     fixed: list[Array]  # the steps before the last one (which goes to q): they do not depend on q
+    rows: tuple[int, ...]  # the body table's increment rows of those steps and the last one
+    prev_careful: CarefulFrames | None  # the fixed steps' careful frames (kinematics.state_frames)
     row: int  # the body table's increment row of the last step (to q): STEP or TOTAL_STEP
     origin: int  # the state it starts from (0: q_ref, 1: q_prev)
     r_origin: Array | None  # (N, 3) body j from body i in that state (points only)
-    lower: Array  # the request's bounds on the coordinate, float64 (owned: `update` writes them)
+    lower: Array  # the request's bounds on the coordinate, float64 (`update` writes them: copies in `prepare`)
     upper: Array
     strength: Array
-    offset: Array
+    offset: Array | None  # None: 0 (only in the stateless call, which saves the arrays)
     lo: Array  # the penalty's bounds on x (lower - offset, upper - offset) and strength, in the scene's dtype
     up: Array
     s: Array
     theta: Array | None  # the committed angle at q_prev (coordinate - offset), None: summed over the steps
+    faults: list[Fault]  # the stateless call's collapsed frames at q_ref, q_prev: reported with those at q
 
 
 class PreparedScene:
@@ -125,7 +140,8 @@ class PreparedScene:
         return ev
 
     def _run(self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool) -> Evaluation:
-        self._load(q, {jb.row for jb in self._batches})
+        # The steps x takes now: all of them (v1), or from q_prev alone once the angle is a state.
+        self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
         threads = self._threads
         inner = threads if len(self._batches) == 1 else 1  # one level of threads: a pool never waits on itself
@@ -142,14 +158,39 @@ class PreparedScene:
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
         return Evaluation(total_energy=total, batches=[BatchResult(**r) for r in results])
 
-    def _load(self, q: Array, rows: Iterable[int]) -> None:
+    def _load(self, q: Array, rows: Iterable[int], steps: Iterable[int]) -> None:
         """`q` (B, 12) into the body table's state 2 (scratch: the table's states 0, 1 are `q_ref`,
-        `q_prev`) and the increments `rows` of `A` to it (`STEP` from q_prev, `TOTAL_STEP` from q_ref)."""
+        `q_prev`), the increments `rows` of `A` to it (`STEP` from q_prev, `TOTAL_STEP` from q_ref),
+        and which bodies the common frame path serves over the increments `steps` (`table.plain`)."""
         t = self._table
         t.dofs[2] = q.T
         for row in rows:
             a, b = STEPS[row]
             np.subtract(t.dofs[b, 3:], t.dofs[a, 3:], out=t.linear[row])
+        t.plain = _plain_bodies(t.states, t.linear, tuple(steps))
+
+    @staticmethod
+    def _x_rows(jb: _Batch) -> tuple[int, ...]:
+        return jb.rows if jb.theta is None else jb.rows[-1:]
+
+    def _to_q(
+        self, jb: _Batch, starts: list[Array], fixed: list[Array], rows: tuple[int, ...], dF: Array
+    ) -> tuple[list[Array], CarefulFrames | None, Array]:
+        """Frames (N, 4, 3) in each state of the steps `rows` (the last one at `q`, loaded), their
+        careful frames, and x (N,) summed over the steps `fixed + [dF]` that start at `starts`.
+
+        As `kinematics.state_frames`: each state is the previous one plus the step, except for
+        joints of bodies the common path does not serve (`table.plain`), formed directly (scaled).
+        """
+        states = [*starts, starts[-1] + dF]
+        idx = np.flatnonzero(~self._table.plain_joints(jb.pairs))
+        careful = None
+        if idx.shape[0]:
+            careful = careful_frames(self._table, jb.pairs, rows, jb.c.alpha, jb.v, idx)
+            states = [F.copy() for F in states[:-1]] + states[-1:]  # the cached starts stay as they are
+            for k, F in enumerate(states):
+                F[idx] = careful.unscaled(k)
+        return states, careful, jb.c.coordinate(states[:-1], [*fixed, dF], careful)
 
     def _step(self, jb: _Batch, row: int, r_origin: Array | None) -> Array:
         """The frames' increment (N, 4, 3) over the table's increment `row` to `q` (loaded), from the
@@ -158,21 +199,23 @@ class PreparedScene:
         r = None if r_origin is None else relative_position(t.positions_of(jb.pairs, 2)) - r_origin
         return frame_quantities(r, t.linear_of(jb.pairs, row), jb.c.alpha, jb.v)
 
-    def _x(self, jb: _Batch, dF: Array) -> Array:
-        """The joint coordinate `x` (N,) at `q` from the last step `dF`."""
+    def _x(self, jb: _Batch, dF: Array) -> tuple[Array, Array, CarefulFrames | None]:
+        """The joint coordinate `x` (N,) and the frames (N, 4, 3) at `q` from the last step `dF`, and
+        the careful frames of the state at q (`_last_state`)."""
         if jb.theta is None:
-            return jb.c.coordinate(jb.starts, jb.fixed + [dF])
-        return jb.theta + jb.c.coordinate(jb.starts[-1:], [dF])
+            states, careful, x = self._to_q(jb, jb.starts, jb.fixed, jb.rows, dF)
+        else:
+            states, careful, x = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF)
+            x = jb.theta + x
+        return x, states[-1], _last_state(careful)
 
     def _evaluate_batch(
         self, b: int, jb: _Batch, want_g: bool, want_h: bool, psd: bool, active_only: bool, threads: int
     ) -> dict:
-        dF = self._step(jb, jb.row, jb.r_origin)
-        x = self._x(jb, dF)
-        F = jb.starts[-1] + dF
-        raise_if(collapsed_faults(b, jb.c, {"q": F}))
+        x, F, careful = self._x(jb, self._step(jb, jb.row, jb.r_origin))
+        raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful))[:MAX_FAULTS])
         r = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads)
-        r["coordinate"] = r["x"] + (jb.offset[r["index"]] if active_only else jb.offset)
+        r["coordinate"] = _plus_offset(r["x"], jb.offset, r["index"] if active_only else None)
         return r
 
     # ---------------------------------------------------------------- state
@@ -187,11 +230,11 @@ class PreparedScene:
         q = np.asarray(q, dtype=np.float64)
         raise_if(check_dofs("q", q, self.n_bodies))
         with np.errstate(all="ignore"):
-            self._load(q, (TOTAL_STEP,))
+            self._load(q, (TOTAL_STEP,), (TOTAL_STEP,))
             log, new = FaultLog(), []
             for b, jb in enumerate(self._batches):
-                F_q, x = self._from_ref(jb)
-                log.add(collapsed_faults(b, jb.c, {"q": F_q}))
+                F_q, x, careful = self._from_ref(jb)
+                log.add(collapsed_faults(b, jb.c, ("q",), [F_q], careful))
                 if not jb.c.telescopes:
                     r = self._angle(jb)
                     x = r + rem(x - r)
@@ -201,22 +244,22 @@ class PreparedScene:
                 if not jb.c.telescopes:
                     jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (origin 1)
             self._table.dofs[1] = self._table.dofs[2]
-            return [x + jb.offset for jb, (_, x) in zip(self._batches, new)]
+            return [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
 
-    def _from_ref(self, jb: _Batch) -> tuple[Array, Array]:
-        """Frames (N, 4, 3) at `q` (loaded with `TOTAL_STEP`) and the coordinate from `q_ref` in one
-        step (DeltaTheta(q, q_ref), or the slide)."""
+    def _from_ref(self, jb: _Batch) -> tuple[Array, Array, CarefulFrames | None]:
+        """Frames (N, 4, 3) at `q` (loaded with `TOTAL_STEP`), the coordinate from `q_ref` in one
+        step (DeltaTheta(q, q_ref), or the slide), and the careful frames at `q`."""
         r_ref = None
         if jb.c.alpha.any():
             r_ref = jb.r_origin if jb.origin == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
-        dF = self._step(jb, TOTAL_STEP, r_ref)
-        return jb.F_ref + dF, jb.c.coordinate([jb.F_ref], [dF])
+        states, careful, x = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), self._step(jb, TOTAL_STEP, r_ref))
+        return states[-1], x, _last_state(careful)
 
     def _angle(self, jb: _Batch) -> Array:
         """The committed angle at q_prev: `theta`, or DeltaTheta(q_prev, q_ref) before any commit."""
         if jb.theta is not None:
             return jb.theta
-        return jb.c.coordinate(jb.starts[:1], jb.fixed[:1])
+        return jb.c.coordinate(jb.starts[:1], jb.fixed[:1], jb.prev_careful)
 
     def coordinates(self) -> list[Array]:
         """The committed coordinates at `q_prev`, one (N,) per batch (`x(q_prev) + offset`)."""
@@ -224,11 +267,11 @@ class PreparedScene:
         with np.errstate(all="ignore"):
             for jb in self._batches:
                 if jb.c.telescopes:
-                    self._load(self._table.dofs[1].T, (TOTAL_STEP,))
+                    self._load(self._table.dofs[1].T, (TOTAL_STEP,), (TOTAL_STEP,))
                     x = self._from_ref(jb)[1]
                 else:
                     x = self._angle(jb)
-                out.append(x + jb.offset)
+                out.append(_plus_offset(x, jb.offset))
         return out
 
     def update(
@@ -274,15 +317,32 @@ def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtyp
     log = FaultLog()
     log.add(check_bodies(Bodies(q_prev, q_prev, q_ref), names=("q_ref", "q_prev")))
     log.raise_if_any()
-    return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype)
+    return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype, own=True)
 
 
-def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type) -> PreparedScene:
-    """`prepare` of bodies whose states are already checked, and joints as arrays."""
+def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:
+    """`careful` reduced to its last state (the frames at q), for the collapse test there."""
+    if careful is None:
+        return None
+    return CarefulFrames(careful.idx, careful.exponents[-1:], careful.states[-1:], [], [])
+
+
+def _plus_offset(x: Array, offset: Array | None, index: NDArray[np.int64] | None = None) -> Array:
+    """The coordinate `x + offset` (M,) of `x` (M,), at joints `index` (M,) of `offset` if given."""
+    if offset is None:
+        return x.copy()
+    return x + (offset if index is None else offset[index])
+
+
+def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, own: bool) -> PreparedScene:
+    """`prepare` of bodies whose states are already checked, and joints as arrays. `own`: the scene's
+    limits are its own arrays (`update` writes them); else the stateless call's, which allocates
+    nothing it does not need (every fresh array here is page faults of its own)."""
     used = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
     # q_prev is always in the table: the state a commit replaces.
     rows = {PREV_STEP} | {row for c in used for row in _increments(c)[:-1]}
-    table = BodyTable(bodies, dtype, threads, rows=rows)
+    with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
+        table = BodyTable(bodies, dtype, threads, rows=rows)
     n_bodies = bodies.q_ref.shape[0]
     log = FaultLog()
     log.add(check_rotations(table.ratio))
@@ -292,12 +352,12 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type) -
         log.add(check_joints(b, joints, n_bodies))
     log.raise_if_any()
     with np.errstate(all="ignore"):
-        prepared = [_prepare_batch(b, j, table, log) for b, j in enumerate(batches)]
+        prepared = [_prepare_batch(b, j, table, log, own) for b, j in enumerate(batches)]
     log.raise_if_any()
     return PreparedScene(table, prepared, threads)
 
 
-def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog) -> _Batch:
+def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog, own: bool) -> _Batch:
     c = CONSTITUTIONS[joints.constitution_uid]
     pairs = np.ascontiguousarray(joints.body_ids.T)  # (2, N): contiguous indices gather 30% faster
     dtype = table.linear.dtype
@@ -311,21 +371,23 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog) -> _
     v = c.local_vectors(joints.edges.astype(dtype, copy=False), p_ref, A_ref, table.rotations(pairs))
     F_ref = frame_quantities(r.get(0), A_ref, c.alpha, v)
     # The steps before the last one (q_ref -> q_prev) and where each starts.
-    starts, fixed = [F_ref], []
+    fixed = []
     for row in rows[:-1]:
         s0, s1 = STEPS[row]
-        dF = frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.alpha, v)
-        fixed.append(dF)
-        starts.append(starts[-1] + dF)
-    names = ("q_ref", "q_prev")[: len(starts)]
-    log.add(collapsed_faults(b, c, dict(zip(names, starts))))
+        fixed.append(frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.alpha, v))
+    starts, prev_careful = state_frames(table, pairs, rows[:-1], c.alpha, v, F_ref, fixed) if fixed else ([F_ref], None)
+    faults = collapsed_faults(b, c, ("q_ref", "q_prev")[: len(starts)], starts, prev_careful)
+    if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
+        log.add(faults)
+        faults = []
     n = pairs.shape[1]
-    offset = joints.offset if joints.offset is not None else np.zeros(n)
+    offset = joints.offset if joints.offset is not None or not own else np.zeros(n)
     theta = None
     if joints.prev_coordinate is not None:
-        theta = (joints.prev_coordinate - offset).astype(dtype, copy=False)
-    lower, upper, strength = (np.array(a, dtype=np.float64) for a in (joints.lower, joints.upper, joints.strength))
-    offset = np.array(offset, dtype=np.float64)
+        theta = (joints.prev_coordinate - (0.0 if offset is None else offset)).astype(dtype, copy=False)
+    lower, upper, strength = joints.lower, joints.upper, joints.strength
+    # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
+    lo, up = (a if offset is None else a - offset for a in (lower, upper))
     return _Batch(
         c=c,
         pairs=pairs,
@@ -333,6 +395,8 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog) -> _
         F_ref=F_ref,
         starts=starts,
         fixed=fixed,
+        rows=rows,
+        prev_careful=prev_careful,
         row=rows[-1],
         origin=origin,
         r_origin=r.get(origin),
@@ -340,11 +404,11 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog) -> _
         upper=upper,
         strength=strength,
         offset=offset,
-        # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
-        lo=(lower - offset).astype(dtype, copy=False),
-        up=(upper - offset).astype(dtype, copy=False),
-        s=strength.astype(dtype, copy=True),
+        lo=lo.astype(dtype, copy=False),
+        up=up.astype(dtype, copy=False),
+        s=strength.astype(dtype, copy=own),
         theta=theta,
+        faults=faults,
     )
 
 
@@ -389,5 +453,5 @@ def evaluate(
     log.add(check_options(outputs, hessian_mode))
     log.add(check_bodies(bodies))
     log.raise_if_any()
-    scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype)
+    scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
     return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True)

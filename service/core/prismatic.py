@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.core.constitution import Array, Curvature
-from service.core.kinematics import component_major, dot, edge_axis, solve3, to_local
+from service.core.kinematics import CarefulFrames, component_major, dot, edge_axis, solve3, to_local
 
 # theta = D.S / 2 with D = C_j - C_i, S = T_i + T_j: coefficients of D and S per block.
 _D = np.array([-1.0, 0.0, 1.0, 0.0])
@@ -25,6 +25,11 @@ _PAIRS = 0.5 * (np.outer(_D, _S) + np.outer(_S, _D))  # (4, 4) block coefficient
 # eigenvalues +-1, so the PSD part of dE PAIRS is |dE| u u^T, u chosen by the sign of dE.
 _U_PLUS = 0.5 * (_D + _S)
 _U_MINUS = 0.5 * (_D - _S)
+
+
+def _theta2(F: Array) -> Array:
+    """2 theta = (C_j - C_i) . (T_i + T_j) (N,)."""
+    return dot(F[:, 2] - F[:, 0], F[:, 1] + F[:, 3])
 
 
 class Prismatic:
@@ -48,14 +53,20 @@ class Prismatic:
             v[:, 2 * side + 1] = to_local(R_ref[:, side], t)  # t_k = R_k^T t
         return v
 
-    def coordinate(self, starts: list[Array], steps: list[Array]) -> Array:
+    def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:
         (F_ref,), (dF,) = starts, steps
         D, S = F_ref[:, 2] - F_ref[:, 0], F_ref[:, 1] + F_ref[:, 3]
         # D and S at q from their increments (A's increments times body-local vectors, small), not
         # from A(q) itself; the difference of the two thetas then rounds no worse than a step form
         # ((D + dD) . dS + dD . S) / 2 did on the bench's cases, and better for steps of 0.9 rad.
         D2, S2 = D + (dF[:, 2] - dF[:, 0]), S + (dF[:, 1] + dF[:, 3])
-        return 0.5 * (dot(D2, S2) - dot(D, S))
+        x = 0.5 * (dot(D2, S2) - dot(D, S))
+        if careful is not None:
+            # A step as large as the frames (or frames at the edge of float64): D and S at q from
+            # A(q) itself, formed scaled and unscaled once (state_frames), and theta at q_ref likewise.
+            F0, F1 = careful.unscaled(0), careful.unscaled(1)
+            x[careful.idx] = 0.5 * (_theta2(F1) - _theta2(F0))
+        return x
 
     def collapsed(self, F: Array) -> np.ndarray:
         return np.zeros(F.shape[0], dtype=bool)

@@ -12,9 +12,10 @@ those of the polar angle, d(x) = (cos d(sin) - sin d(cos)) / r^2.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.core.constitution import Array, Curvature
-from service.core.kinematics import component_major, cross, dot, edge_axis, to_local, unit
+from service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot, edge_axis, to_local, unit
 
 # Constant second derivatives of the bilinear cos and sin in the (4 x 4) block
 # layout of F; each block is a multiple of the 3 x 3 identity.
@@ -23,6 +24,14 @@ _COS_PAIRS[0, 2] = _COS_PAIRS[2, 0] = _COS_PAIRS[1, 3] = _COS_PAIRS[3, 1] = 0.5
 _SIN_PAIRS = np.zeros((4, 4))
 _SIN_PAIRS[0, 3] = _SIN_PAIRS[3, 0] = 0.5
 _SIN_PAIRS[1, 2] = _SIN_PAIRS[2, 1] = -0.5
+
+
+COLLAPSE_RATIO = 1e-12
+"""A frame collapses where `cos^2 + sin^2 <= 2 COLLAPSE_RATIO^2 (|B_i|^2 |B_j|^2 + |N_i|^2 |N_j|^2)`:
+(cos, sin) within rounding of zero relative to the frame vectors' size, whatever their scale
+(the same ratio as `polar.SINGULAR_RATIO`). Above it the angle is as exact as its conditioning
+allows: a few roundings times size / hypot(cos, sin), up to ~1e-3 rad right at the threshold
+(body j nearly flipped over an in-plane axis; `tests/test_degenerate_scales.py`)."""
 
 
 def _cos_sin(F: Array) -> tuple[Array, Array]:
@@ -44,6 +53,83 @@ def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Ar
     c, s = cs
     c2, s2 = c + dc, s + ds
     return np.arctan2(ds * c - dc * s, c2 * c + s2 * s), (c2, s2)
+
+
+def _pair_size(F: Array, side: int) -> Array:
+    """|B| + |N| (N,) of one body's frame vectors (side 0: i, 1: j)."""
+    B, N = F[:, 2 * side], F[:, 2 * side + 1]
+    return np.sqrt(dot(B, B)) + np.sqrt(dot(N, N))
+
+
+def _careful_angle(careful: CarefulFrames) -> Array:
+    """x (M,) of the careful joints: each step in the form with the smaller rounding bound.
+
+    The frames are scaled per body and state (the angle depends only on their directions).
+    Step form: `(cos, sin)` at the end is the start's plus the increment, whose rounding is
+    bounded by `(|B_i'| + |N_i'|)(|dB_j| + |dN_j|) + (|dB_i| + |dN_i|)(|B_j| + |N_j|)`: right
+    when the step is small against the frame. Direct form: `(cos, sin)` from the end state's own
+    frames, rounding bounded by `(|B_i| + |N_i|)(|B_j| + |N_j|)` there and at the start: right when
+    the step is as large as the frame (a frame shrunk by 1e-12 in one step). Each bound is taken
+    relative to `hypot(cos, sin)`, the angle's rounding bound up to a constant.
+    """
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # a bound of inf or NaN loses the choice
+        return _careful_steps(careful)
+
+
+def _careful_steps(careful: CarefulFrames) -> Array:
+    x = 0.0
+    for k, (F, dF) in enumerate(zip(careful.starts, careful.steps)):
+        c, s = _cos_sin(F)
+        turn_step, (c2, s2) = _step(F, dF, (c, s))
+        F2 = F + dF
+        bound_step = (_pair_size(F2, 0) * _pair_size(dF, 1) + _pair_size(dF, 0) * _pair_size(F, 1)) / np.hypot(c2, s2)
+        # Each state's own frames, scaled on their own: in the step's common scaling a frame 1e18
+        # times smaller than the other state's would keep few digits (or none), whatever the bound says.
+        S, E = careful.states[k], careful.states[k + 1]
+        ca, sa = _cos_sin(S)
+        ce, se = _cos_sin(E)
+        turn_direct = np.arctan2(se * ca - ce * sa, ce * ca + se * sa)
+        bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se) + _pair_size(S, 0) * _pair_size(S, 1) / np.hypot(ca, sa)
+        steady = (np.abs(careful.exponents[k] - careful.exponents[k + 1]) <= _STEADY_EXPONENTS).all(axis=1)
+        x = x + np.where(steady & (bound_step <= bound_direct), turn_step, turn_direct)
+    return x
+
+
+_STEADY_EXPONENTS = 60
+"""A body whose A changes by more than 2^60 in one step takes the direct form for that step."""
+
+
+_SAFE = (2.0**-240, 2.0**240)
+"""hypot(cos, sin) in this range: `r^4` and every product in `_polar_derivatives` is a normal number."""
+
+
+def _unsafe(F: Array) -> NDArray[np.bool_]:
+    c, s = _cos_sin(F)
+    r = np.hypot(c, s)
+    return ~((r >= _SAFE[0]) & (r <= _SAFE[1]))
+
+
+def _polar_derivatives(F: Array, second: bool) -> tuple[Array, Curvature | None]:
+    """dx/dF (N, 4, 3) and d2x/dF2: `d(x) = (cos d(sin) - sin d(cos)) / r^2`, `r^2 = cos^2 + sin^2`."""
+    n = F.shape[0]
+    c, s = _cos_sin(F)
+    r2 = c * c + s * s
+    x_c, x_s = -s / r2, c / r2
+    # d cos/dF and d sin/dF, (N, 2, 4, 3): each block is one other block of F, halved.
+    g = np.empty((n, 2, 4, 3), dtype=F.dtype)
+    g[:, 0, 0], g[:, 0, 1], g[:, 0, 2], g[:, 0, 3] = F[:, 2], F[:, 3], F[:, 0], F[:, 1]
+    g[:, 1, 0], g[:, 1, 1], g[:, 1, 2], g[:, 1, 3] = F[:, 3], -F[:, 2], -F[:, 1], F[:, 0]
+    g *= 0.5
+    dx = x_c[:, None, None] * g[:, 0] + x_s[:, None, None] * g[:, 1]
+    if not second:
+        return dx, None
+    r4 = r2 * r2
+    coef = np.empty((n, 2, 2), dtype=F.dtype)
+    coef[:, 0, 0] = 2.0 * c * s / r4
+    coef[:, 1, 1] = -coef[:, 0, 0]
+    coef[:, 0, 1] = coef[:, 1, 0] = (s * s - c * c) / r4
+    kron = x_c[:, None, None] * _COS_PAIRS + x_s[:, None, None] * _SIN_PAIRS  # (N, 4, 4)
+    return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1))
 
 
 class Revolute:
@@ -68,37 +154,42 @@ class Revolute:
             v[:, k] = to_local(R_ref[:, side], w)  # body-local b_k = R_k^T b
         return v
 
-    def coordinate(self, starts: list[Array], steps: list[Array]) -> Array:
+    def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:
         x, cs = 0.0, _cos_sin(starts[0])
         for F, dF in zip(starts, steps):
             turn, cs = _step(F, dF, cs)
             x = x + turn
+        if careful is not None:
+            x[careful.idx] = _careful_angle(careful)
         return x
 
     def collapsed(self, F: Array) -> np.ndarray:
-        c, s = _cos_sin(F)
-        return (c == 0.0) & (s == 0.0)
+        # Squares of frames from A inside kinematics.PLAIN_RANGE (or scaled) stay normal numbers
+        # unless the frame is far below its own rounding; then both sides are 0 and it collapses.
+        # (Other frames may overflow here: the caller judges those joints on scaled frames.)
+        with np.errstate(over="ignore", invalid="ignore"):
+            c, s = _cos_sin(F)
+            B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
+            size2 = dot(B_i, B_i) * dot(B_j, B_j) + dot(N_i, N_i) * dot(N_j, N_j)
+            return c * c + s * s <= (2.0 * COLLAPSE_RATIO * COLLAPSE_RATIO) * size2
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
-        n = F.shape[0]
-        c, s = _cos_sin(F)
-        r2 = c * c + s * s
-        x_c, x_s = -s / r2, c / r2
-        # d cos/dF and d sin/dF, (N, 2, 4, 3): each block is one other block of F, halved.
-        g = np.empty((n, 2, 4, 3), dtype=F.dtype)
-        g[:, 0, 0], g[:, 0, 1], g[:, 0, 2], g[:, 0, 3] = F[:, 2], F[:, 3], F[:, 0], F[:, 1]
-        g[:, 1, 0], g[:, 1, 1], g[:, 1, 2], g[:, 1, 3] = F[:, 3], -F[:, 2], -F[:, 1], F[:, 0]
-        g *= 0.5
-        dx = x_c[:, None, None] * g[:, 0] + x_s[:, None, None] * g[:, 1]
-        if not second:
-            return dx, None
-        r4 = r2 * r2
-        coef = np.empty((n, 2, 2), dtype=F.dtype)
-        coef[:, 0, 0] = 2.0 * c * s / r4
-        coef[:, 1, 1] = -coef[:, 0, 0]
-        coef[:, 0, 1] = coef[:, 1, 0] = (s * s - c * c) / r4
-        kron = x_c[:, None, None] * _COS_PAIRS + x_s[:, None, None] * _SIN_PAIRS  # (N, 4, 4)
-        return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1))
+        dx, curvature = _polar_derivatives(F, second)
+        # Rows whose r^4 would under- or overflow (frames beyond ~1e+-36): the same from each body's
+        # frames scaled by a power of two, then scaled back block by block (exact). `r^4` of a
+        # frame of 1e-80 is 0 and `r^2` of 1e-160 subnormal: the plain formula would answer inf or
+        # a number with few digits.
+        bad = np.flatnonzero(_unsafe(F))
+        if bad.shape[0]:
+            e = np.frexp(np.abs(F[bad]).max(axis=2).reshape(-1, 2, 2).max(axis=2))[1]  # (M, 2) per body
+            eb = e[:, BLOCK_BODY]  # (M, 4)
+            dx_b, cv_b = _polar_derivatives(np.ldexp(F[bad], -eb[:, :, None]), second)
+            dx[bad] = np.ldexp(dx_b, -eb[:, :, None])
+            if second:
+                curvature.kron[bad] = np.ldexp(cv_b.kron, -(eb[:, :, None] + eb[:, None, :]))
+                curvature.basis[bad] = np.ldexp(cv_b.basis, -eb[:, None, :, None])
+                curvature.coef[bad], curvature.dx_coef[bad] = cv_b.coef, cv_b.dx_coef
+        return dx, curvature
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature | None:
         return None  # the rank-2 update mixes with K (x) I_3: the 12 x 12 eigensolver decides

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.core.errors import MAX_FAULTS, Fault, InputError
-from service.core.kinematics import dot
+from service.core.kinematics import edge_vector, max_abs
 from service.core.polar import SINGULAR_RATIO
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
@@ -134,15 +134,14 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     if "offset" in state:
         faults += check_offset(b, lo, up, state["offset"], np.arange(n))
     with np.errstate(over="ignore", invalid="ignore"):
-        # The same arithmetic as the constitutions' unit axis, so exactly the edges it cannot normalise.
-        d = joints.edges[:, 1] - joints.edges[:, 0]
-        length = np.sqrt(dot(d, d))
+        # Exactly the edges `kinematics.edge_axis` cannot normalise: it scales p1 - p0 by a power of
+        # two first, so any nonzero, finite difference (even 5e-324) has an axis.
+        size = max_abs(edge_vector(joints.edges))
     faults += [
-        Fault(at("edges", j), "zero-length edge: p0 == p1 (or too close to normalise) gives no joint axis")
-        for j in _where(length == 0)
+        Fault(at("edges", j), "zero-length edge: p0 == p1 gives no joint axis") for j in _where(size == 0)
     ]
     faults += [
-        Fault(at("edges", j), "edge too long: |p1 - p0| overflows float64") for j in _where(~np.isfinite(length))
+        Fault(at("edges", j), "edge too long: p1 - p0 overflows float64") for j in _where(~np.isfinite(size))
     ]
     return faults
 

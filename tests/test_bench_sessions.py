@@ -48,3 +48,20 @@ def test_wire_rows_have_both_transports_and_encodings():
     assert all(by[(n, e, "session")] < by[(n, e, "HTTP (stateless)")] for n in S.WIRE_SIZES for e in ("msgpack", "json"))
     (t5,) = [t for t in S.targets({"inprocess": [], "wire": rows}) if t["group"] == 5]
     assert t5["met"] is not None and np.isfinite(float(t5["measured"].rstrip("x")))
+
+
+def test_the_full_report_has_the_sessions_section_and_targets():
+    from bench import report
+    from tests.test_bench import synthetic_result
+
+    res = synthetic_result()
+    res["sessions"] = {
+        "inprocess": [{"n": 100_000, "mode": "energy", "stateless": 0.1, "prepared": 0.025, "speedup": 4.0}],
+        "wire": [{"joints": 10, "encoding": "msgpack", "transport": t, "iterations": 300, "p50_ms": p, "p99_ms": 2 * p,
+                  "bytes_per_iteration": 6000.0} for t, p in (("HTTP (stateless)", 2.2), ("session", 0.7))],
+    }
+    res["targets"] = report.targets(res) + S.targets(res["sessions"])
+    md = report.markdown(res)
+    assert "## Prepared scene vs stateless, in-process" in md and "## Sessions vs stateless HTTP on loopback" in md
+    assert "| 5. session evaluate, 10 joints, loopback, p50: speedup over stateless Client.evaluate (msgpack) | 3.14x" in md
+    assert "| 6. prepared energy at 1e5 in-process: speedup over the stateless call | 4.00x" in md

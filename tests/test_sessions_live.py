@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from client import AsyncClient, Client, InvalidInput, JointBatch, LocalClient, ServiceError, SessionClosed, request_from_arrays
+from schemas import binary as wire
 from schemas import session as proto
 from service.settings import Settings
 from tests.conftest import GOLDEN
@@ -238,3 +239,31 @@ def test_async_session_reopens_after_a_drop(live):
         q[2] = pose(4.2)
         same(got, ref.evaluate(q))
         assert coords[0].tobytes() == ref.commit(q)[0].tobytes()
+
+
+def test_a_client_that_stops_reading_is_closed_by_the_idle_timer():
+    """Replies pile up unread (the server's send waits on a full buffer): after the idle time the session ends
+    and its place is free again, whatever the client does."""
+    import httpx
+    from websockets.sync.client import connect
+
+    from client.codec import encode
+
+    req, _ = chain(2000)  # E+G+H of 2000 joints, all outside: ~9 MB per answer
+    settings = Settings(max_body_bytes=2_000_000, max_joints=4000, token=None, cors_origins=(), max_sessions=1,
+                        session_idle_seconds=1.0)
+    with serve(settings) as url:
+        ws_url = url.replace("http", "ws") + proto.PATH
+        # max_queue=1: the client library stops reading from the socket after one unread message.
+        with connect(ws_url, max_size=None, max_queue=1, compression=None) as ws:
+            ws.send(encode(req, True)[0])
+            frame = {"kind": "evaluate", "q": wire.pack_array(req.q, wire.FLOAT64)}
+            for _ in range(6):
+                ws.send(wire.dumps(frame))
+            deadline = time.monotonic() + 60
+            while 'jointlimits_sessions_total{reason="idle"} 1.0' not in (m := httpx.get(url + "/metrics").text):
+                assert time.monotonic() < deadline, m
+                time.sleep(0.2)
+            assert "jointlimits_sessions_open 0.0" in m
+        with Client(url).session(chain()[0]) as s:  # the worker's only place is free
+            assert s.evaluate(chain()[0].q).total_energy > 0

@@ -34,6 +34,9 @@ router = APIRouter()
 log = logging.getLogger(ACCESS_LOGGER)
 T = TypeVar("T")
 
+CLOSE_SECONDS = 5.0
+"""How long a close frame may wait to be sent (behind replies the client does not read) before the connection is dropped."""
+
 INLINE_JOINTS = 256
 """Scenes up to this many joints are evaluated on the event loop: a thread hop would cost more than
 the evaluation (tens of microseconds). Larger ones run in a worker thread, so the loop stays free."""
@@ -129,10 +132,10 @@ async def _serve(websocket: WebSocket, settings: Settings, metrics: Metrics) -> 
                 mid = codec.message_id(frame)
             reply = codec.encode(codec.error(e, mid), binary_frame)
             if kind == "open" and isinstance(e, HttpError) and e.status == 413:
-                await _send(websocket, reply)
+                await _send(websocket, reply, settings)
                 metrics.session_messages.labels(kind, outcome).inc()
                 raise Closing(proto.SCENE_TOO_LARGE, "the scene is over this service's joint limit", "scene_too_large")
-        await _send(websocket, reply)
+        await _send(websocket, reply, settings)
         metrics.session_messages.labels(kind, outcome).inc()
         metrics.session_latency.labels(kind).observe(time.perf_counter() - t0)
 
@@ -163,18 +166,23 @@ async def _receive(websocket: WebSocket, settings: Settings) -> codec.Frame:
 
 
 async def _close(websocket: WebSocket, code: int, reason: str) -> None:
-    """Close with `code`; a client already gone has nothing left to tell. A close reason holds 123 bytes."""
+    """Close with `code`; a client already gone, or not reading, has nothing left to tell (the close frame
+    waits behind unread data at most CLOSE_SECONDS, then the connection is dropped). A reason holds 123 bytes."""
     try:
-        await websocket.close(code, reason.encode()[:123].decode(errors="ignore"))
-    except (RuntimeError, OSError, WebSocketDisconnect):
+        await asyncio.wait_for(websocket.close(code, reason.encode()[:123].decode(errors="ignore")), CLOSE_SECONDS)
+    except (RuntimeError, OSError, WebSocketDisconnect, asyncio.TimeoutError):
         pass
 
 
-async def _send(websocket: WebSocket, reply: codec.Frame) -> None:
-    if isinstance(reply, bytes):
-        await websocket.send_bytes(reply)
-    else:
-        await websocket.send_text(reply)
+async def _send(websocket: WebSocket, reply: codec.Frame, settings: Settings) -> None:
+    """Send a reply; a client that reads nothing for the idle time (the server's send buffer stays full) is closed."""
+    send = websocket.send_bytes(reply) if isinstance(reply, bytes) else websocket.send_text(reply)
+    try:
+        await asyncio.wait_for(send, settings.session_idle_seconds)
+    except asyncio.TimeoutError:
+        raise Closing(
+            proto.IDLE_TIMEOUT, f"no reply read for {settings.session_idle_seconds:g} s: session closed", "idle"
+        ) from None
 
 
 async def _open(frame: codec.Frame, settings: Settings) -> tuple[Session, codec.Frame]:

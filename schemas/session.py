@@ -85,12 +85,10 @@ ClientMessage = Annotated[
 CLIENT_MESSAGE = TypeAdapter(ClientMessage)
 """Parses one JSON client message (after the opening one)."""
 
-# The keys of each kind in a msgpack message (True: required), for the binary reader.
+# The keys of each kind in a msgpack message (True: required), for the binary reader: the models' own fields.
 KEYS: dict[str, dict[str, bool]] = {
-    EVALUATE: {"kind": True, "id": False, "q": True, "outputs": False, "hessian_mode": False, "active_only": False},
-    COMMIT: {"kind": True, "id": False, "q": True},
-    UPDATE: {"kind": True, "id": False, "batch": True, "index": True, **{k: False for k in UPDATABLE}},
-    CLOSE: {"kind": True, "id": False},
+    m.model_fields["kind"].annotation.__args__[0]: {k: f.is_required() for k, f in m.model_fields.items()}
+    for m in (EvaluateMessage, CommitMessage, UpdateMessage, CloseMessage)
 }
 
 __all__ = [

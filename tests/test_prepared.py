@@ -324,3 +324,17 @@ def test_prepared_scene_forms_careful_frames_at_every_scale(k: float, uid: int) 
         for angle in (0.7, 2.5, 4.0, 6.5):  # turns of < pi per commit, A_j at scale k
             (coord,) = scene.commit(_revolute_probe({"q": k * rotation_about(Z, angle)}).q)
             assert abs(coord[0] - angle) <= 1e-12 * angle
+
+
+def test_rem_is_exact_to_rounding_over_many_turns() -> None:
+    """rem(y) against 50 digits, y up to a million turns either way: within an ulp of |y|'s own rounding."""
+    from mpmath import mp, mpf
+
+    rng = np.random.default_rng(11)
+    y = np.concatenate([rng.uniform(-1, 1, 50) * 10.0 ** rng.integers(0, 7, 50), [np.pi, -np.pi, 3 * np.pi + 1e-9]])
+    got = rem(y)
+    with mp.workdps(50):
+        two_pi = 2 * mp.pi
+        want = [float(mpf(float(v)) - two_pi * mp.nint(mpf(float(v)) / two_pi)) for v in y]
+    assert np.all(np.abs(got) <= np.pi + 1e-15)
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-16 * 4)

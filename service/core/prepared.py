@@ -53,8 +53,8 @@ from service.core.validate import (
     raise_if,
 )
 
-# 2 pi in two parts (Cody-Waite): `k * _TWO_PI_HI` is exact for |k| < 2**26 (26 trailing zero bits),
-# so `rem` of a many-turn angle loses nothing to the rounding of 2 pi.
+# 2 pi in two parts (Cody-Waite): `k * _TWO_PI_HI` is exact for |k| < 2**24 turns (24 trailing zero
+# bits), so `rem` of a many-turn angle loses nothing to the rounding of 2 pi.
 _TWO_PI_HI = float.fromhex("0x1.921fb54000000p+2")
 _TWO_PI_LO = (2 * np.pi - _TWO_PI_HI) + 2.4492935982947064e-16  # 2 pi - fl(2 pi), to double precision
 

@@ -13,7 +13,6 @@ from client.errors import Fault, InvalidInput
 from client.model import Array, BatchResult, Evaluation, Request
 from client.session import SessionClosed, SessionState, options
 from service import core
-
 from service.core.prepared import prepare
 
 T = TypeVar("T")

@@ -22,13 +22,12 @@ from starlette.websockets import WebSocketDisconnect
 
 from schemas import session as proto
 from service.core import Evaluation, InputError
+from service.core.prepared import PreparedScene, prepare
 from service.http import limits
 from service.http import session_codec as codec
 from service.http.errors import HttpError
 from service.observability import ACCESS_LOGGER, Metrics
 from service.settings import Settings
-
-from service.core.prepared import PreparedScene, prepare
 
 router = APIRouter()
 log = logging.getLogger(ACCESS_LOGGER)
@@ -38,8 +37,10 @@ CLOSE_SECONDS = 5.0
 """How long a close frame may wait to be sent (behind replies the client does not read) before the connection is dropped."""
 
 INLINE_JOINTS = 256
-"""Scenes up to this many joints are evaluated on the event loop: a thread hop would cost more than
-the evaluation (tens of microseconds). Larger ones run in a worker thread, so the loop stays free."""
+"""Scenes up to this many joints (a millisecond or so of work) are evaluated on the event loop: the hop to a
+worker thread and back costs tens of microseconds on an idle machine and milliseconds on a loaded one
+(README, "Sessions and prepared scenes"). Larger ones run in a worker thread, so that one large session does
+not hold up the replies of the worker's other sessions."""
 
 
 def admit(settings: Settings, batch_joints: list[int], outputs: Sequence[str], binary_answer: bool) -> None:

@@ -190,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     n_well = sum(f == "well" for f in cs.families)
     res["notes"].append(f"Accuracy over {len(cases)} cases ({n_well} well-conditioned: the golden cases and generated "
                         f"ones; {len(cases) - n_well} hard: strain 0.3, steps of 0.9 rad, a scene 1e4 from the "
-                        "origin), against tests/reference.py (mpmath, 50 digits).")
+                        "origin), against bench/reference.py (mpmath, 50 digits).")
 
     def variant(name: str, egh_t: float | None, e_t: float | None, results: M.Results | None,
                 mode: str = "exact") -> None:

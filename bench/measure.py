@@ -181,8 +181,8 @@ class CaseSet:
 
 
 def build_case_set(cases: list[tuple[str, str, dict]], modes: tuple[str, ...] = ("exact", "psd")) -> CaseSet:
-    """Merge `(name, family, request)` cases; the reference (tests/reference.py, mpmath) per case and mode."""
-    from tests.reference import reference_request  # the team's 50-digit reference of the contract
+    """Merge `(name, family, request)` cases; the reference (bench/reference.py, mpmath) per case and mode."""
+    from bench.reference import reference_request  # the team's 50-digit reference of the contract
 
     qs: dict[str, list] = {"q": [], "q_prev": [], "q_ref": []}
     per_uid: dict[int, dict[str, list]] = {}

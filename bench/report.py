@@ -159,7 +159,7 @@ def _variant_lines(res: dict[str, Any]) -> list[str]:
 
     rows = [[v["name"], _fmt(v.get("egh_jps")), _fmt(v.get("e_jps")), *errs(v.get("err")), *errs(v.get("err_hard"))]
             for v in res["variants"]]
-    return ["Error: per case, max|got - ref| / max|ref| against the 50-digit reference (tests/reference.py), "
+    return ["Error: per case, max|got - ref| / max|ref| against the 50-digit reference (bench/reference.py), "
             "then the max over the cases of a family; psd variants against the psd reference. "
             "The memory-write floor computes nothing (error n/a).", "",
             *_table(["variant", "E+G+H joints/s", "energy joints/s", "E err (well)", "G err (well)", "H err (well)",

@@ -11,9 +11,18 @@ raises `SessionClosed` and `reopen()` continues from the last commit.
 """
 
 from client.aio import AsyncClient
-from client.errors import Fault, InvalidInput, ServiceError, TooLarge
+from client.errors import Fault, InvalidInput, ServiceError, TooLarge, Unreachable, WrongURL
 from client.local import LocalClient
-from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, BatchResult, Evaluation, JointBatch, Request
+from client.model import (
+    PRISMATIC_LIMIT,
+    REVOLUTE_LIMIT,
+    BatchResult,
+    Evaluation,
+    Joint,
+    JointBatch,
+    JointResult,
+    Request,
+)
 from client.scene import Scene, dofs, request_from_arrays
 from client.session import SessionClosed
 from client.sync import Client
@@ -27,13 +36,17 @@ __all__ = [
     "Evaluation",
     "Fault",
     "InvalidInput",
+    "Joint",
     "JointBatch",
+    "JointResult",
     "LocalClient",
     "Request",
     "Scene",
     "ServiceError",
     "SessionClosed",
     "TooLarge",
+    "Unreachable",
+    "WrongURL",
     "dofs",
     "request_from_arrays",
 ]

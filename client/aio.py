@@ -9,10 +9,11 @@ from typing import TYPE_CHECKING
 import httpx
 
 from client import split, transport
+from client.accept import as_request
 from client.base import DEFAULT_URL, BaseClient
 from client.model import Evaluation, Request
 from client.progress import ProgressCallback
-from schemas import ConstitutionsResponse
+from schemas import ConstitutionsResponse, EvaluateRequest
 
 
 if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
@@ -31,6 +32,7 @@ class AsyncClient(BaseClient):
         *,
         binary: bool = True,
         timeout: float | httpx.Timeout = 60.0,
+        connect_timeout: float = transport.CONNECT_TIMEOUT,
         retries: int = 3,
         backoff: float = 0.2,
         token: str | None = None,
@@ -43,6 +45,7 @@ class AsyncClient(BaseClient):
             base_url,
             binary=binary,
             timeout=timeout,
+            connect_timeout=connect_timeout,
             retries=retries,
             backoff=backoff,
             token=token,
@@ -55,7 +58,12 @@ class AsyncClient(BaseClient):
     async def constitutions(self) -> ConstitutionsResponse:
         return transport.constitutions(await self._send(self._constitutions_request()))
 
-    async def evaluate(self, request: Request, *, progress: bool | ProgressCallback | None = None) -> Evaluation:
+    async def evaluate(
+        self, request: Request | dict | EvaluateRequest, *, progress: bool | ProgressCallback | None = None
+    ) -> Evaluation:
+        """`Client.evaluate`, awaited: the same arguments, results and errors; the parts of a split
+        request are in flight `concurrency` at a time."""
+        request = as_request(request)
         if self._limits is None:
             self._limits = await self.constitutions()
         job = self._job(request, progress)
@@ -78,7 +86,7 @@ class AsyncClient(BaseClient):
         return AsyncSession(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"])
 
     async def _send(self, request: httpx.Request) -> httpx.Response:
-        retry = self._retry()
+        retry = self._retry(request)
         while True:
             try:
                 return await self._http.send(request)

@@ -38,6 +38,7 @@ class BaseClient:
         *,
         binary: bool,
         timeout: float | httpx.Timeout,
+        connect_timeout: float,
         retries: int,
         backoff: float,
         token: str | None,
@@ -49,7 +50,11 @@ class BaseClient:
         self.max_joints_per_request = max_joints_per_request
         self.progress = progress
         self._limits: ConstitutionsResponse | None = None
-        self._http_options = HttpOptions(base_url=base_url, timeout=timeout, headers=transport.headers(token, binary))
+        self._http_options = HttpOptions(
+            base_url=base_url,
+            timeout=transport.timeouts(timeout, connect_timeout),
+            headers=transport.headers(token, binary),
+        )
 
     def _constitutions_request(self) -> httpx.Request:
         return self._http.build_request("GET", "/v1/constitutions")
@@ -58,8 +63,8 @@ class BaseClient:
         content, content_type = codec.encode(part.request, self.binary)
         return self._http.build_request("POST", "/v1/evaluate", content=content, headers={"Content-Type": content_type})
 
-    def _retry(self) -> transport.Retry:
-        return transport.Retry(self.retries, self.backoff)
+    def _retry(self, request: httpx.Request) -> transport.Retry:
+        return transport.Retry(self.retries, self.backoff, f"{request.method} {request.url}")
 
     def _job(self, request: Request, progress: bool | ProgressCallback | None) -> Job:
         """`request` in parts that fit `self._limits` (fetched by the caller: that is I/O)."""
@@ -89,4 +94,4 @@ class Job:
 
     def merge(self, results: list[Evaluation]) -> Evaluation:
         """The parts' evaluations, in the order of `parts`, as one."""
-        return split.merge(self.request, self.parts, results)
+        return split.merge(self.request, self.parts, results).sized(self.request)

@@ -16,14 +16,18 @@ class Fault:
 
 
 class ServiceError(Exception):
-    """The service refused a request (4xx) or failed (5xx); `faults` is its `detail`."""
+    """The service refused a request (4xx) or failed (5xx); `faults` is its `detail`.
 
-    def __init__(self, status: int, faults: list[Fault]) -> None:
+    `where` opens the message: `"HTTP 422"` over HTTP, `"invalid input"` in the local mode.
+    """
+
+    def __init__(self, status: int, faults: list[Fault], where: str | None = None) -> None:
         self.status = status
         self.faults = faults
-        lines = "; ".join(f"{'.'.join(map(str, f.loc))}: {f.msg}" for f in faults[:5])
+        self.where = where or f"HTTP {status}"
+        lines = "; ".join(f"{'.'.join(map(str, f.loc))}: {f.msg}" if f.loc else f.msg for f in faults[:5])
         more = f" (and {len(faults) - 5} more)" if len(faults) > 5 else ""
-        super().__init__(f"HTTP {status}: {lines}{more}")
+        super().__init__(f"{self.where}: {lines}{more}")
 
     @property
     def loc(self) -> tuple[str | int, ...]:
@@ -56,4 +60,19 @@ class TooLarge(ServiceError):
     """413: over the server's byte or joint limit (the clients split batches to avoid it)."""
 
 
-_BY_STATUS: dict[int, type[ServiceError]] = {422: InvalidInput, 413: TooLarge}
+class Unreachable(ServiceError):
+    """No answer at all: the connection was refused, timed out, or dropped before an answer, on
+    every attempt (`attempts` = 1 + the retries). `url` is what was asked; `status` is 0."""
+
+    def __init__(self, url: str, attempts: int, cause: Exception) -> None:
+        self.url, self.attempts = url, attempts
+        why = f"{type(cause).__name__}: {cause}" if str(cause) else type(cause).__name__
+        msg = f"cannot reach {url} ({why}) after {attempts} attempt{'s' * (attempts != 1)}; is the service running there?"
+        super().__init__(0, [Fault((), msg, "unreachable")], where="unreachable")
+
+
+class WrongURL(ServiceError):
+    """A 404, or an answer that is not the service's: `base_url` does not point at the service's root."""
+
+
+_BY_STATUS: dict[int, type[ServiceError]] = {422: InvalidInput, 413: TooLarge, 404: WrongURL}

@@ -5,13 +5,20 @@ from __future__ import annotations
 from types import TracebackType
 from typing import TYPE_CHECKING
 
+from client.accept import as_request
 from client.errors import Fault, InvalidInput
 from client.model import BatchResult, Evaluation, Request
 from client.progress import ProgressCallback
-from schemas import ConstitutionsResponse, Limits
+from schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from schemas.constitutions import describe
 from service import core
 
+
+HTTP_OPTIONS = frozenset(
+    {"binary", "timeout", "connect_timeout", "retries", "backoff", "token", "max_joints_per_request", "progress",
+     "concurrency", "http_transport"}
+)
+"""Keywords of `Client` / `AsyncClient` that `LocalClient` accepts and ignores."""
 
 if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
     from client.session_local import LocalSession
@@ -24,16 +31,31 @@ class LocalClient:
     the `loc` the server would answer (`("body", "batches", 1, "lower", 2)`).
     """
 
-    def __init__(self, *, threads: int = 1, **_ignored: object) -> None:
-        """`threads` > 1 lets the core use that many threads (bitwise the same numbers); the HTTP
-        clients' options are accepted and ignored, so switching mode is one word."""
+    def __init__(self, *, threads: int = 1, **http_options: object) -> None:
+        """`threads` > 1 lets the core use that many threads (bitwise the same numbers). The HTTP
+        clients' options (`binary`, `timeout`, ...) are accepted and ignored, so switching mode is
+        one word; any other keyword is a `TypeError`."""
+        unknown = sorted(set(http_options) - HTTP_OPTIONS)
+        if unknown:
+            raise TypeError(
+                f"LocalClient() got an unexpected keyword argument {unknown[0]!r}; it takes threads=N "
+                f"(and ignores the HTTP clients' {', '.join(sorted(HTTP_OPTIONS))})"
+            )
         self.threads = threads
 
     def constitutions(self) -> ConstitutionsResponse:
         infos = [describe(uid, c.name, c.base_uid) for uid, c in sorted(core.CONSTITUTIONS.items(), reverse=True)]
         return ConstitutionsResponse(constitutions=infos, limits=Limits(max_body_bytes=2**63 - 1, max_joints=2**63 - 1))
 
-    def evaluate(self, request: Request, *, progress: bool | ProgressCallback | None = None) -> Evaluation:
+    def evaluate(
+        self, request: Request | dict | EvaluateRequest, *, progress: bool | ProgressCallback | None = None
+    ) -> Evaluation:
+        """`Client.evaluate` in-process: the same arguments, results and bit-identical numbers.
+
+        Input faults raise `InvalidInput` (no HTTP involved: its message starts "invalid input",
+        `e.loc` is what the service would answer); a non-request is a `TypeError`.
+        """
+        request = as_request(request)
         joints = [
             core.Joints(
                 constitution_uid=b.constitution_uid,
@@ -58,16 +80,16 @@ class LocalClient:
                 threads=self.threads,
             )
         except core.InputError as e:
-            raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults]) from None
+            raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults], where="invalid input") from None
         if callable(progress):
             progress(request.n_joints, request.n_joints)
         return Evaluation(
             total_energy=ev.total_energy,
             batches=[
-                BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate)
+                BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, coordinate=r.coordinate)
                 for r in ev.batches
             ],
-        )
+        ).sized(request)
 
     def session(self, request: Request) -> LocalSession:
         """`Client.session`'s API in-process, on the core's prepared scene (bitwise the same numbers)."""

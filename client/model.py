@@ -88,12 +88,55 @@ class Request:
         return sum(len(b) for b in self.batches)
 
 
-@dataclass
+class Joint(int):
+    """A joint's handle, as `Scene.add_revolute_limit` / `add_prismatic_limit` return it.
+
+    It is the joint's row in its constitution's batch (an `int`: `result.batch(670).energy[j]`
+    indexes rows) and knows its `constitution_uid`, so `result.joint(j)` finds it whatever the batch.
+    """
+
+    constitution_uid: int
+
+    def __new__(cls, row: int, constitution_uid: int) -> Joint:
+        self = super().__new__(cls, row)
+        self.constitution_uid = constitution_uid
+        return self
+
+    def __getnewargs__(self) -> tuple[int, int]:  # pickle and copy keep the constitution
+        return int(self), self.constitution_uid
+
+    def __repr__(self) -> str:
+        return f"Joint({int(self)}, constitution_uid={self.constitution_uid})"
+
+
+@dataclass(frozen=True)
+class JointResult:
+    """One joint's answer: `energy` (float), `gradient` (24,), `hessian` (24, 24) in the DOFs `[q_i, q_j]`.
+
+    A joint inside its range (bounds included) has exact zeros for energy and derivatives. Under
+    `active_only` such a joint is not in the answer at all: it reads as zero energy and zero
+    derivatives, and `x` is None (the answer does not carry it; ask without `active_only` to get
+    every `x`). `gradient` / `hessian` are None when the request did not ask for them.
+    """
+
+    constitution_uid: int
+    row: int
+    x: float | None
+    energy: float
+    gradient: Array | None
+    hessian: Array | None
+    coordinate: float | None = None
+    """v1.1: x + offset (None where `x` is, or from a v1 server)."""
+
+
+@dataclass(repr=False)
 class BatchResult:
     """Rows `index` (M,) of a request batch: `x`, `energy` (M,), `gradient` (M, 24), `hessian` (M, 24, 24),
     and `coordinate` (M,) = x + offset (v1.1; None from a v1 server).
 
-    Gradients and Hessians are in the DOFs `[q_i, q_j]` of the joint's two bodies.
+    Gradients and Hessians are in the DOFs `[q_i, q_j]` of the joint's two bodies. Without
+    `active_only` row `k` is joint `k` (`index == arange(N)`); with it the rows are only the
+    joints outside their range, so index by joint with `joint(k)`, not `x[k]`.
     """
 
     constitution_uid: int
@@ -102,11 +145,46 @@ class BatchResult:
     energy: Array
     gradient: Array | None = None
     hessian: Array | None = None
+    size: int | None = None
+    """Joints in the request's batch (N); the clients set it, so `joint` can tell an inactive joint from no joint."""
     coordinate: Array | None = None
 
+    def outputs(self) -> list[str]:
+        """What this answer carries: `x`, `energy`, and `gradient` / `hessian` when asked for."""
+        return ["x", "energy"] + [k for k in ("gradient", "hessian") if getattr(self, k) is not None]
 
-@dataclass
+    def __repr__(self) -> str:
+        # A summary: the arrays themselves are ~250 lines per joint with Hessians.
+        of = f" of {self.size}" if self.size is not None else ""
+        return (f"BatchResult(constitution_uid={self.constitution_uid}, rows={len(self.index)}{of} joints, "
+                f"energy sum={float(np.sum(self.energy))!r}, outputs={', '.join(self.outputs())})")
+
+    def joint(self, k: int) -> JointResult:
+        """Joint `k` of the request's batch (its row there, or a `Joint` handle), with or without `active_only`.
+
+        Raises `IndexError` when the batch has no joint `k`.
+        """
+        k = int(k)
+        if k < 0 or (self.size is not None and k >= self.size):
+            raise IndexError(f"joint {k} out of range: the batch has {self.size} joints")
+        index = np.asarray(self.index)
+        at = int(np.searchsorted(index, k))  # index is ascending (rows in request order)
+        if at < index.size and index[at] == k:
+            pick = lambda a: None if a is None else a[at]  # noqa: E731
+            coordinate = None if self.coordinate is None else float(self.coordinate[at])
+            return JointResult(self.constitution_uid, k, float(self.x[at]), float(self.energy[at]),
+                               pick(self.gradient), pick(self.hessian), coordinate)
+        if self.size is None and (index.size == 0 or k > index[-1]):
+            raise IndexError(f"joint {k} is not in this answer (its batch size is unknown)")
+        zeros = lambda a, shape: None if a is None else np.zeros(shape)  # noqa: E731
+        return JointResult(self.constitution_uid, k, None, 0.0,
+                           zeros(self.gradient, 24), zeros(self.hessian, (24, 24)))
+
+
+@dataclass(repr=False)
 class Evaluation:
+    """The answer: `total_energy` and one `BatchResult` per request batch, in request order."""
+
     total_energy: float
     batches: list[BatchResult] = field(default_factory=list)
 
@@ -116,3 +194,29 @@ class Evaluation:
             if b.constitution_uid == constitution_uid:
                 return b
         raise KeyError(f"no batch of constitution {constitution_uid}")
+
+    def __repr__(self) -> str:
+        """A summary (batches, joints, total energy, outputs); the arrays are in `batches`."""
+        rows = "".join(f"\n  {b!r}," for b in self.batches)
+        return f"Evaluation(total_energy={self.total_energy!r}, batches=[{rows}{chr(10) if rows else ''}])"
+
+    def sized(self, request: Request) -> Evaluation:
+        """Itself, each batch told how many joints its request batch has (what `joint` needs under `active_only`)."""
+        for r, b in zip(self.batches, request.batches):
+            r.size = len(b)
+        return self
+
+    def joint(self, j: Joint | int) -> JointResult:
+        """The answer of joint `j`, the handle `Scene` returned, with or without `active_only`
+        (see `JointResult`: an inactive joint reads as zero energy and derivatives).
+
+        A plain `int` is a row of the only batch; with several batches use `batch(uid).joint(row)`.
+        """
+        if isinstance(j, Joint):
+            return self.batch(j.constitution_uid).joint(j)
+        if len(self.batches) != 1:
+            raise TypeError(
+                f"joint({j!r}): a plain row is ambiguous with {len(self.batches)} batches; pass the handle "
+                "Scene returned, or use batch(constitution_uid).joint(row)"
+            )
+        return self.batches[0].joint(j)

@@ -12,7 +12,7 @@ from typing import Union
 import numpy as np
 from numpy.typing import ArrayLike
 
-from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, JointBatch, Request
+from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request
 from schemas import OUTPUTS
 from schemas.constitutions import STRENGTH_DEFAULT
 
@@ -40,7 +40,7 @@ class Scene:
     >>> b = scene.add_body(turned, ref=np.eye(4))       # current pose, and the pose the joint was built at
     >>> j = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5, strength=100)
     >>> result = client.evaluate(scene.request())
-    >>> result.batch(670).hessian[j]                      # (24, 24) in the DOFs [q_a, q_b]
+    >>> result.joint(j).hessian                           # (24, 24) in the DOFs [q_a, q_b]
     """
 
     def __init__(self) -> None:
@@ -70,10 +70,10 @@ class Scene:
         strength: float = STRENGTH_DEFAULT,
         *,
         offset: float = 0.0,
-    ) -> int:
+    ) -> Joint:
         """#670 on the revolute joint of bodies `i`, `j` about the edge `p0 -> p1` (world, at ref); angles in rad.
         `offset` is the spec's `init_angle`: the reported coordinate is x + offset, which `lower` and
-        `upper` bound. Returns the joint's row in the 670 batch."""
+        `upper` bound. Returns the joint's handle: its row in the 670 batch, for `result.joint(handle)`."""
         return self._add(REVOLUTE_LIMIT, i, j, p0, p1, lower, upper, strength, offset)
 
     def add_prismatic_limit(
@@ -87,15 +87,15 @@ class Scene:
         strength: float = STRENGTH_DEFAULT,
         *,
         offset: float = 0.0,
-    ) -> int:
+    ) -> Joint:
         """#669 on the prismatic joint of bodies `i`, `j` sliding along `p0 -> p1`; `offset` is the spec's
-        `init_distance` (as for `add_revolute_limit`). Returns its row in the 669 batch."""
+        `init_distance` (as for `add_revolute_limit`). Returns its handle (row in the 669 batch)."""
         return self._add(PRISMATIC_LIMIT, i, j, p0, p1, lower, upper, strength, offset)
 
-    def _add(self, uid: int, i: int, j: int, p0: ArrayLike, p1: ArrayLike, *limits: float) -> int:
+    def _add(self, uid: int, i: int, j: int, p0: ArrayLike, p1: ArrayLike, *limits: float) -> Joint:
         rows = self._joints.setdefault(uid, [])
         rows.append(((int(i), int(j)), (np.asarray(p0, float).reshape(3), np.asarray(p1, float).reshape(3)), *limits))
-        return len(rows) - 1
+        return Joint(len(rows) - 1, uid)
 
     def request(
         self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False

@@ -17,6 +17,7 @@ import orjson
 from numpy.typing import ArrayLike
 
 from client import codec
+from client.accept import as_request
 from client.errors import Fault, ServiceError
 from client.model import REVOLUTE_LIMIT, Array, Evaluation, Request
 from schemas import binary as wire
@@ -63,7 +64,9 @@ def ws_url(base_url: str) -> str:
 class SessionState:
     """The protocol of one session: frames to send, replies read, and the state kept for reopening."""
 
-    def __init__(self, request: Request, url: str, binary: bool) -> None:
+    def __init__(self, request: Request | dict[str, Any], url: str, binary: bool) -> None:
+        """`request`: a `Request`, or what `Client.evaluate` also takes (wire JSON as a dict, a `schemas.EvaluateRequest`)."""
+        request = as_request(request)
         self.url, self.binary = url, binary
         # A private copy: later updates change it, the caller's request stays as it was.
         self.request = replace(request, batches=[copy.deepcopy(b) for b in request.batches])
@@ -135,9 +138,8 @@ class SessionState:
         if frame[1:12] == _BINARY_ERROR or frame[:15] == _JSON_ERROR:
             self.read(frame, proto.EVALUATION)  # raises the fault
         self.bytes_received += len(frame)
-        if isinstance(frame, bytes):
-            return codec.decode(frame, codec.BINARY)
-        return codec.decode(frame, codec.JSON)  # type: ignore[arg-type]  # orjson reads the str itself: no copy
+        ev = codec.decode(frame, codec.BINARY if isinstance(frame, bytes) else codec.JSON)  # type: ignore[arg-type]
+        return ev.sized(self.request)  # each batch knows its size: `joint(k)` works under active_only
 
     def committed(self, frame: Frame, q: ArrayLike) -> list[Array]:
         doc = self.read(frame, proto.COMMITTED)

@@ -33,7 +33,7 @@ def core_batches(request: Request) -> list[core.Joints]:
 def result(ev: core.Evaluation) -> Evaluation:
     return Evaluation(
         total_energy=ev.total_energy,
-        batches=[BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate) for r in ev.batches],
+        batches=[BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, coordinate=r.coordinate) for r in ev.batches],
     )
 
 
@@ -80,7 +80,7 @@ class LocalSession:
     def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
                  active_only: bool | None = None) -> Evaluation:
         scene, opts = self._live(), options(self.state.request, outputs, hessian_mode, active_only)
-        return result(_call(lambda: scene.evaluate(np.asarray(q, dtype=np.float64), **opts)))
+        return result(_call(lambda: scene.evaluate(np.asarray(q, dtype=np.float64), **opts))).sized(self.state.request)
 
     def commit(self, q: ArrayLike) -> list[Array]:
         scene, q = self._live(), np.array(q, dtype=np.float64)

@@ -112,7 +112,7 @@ def relocate(part: Part, e: ServiceError) -> ServiceError:
     if whole:
         return e
     faults = [Fault(_relocate(part, f.loc), f.msg, f.type) for f in e.faults]
-    return type(e)(e.status, faults)
+    return type(e)(e.status, faults, e.where)
 
 
 def _relocate(part: Part, loc: tuple) -> tuple:

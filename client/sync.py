@@ -9,10 +9,11 @@ from typing import TYPE_CHECKING
 import httpx
 
 from client import transport
+from client.accept import as_request
 from client.base import DEFAULT_URL, BaseClient
 from client.model import Evaluation, Request
 from client.progress import ProgressCallback
-from schemas import ConstitutionsResponse
+from schemas import ConstitutionsResponse, EvaluateRequest
 
 
 if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
@@ -40,6 +41,7 @@ class Client(BaseClient):
         *,
         binary: bool = True,
         timeout: float | httpx.Timeout = 60.0,
+        connect_timeout: float = transport.CONNECT_TIMEOUT,
         retries: int = 3,
         backoff: float = 0.2,
         token: str | None = None,
@@ -51,6 +53,7 @@ class Client(BaseClient):
             base_url,
             binary=binary,
             timeout=timeout,
+            connect_timeout=connect_timeout,
             retries=retries,
             backoff=backoff,
             token=token,
@@ -63,8 +66,36 @@ class Client(BaseClient):
         """The supported constitutions (UIDs, attribute names, defaults, units) and the server's limits."""
         return transport.constitutions(self._send(self._constitutions_request()))
 
-    def evaluate(self, request: Request, *, progress: bool | ProgressCallback | None = None) -> Evaluation:
-        """Energy, gradient and Hessian of every joint of `request` (see `Evaluation`)."""
+    def evaluate(self, request: Request | dict | EvaluateRequest, *, progress: bool | ProgressCallback | None = None) -> Evaluation:
+        """Energy, gradient and Hessian of every joint of `request`, as NumPy arrays.
+
+        `request` is one of:
+
+        - a `client.Request`: `Scene().request(outputs=..., hessian_mode="psd", active_only=True)`
+          (the options belong to the request, not to this call), or
+          `request_from_arrays(q, [JointBatch.of(670, body_ids, edges, lower, upper, strength)])`;
+        - a dict shaped like the wire JSON (`{"bodies": {"q": ..., "q_prev": ..., "q_ref": ...},
+          "batches": [...], ...}`; lists or NumPy arrays), read exactly as the service reads JSON;
+        - a `schemas.EvaluateRequest`.
+
+        Returns an `Evaluation`: `total_energy`, and per request batch a `BatchResult` with rows
+        `index` (M,), `x`, `energy` (M,), `gradient` (M, 24), `hessian` (M, 24, 24) (the last two
+        when asked for), in the DOFs `[q_i, q_j]` of the joint's two bodies. `result.joint(j)` picks
+        one joint by the handle `Scene` returned, with or without `active_only`.
+
+        Raises `InvalidInput` (422: `e.loc` like `("body", "batches", 1, "lower", 2)`, `e.faults`),
+        `TooLarge` (413), `ServiceError` (any other 4xx/5xx), `Unreachable` (no connection after
+        the retries), `WrongURL` (`base_url` is not the service), `TypeError` (not a request).
+        Requests over the server's limits are split and merged; `progress` overrides the client's.
+
+        >>> scene = Scene()
+        >>> a, b = scene.add_body(np.eye(4)), scene.add_body(turned, ref=np.eye(4))
+        >>> j = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5, strength=100.0)
+        >>> r = client.evaluate(scene.request()).joint(j)
+        >>> r.x, r.energy
+        (0.7, 0.7999999999999995)
+        """
+        request = as_request(request)
         if self._limits is None:
             self._limits = self.constitutions()
         job = self._job(request, progress)
@@ -79,7 +110,7 @@ class Client(BaseClient):
         return Session(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"])
 
     def _send(self, request: httpx.Request) -> httpx.Response:
-        retry = self._retry()
+        retry = self._retry(request)
         while True:
             try:
                 return self._http.send(request)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import httpx
 
 from client import codec
+from client.errors import Fault, Unreachable, WrongURL
 from client.model import Evaluation
 from schemas import ConstitutionsResponse
 
@@ -12,6 +13,9 @@ RETRYABLE = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError
 """Connection failures only: the request never reached the server or the connection dropped
 before any answer (evaluation is idempotent). Timeouts while the server computes, and every
 HTTP status, are never retried."""
+
+CONNECT_TIMEOUT = 5.0
+"""Seconds to open a connection: a host that drops packets fails in seconds, not in `timeout`."""
 
 DEFAULT_PART_JOINTS = 20_000
 """Joints per request when splitting (each Hessian is 4.6 kB: ~90 MB of answer per part)."""
@@ -27,6 +31,13 @@ def headers(token: str | None, binary: bool) -> dict[str, str]:
     return h
 
 
+def timeouts(timeout: float | httpx.Timeout, connect_timeout: float) -> httpx.Timeout:
+    """`timeout` for reading, writing and the pool; `connect_timeout` for opening a connection."""
+    if isinstance(timeout, httpx.Timeout):
+        return timeout
+    return httpx.Timeout(timeout, connect=connect_timeout)
+
+
 def delays(retries: int, backoff: float) -> list[float]:
     """Sleep before each retry: `backoff`, `2 backoff`, `4 backoff`, ..."""
     return [backoff * 2**k for k in range(retries)]
@@ -35,14 +46,17 @@ def delays(retries: int, backoff: float) -> list[float]:
 class Retry:
     """The retries of one request: the pause before each next try, until `retries` are spent."""
 
-    def __init__(self, retries: int, backoff: float) -> None:
+    def __init__(self, retries: int, backoff: float, url: str) -> None:
         self._pauses = iter(delays(retries, backoff))
+        self.url = url
+        self.attempts = 0
 
     def pause(self, error: Exception) -> float:
-        """Seconds to sleep after `error` (one of `RETRYABLE`) before the next try; re-raises it if none is left."""
+        """Seconds to sleep after `error` (one of `RETRYABLE`) before the next try; `Unreachable` if none is left."""
+        self.attempts += 1
         pause = next(self._pauses, None)
         if pause is None:
-            raise error
+            raise Unreachable(self.url, self.attempts, error) from error
         return pause
 
 
@@ -58,11 +72,30 @@ def part_joints(limits: ConstitutionsResponse | None, binary: bool, user_max: in
 def result(response: httpx.Response) -> Evaluation:
     """The evaluation of a 200, else the server's error as a `ServiceError` (with its `loc`s)."""
     if response.status_code != 200:
-        raise codec.error(response.status_code, response.content)
+        raise _error(response)
     return codec.decode(response.content, response.headers.get("content-type", codec.JSON))
 
 
 def constitutions(response: httpx.Response) -> ConstitutionsResponse:
     if response.status_code != 200:
-        raise codec.error(response.status_code, response.content)
-    return ConstitutionsResponse.model_validate_json(response.content)
+        raise _error(response)
+    try:
+        return ConstitutionsResponse.model_validate_json(response.content)
+    except ValueError:  # a 200 from some other server (a web page, another API)
+        raise _wrong_url(response, "answered 200 with something that is not this service's discovery document") from None
+
+
+def _error(response: httpx.Response) -> Exception:
+    if response.status_code == 404:
+        return _wrong_url(response, "answered 404")
+    return codec.error(response.status_code, response.content)
+
+
+def _wrong_url(response: httpx.Response, what: str) -> WrongURL:
+    """Say that `base_url` is not the service's root (the usual slip: a trailing `/v1`)."""
+    url = response.request.url
+    root = str(url.copy_with(path=url.path.rsplit("/v1/", 1)[0] or "/", query=None)).rstrip("/")
+    hint = " (drop the trailing /v1: the client adds it)" if root.endswith("/v1") else ""
+    msg = (f"{url} {what}: no joint-limit service at base_url {root!r}{hint}; "
+           "base_url is the service's root, e.g. http://127.0.0.1:8000")
+    return WrongURL(response.status_code, [Fault((), msg, "wrong_url")])

@@ -39,22 +39,24 @@ class Bodies(_Wire):
     q_ref: list[Dof]
 
 
+def _no_default(schema: dict) -> None:
+    schema.pop("default", None)  # absent means "follows" (see the description), not null
+
+
 class JointBatch(_Wire):
     """Joints of one constitution; all per-joint lists have one entry per joint."""
 
     constitution_uid: Int64
-    base_uid: Int64
+    # Optional on the wire (absent, never null): the core fills them in (service/http/convert.py: defaults).
+    base_uid: Int64 = Field(None, json_schema_extra=_no_default)
     body_ids: list[BodyPair]
     edges: list[Edge]
     lower: list[Real]
     upper: list[Real]
-    strength: list[Real]
-    offset: list[Real] | None = None
-    """v1.1 (both constitutions, default 0): the spec's `init_angle` / `init_distance`; coordinate =
-    x + offset, and `lower` / `upper` bound the coordinate."""
-    prev_coordinate: list[Real] | None = None
-    """v1.1 (670 only): the committed, unwrapped coordinate at `q_prev` (the spec's `angle`); then
-    x = (prev_coordinate - offset) + DeltaTheta(q, q_prev)."""
+    strength: list[Real] = Field(None, json_schema_extra=_no_default)
+    # v1.1, optional (absent, never null): service/http/openapi_text.py says what they mean.
+    offset: list[Real] = Field(None, json_schema_extra=_no_default)
+    prev_coordinate: list[Real] = Field(None, json_schema_extra=_no_default)
 
 
 class EvaluateRequest(_Wire):

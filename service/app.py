@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
 
 from service.core.heap import keep_heap
 from service.http import sessions
@@ -15,7 +16,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     if settings.keep_heap:
         keep_heap()  # every worker imports the app: this process's allocator, once
-    app = FastAPI(
+    # /docs and /redoc from assets shipped in the package (clusters often have no internet); the
+    # validator badge would fetch an image from outside, so it is off.
+    app = FastAPIOffline(
+        swagger_ui_parameters={"validatorUrl": None},
         title="Joint-limit constitution service",
         version="1.0.0",
         description="Energy, gradient and Hessian of #670 AffineBodyRevoluteJointLimit "

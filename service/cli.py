@@ -64,17 +64,22 @@ def _cgroup_cpu_quota() -> float | None:
 def _workers(value: str) -> int:
     if value.strip().lower() == "auto":
         return available_cpus()
-    n = int(value)
+    return _positive_int(value, "a positive integer or 'auto'")
+
+
+def _positive_int(value: str, what: str = "a positive integer") -> int:
+    # argparse would name a bare ValueError by this function's name ("invalid _workers value").
+    try:
+        n = int(value)
+    except ValueError:
+        n = 0
     if n < 1:
-        raise argparse.ArgumentTypeError("workers must be >= 1 or 'auto'")
+        raise argparse.ArgumentTypeError(f"must be {what}, got {value!r}")
     return n
 
 
-def _positive_int(value: str) -> int:
-    n = int(value)
-    if n < 1:
-        raise argparse.ArgumentTypeError("must be a positive integer")
-    return n
+BOOL = "true|false"
+"""What boolean options show; 1/0, yes/no, on/off are accepted too."""
 
 
 def _bool(value: str) -> bool:
@@ -83,7 +88,7 @@ def _bool(value: str) -> bool:
         return True
     if v in ("0", "false", "no", "off", ""):
         return False
-    raise argparse.ArgumentTypeError(f"not a boolean: {value!r}")
+    raise argparse.ArgumentTypeError(f"must be true or false (or 1/0, yes/no, on/off), got {value!r}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -167,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--keep-heap",
         type=_bool,
+        metavar=BOOL,
         default=_bool(_env("KEEP_HEAP", "true")),
         help="keep freed memory in each worker's heap: no page faults per request, holds the largest request's "
         "memory (JOINTLIMITS_KEEP_HEAP)",
@@ -174,6 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--access-log",
         type=_bool,
+        metavar=BOOL,
         default=_bool(_env("ACCESS_LOG", "true")),
         help="one JSON line per request on stdout (JOINTLIMITS_ACCESS_LOG)",
     )

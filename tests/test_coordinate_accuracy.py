@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.core import Bodies, Joints, evaluate
-from tests.reference import reference_request
+from bench.reference import reference_request
 from tests.scenes import rotation_about
 
 

@@ -226,7 +226,7 @@ WIRE = [
     ("bin_uint64_uid", B, _bin(_set(("batches", 0, "base_uid"), 2**64 - 1)), 422, ["body", "batches", 0, "base_uid"]),
     ("bin_misspelt_field", B, _bin(_set(("batches", 1, "lowr"), 1)), 422, ["body", "batches", 1, "lowr"]),
     ("bin_missing_batches", B, _bin(_drop(("batches",))), 422, ["body", "batches"]),
-    ("bin_missing_strength", B, _bin(_drop(("batches", 1, "strength"))), 422, ["body", "batches", 1, "strength"]),
+    ("bin_missing_upper", B, _bin(_drop(("batches", 1, "upper"))), 422, ["body", "batches", 1, "upper"]),  # strength may be absent
     ("bin_outputs_not_list", B, _bin(_set(("outputs",), "energy")), 422, ["body", "outputs"]),
     ("bin_active_only_int", B, _bin(_set(("active_only",), 1)), 422, ["body", "active_only"]),
     ("bin_nan_bits", B, _bin(_set(("batches", 1, "lower"), _F8([0.0, np.nan, 0.0]))), 422, ["body", "batches", 1, "lower", 1]),

@@ -107,7 +107,7 @@ def test_coordinate_sits_next_to_x_in_both_encodings():
 
 def test_reference_reproduces_the_state_cases(case):
     """The project's own 50-digit reference, extended with offset and prev_coordinate, agrees with the cases."""
-    from tests.reference import reference_request
+    from bench.reference import reference_request
 
     ref = reference_request(case["request"])
     mode = "hessian_" + case["request"]["hessian_mode"]

@@ -17,7 +17,7 @@ import pytest
 
 from service.core import evaluate
 from tests.conftest import relerr
-from tests.reference import reference_request
+from bench.reference import reference_request
 from tests.scenes import E_X, Scene, axis_pair_scene, place_limits, random_unit
 
 PI = np.pi

@@ -1,4 +1,4 @@
-"""The core against the independent 50-digit reference (tests/reference.py) on seeded random scenes.
+"""The core against the independent 50-digit reference (bench/reference.py) on seeded random scenes.
 
 Also checks the reference itself: its derivatives against 50-digit finite differences of its own
 energy, its PSD projection against the characterisation of the projection, and x = +phi.
@@ -14,9 +14,9 @@ import pytest
 from mpmath import mp, mpf
 
 from service.core import evaluate
-from tests import reference as ref_mod
+from bench import reference as ref_mod
 from tests.conftest import relerr
-from tests.reference import JointRef, reference_request, reference_total_energy
+from bench.reference import JointRef, reference_request, reference_total_energy
 from tests.scenes import E_X, Scene, axis_pair_scene, place_limits, random_scene, random_unit
 
 TOL = 1e-12  # well-conditioned: gaps >= 5% of max(1, |x|), frames far from collapse; measured 2.4e-14 (random), 3.4e-15 (pairs)

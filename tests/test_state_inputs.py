@@ -75,3 +75,22 @@ def test_v1_request_answers_coordinate_equal_to_x():
     with TestClient(app) as client:
         b = client.post("/v1/evaluate", json=doc).json()["batches"][0]
     assert b["coordinate"] == b["x"]
+
+
+def test_joint_handle_reads_the_coordinate():
+    """Scene offsets reach the answer; `result.joint(handle).coordinate` is x + offset (None when not answered)."""
+    from client import Scene
+    from tests.scenes import rotation_about
+
+    scene = Scene()
+    a = scene.add_body(np.eye(4))
+    turned = np.eye(4)
+    turned[:3, :3] = rotation_about(np.array([0.0, 0.0, 1.0]), 0.7)
+    b = scene.add_body(turned, ref=np.eye(4))
+    j = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=0.0, upper=0.5, strength=100.0, offset=0.25)
+    k = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-1.0, upper=1.0)
+    full = LocalClient().evaluate(scene.request())
+    assert abs(full.joint(j).coordinate - 0.95) <= 1e-15 and abs(full.joint(k).coordinate - 0.7) <= 1e-15
+    assert full.joint(j).energy > 0 and full.joint(k).energy == 0.0
+    active = LocalClient().evaluate(scene.request(active_only=True))
+    assert active.joint(j).coordinate == full.joint(j).coordinate and active.joint(k).coordinate is None

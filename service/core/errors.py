@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from schemas.errors import NONFINITE_MSG, NONFINITE_TYPE  # noqa: F401 (the wire's words for a NaN, said on every path)
+
 Loc = tuple[str | int, ...]
 
 MAX_FAULTS = 20

@@ -48,16 +48,18 @@ def solve3(A: Array, b: Array) -> list[Array]:
     float64's comfortable range (|A| beyond ~1e+-100), those rows are solved again with
     `A` scaled by a power of two (exact): `A^-1 b = 2^-e (2^-e A)^-1 b`.
     """
-    x, det = _solve3_cofactors(A, b)
+    # Overflow is expected on the first pass (redone below) and legitimate on the second (an
+    # anchor beyond float64: the coordinate overflows and `validate` names the joint).
     with np.errstate(all="ignore"):
+        x, det = _solve3_cofactors(A, b)
         bad = ~((np.abs(det) >= _DET_MIN) & (np.abs(det) <= _DET_MAX) & np.isfinite(x[0] + x[1] + x[2]))
-    if bad.any():
-        idx = np.nonzero(bad)
-        A_bad = A[idx]  # (M, 3, 3)
-        _, e = np.frexp(np.abs(A_bad).max(axis=(-2, -1)))
-        scaled, _ = _solve3_cofactors(np.ldexp(A_bad, -e[:, None, None]), b[idx])
-        for k in range(3):
-            x[k][idx] = np.ldexp(scaled[k], -e)
+        if bad.any():
+            idx = np.nonzero(bad)
+            A_bad = A[idx]  # (M, 3, 3)
+            _, e = np.frexp(np.abs(A_bad).max(axis=(-2, -1)))
+            scaled, _ = _solve3_cofactors(np.ldexp(A_bad, -e[:, None, None]), b[idx])
+            for k in range(3):
+                x[k][idx] = np.ldexp(scaled[k], -e)
     return x
 
 
@@ -71,8 +73,7 @@ def _solve3_cofactors(A: Array, b: Array) -> tuple[list[Array], Array]:
         for i, j in ((1, 2), (2, 0), (0, 1))
     ]
     det = A[..., 0, 0] * C[0][0] + A[..., 0, 1] * C[0][1] + A[..., 0, 2] * C[0][2]
-    with np.errstate(all="ignore"):
-        return [(C[0][c] * b[..., 0] + C[1][c] * b[..., 1] + C[2][c] * b[..., 2]) / det for c in range(3)], det
+    return [(C[0][c] * b[..., 0] + C[1][c] * b[..., 1] + C[2][c] * b[..., 2]) / det for c in range(3)], det
 
 
 def component_major(n: int, shape: tuple[int, ...], dtype: type = np.float64) -> Array:
@@ -153,9 +154,12 @@ class BodyTable:
         return g.reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
 
 
-PLAIN_RANGE = (2.0**-200, 2.0**200)
-"""`|A|` (Frobenius) of a body in every state inside this range keeps every product the joint
-coordinates and their derivatives form (up to ~|A|^8) a normal float64 number."""
+def plain_range(dtype: type) -> tuple[float, float]:
+    """`|A|` (Frobenius) of a body in every state inside this range keeps every product the joint
+    coordinates and their collapse test form (up to ~|A|^4, with margin) a normal number:
+    `2^+-200` in float64 (`2^+-25` in the float32 bench variant)."""
+    e = np.finfo(dtype).maxexp // 5
+    return 2.0**-e, 2.0**e
 
 
 PLAIN_STEP = 2.0
@@ -168,7 +172,7 @@ def _plain_bodies(states: Array, linear: Array, rows: Iterable[int]) -> NDArray[
 
     That needs each step's increment at most `PLAIN_STEP` times `A` where it ends (Frobenius norms):
     then `F_a + dF` and the increment forms of the coordinates round within a small factor (~16)
-    of the direct `F(A_b)`, whatever the turn; and `A` inside `PLAIN_RANGE` in every state.
+    of the direct `F(A_b)`, whatever the turn; and `A` inside `plain_range` in every state.
     Every other body's joints take `careful_frames` (rare: the passes here read B bodies once,
     not N joints).
     """
@@ -179,7 +183,7 @@ def _plain_bodies(states: Array, linear: Array, rows: Iterable[int]) -> NDArray[
     for s in spanned[1:]:
         np.minimum(smallest, size[s], out=smallest)
         np.maximum(largest, size[s], out=largest)
-    lo, hi = PLAIN_RANGE
+    lo, hi = plain_range(states.dtype)
     plain = (smallest >= lo * lo) & (largest <= hi * hi)
     for row in rows:
         plain &= np.einsum("ij,ij->j", linear[row], linear[row]) <= (PLAIN_STEP * PLAIN_STEP) * size[STEPS[row][1]]
@@ -338,10 +342,11 @@ def edge_axis(edges: Array) -> Array:
     that of `d / |d|`.
     """
     d = edge_vector(edges)
+    lo, hi = plain_range(d.dtype)
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # the odd rows are redone below
         dd = dot(d, d)
         t = d / np.sqrt(dd)[:, None]
-    odd = np.flatnonzero(~((dd >= 2.0**-1000) & (dd <= 2.0**1000)))  # rare: their dot(d, d) lost digits or overflowed
+        odd = np.flatnonzero(~((dd >= lo) & (dd <= hi)))  # rare: their dot(d, d) lost digits or overflowed
     if odd.shape[0]:
         _, e = np.frexp(max_abs(d[odd]))
         t[odd] = unit(np.ldexp(d[odd], -e[:, None]))

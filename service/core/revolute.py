@@ -11,6 +11,8 @@ those of the polar angle, d(x) = (cos d(sin) - sin d(cos)) / r^2.
 
 from __future__ import annotations
 
+from contextlib import nullcontext
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -99,14 +101,13 @@ _STEADY_EXPONENTS = 60
 """A body whose A changes by more than 2^60 in one step takes the direct form for that step."""
 
 
-_SAFE = (2.0**-240, 2.0**240)
-"""hypot(cos, sin) in this range: `r^4` and every product in `_polar_derivatives` is a normal number."""
-
-
 def _unsafe(F: Array) -> NDArray[np.bool_]:
+    """(N,) True where hypot(cos, sin) leaves `2^+-240` (`2^+-16` in float32), beyond which `r^4` or
+    a product in `_polar_derivatives` would not be a normal number."""
+    e = np.finfo(F.dtype).maxexp // 4 - 16
     c, s = _cos_sin(F)
     r = np.hypot(c, s)
-    return ~((r >= _SAFE[0]) & (r <= _SAFE[1]))
+    return ~((r >= 2.0**-e) & (r <= 2.0**e))
 
 
 def _polar_derivatives(F: Array, second: bool) -> tuple[Array, Curvature | None]:
@@ -164,7 +165,7 @@ class Revolute:
         return x
 
     def collapsed(self, F: Array) -> np.ndarray:
-        # Squares of frames from A inside kinematics.PLAIN_RANGE (or scaled) stay normal numbers
+        # Squares of frames from A inside kinematics.plain_range (or scaled) stay normal numbers
         # unless the frame is far below its own rounding; then both sides are 0 and it collapses.
         # (Other frames may overflow here: the caller judges those joints on scaled frames.)
         with np.errstate(over="ignore", invalid="ignore"):
@@ -174,12 +175,13 @@ class Revolute:
             return c * c + s * s <= (2.0 * COLLAPSE_RATIO * COLLAPSE_RATIO) * size2
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
-        dx, curvature = _polar_derivatives(F, second)
         # Rows whose r^4 would under- or overflow (frames beyond ~1e+-36): the same from each body's
         # frames scaled by a power of two, then scaled back block by block (exact). `r^4` of a
         # frame of 1e-80 is 0 and `r^2` of 1e-160 subnormal: the plain formula would answer inf or
-        # a number with few digits.
+        # a number with few digits. (Only those rows can overflow in the first pass.)
         bad = np.flatnonzero(_unsafe(F))
+        with np.errstate(all="ignore") if bad.shape[0] else nullcontext():  # else: the caller's error state
+            dx, curvature = _polar_derivatives(F, second)
         if bad.shape[0]:
             e = np.frexp(np.abs(F[bad]).max(axis=2).reshape(-1, 2, 2).max(axis=2))[1]  # (M, 2) per body
             eb = e[:, BLOCK_BODY]  # (M, 4)

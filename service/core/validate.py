@@ -12,7 +12,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core.errors import MAX_FAULTS, Fault, InputError
+from service.core.errors import MAX_FAULTS, NONFINITE_MSG, NONFINITE_TYPE, Fault, InputError
 from service.core.kinematics import edge_vector, max_abs
 from service.core.polar import SINGULAR_RATIO
 from service.core.registry import CONSTITUTIONS
@@ -34,6 +34,17 @@ def nonfinite_rows(a: np.ndarray) -> list[int]:
     if finite.all():  # the common case: a flat reduction, much cheaper than one per row
         return []
     return _where(~finite.all(axis=tuple(range(1, a.ndim))))
+
+
+def nonfinite_faults(a: np.ndarray, *loc: str | int) -> list[Fault]:
+    """One fault per NaN or infinity of `a` (the first `MAX_FAULTS`), located to the element as JSON's
+    parser locates it (`bodies.q.1.4`, `batches.1.edges.2.1.0`)."""
+    if np.isfinite(a).all():  # the common case: one flat reduction
+        return []
+    return [
+        Fault((*loc, *map(int, at)), NONFINITE_MSG, NONFINITE_TYPE)
+        for at in np.argwhere(~np.isfinite(a))[:MAX_FAULTS]
+    ]
 
 
 def check_options(outputs: Sequence[str], hessian_mode: str) -> list[Fault]:
@@ -63,7 +74,7 @@ def check_dofs(name: str, a: np.ndarray, n: int) -> list[Fault]:
     """One state `a` of the bodies: (n, 12) finite numbers (`loc` ("bodies", name, row))."""
     if a.ndim != 2 or a.shape[1] != 12 or a.shape[0] != n:
         return [Fault(("bodies", name), f"must be {n} rows of 12 numbers, got shape {a.shape}")]
-    return [Fault(("bodies", name, i), "contains a non-finite number") for i in nonfinite_rows(a)]
+    return nonfinite_faults(a, "bodies", name)
 
 
 def check_rotations(rotation_ratio: np.ndarray) -> list[Fault]:
@@ -113,7 +124,7 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     if faults:
         return faults
     for name in ("edges", "lower", "upper", "strength", *state):
-        faults += [Fault(at(name, j), "is not a finite number") for j in nonfinite_rows(getattr(joints, name))]
+        faults += nonfinite_faults(getattr(joints, name), *at(name))
     ids = joints.body_ids
     faults += [
         Fault(at("body_ids", j), f"body index {ids[j].tolist()} out of range [0, {n_bodies}) (there are {n_bodies} bodies)")
@@ -183,7 +194,7 @@ def check_update_values(b: int, index: np.ndarray, values: dict[str, np.ndarray]
     if faults:
         return faults
     for name, a in values.items():
-        faults += [Fault(at(name, int(index[j])), "is not a finite number") for j in nonfinite_rows(a)]
+        faults += [Fault(at(name, int(index[j])), NONFINITE_MSG, NONFINITE_TYPE) for j in nonfinite_rows(a)]
     return faults
 
 

@@ -16,6 +16,7 @@ from schemas import binary as wire
 from service.core import Bodies, Evaluation, Fault, InputError, Joints
 from service.core.errors import Loc
 from service.http import limits
+from service.http.convert import base_uid_of, strength_of
 
 MEDIA_TYPE = wire.MEDIA_TYPE
 
@@ -24,8 +25,8 @@ _BODY_KEYS = {"q": True, "q_prev": True, "q_ref": True}
 _JOINT_ARRAYS = {"body_ids": (wire.INT64, 2), "edges": (wire.FLOAT64, 3)} | {
     k: (wire.FLOAT64, 1) for k in ("lower", "upper", "strength", "offset", "prev_coordinate")
 }
-_OPTIONAL = {"offset", "prev_coordinate"}  # v1.1
-_BATCH_KEYS = {"constitution_uid": True, "base_uid": True} | {k: k not in _OPTIONAL for k in _JOINT_ARRAYS}
+_OPTIONAL = {"strength", "offset", "prev_coordinate"}  # strength defaults to 1; offset, prev_coordinate: v1.1
+_BATCH_KEYS = {"constitution_uid": True, "base_uid": False} | {k: k not in _OPTIONAL for k in _JOINT_ARRAYS}
 _INT64_RANGE = range(-(2**63), 2**63)
 _EMPTY = {"f": np.zeros((0, 12)), "i": np.zeros((0, 2), dtype=np.int64)}
 
@@ -101,14 +102,16 @@ def _batch(r: _Reader, b: int, raw: Any) -> Joints:
         for k, (dtype, ndim) in _JOINT_ARRAYS.items()
         if k in fields
     }
+    uid = r.int64(fields.get("constitution_uid", 0), (*loc, "constitution_uid"))
+    ids = arrays.get("body_ids", _EMPTY["i"])
     return Joints(
-        constitution_uid=r.int64(fields.get("constitution_uid", 0), (*loc, "constitution_uid")),
-        base_uid=r.int64(fields.get("base_uid", 0), (*loc, "base_uid")),
-        body_ids=arrays.get("body_ids", _EMPTY["i"]),
+        constitution_uid=uid,
+        base_uid=r.int64(fields["base_uid"], (*loc, "base_uid")) if "base_uid" in fields else base_uid_of(uid),
+        body_ids=ids,
         edges=arrays.get("edges", np.zeros((0, 2, 3))),
         lower=arrays.get("lower", np.zeros(0)),
         upper=arrays.get("upper", np.zeros(0)),
-        strength=arrays.get("strength", np.zeros(0)),
+        strength=arrays["strength"] if "strength" in fields else strength_of(None, ids.shape[0]),
         offset=arrays.get("offset"),
         prev_coordinate=arrays.get("prev_coordinate"),
     )

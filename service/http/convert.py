@@ -9,7 +9,8 @@ import orjson
 from pydantic import ValidationError
 
 from schemas import EvaluateRequest
-from service.core import Bodies, Evaluation, Joints
+from schemas.constitutions import STRENGTH_DEFAULT
+from service.core import CONSTITUTIONS, Bodies, Evaluation, Joints
 from service.http import limits
 from service.http.errors import from_validation
 
@@ -31,6 +32,17 @@ def decode(body: bytes, max_joints: int) -> dict[str, Any]:
     return to_core(req)
 
 
+def base_uid_of(constitution_uid: int) -> int:
+    """The base joint an absent `base_uid` stands for (-1 for an unknown constitution, which is refused anyway)."""
+    c = CONSTITUTIONS.get(constitution_uid)
+    return c.base_uid if c is not None else -1
+
+
+def strength_of(strength: Any, n: int) -> np.ndarray:
+    """`strength` (N,) as given, or the reference engine's default for each of the `n` joints when absent."""
+    return np.full(n, STRENGTH_DEFAULT) if strength is None else np.asarray(strength, dtype=np.float64)
+
+
 def to_core(req: EvaluateRequest) -> dict[str, Any]:
     """Keyword arguments of `service.core.evaluate` for a parsed request."""
     b = req.bodies
@@ -40,12 +52,12 @@ def to_core(req: EvaluateRequest) -> dict[str, Any]:
         batches=[
             Joints(
                 constitution_uid=j.constitution_uid,
-                base_uid=j.base_uid,
+                base_uid=base_uid_of(j.constitution_uid) if j.base_uid is None else j.base_uid,
                 body_ids=np.asarray(j.body_ids, dtype=np.int64).reshape(len(j.body_ids), 2),
                 edges=np.asarray(j.edges, dtype=np.float64).reshape(len(j.edges), 2, 3),
                 lower=np.asarray(j.lower, dtype=np.float64),
                 upper=np.asarray(j.upper, dtype=np.float64),
-                strength=np.asarray(j.strength, dtype=np.float64),
+                strength=strength_of(j.strength, len(j.body_ids)),
                 offset=None if j.offset is None else np.asarray(j.offset, dtype=np.float64),
                 prev_coordinate=None if j.prev_coordinate is None else np.asarray(j.prev_coordinate, dtype=np.float64),
             )

@@ -7,6 +7,7 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 
 from service.core import Fault, InputError
+from schemas.errors import validation_items
 from service.core.errors import MAX_FAULTS
 
 
@@ -36,9 +37,5 @@ async def http_error_handler(request: Request, exc: Exception) -> JSONResponse:
 
 
 def from_validation(e: ValidationError) -> InputError:
-    """Pydantic's errors as core faults (same loc, same msg), without echoing the input back."""
-    faults = [
-        Fault(tuple(err["loc"]), err["msg"], err["type"])
-        for err in e.errors(include_url=False, include_input=False, include_context=False)[: 4 * MAX_FAULTS]
-    ]
-    return InputError(faults)
+    """Pydantic's errors as core faults (same loc, same msg; `null` for a number reads as non-finite)."""
+    return InputError([Fault(*item) for item in validation_items(e, 4 * MAX_FAULTS)])

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 from pydantic.json_schema import models_json_schema
 
 from schemas import EvaluateRequest, ErrorResponse
+from service.http import openapi_text as text
 
 _REF = "#/components/schemas/{model}"
 
@@ -16,7 +18,10 @@ def request_body() -> dict[str, Any]:
     return {
         "required": True,
         "content": {
-            "application/json": {"schema": {"$ref": _REF.format(model="EvaluateRequest")}},
+            "application/json": {
+                "schema": {"$ref": _REF.format(model="EvaluateRequest")},
+                "example": text.EXAMPLE_REQUEST,
+            },
             "application/msgpack": {
                 "schema": {"type": "string", "format": "binary"},
                 "description": "EvaluateRequest in the binary encoding (README, Binary transport)",
@@ -44,4 +49,30 @@ def add_components(openapi: dict[str, Any]) -> dict[str, Any]:
     schemas = openapi.setdefault("components", {}).setdefault("schemas", {})
     for name, schema in top.get("$defs", {}).items():
         schemas.setdefault(name, schema)
+    return _document(openapi)
+
+
+def _document(openapi: dict[str, Any]) -> dict[str, Any]:
+    """Field descriptions and UID values, the example answer, bearer auth and its 401, X-Request-ID."""
+    schemas = openapi["components"]["schemas"]
+    for model, fields in text.FIELDS.items():
+        props = schemas.get(model, {}).get("properties", {})
+        for name, words in fields.items():
+            if name in props:
+                props[name]["description"] = words
+    for (model, name), values in text.ENUMS.items():
+        prop = schemas.get(model, {}).get("properties", {}).get(name)
+        if prop is not None:
+            prop["enum"] = values
+    openapi["components"]["securitySchemes"] = {"bearer": text.BEARER}
+    for path, ops in openapi.get("paths", {}).items():
+        for op in ops.values():
+            if path.startswith("/v1/"):
+                op["security"] = [{"bearer": []}, {}]  # the bearer token, or none when the API is open
+                op["responses"]["401"] = copy.deepcopy(text.UNAUTHORIZED)
+            op.setdefault("parameters", []).append(text.REQUEST_ID)
+            for answer in op.get("responses", {}).values():
+                answer.setdefault("headers", {}).update(text.REQUEST_ID_HEADER)
+    ok = openapi["paths"]["/v1/evaluate"]["post"]["responses"]["200"]["content"]
+    ok.setdefault("application/json", {})["example"] = text.EXAMPLE_RESPONSE
     return openapi

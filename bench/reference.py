@@ -1,5 +1,8 @@
 """An independent 50-digit reference for #670 / #669, written from CONTRACT.md alone.
 
+It lives in bench/ because both the bench and the tests measure against it (`import bench.reference`,
+from the repository root); its one dependency, mpmath, is in both the `test` and `bench` extras.
+
 Nothing here is shared with `service/core`: the frames come from a Newton polar
 iteration in mpmath, the coordinate `x` from the contract's formulas, and every
 derivative from second-order forward-mode automatic differentiation (`Jet`)

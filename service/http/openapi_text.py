@@ -1,0 +1,175 @@
+"""What `/openapi.json` says of each wire field, and its example: enough for a C++ or Julia author alone.
+
+Kept apart from `schemas/` (the models stay short; the words live here) and applied to the
+generated schema by `service.http.openapi.document`. `tests/test_openapi_docs.py` checks that
+every field of every model has a description and that the example answers what it shows.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+DOFS = (
+    "12 DOFs of an affine body, [p (3), A row 0 (3), A row 1 (3), A row 2 (3)]: a body-local point X "
+    "sits at p + A X in the world"
+)
+JOINT_DOFS = "the joint's 24 DOFs [q_i (12), q_j (12)], i = body_ids[k][0], j = body_ids[k][1]"
+ROWS = "One entry per joint of the batch (N = len(body_ids))."
+
+FIELDS: dict[str, dict[str, str]] = {
+    "EvaluateRequest": {
+        "bodies": "Every body once, as three (B, 12) arrays; joints refer to bodies by row (0-based).",
+        "batches": "Groups of joints, one constitution each; several batches may share a constitution.",
+        "outputs": "What to compute, at least one of energy, gradient, hessian (default: all three). x and "
+        "energy are always answered.",
+        "hessian_mode": "exact: the true Hessian (not positive semi-definite in general); psd: the 12 x 12 "
+        "curvature in the frame quantities projected onto the PSD cone before the chain rule (what the "
+        "reference engine does). Default exact.",
+        "active_only": "If true, answer only the joints outside their range (the others have zero energy, "
+        "gradient and Hessian); each answer row's `index` then names its joint. Default false.",
+    },
+    "Bodies": {
+        "q": f"Current DOFs (the Newton iterate), one row per body, (B, 12); {DOFS}.",
+        "q_prev": "DOFs at the previous time step, (B, 12), same rows as q. The revolute angle is "
+        "accumulated incrementally q_ref -> q_prev -> q.",
+        "q_ref": "DOFs when the joints were built (the scene's initial transform), (B, 12), same rows as q. "
+        "Edges are given in world space at q_ref; A_ref must not be singular.",
+    },
+    "JointBatch": {
+        "constitution_uid": "670 (AffineBodyRevoluteJointLimit) or 669 (AffineBodyPrismaticJointLimit).",
+        "base_uid": "The base joint the limit applies to: 18 (AffineBodyRevoluteJoint) with 670, 20 "
+        "(AffineBodyPrismaticJoint) with 669; any other pairing is refused. Optional: absent, it follows "
+        "from constitution_uid (never null).",
+        "body_ids": f"(N, 2) body rows [i, j] of each joint, i != j, 0 <= i, j < B. {ROWS}",
+        "edges": "(N, 2, 3) each joint's edge [p0, p1] in world space at q_ref: the axis t = (p1 - p0) / "
+        "|p1 - p0| is the revolute axis (670) or the sliding direction (669), p0 the prismatic anchor. "
+        f"{ROWS}",
+        "lower": "(N,) lower bound of the coordinate x + offset: radians for 670, the DOFs' length unit for "
+        f"669; lower <= upper. The penalty's l is lower - offset (lower itself without offset). {ROWS}",
+        "upper": f"(N,) upper bound of the coordinate x + offset, same units as lower (u = upper - offset). {ROWS}",
+        "strength": "(N,) penalty strength s >= 0 (energy unit) of E = s ((x - u)/(u - l))^3 above, "
+        "s ((l - x)/(u - l))^3 below, s |x - l|^3 when u == l. Optional: absent, every joint gets 1.0 "
+        f"(the reference engine's default; never null). {ROWS}",
+        "offset": "(N,) v1.1: the spec's init_angle (670, radians) or init_distance (669): each joint's "
+        "reported coordinate is x + offset, and lower / upper bound that coordinate. Optional: absent, 0 "
+        f"(never null). {ROWS}",
+        "prev_coordinate": "(N,) v1.1, 670 only (a 422 on a 669 batch): the committed, continuously "
+        "unwrapped coordinate at q_prev (the spec's angle attribute; any number of turns). Then x = "
+        "(prev_coordinate - offset) + DeltaTheta(q, q_prev), so x, lower and upper may lie beyond +-pi. "
+        "A solver commits a time step by sending the coordinate it got at the accepted q as the next "
+        "step's prev_coordinate (and that q as q_prev). Optional: absent, x starts from "
+        f"DeltaTheta(q_prev, q_ref) (never null). {ROWS}",
+    },
+    "EvaluateResponse": {
+        "total_energy": "Sum of every joint's energy, all batches (including the joints active_only leaves out, "
+        "which are 0).",
+        "batches": "One entry per request batch, in request order.",
+    },
+    "BatchResult": {
+        "constitution_uid": "The request batch's constitution (670 or 669).",
+        "index": "(M,) which joints of the request batch the rows describe: 0..N-1 in order, or with "
+        "active_only only the joints outside their range (ascending).",
+        "x": "(M,) joint coordinate: 670 the relative angle of body j about +t (radians, right-hand rule, "
+        "incremental, may leave (-pi, pi] by one step's turn); 669 the relative slide along +t.",
+        "coordinate": "(M,) v1.1: x + offset, the coordinate lower and upper bound (x itself without "
+        "offset); send it back as prev_coordinate to commit a time step.",
+        "energy": "(M,) penalty energy of each joint (0 inside its range, bounds included).",
+        "gradient": f"(M, 24) dE/d[q_i, q_j] per joint, in {JOINT_DOFS}. Present when outputs has gradient.",
+        "hessian": f"(M, 24, 24) d2E/d[q_i, q_j]^2 per joint, row-major, symmetric, in {JOINT_DOFS}. "
+        "Present when outputs has hessian.",
+    },
+    "ErrorResponse": {"detail": "Every fault found (up to 20 per check)."},
+    "ConstitutionsResponse": {
+        "constitutions": "Each constitution this service evaluates.",
+        "limits": "This deployment's request limits (larger requests answer 413; the Python SDK splits by them).",
+    },
+    "ConstitutionInfo": {
+        "uid": "The constitution's UID, the wire's constitution_uid.",
+        "name": "Its name in the specs.",
+        "base_uid": "The base joint's UID it pairs with (the wire's base_uid).",
+        "base_name": "The base joint's name.",
+        "coordinate": "What the joint coordinate x measures, and its unit.",
+        "attributes": "Its per-joint inputs, by their spec names.",
+    },
+    "Attribute": {
+        "name": "The spec's attribute name (limit/lower, limit/upper, limit/strength).",
+        "field": "The wire field (a per-joint list of JointBatch).",
+        "unit": "Its unit (rad, the DOFs' length unit, energy unit).",
+        "default": "The default an absent field takes (null: required).",
+        "description": "What it means.",
+    },
+    "Limits": {
+        "max_body_bytes": "Largest request body accepted, in bytes (JOINTLIMITS_MAX_BODY_BYTES).",
+        "max_joints": "Most joints, over all batches, in one request (JOINTLIMITS_MAX_JOINTS).",
+    },
+    "ErrorItem": {
+        "loc": "Where: starts with body (or header), then field, batch, joint, element, e.g. "
+        '["body", "batches", 1, "lower", 2].',
+        "msg": "What is wrong, in words.",
+        "type": "A stable machine-readable kind, e.g. finite_number, too_short, missing, value_error, too_large.",
+    },
+}
+
+ENUMS: dict[tuple[str, str], list[int]] = {
+    ("JointBatch", "constitution_uid"): [670, 669],
+    ("JointBatch", "base_uid"): [18, 20],
+    ("BatchResult", "constitution_uid"): [670, 669],
+}
+
+# The README's example: body 1 turned 0.7 rad about +z, 0.2 rad past the upper limit of 0.5.
+_C, _S = 0.7648421872844885, 0.644217687237691
+_I = [0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1]
+EXAMPLE_REQUEST: dict[str, Any] = {
+    "bodies": {
+        "q": [_I, [0, 0, 0, _C, -_S, 0, _S, _C, 0, 0, 0, 1]],
+        "q_prev": [_I, _I],
+        "q_ref": [_I, _I],
+    },
+    "batches": [
+        {"constitution_uid": 670, "base_uid": 18, "body_ids": [[0, 1]], "edges": [[[0, 0, 0], [0, 0, 1]]],
+         "lower": [-0.5], "upper": [0.5], "strength": [100.0]}
+    ],
+    "outputs": ["energy", "gradient"],
+}
+EXAMPLE_RESPONSE: dict[str, Any] = {
+    "total_energy": 0.7999999999999995,
+    "batches": [
+        {
+            "constitution_uid": 670,
+            "index": [0],
+            "x": [0.7],
+            "coordinate": [0.7],
+            "energy": [0.7999999999999995],
+            "gradient": [[
+                0.0, 0.0, 0.0, 0.0, 5.999999999999997, 0.0, -5.999999999999997, 0.0,
+                0.0, -0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -3.8653061234261443,
+                -4.589053123706929, 0.0, 4.589053123706929, -3.8653061234261443, -0.0, 0.0, 0.0, 0.0,
+            ]],
+        }
+    ],
+}
+
+REQUEST_ID = {
+    "name": "X-Request-ID",
+    "in": "header",
+    "required": False,
+    "description": "Your id for this request (up to 128 characters of [A-Za-z0-9._:-]); echoed in the "
+    "answer's X-Request-ID and the access log. Absent or invalid, the service makes one.",
+    "schema": {"type": "string", "maxLength": 128, "pattern": "^[A-Za-z0-9._:-]{1,128}$"},
+}
+REQUEST_ID_HEADER = {
+    "X-Request-ID": {"description": "The caller's X-Request-ID, or the one the service made.", "schema": {"type": "string"}}
+}
+UNAUTHORIZED = {
+    "description": "A token is configured (JOINTLIMITS_TOKEN) and the request has no valid "
+    "`Authorization: Bearer <token>`; answered before the body is read.",
+    "headers": {"WWW-Authenticate": {"description": 'Bearer realm="jointlimits"', "schema": {"type": "string"}}},
+    "content": {"application/json": {"schema": {"type": "object", "properties": {"detail": {"type": "string"}}},
+                                     "example": {"detail": "missing or invalid bearer token"}}},
+}
+BEARER = {
+    "type": "http",
+    "scheme": "bearer",
+    "description": "Only when the deployment sets JOINTLIMITS_TOKEN (otherwise the API is open); /healthz, "
+    "/metrics and /openapi.json are always open.",
+}

@@ -267,3 +267,19 @@ def test_a_client_that_stops_reading_is_closed_by_the_idle_timer():
             assert "jointlimits_sessions_open 0.0" in m
         with Client(url).session(chain()[0]) as s:  # the worker's only place is free
             assert s.evaluate(chain()[0].q).total_energy > 0
+
+
+def test_sessions_take_what_evaluate_takes_and_answer_per_joint(live):
+    """A session opens from wire JSON as a dict too, and its answers know their batch sizes: `joint(k)` reads an
+    inactive joint as zeros under active_only, as `Client.evaluate`'s answers do."""
+    body = GOLDEN[0]["request"]
+    want = Client(live).evaluate(body)
+    for client in (Client(live), Client(live, binary=False), LocalClient()):
+        with client.session(body) as s:
+            q = np.asarray(body["bodies"]["q"], dtype=np.float64)
+            same(s.evaluate(q), want)
+            ev = s.evaluate(q, active_only=True)
+            for r, w in zip(ev.batches, want.batches):
+                assert r.size == w.size == len(w.x)
+                for k in range(r.size):
+                    assert r.joint(k).energy == w.joint(k).energy

@@ -145,9 +145,9 @@ class BatchResult:
     energy: Array
     gradient: Array | None = None
     hessian: Array | None = None
+    coordinate: Array | None = None
     size: int | None = None
     """Joints in the request's batch (N); the clients set it, so `joint` can tell an inactive joint from no joint."""
-    coordinate: Array | None = None
 
     def outputs(self) -> list[str]:
         """What this answer carries: `x`, `energy`, and `gradient` / `hessian` when asked for."""

@@ -54,9 +54,12 @@ class JointBatch(_Wire):
     lower: list[Real]
     upper: list[Real]
     strength: list[Real] = Field(None, json_schema_extra=_no_default)
-    # v1.1, optional (absent, never null): service/http/openapi_text.py says what they mean.
-    offset: list[Real] = Field(None, json_schema_extra=_no_default)
-    prev_coordinate: list[Real] = Field(None, json_schema_extra=_no_default)
+    offset: list[Real] | None = None
+    """v1.1 (both constitutions, default 0): the spec's `init_angle` / `init_distance`; coordinate =
+    x + offset, and `lower` / `upper` bound the coordinate."""
+    prev_coordinate: list[Real] | None = None
+    """v1.1 (670 only): the committed, unwrapped coordinate at `q_prev` (the spec's `angle`); then
+    x = (prev_coordinate - offset) + DeltaTheta(q, q_prev)."""
 
 
 class EvaluateRequest(_Wire):

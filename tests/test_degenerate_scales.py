@@ -4,7 +4,7 @@ The revolute angle depends only on the directions of each body's frame vectors, 
 any k > 0 in any state gives the same angle; the prismatic slide scales with `A` but stays a
 well-defined number. Over scales 1e-300 ... 1e300 of `A` (each body, each state) and edge lengths
 1e-300 ... 1e300 the core answers the true coordinate of the float64 input (the 50-digit reference
-of `tests/reference.py`) to 1e-12, or an `InputError` whose fault names the joint (and, for a
+of `bench/reference.py`) to 1e-12, or an `InputError` whose fault names the joint (and, for a
 collapsed frame, the state): never another number. The issue's probes (issue 9, items 5 and 6)
 are pinned by name.
 """

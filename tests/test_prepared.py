@@ -72,7 +72,7 @@ def test_bad_q_is_an_input_error_naming_the_body() -> None:
     q[1, 4] = np.inf
     with pytest.raises(InputError) as e:
         scene.evaluate(q)
-    assert [f.loc for f in e.value.faults] == [("bodies", "q", 1)]
+    assert [f.loc for f in e.value.faults] == [("bodies", "q", 1, 4)]  # to the element, as JSON locates it
     with pytest.raises(InputError) as e:
         scene.evaluate(q[:1])
     assert [f.loc for f in e.value.faults] == [("bodies", "q")]
@@ -84,7 +84,7 @@ def test_prepare_names_bad_static_data() -> None:
     q_prev[0, 0] = np.nan
     with pytest.raises(InputError) as e:
         prepare(Bodies(sc.q, q_prev, sc.q_ref), [b.joints() for b in sc.batches])
-    assert [f.loc for f in e.value.faults] == [("bodies", "q_prev", 0)]
+    assert [f.loc for f in e.value.faults] == [("bodies", "q_prev", 0, 0)]
 
 
 def test_one_fault_cap_for_the_whole_request() -> None:
@@ -212,7 +212,7 @@ def test_commit_is_all_or_nothing() -> None:
     bad[0, 0] = np.nan
     with pytest.raises(InputError) as e:
         scene.commit(bad)
-    assert [f.loc for f in e.value.faults] == [("bodies", "q", 0)]
+    assert [f.loc for f in e.value.faults] == [("bodies", "q", 0, 0)]
     for a, b in zip(scene.coordinates(), before):
         np.testing.assert_array_equal(a, b)
     assert abs(scene.evaluate(_q(1.2)).batches[0].x[0] - 1.2) <= 1e-15

@@ -94,3 +94,15 @@ def test_joint_handle_reads_the_coordinate():
     assert full.joint(j).energy > 0 and full.joint(k).energy == 0.0
     active = LocalClient().evaluate(scene.request(active_only=True))
     assert active.joint(j).coordinate == full.joint(j).coordinate and active.joint(k).coordinate is None
+
+
+def test_sdk_takes_a_wire_dict_with_the_v11_fields():
+    """A wire JSON dict with offset and prev_coordinate, given to the SDK as it is: the same answer as the server's."""
+    from tests.test_golden_state import FIELDS, TOL
+    from tests.conftest import relerr
+
+    case = next(c for c in CASES if c["name"] == "revolute_turns_-2_above")
+    ev = LocalClient().evaluate(copy.deepcopy(case["request"]))
+    for got, want in zip(ev.batches, case["expect"]):
+        for f in FIELDS:
+            assert relerr(getattr(got, f), want[f]) <= TOL, f

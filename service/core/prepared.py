@@ -116,7 +116,7 @@ class PreparedScene:
     ) -> Evaluation:
         """Energy, gradient and Hessian of every joint at `q` (B, 12), as CONTRACT.md defines them.
 
-        Raises `InputError` naming every fault (bad `q`: loc ("bodies", "q", i); a configuration
+        Raises `InputError` naming every fault (bad `q`: loc ("bodies", "q", i, k); a configuration
         without derivatives or that overflows: the joint); never returns NaN or Infinity.
         """
         return self._evaluate(np.asarray(q, dtype=np.float64), tuple(outputs), hessian_mode, active_only, checked=False)

@@ -50,15 +50,13 @@ FIELDS: dict[str, dict[str, str]] = {
         "strength": "(N,) penalty strength s >= 0 (energy unit) of E = s ((x - u)/(u - l))^3 above, "
         "s ((l - x)/(u - l))^3 below, s |x - l|^3 when u == l. Optional: absent, every joint gets 1.0 "
         f"(the reference engine's default; never null). {ROWS}",
-        "offset": "(N,) v1.1: the spec's init_angle (670, radians) or init_distance (669): each joint's "
-        "reported coordinate is x + offset, and lower / upper bound that coordinate. Optional: absent, 0 "
-        f"(never null). {ROWS}",
-        "prev_coordinate": "(N,) v1.1, 670 only (a 422 on a 669 batch): the committed, continuously "
-        "unwrapped coordinate at q_prev (the spec's angle attribute; any number of turns). Then x = "
-        "(prev_coordinate - offset) + DeltaTheta(q, q_prev), so x, lower and upper may lie beyond +-pi. "
-        "A solver commits a time step by sending the coordinate it got at the accepted q as the next "
-        "step's prev_coordinate (and that q as q_prev). Optional: absent, x starts from "
-        f"DeltaTheta(q_prev, q_ref) (never null). {ROWS}",
+        "offset": "(N,) v1.1, optional (default 0): the spec's init_angle (670, radians) or init_distance (669). "
+        "The reported coordinate is x + offset, and lower / upper bound that coordinate (the penalty uses "
+        f"lower - offset, upper - offset). {ROWS}",
+        "prev_coordinate": "(N,) v1.1, 670 only, optional: the joint's committed, continuously unwrapped "
+        "coordinate at q_prev (the spec's angle; any real, several turns allowed). Then x = "
+        "(prev_coordinate - offset) + DeltaTheta(q, q_prev); commit a step by sending the coordinate "
+        f"answered at the accepted q as the next step's prev_coordinate. {ROWS}",
     },
     "EvaluateResponse": {
         "total_energy": "Sum of every joint's energy, all batches (including the joints active_only leaves out, "
@@ -71,8 +69,7 @@ FIELDS: dict[str, dict[str, str]] = {
         "active_only only the joints outside their range (ascending).",
         "x": "(M,) joint coordinate: 670 the relative angle of body j about +t (radians, right-hand rule, "
         "incremental, may leave (-pi, pi] by one step's turn); 669 the relative slide along +t.",
-        "coordinate": "(M,) v1.1: x + offset, the coordinate lower and upper bound (x itself without "
-        "offset); send it back as prev_coordinate to commit a time step.",
+        "coordinate": "(M,) v1.1: the reported coordinate x + offset (equal to x without offset).",
         "energy": "(M,) penalty energy of each joint (0 inside its range, bounds included).",
         "gradient": f"(M, 24) dE/d[q_i, q_j] per joint, in {JOINT_DOFS}. Present when outputs has gradient.",
         "hessian": f"(M, 24, 24) d2E/d[q_i, q_j]^2 per joint, row-major, symmetric, in {JOINT_DOFS}. "

@@ -9,21 +9,26 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, FailFast, Field, WithJsonSchema
 
 Output = Literal["energy", "gradient", "hessian"]
 HessianMode = Literal["exact", "psd"]
 OUTPUTS: tuple[Output, ...] = ("energy", "gradient", "hessian")
 
-# allow_inf_nan=False: a 200 never carries NaN or Infinity, so none may come in (nor 1e400).
+# Non-finite numbers (NaN, Infinity, 1e400, and `null`, which is what most JSON writers make of a
+# NaN: it arrives as NaN) pass here and are refused by the core's one check
+# (service/core/validate.py), which names every one to the element with the same words on every
+# path (JSON, msgpack, in-process); FailFast below would otherwise hide all but a list's first.
 # strict: a number is a JSON number (integers included), never a string such as "0.5".
-Real = Annotated[float, Field(strict=True, allow_inf_nan=False)]
-Dof = Annotated[list[Real], Field(min_length=12, max_length=12)]
-Vec3 = Annotated[list[Real], Field(min_length=3, max_length=3)]
-Edge = Annotated[list[Vec3], Field(min_length=2, max_length=2)]
+# FailFast: a list's first bad item ends its checks, so a body of a million bad rows gets a
+# handful of errors, not a million (the service lists at most MAX_FAULTS anyway).
+Real = Annotated[float | None, Field(strict=True, allow_inf_nan=True), WithJsonSchema({"type": "number"})]
+Dof = Annotated[list[Real], Field(min_length=12, max_length=12), FailFast()]
+Vec3 = Annotated[list[Real], Field(min_length=3, max_length=3), FailFast()]
+Edge = Annotated[list[Vec3], Field(min_length=2, max_length=2), FailFast()]
 # Integers are JSON integers (no 1.0, no "1", no true) that fit int64, as the binary encoding carries them.
 Int64 = Annotated[int, Field(strict=True, ge=-(2**63), le=2**63 - 1)]
-BodyPair = Annotated[list[Int64], Field(min_length=2, max_length=2)]
+BodyPair = Annotated[list[Int64], Field(min_length=2, max_length=2), FailFast()]
 
 
 class _Wire(BaseModel):
@@ -34,9 +39,9 @@ class _Wire(BaseModel):
 class Bodies(_Wire):
     """Every body once; joints refer to rows by index. Each row is 12 DOFs `[p, A row 0, A row 1, A row 2]`."""
 
-    q: list[Dof]
-    q_prev: list[Dof]
-    q_ref: list[Dof]
+    q: Annotated[list[Dof], FailFast()]
+    q_prev: Annotated[list[Dof], FailFast()]
+    q_ref: Annotated[list[Dof], FailFast()]
 
 
 def _no_default(schema: dict) -> None:
@@ -49,23 +54,23 @@ class JointBatch(_Wire):
     constitution_uid: Int64
     # Optional on the wire (absent, never null): the core fills them in (service/http/convert.py: defaults).
     base_uid: Int64 = Field(None, json_schema_extra=_no_default)
-    body_ids: list[BodyPair]
-    edges: list[Edge]
-    lower: list[Real]
-    upper: list[Real]
-    strength: list[Real] = Field(None, json_schema_extra=_no_default)
-    offset: list[Real] | None = None
+    body_ids: Annotated[list[BodyPair], FailFast()]
+    edges: Annotated[list[Edge], FailFast()]
+    lower: Annotated[list[Real], FailFast()]
+    upper: Annotated[list[Real], FailFast()]
+    strength: Annotated[list[Real], FailFast()] = Field(None, json_schema_extra=_no_default)
+    offset: Annotated[list[Real], FailFast()] = Field(None, json_schema_extra=_no_default)
     """v1.1 (both constitutions, default 0): the spec's `init_angle` / `init_distance`; coordinate =
     x + offset, and `lower` / `upper` bound the coordinate."""
-    prev_coordinate: list[Real] | None = None
+    prev_coordinate: Annotated[list[Real], FailFast()] = Field(None, json_schema_extra=_no_default)
     """v1.1 (670 only): the committed, unwrapped coordinate at `q_prev` (the spec's `angle`); then
     x = (prev_coordinate - offset) + DeltaTheta(q, q_prev)."""
 
 
 class EvaluateRequest(_Wire):
     bodies: Bodies
-    batches: list[JointBatch]
-    outputs: Annotated[list[Output], Field(min_length=1)] = list(OUTPUTS)
+    batches: Annotated[list[JointBatch], FailFast()]
+    outputs: Annotated[list[Output], Field(min_length=1), FailFast()] = list(OUTPUTS)
     hessian_mode: HessianMode = "exact"
     active_only: Annotated[bool, Field(strict=True)] = False
 

@@ -82,6 +82,13 @@ BOOL = "true|false"
 """What boolean options show; 1/0, yes/no, on/off are accepted too."""
 
 
+def _positive_float(value: str) -> float:
+    x = float(value)
+    if not (0 < x < float("inf")):
+        raise argparse.ArgumentTypeError("must be a positive number of seconds")
+    return x
+
+
 def _bool(value: str) -> bool:
     v = value.strip().lower()
     if v in ("1", "true", "yes", "on"):
@@ -162,6 +169,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds an idle keep-alive connection stays open; keep it above your load balancer's "
         "idle timeout (JOINTLIMITS_KEEPALIVE_TIMEOUT)",
     )
+    s.add_argument(
+        "--header-timeout",
+        type=_positive_float,
+        default=_positive_float(_env("HEADER_TIMEOUT", "10")),
+        help="seconds a connection has to send a request's headers, from its first byte (or from connecting); "
+        "then 408 and closed: slowloris (JOINTLIMITS_HEADER_TIMEOUT)",
+    )
+    s.add_argument(
+        "--body-timeout",
+        type=_positive_float,
+        default=_positive_float(_env("BODY_TIMEOUT", "30")),
+        help="seconds from a request's headers to the end of its body; then 408 and closed (JOINTLIMITS_BODY_TIMEOUT)",
+    )
     s.add_argument("--backlog", type=_positive_int, default=int(_env("BACKLOG", "2048")), help="listen backlog (JOINTLIMITS_BACKLOG)")
     s.add_argument(
         "--log-level",
@@ -206,6 +226,8 @@ def serve(args: argparse.Namespace) -> int:
     os.environ[ENV_PREFIX + "MAX_JOINTS"] = str(args.max_joints)
     os.environ[ENV_PREFIX + "CORS_ORIGINS"] = args.cors_origins
     os.environ[ENV_PREFIX + "KEEP_HEAP"] = "true" if args.keep_heap else "false"
+    os.environ[ENV_PREFIX + "HEADER_TIMEOUT"] = str(args.header_timeout)  # read by ReadTimeoutProtocol
+    os.environ[ENV_PREFIX + "BODY_TIMEOUT"] = str(args.body_timeout)
     if args.token_file:
         token = Path(args.token_file).read_text().strip()
         if not token:
@@ -257,6 +279,7 @@ def serve(args: argparse.Namespace) -> int:
             timeout_keep_alive=max(1, math.ceil(args.keepalive_timeout)),
             backlog=args.backlog,
             server_header=False,
+            http="service.http.timeouts:ReadTimeoutProtocol",  # uvicorn's httptools + a deadline on request heads
         )
     finally:
         if own_metrics_dir:

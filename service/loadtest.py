@@ -16,6 +16,10 @@ without it, `--url` names a service already running on 127.0.0.1. Scenarios:
   see no error; the supervisor replaces the worker.
 - `sigterm`: SIGTERM the server while every client has a slow request in flight: each of
   those requests completes with 200 and the server exits 0.
+- `slowloris`: `--slow` connections that send nothing, or trickle their headers or their
+  body at one byte a second, while the clients send valid requests: each slow connection
+  is closed within its read timeout (`--header-timeout`, `--body-timeout` of the spawned
+  server), the valid clients keep their 200s.
 
 The client is a minimal HTTP/1.1 client on asyncio streams with pre-encoded requests, so
 that on a 2-core machine it takes as little CPU from the server as it can. Standard
@@ -645,12 +649,99 @@ def scenario_sigterm(server: Server, clients: int, slow_joints: int = 1000, toke
     }
 
 
+SLOW_KINDS = ("silent", "headers", "body")
+
+
+async def slow_connection(port: int, kind: str, give_up: float) -> dict[str, Any]:
+    """One slowloris connection: sends nothing, or its headers, or its body, one byte a second.
+
+    Returns when the server closes it (`closed_after_s`, and the status it answered, if any)
+    or after `give_up` seconds (`closed_after_s` None: the server never closed it).
+    """
+    t0 = time.monotonic()
+    reader, writer = await asyncio.open_connection(LOOPBACK, port)
+    head = f"POST /v1/evaluate HTTP/1.1\r\nHost: {LOOPBACK}\r\nContent-Type: application/json\r\n"
+    if kind == "headers":
+        writer.write(head.encode())  # and then one header byte a second, never the blank line
+        trickle = b"X-Slow: " + b"a" * 10_000
+    elif kind == "body":
+        writer.write(f"{head}Content-Length: 100000\r\n\r\n".encode())  # and then one body byte a second
+        trickle = b" " * 100_000
+    else:
+        trickle = b""
+
+    async def drip() -> None:
+        for i in range(len(trickle)):
+            await asyncio.sleep(1.0)
+            writer.write(trickle[i : i + 1])
+            await writer.drain()
+
+    dripping = asyncio.create_task(drip())
+    answer = b""
+    closed_after: float | None = None
+    try:
+        async with asyncio.timeout(give_up):
+            try:
+                while chunk := await reader.read(4096):
+                    answer += chunk
+            except CONNECTION_ERRORS:
+                pass  # reset by the server: closed too
+            closed_after = time.monotonic() - t0
+    except TimeoutError:
+        pass  # still open after give_up seconds
+    finally:
+        dripping.cancel()
+        writer.close()
+    status = answer.split(b" ", 2)[1].decode() if answer.startswith(b"HTTP/1.1 ") else None
+    return {"kind": kind, "closed_after_s": None if closed_after is None else round(closed_after, 2), "status": status}
+
+
+def scenario_slowloris(
+    server: Server, clients: int, slow: int, header_timeout: float, body_timeout: float, token: str | None = None
+) -> dict[str, Any]:
+    """`slow` slowloris connections (silent, trickling headers, trickling a body) while `clients` valid clients run.
+
+    The slow ones must be closed within their timeout (plus scheduling slack); the valid
+    clients must keep their 200s. Bounded: the drill lasts `max(timeouts) + 5` seconds.
+    """
+    valid = [k for k in mixed_kinds(token) if k.name.startswith("valid")]
+    span = max(header_timeout, body_timeout) + 5.0
+    baseline = asyncio.run(run_load(server.port, valid, clients, span / 2, seed=1))
+    closed: list[dict[str, Any]] = []
+
+    async def drill() -> Stats:
+        async def slowloris() -> None:
+            closed.extend(
+                await asyncio.gather(*(slow_connection(server.port, SLOW_KINDS[i % 3], span) for i in range(slow)))
+            )
+
+        return await run_load(server.port, valid, clients, span, seed=3, during=slowloris)
+
+    under = asyncio.run(drill())
+    by_kind: dict[str, dict[str, Any]] = {}
+    for kind in SLOW_KINDS:
+        rows = [c for c in closed if c["kind"] == kind]
+        times = [c["closed_after_s"] for c in rows if c["closed_after_s"] is not None]
+        by_kind[kind] = {
+            "connections": len(rows),
+            "closed": len(times),
+            "max_closed_after_s": max(times, default=None),
+            "statuses": dict(Counter(str(c["status"]) for c in rows)),
+        }
+    return {
+        "valid_alone": baseline.summary(),
+        "valid_under_slowloris": under.summary(),
+        "slow": by_kind,
+        "healthz_after": get(server.port, "/healthz")[0],
+    }
+
+
 # --------------------------------------------------------------------------- command line
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m service.loadtest", description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenario", choices=["mixed", "flood", "kill", "sigterm", "all"], default="mixed")
+    p.add_argument("--scenario", choices=["mixed", "flood", "kill", "sigterm", "slowloris", "all"], default="mixed")
     p.add_argument("--spawn", action="store_true", help="start `jointlimits serve` on a free loopback port")
     p.add_argument("--port", type=int, default=8000, help="port of a running service on 127.0.0.1 (without --spawn)")
     p.add_argument("--workers", type=int, default=2)
@@ -659,17 +750,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--max-body-bytes", type=int, default=1_000_000, help="the spawned server's limit (flood)")
     p.add_argument("--max-joints", type=int, default=1_000, help="the spawned server's limit (flood)")
     p.add_argument("--token", default=os.environ.get("JOINTLIMITS_TOKEN") or None)
+    p.add_argument("--slow", type=int, default=50, help="slowloris connections (slowloris)")
+    p.add_argument("--header-timeout", type=float, default=3.0, help="the spawned server's header timeout (slowloris)")
+    p.add_argument("--body-timeout", type=float, default=4.0, help="the spawned server's body timeout (slowloris)")
     a = p.parse_args(argv)
-    if a.duration > 600 or a.clients > 256:
-        p.error("bounded: --duration <= 600, --clients <= 256")
+    if a.duration > 600 or a.clients > 256 or a.slow > 512 or max(a.header_timeout, a.body_timeout) > 120:
+        p.error("bounded: --duration <= 600, --clients <= 256, --slow <= 512, timeouts <= 120")
     limits = ["--max-body-bytes", str(a.max_body_bytes), "--max-joints", str(a.max_joints)]
+    limits += ["--header-timeout", str(a.header_timeout), "--body-timeout", str(a.body_timeout)]
     env: dict[str, str] = {}  # the production defaults: JSON access log on (to a file)
 
     def spawned() -> Server:
         return Server(a.workers, limits, env)
 
     report: dict[str, Any] = {"workers": a.workers, "clients": a.clients, "duration_s": a.duration}
-    scenarios = ["mixed", "flood", "kill", "sigterm"] if a.scenario == "all" else [a.scenario]
+    scenarios = ["mixed", "flood", "kill", "sigterm", "slowloris"] if a.scenario == "all" else [a.scenario]
     for name in scenarios:
         if not a.spawn:
             if name in ("kill", "sigterm"):
@@ -697,6 +792,8 @@ def _run(name: str, server: Any, a: argparse.Namespace) -> dict[str, Any]:
         return scenario_flood(server, a.clients, min(a.duration, 10.0), a.max_body_bytes, a.max_joints, a.token)
     if name == "kill":
         return scenario_kill(server, a.clients, min(a.duration, 10.0), a.token)
+    if name == "slowloris":
+        return scenario_slowloris(server, a.clients, a.slow, a.header_timeout, a.body_timeout, a.token)
     return scenario_sigterm(server, a.clients, token=a.token)
 
 

@@ -32,3 +32,8 @@ class Settings:
     keep_heap: bool = field(default_factory=lambda: _env("KEEP_HEAP", "true").strip().lower() not in ("0", "false", "no", "off"))
     """Keep freed memory in the worker's heap (`service.core.heap`): no page faults per request, at the
     price of holding the largest request's memory."""
+    header_timeout: float = field(default_factory=lambda: float(_env("HEADER_TIMEOUT", "10")))
+    """Seconds a connection has to send a request's head (line and headers); then 408 and closed
+    (enforced by `service.http.timeouts.ReadTimeoutProtocol`, which `jointlimits serve` runs)."""
+    body_timeout: float = field(default_factory=lambda: float(_env("BODY_TIMEOUT", "30")))
+    """Seconds from a request's head to the end of its body; then 408 and the connection closed."""

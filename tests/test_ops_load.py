@@ -1,7 +1,7 @@
 """Load and faults on a real 2-worker server on loopback (`service/loadtest.py` does the work).
 
-About 75 s in all: a 30 s mixed load (JOINTLIMITS_LOAD_SECONDS to change it), a flood of
-oversized requests, a worker killed under load, SIGTERM under load. The figures in the
+About 95 s in all: a 30 s mixed load (JOINTLIMITS_LOAD_SECONDS to change it), a flood of
+oversized requests, a worker killed under load, SIGTERM under load, a slowloris of 50 connections. The figures in the
 README come from `python -m service.loadtest --spawn --scenario all`, the same code.
 """
 
@@ -84,3 +84,30 @@ def test_sigterm_under_load_lets_in_flight_requests_finish(server):
     assert r["statuses"] == {"200": 16}, "every in-flight request completed"
     assert r["exit_code"] == 0
     assert r["last_completion_after_sigterm_s"] > 0  # they were still running when the signal came
+
+
+HEADER_TIMEOUT, BODY_TIMEOUT = 3.0, 4.0
+
+
+def test_slowloris_connections_are_closed_and_normal_clients_unaffected():
+    """50 slow connections (silent, headers or body at 1 byte/s) are closed by the read timeouts; ~20 s."""
+    timeouts = ["--header-timeout", str(HEADER_TIMEOUT), "--body-timeout", str(BODY_TIMEOUT)]
+    with lt.Server(workers=2, extra_args=[*LIMITS, *timeouts]) as server:
+        pids = server.worker_pids()
+        r = lt.scenario_slowloris(server, clients=8, slow=50, header_timeout=HEADER_TIMEOUT, body_timeout=BODY_TIMEOUT)
+        for part in ("valid_alone", "valid_under_slowloris", "slow"):
+            show(part, r[part])
+        assert server.worker_pids() == pids and server.proc.poll() is None
+    # 2 s of slack: the timers are exact, the loaded 2-core machine is not.
+    limit = {"silent": HEADER_TIMEOUT, "headers": HEADER_TIMEOUT, "body": BODY_TIMEOUT}
+    for kind, s in r["slow"].items():
+        assert s["connections"] >= 16 and s["closed"] == s["connections"], (kind, s)
+        assert s["max_closed_after_s"] < limit[kind] + 2.0, (kind, s)
+    assert r["slow"]["headers"]["statuses"] == {"408": r["slow"]["headers"]["connections"]}
+    assert r["slow"]["body"]["statuses"] == {"408": r["slow"]["body"]["connections"]}
+    assert r["slow"]["silent"]["statuses"] == {"None": r["slow"]["silent"]["connections"]}  # closed, no answer
+    valid = r["valid_under_slowloris"]
+    assert valid["requests"] > 0 and set(valid["statuses"]) == {"200"}
+    assert valid["dropped"] == 0 and valid["connection_errors"] == 0
+    assert valid["p99_ms"] < max(2000.0, 5 * r["valid_alone"]["p99_ms"])
+    assert r["healthz_after"] == 200

@@ -70,6 +70,16 @@ def _lower_nan(doc: dict) -> None:
     doc["batches"][1]["lower"][2] = "@NaN"
 
 
+def _twice(key: str) -> Callable[[str], httpx.Response]:
+    """The base request as JSON text with batch 1 naming `key` twice."""
+    def send(url: str) -> httpx.Response:
+        doc = json.loads(codec.encode(base_request(), False)[0])
+        batch = json.dumps(doc["batches"][1])
+        twice = batch.replace("{", "{" + json.dumps(key) + ": " + json.dumps(doc["batches"][1][key]) + ", ", 1)
+        return _raw(json.dumps(doc).replace(batch, twice, 1).encode(), J)(url)
+    return send
+
+
 def _set(*path: str | int, value: object) -> Callable[[dict], None]:
     def change(doc: dict) -> None:
         node = doc
@@ -120,6 +130,11 @@ CASES: dict[str, Callable[[str], httpx.Response]] = {
     "more joints than `JOINTLIMITS_MAX_JOINTS` (counted before parsing)": _many_joints,
     "`Content-Type` neither JSON nor msgpack": _raw(b"{}", "text/plain"),
     "`Accept` names neither": _doc(lambda doc: None, Accept="text/html"),
+    "a key twice in one object / map (JSON or msgpack)": _twice("lower"),
+    "a msgpack map key that is not a `str` (e.g. `bin`)": _doc(
+        lambda doc: doc["batches"][0].__setitem__(b"lower", doc["batches"][0].pop("lower")), binary=True),
+    "a msgpack value with more than 64 maps and arrays, or one of more than 4096 items": _doc(
+        _set("bodies", value=[0] * 5000), binary=True),
 }
 
 

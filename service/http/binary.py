@@ -7,44 +7,82 @@ per-row faults (non-finite, ranges) come from the core, as for JSON.
 
 from __future__ import annotations
 
+import io
 from typing import Any
 
+import msgpack
 import numpy as np
 
 from schemas import OUTPUTS
 from schemas import binary as wire
+from schemas import evaluate as models
 from service.core import Bodies, Evaluation, Fault, InputError, Joints
-from service.core.errors import Loc
+from service.core.errors import MAX_FAULTS, Loc
 from service.http import limits
 from service.http.convert import base_uid_of, strength_of
 
 MEDIA_TYPE = wire.MEDIA_TYPE
 
-_REQUEST_KEYS = {"bodies": True, "batches": True, "outputs": False, "hessian_mode": False, "active_only": False}
-_BODY_KEYS = {"q": True, "q_prev": True, "q_ref": True}
+# Each map's keys (True: required), as the wire models (schemas/evaluate.py) define them.
+_REQUEST_KEYS, _BODY_KEYS, _BATCH_KEYS = (
+    {k: f.is_required() for k, f in model.model_fields.items()} for model in (models.EvaluateRequest, models.Bodies, models.JointBatch)
+)
 _JOINT_ARRAYS = {"body_ids": (wire.INT64, 2), "edges": (wire.FLOAT64, 3)} | {
     k: (wire.FLOAT64, 1) for k in ("lower", "upper", "strength", "offset", "prev_coordinate")
 }
-_OPTIONAL = {"strength", "offset", "prev_coordinate"}  # strength defaults to 1; offset, prev_coordinate: v1.1
-_BATCH_KEYS = {"constitution_uid": True, "base_uid": False} | {k: k not in _OPTIONAL for k in _JOINT_ARRAYS}
 _INT64_RANGE = range(-(2**63), 2**63)
 _EMPTY = {"f": np.zeros((0, 12)), "i": np.zeros((0, 2), dtype=np.int64)}
+_MAP_HEADERS = frozenset(range(0x80, 0x90)) | {0xDE, 0xDF}  # fixmap, map 16, map 32
+_ARRAY_HEADERS = frozenset(range(0x90, 0xA0)) | {0xDC, 0xDD}
+
+
+class _Map(dict):
+    """A msgpack map that repeated a key (last value kept, as `dict` does); `repeated` lists the keys."""
+
+    repeated: list[Any]
+
+
+def _pairs(pairs: list[tuple[Any, Any]]) -> dict[str, Any]:
+    """`object_pairs_hook` of the unpacker: a plain dict, or a `_Map` that remembers its repeated keys."""
+    d = dict(pairs)
+    if len(d) == len(pairs):
+        return d
+    m, seen = _Map(d), set()
+    m.repeated = [k for k, _ in pairs if k in seen or seen.add(k)]  # type: ignore[func-returns-value]
+    return m
 
 
 class _Reader:
-    """Walks the document's few structural levels (never its joints), collecting faults."""
+    """Walks the document's few structural levels (never its joints), collecting faults.
+
+    It stops at the `MAX_FAULTS`-th fault (raising them): a body of 300k bad batches costs
+    its unpacking and 20 faults' worth of walking, not 300k.
+    """
 
     def __init__(self) -> None:
         self.faults: list[Fault] = []
 
     def fault(self, loc: Loc, msg: str, type: str = "value_error") -> None:
         self.faults.append(Fault(loc, msg, type))
+        if len(self.faults) >= MAX_FAULTS:
+            raise InputError(self.faults)
+
+    def keys(self, obj: dict, loc: Loc) -> None:
+        """Faults for the keys `dict` hides: repeated ones and non-string ones (a msgpack `bin` key)."""
+        for k in getattr(obj, "repeated", ()):
+            self.fault((*loc, k), "Duplicate key: each key may appear once in a map", "duplicate_key")
+        for k in obj:
+            if not isinstance(k, str):
+                self.fault((*loc, k), f"Map keys must be msgpack str, got {type(k).__name__}", "key_type")
 
     def fields(self, obj: Any, loc: Loc, keys: dict[str, bool]) -> dict[str, Any]:
         if not isinstance(obj, dict):
             self.fault(loc, "Input should be a map (a msgpack map, as a JSON object)", "model_type")
             return {}
+        self.keys(obj, loc)
         for k in obj:
+            if not isinstance(k, str):
+                continue  # named above
             if k not in keys:
                 self.fault((*loc, k), "Extra inputs are not permitted", "extra_forbidden")
         for k, required in keys.items():
@@ -53,6 +91,11 @@ class _Reader:
         return {k: v for k, v in obj.items() if k in keys}
 
     def array(self, obj: Any, loc: Loc, dtype: str, ndim: int, empty: np.ndarray) -> np.ndarray:
+        if isinstance(obj, dict):
+            n = len(self.faults)
+            self.keys(obj, loc)
+            if len(self.faults) > n:
+                return empty
         try:
             return wire.unpack_array(obj, dtype, ndim)
         except ValueError as e:
@@ -66,21 +109,115 @@ class _Reader:
         return obj
 
 
+MAX_CONTAINERS = 64
+"""Maps and arrays one top-level value or one batch may hold (a batch has 11, `bodies` 7)."""
+MAX_ITEMS = 4096
+"""Items of one msgpack map or array (numbers travel as `bin`: a request's longest list is its `outputs`)."""
+
+
+class _TooMany(Exception):
+    pass
+
+
+class _Budget:
+    """The unpacker's hooks: build each map and array, and count them against `MAX_CONTAINERS`."""
+
+    def __init__(self) -> None:
+        self.left = MAX_CONTAINERS
+
+    def pairs(self, pairs: list[tuple[Any, Any]]) -> dict[str, Any]:
+        self.tick()
+        return _pairs(pairs)
+
+    def items(self, items: list[Any]) -> list[Any]:
+        self.tick()
+        return items
+
+    def tick(self) -> None:
+        self.left -= 1
+        if self.left < 0:
+            raise _TooMany
+
+
+class _Checked(list):
+    """The request's batches, each already checked (`_batch`) as it was unpacked."""
+
+
+def _unpack(body: bytes, r: _Reader) -> Any:
+    """The document, its top-level `batches` unpacked and checked one batch at a time.
+
+    A body of 30M empty maps as batches would otherwise become 30M dicts (~2 GB) before the
+    first check; this way the reader's fault cap stops the unpacking after a few batches.
+    Every other value is unpacked whole, but holds at most `MAX_CONTAINERS` maps and arrays
+    of at most `MAX_ITEMS` items each: no value costs more than a bounded number of objects.
+    """
+    budget = _Budget()
+    # Read in 8 MiB steps from the body itself: `feed(body)` would hold a whole second copy.
+    u = msgpack.Unpacker(
+        io.BytesIO(body), read_size=2**23, max_buffer_size=max(len(body), 2**23),
+        raw=False, strict_map_key=True, object_pairs_hook=budget.pairs, list_hook=budget.items,
+        max_map_len=MAX_ITEMS, max_array_len=MAX_ITEMS,
+    )  # fmt: skip
+
+    def value(loc: Loc) -> Any:
+        budget.left = MAX_CONTAINERS
+        try:
+            return u.unpack()
+        except _TooMany:
+            msg = f"holds more than {MAX_CONTAINERS} maps and arrays: not the structure of a request"
+            raise InputError([*r.faults, Fault(loc, msg, "structure")]) from None
+        except ValueError as e:
+            if "exceeds max_" not in str(e):
+                raise
+            msg = f"holds a map or array of {str(e).split()[0]} items; a request's have at most {MAX_ITEMS}"
+            raise InputError([*r.faults, Fault(loc, msg, "structure")]) from None
+
+    try:
+        if not body or body[0] not in _MAP_HEADERS:
+            u.skip()  # a valid document that is not a map (walked, never built), or garbage
+            doc: Any = None
+        else:
+            doc = {}
+            repeated = []
+            n = u.read_map_header()
+            if n > MAX_ITEMS:
+                raise ValueError(f"{n} exceeds max_map_len({MAX_ITEMS})")
+            for _ in range(n):
+                k = value(())
+                if k in doc:
+                    repeated.append(k)
+                if k == "batches" and u.tell() < len(body) and body[u.tell()] in _ARRAY_HEADERS:
+                    doc[k] = _Checked(_batch(r, b, value(("batches", b))) for b in range(u.read_array_header()))
+                else:
+                    doc[k] = value((k,))
+            if repeated:
+                doc = _Map(doc)
+                doc.repeated = repeated
+        if u.tell() != len(body):
+            raise ValueError(f"{len(body) - u.tell()} bytes after the document")
+    except InputError:
+        raise  # the fault cap, reached inside the batches
+    except Exception as e:  # msgpack raises several unrelated types for malformed input
+        raise InputError([Fault((), f"body is not a valid msgpack document ({type(e).__name__}: {e})", "msgpack_invalid")]) from None
+    return doc
+
+
 def decode(body: bytes, max_joints: int) -> dict[str, Any]:
     """Keyword arguments of `service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`."""
-    try:
-        doc = wire.loads(body)
-    except ValueError as e:
-        raise InputError([Fault((), str(e), "msgpack_invalid")]) from None
     r = _Reader()
+    doc = _unpack(body, r)
     top = r.fields(doc, (), _REQUEST_KEYS)
-    raw_bodies = r.fields(top.get("bodies", {}), ("bodies",), _BODY_KEYS)
-    f = {k: r.array(raw_bodies.get(k), ("bodies", k), wire.FLOAT64, 2, _EMPTY["f"]) for k in _BODY_KEYS}
-    raw_batches = top.get("batches", [])
-    if not isinstance(raw_batches, list):
-        r.fault(("batches",), "Input should be a valid list", "list_type")
-        raw_batches = []
-    batches = [_batch(r, b, raw) for b, raw in enumerate(raw_batches)]
+    # A missing or malformed `bodies` is one fault, not four.
+    raw_bodies = r.fields(top["bodies"], ("bodies",), _BODY_KEYS) if "bodies" in top else {}
+    f = {
+        k: r.array(raw_bodies[k], ("bodies", k), wire.FLOAT64, 2, _EMPTY["f"]) if k in raw_bodies else _EMPTY["f"]
+        for k in _BODY_KEYS
+    }
+    batches = top.get("batches", [])
+    if not isinstance(batches, _Checked):
+        if batches != []:
+            r.fault(("batches",), "Input should be a valid list", "list_type")
+        batches = []
     outputs, hessian_mode, active_only = _options(r, top)
     if r.faults:
         raise InputError(r.faults)

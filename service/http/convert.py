@@ -10,8 +10,9 @@ from pydantic import ValidationError
 
 from schemas import EvaluateRequest
 from schemas.constitutions import STRENGTH_DEFAULT
-from service.core import CONSTITUTIONS, Bodies, Evaluation, Joints
-from service.http import limits
+from service.core import CONSTITUTIONS, Bodies, Evaluation, Fault, InputError, Joints
+from service.core.errors import MAX_FAULTS
+from service.http import jsonkeys, limits
 from service.http.errors import from_validation
 
 MEDIA_TYPE = "application/json"
@@ -23,13 +24,43 @@ def decode(body: bytes, max_joints: int) -> dict[str, Any]:
     Raises `HttpError` (413) for too many joints, `InputError` (422) for a malformed body.
     """
     limits.check_joints(limits.json_joints_upper_bound(body), max_joints)
+    req = parse(body)
+    limits.check_joints(sum(len(j.body_ids) for j in req.batches), max_joints)
+    return to_core(req)
+
+
+def parse(body: bytes) -> EvaluateRequest:
+    """The request of a JSON body, or `InputError` with at most `MAX_FAULTS` faults, found cheaply.
+
+    Keys first, on the bytes (`jsonkeys`): repeated ones, which pydantic would let through
+    (last wins), and unknown and missing ones; at the cap pydantic never runs. Then pydantic,
+    whose lists are `FailFast` (a list's first bad item ends its checks): its error list is
+    bounded too, as long as unknown keys (the one error it lists without bound) are.
+    """
+    keys = jsonkeys.scan(body)
+    key_faults = keys.faults
+    if len(key_faults) >= MAX_FAULTS:
+        raise InputError(key_faults)
+    if keys.stray is not None and jsonkeys.keys_after(body, keys.stray[0], MAX_FAULTS) >= MAX_FAULTS:
+        # The scan stopped at an object no request holds, and enough keys follow to flood
+        # pydantic's list with unknown ones: refuse here.
+        _, loc, known_field = keys.stray
+        if known_field:
+            key_faults = [*key_faults, Fault(loc, "holds an object, where a request has numbers or lists", "model_type")]
+        raise InputError(key_faults)
     try:
         # Rust-side parse and validation straight from bytes; rejects NaN, Infinity and 1e400.
         req = EvaluateRequest.model_validate_json(body)
     except ValidationError as e:
-        raise from_validation(e) from None
-    limits.check_joints(sum(len(j.body_ids) for j in req.batches), max_joints)
-    return to_core(req)
+        faults = from_validation(e).faults
+        if any(f.type == "json_invalid" for f in faults):
+            raise InputError(faults) from None  # the scan's findings mean nothing in a broken document
+        seen = {(f.loc, f.type) for f in key_faults}
+        raise InputError([*key_faults, *(f for f in faults if (f.loc, f.type) not in seen)]) from None
+    repeated = [f for f in key_faults if f.type == "duplicate_key"]
+    if repeated:
+        raise InputError(repeated)  # pydantic let them through (the last one wins)
+    return req
 
 
 def base_uid_of(constitution_uid: int) -> int:

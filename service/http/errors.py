@@ -1,14 +1,28 @@
-"""Every 4xx of the service in FastAPI's `{"detail": [{"loc", "msg", "type"}]}` format."""
+"""Every 4xx of the service in FastAPI's `{"detail": [{"loc", "msg", "type"}]}` format.
+
+`render` is the one place faults become JSON: whatever a decoder put in a fault (a msgpack
+`bin` key, a 2 MB misspelt key, a list of a million faults), the answer is JSON-safe and
+bounded: at most `MAX_FAULTS` faults, every `loc` element an `int` or a `str` of at most
+`MAX_KEY_CHARS` characters (longer ones cut, marked with `...`), every `msg` at most `MAX_MSG_CHARS`.
+"""
 
 from __future__ import annotations
 
+import numbers
+from collections.abc import Sequence
+
 from fastapi import Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
 
 from service.core import Fault, InputError
 from schemas.errors import validation_items
 from service.core.errors import MAX_FAULTS
+
+MAX_KEY_CHARS = 64
+"""A `loc` element echoed back (an unknown key) is cut to this many characters plus `...`."""
+MAX_MSG_CHARS = 1024
+"""A message quoting the input (a dtype string, a shape) is cut to this many characters plus `...`."""
 
 
 class HttpError(Exception):
@@ -20,22 +34,58 @@ class HttpError(Exception):
         super().__init__("; ".join(f.msg for f in faults))
 
 
-def _body(faults: list[Fault], where: str = "body") -> dict:
-    return {"detail": [{"loc": [where, *f.loc], "msg": f.msg, "type": f.type} for f in faults]}
+def _cut(s: str, n: int) -> str:
+    return s if len(s) <= n else s[:n] + "..."
+
+
+def loc_element(x: object) -> int | str:
+    """`x` as a JSON-safe `loc` element: ints stay ints, `bytes` keys show as `b'...'`, all cut to size."""
+    if isinstance(x, numbers.Integral) and not isinstance(x, bool):
+        return int(x)  # NumPy's integers too
+    if isinstance(x, str):
+        return _cut(x, MAX_KEY_CHARS)
+    return _cut(repr(x[: MAX_KEY_CHARS + 1] if isinstance(x, (bytes, bytearray)) else x), MAX_KEY_CHARS)
+
+
+def render(faults: Sequence[Fault], prefix: Sequence[str] = ()) -> dict:
+    """The `{"detail": [...]}` answer of `faults` (the first `MAX_FAULTS`), each `loc` after `prefix`."""
+    return {
+        "detail": [
+            {"loc": [*prefix, *map(loc_element, f.loc)], "msg": _cut(str(f.msg), MAX_MSG_CHARS), "type": str(f.type)}
+            for f in faults[:MAX_FAULTS]
+        ]
+    }
 
 
 async def input_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, InputError)
-    return JSONResponse(_body(exc.faults), status_code=422)
+    return JSONResponse(render(exc.faults, ("body",)), status_code=422)
 
 
 async def http_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, HttpError)
     # These faults carry their own full loc (["body"], ["header", "accept"], ...).
-    detail = [{"loc": list(f.loc), "msg": f.msg, "type": f.type} for f in exc.faults]
-    return JSONResponse({"detail": detail}, status_code=exc.status)
+    return JSONResponse(render(exc.faults), status_code=exc.status)
+
+
+CLIENT_CLOSED = 499
+"""Status recorded (metrics, access log) for a request whose client left before its body was read (nginx's 499)."""
+
+
+async def client_gone(request: Request, exc: Exception) -> Response:
+    """`ClientDisconnect` while reading the body: 408 if the body timed out, else 499 (nobody hears it).
+
+    Either way one access-log line at info and a 4xx in the metrics: not a 500 with a traceback.
+    """
+    from service.http.timeouts import BODY_TIMED_OUT
+
+    timeout = request.scope.get("state", {}).get(BODY_TIMED_OUT)
+    if timeout is not None:
+        fault = Fault(("body",), f"request body not received within {timeout:g} s (JOINTLIMITS_BODY_TIMEOUT)", "timeout")
+        return JSONResponse(render([fault]), status_code=408, headers={"Connection": "close"})
+    return Response(status_code=CLIENT_CLOSED)
 
 
 def from_validation(e: ValidationError) -> InputError:
     """Pydantic's errors as core faults (same loc, same msg; `null` for a number reads as non-finite)."""
-    return InputError([Fault(*item) for item in validation_items(e, 4 * MAX_FAULTS)])
+    return InputError([Fault(*item) for item in validation_items(e, MAX_FAULTS)])

@@ -2,7 +2,7 @@
 
 Order, outermost first: observability (sees every request, including 401s and CORS
 preflights, and serves `/metrics`), CORS (answers preflights before auth could refuse
-them), bearer auth (refuses before the body is read), then the routes.
+them), bearer auth (refuses before the body is read), the body's read timeout, then the routes.
 """
 
 from __future__ import annotations
@@ -11,12 +11,14 @@ from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
 
 from service.http.auth import BearerAuthMiddleware
+from service.http.timeouts import BodyTimeoutMiddleware
 from service.observability import Metrics, ObservabilityMiddleware
 from service.settings import Settings
 
 
 def install(app: FastAPI, settings: Settings) -> None:
     # Starlette wraps in reverse: the middleware added last is the outermost.
+    app.add_middleware(BodyTimeoutMiddleware, timeout=settings.body_timeout)  # innermost: only the body's reads
     if settings.token:
         app.add_middleware(BearerAuthMiddleware, token=settings.token)
     if settings.cors_origins:

@@ -5,11 +5,12 @@ from __future__ import annotations
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect
 
 from schemas import ConstitutionsResponse, EvaluateResponse
 from service.core import InputError, evaluate
 from service.http import binary, convert, discovery, limits, negotiate, openapi
-from service.http.errors import HttpError, http_error_handler, input_error_handler
+from service.http.errors import HttpError, client_gone, http_error_handler, input_error_handler
 
 router = APIRouter()
 CODECS = {negotiate.JSON: convert, negotiate.BINARY: binary}
@@ -64,6 +65,7 @@ def install(app: FastAPI) -> None:
     app.include_router(router)
     app.add_exception_handler(InputError, input_error_handler)
     app.add_exception_handler(HttpError, http_error_handler)
+    app.add_exception_handler(ClientDisconnect, client_gone)  # 499 / 408, not a 500 with a traceback
     build = app.openapi
 
     def openapi_with_components() -> dict:

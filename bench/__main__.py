@@ -24,6 +24,7 @@ import numpy as np
 
 from bench import measure as M
 from bench import report
+from bench import sessions as S
 from bench.scenes import make_scene, shifted
 from service.core.heap import keep_heap
 
@@ -54,6 +55,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--reps", type=int, default=5, help="timed repetitions per measurement (median; at least 5)")
     ap.add_argument("--no-jax", action="store_true", help="skip the JAX peer (also skipped when JAX is not installed)")
     ap.add_argument("--no-http", action="store_true", help="skip the HTTP measurements")
+    ap.add_argument("--no-sessions", action="store_true", help="skip prepared scenes and sessions (bench/sessions.py)")
+    ap.add_argument("--sessions-only", action="store_true",
+                    help="only prepared scenes vs stateless (in-process at --sizes) and sessions vs HTTP (loopback, "
+                         "unless --no-http); writes DIR/sessions.md and .json")
     ap.add_argument("--no-plot", action="store_true", help="write no PNG (also skipped when matplotlib is missing)")
     ap.add_argument("--out", type=Path, default=report.RESULTS, metavar="DIR",
                     help="directory of the report files (default: bench/results)")
@@ -62,7 +67,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def command(args: argparse.Namespace) -> str:
     """The command line of this run, less --out (where it writes does not change what it measured)."""
-    flags = [f for f in ("quick", "no_jax", "no_http", "no_plot") if getattr(args, f)]
+    flags = [f for f in ("quick", "no_jax", "no_http", "no_plot", "no_sessions", "sessions_only") if getattr(args, f)]
     words = ["python -m bench"] + ["--" + f.replace("_", "-") for f in flags]
     if sorted(set(args.sizes)) != SIZES:
         words.append("--sizes " + " ".join(str(n) for n in sorted(set(args.sizes))))
@@ -120,6 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     quick, reps = args.quick, max(5, args.reps)
     sizes = sorted(set(args.sizes))
+    if args.sessions_only:
+        return S.only(command(args), sizes, reps, args.out, with_wire=not args.no_http)
     n_big = sizes[-1]
     t_start = time.perf_counter()
     res: dict[str, Any] = {"command": command(args), "n_big": n_big,
@@ -241,7 +248,11 @@ def main(argv: list[str] | None = None) -> int:
         log(f"memory: {res['memory']}")
         if not args.no_http:
             res["http"] = _http(reps)
+        if not args.no_sessions:
+            res["sessions"] = S.run(sizes, reps, with_wire=not args.no_http)
     res["targets"] = report.targets(res, jax_missing or "JAX peer not run")
+    if res.get("sessions"):
+        res["targets"] += S.targets(res["sessions"])
     res["seconds"] = time.perf_counter() - t_start
     res["notes"].append(f"This run took {res['seconds']:.0f} s.")
     files = report.write(res, "quick" if quick else "report", args.out, with_plot)

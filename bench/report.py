@@ -251,6 +251,10 @@ def markdown(res: dict[str, Any]) -> str:
         lines += _section("Peak memory", f"{count(m['n'])} joints, E+G+H exact: peak {m['peak'] / 2**20:.3g} MiB "
                           f"allocated during the call (tracemalloc) against an output of {m['output'] / 2**20:.3g} "
                           f"MiB: **{m['peak'] / m['output']:.2f}x**.")
+    if res.get("sessions"):
+        from bench import sessions  # bench/sessions.py: prepared scenes and sessions (it imports this module)
+
+        lines += sessions.section(res["sessions"])
     lines += _section("Notes", *[f"- {t}" for t in res["notes"]])
     return "\n".join(lines) + "\n"
 

@@ -5,6 +5,9 @@
 
 `Client` (sync) and `AsyncClient` speak HTTP (binary by default); `LocalClient` calls the
 core in-process with the same API. Server faults raise `ServiceError` / `InvalidInput`.
+`client.session(request)` on any of the three keeps the scene prepared (a WebSocket session,
+or in-process) for a solver loop: `evaluate(q)`, `commit(q)`, `update(...)`; a lost connection
+raises `SessionClosed` and `reopen()` continues from the last commit.
 """
 
 from client.aio import AsyncClient
@@ -21,6 +24,7 @@ from client.model import (
     Request,
 )
 from client.scene import Scene, dofs, request_from_arrays
+from client.session import SessionClosed
 from client.sync import Client
 
 __all__ = [
@@ -39,6 +43,7 @@ __all__ = [
     "Request",
     "Scene",
     "ServiceError",
+    "SessionClosed",
     "TooLarge",
     "Unreachable",
     "WrongURL",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 import httpx
 
@@ -13,6 +14,10 @@ from client.base import DEFAULT_URL, BaseClient
 from client.model import Evaluation, Request
 from client.progress import ProgressCallback
 from schemas import ConstitutionsResponse, EvaluateRequest
+
+
+if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
+    from client.session_aio import AsyncSession
 
 
 class AsyncClient(BaseClient):
@@ -71,6 +76,14 @@ class AsyncClient(BaseClient):
             return job.receive(part, response)
 
         return job.merge(await asyncio.gather(*(run(part) for part in job.parts)))
+
+    def session(self, request: Request) -> AsyncSession:
+        """`async with client.session(r) as s:` (or `s = await client.session(r)`): `Client.session`, awaitable."""
+        from client.session import connection_options  # imported here: HTTP alone never loads websockets
+        from client.session_aio import AsyncSession
+
+        o = connection_options(dict(self._http_options))
+        return AsyncSession(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"])
 
     async def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry(request)

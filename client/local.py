@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 from client.accept import as_request
 from client.errors import Fault, InvalidInput
@@ -18,6 +19,9 @@ HTTP_OPTIONS = frozenset(
      "concurrency", "http_transport"}
 )
 """Keywords of `Client` / `AsyncClient` that `LocalClient` accepts and ignores."""
+
+if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
+    from client.session_local import LocalSession
 
 
 class LocalClient:
@@ -88,6 +92,12 @@ class LocalClient:
                 for r in ev.batches
             ],
         ).sized(request)
+
+    def session(self, request: Request) -> LocalSession:
+        """`Client.session`'s API in-process, on the core's prepared scene (bitwise the same numbers)."""
+        from client.session_local import LocalSession
+
+        return LocalSession(request, threads=self.threads)
 
     def close(self) -> None:
         pass

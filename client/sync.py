@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 import httpx
 
@@ -13,6 +14,10 @@ from client.base import DEFAULT_URL, BaseClient
 from client.model import Evaluation, Request
 from client.progress import ProgressCallback
 from schemas import ConstitutionsResponse, EvaluateRequest
+
+
+if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
+    from client.session_sync import Session
 
 
 class Client(BaseClient):
@@ -95,6 +100,14 @@ class Client(BaseClient):
             self._limits = self.constitutions()
         job = self._job(request, progress)
         return job.merge([job.receive(part, self._send(self._evaluate_request(part))) for part in job.parts])
+
+    def session(self, request: Request) -> Session:
+        """A session on the server's prepared scene of `request` (README "Sessions"): `with client.session(r) as s:`."""
+        from client.session import connection_options  # imported here: HTTP alone never loads websockets
+        from client.session_sync import Session
+
+        o = connection_options(dict(self._http_options))
+        return Session(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"])
 
     def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry(request)

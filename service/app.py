@@ -6,6 +6,7 @@ from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
 from service.core.heap import keep_heap
+from service.http import sessions
 from service.http.routes import install
 from service.http import middleware as ops
 from service.settings import Settings
@@ -25,6 +26,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         "and #669 AffineBodyPrismaticJointLimit (wire contract v1).",
     )
     app.state.settings = settings
+    app.include_router(sessions.router)  # /v1/sessions (WebSocket)
     install(app)  # routes, 4xx handlers (422, 413, 415, 406), OpenAPI of the raw-bodied route
     ops.install(app, settings)  # bearer auth, CORS, request ids, JSON access log, /metrics
     return app

@@ -179,6 +179,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma-separated origins allowed by CORS; empty = CORS off (JOINTLIMITS_CORS_ORIGINS)",
     )
     s.add_argument(
+        "--max-sessions",
+        type=_positive_int,
+        default=int(_env("MAX_SESSIONS", "64")),
+        help="open WebSocket sessions per worker; one more is closed with code 4429 (JOINTLIMITS_MAX_SESSIONS)",
+    )
+    s.add_argument(
+        "--max-frame-bytes",
+        type=_positive_int,
+        default=int(_env("MAX_FRAME_BYTES", str(64 * 2**20))),
+        help="largest session message; larger closes the session with code 1009 (JOINTLIMITS_MAX_FRAME_BYTES)",
+    )
+    s.add_argument(
+        "--session-idle-seconds",
+        type=float,
+        default=float(_env("SESSION_IDLE_SECONDS", "300")),
+        help="a session without a message for this long is closed with code 4408 (JOINTLIMITS_SESSION_IDLE_SECONDS)",
+    )
+    s.add_argument(
         "--token-file",
         default=_env("TOKEN_FILE", "") or None,
         help="file holding the bearer token required on /v1/* (JOINTLIMITS_TOKEN_FILE; or JOINTLIMITS_TOKEN itself)",
@@ -264,6 +282,9 @@ def serve(args: argparse.Namespace) -> int:
             return 2
         os.environ[ENV_PREFIX + "TOKEN"] = token
 
+    for name in ("max_sessions", "max_frame_bytes", "session_idle_seconds"):  # WebSocket sessions
+        os.environ[ENV_PREFIX + name.upper()] = str(getattr(args, name))
+
     from service.settings import Settings
 
     Settings()  # fail here, once, on a malformed variable rather than in every worker
@@ -298,6 +319,8 @@ def serve(args: argparse.Namespace) -> int:
             workers=args.workers,
             log_config=log_config(args.log_level, args.access_log),
             log_level=args.log_level,
+            ws_max_size=args.max_frame_bytes,  # uvicorn refuses a larger message itself (1009) before buffering it
+            ws_per_message_deflate=False,  # float64 arrays barely compress: deflate would only cost CPU
             access_log=False,  # ours (JSON, with request id and joints) replaces uvicorn's
             timeout_graceful_shutdown=max(1, math.ceil(args.graceful_timeout)),
             timeout_keep_alive=max(1, math.ceil(args.keepalive_timeout)),

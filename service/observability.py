@@ -138,6 +138,33 @@ class Metrics:
             registry=reg,
             multiprocess_mode="livesum",
         )
+        # WebSocket sessions (/v1/sessions, service/http/sessions.py).
+        self.sessions_open = Gauge(
+            "jointlimits_sessions_open",
+            "WebSocket sessions open now (summed over live workers).",
+            registry=reg,
+            multiprocess_mode="livesum",
+        )
+        self.sessions = Counter(
+            "jointlimits_sessions_total",
+            "WebSocket sessions ended, by reason (client, disconnect, idle, frame_too_large, scene_too_large, "
+            "too_many_sessions, shutdown, error).",
+            ["reason"],
+            registry=reg,
+        )
+        self.session_messages = Counter(
+            "jointlimits_session_messages_total",
+            "Session messages handled, by kind (open, evaluate, commit, update, close, invalid) and outcome (ok, fault).",
+            ["kind", "outcome"],
+            registry=reg,
+        )
+        self.session_latency = Histogram(
+            "jointlimits_session_message_duration_seconds",
+            "Time from a session message's arrival to its reply being sent, by kind.",
+            ["kind"],
+            buckets=(0.0001, 0.00025, 0.0005, *LATENCY_BUCKETS),
+            registry=reg,
+        )
         if self.multiprocess:
             _forget_dead_workers()
 

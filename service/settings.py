@@ -16,6 +16,13 @@ class Settings:
     """Largest request body accepted; larger answers 413 before it is parsed."""
     max_joints: int = field(default_factory=lambda: int(_env("MAX_JOINTS", "1000000")))
     """Most joints (over all batches) in one request; more answers 413."""
+    # WebSocket sessions (/v1/sessions, service/http/sessions.py); a scene's joints are bounded by max_joints.
+    max_sessions: int = field(default_factory=lambda: int(_env("MAX_SESSIONS", "64")))
+    """Open sessions per worker process; one more is closed at once with code 4429."""
+    max_frame_bytes: int = field(default_factory=lambda: int(_env("MAX_FRAME_BYTES", str(64 * 2**20))))
+    """Largest WebSocket message a session accepts; larger closes the session with code 1009."""
+    session_idle_seconds: float = field(default_factory=lambda: float(_env("SESSION_IDLE_SECONDS", "300")))
+    """A session with no message from its client for this long is closed with code 4408."""
     token: str | None = field(default_factory=lambda: _env("TOKEN", "") or None)
     """Bearer token required on /v1/evaluate when set; the API is open when unset."""
     cors_origins: tuple[str, ...] = field(

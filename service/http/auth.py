@@ -27,13 +27,21 @@ class BearerAuthMiddleware:
         self.prefix = prefix
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or not scope["path"].startswith(self.prefix) or self._authorized(scope):
+        if scope["type"] not in ("http", "websocket") or not scope["path"].startswith(self.prefix) or self._authorized(scope):
             await self.app(scope, receive, send)
             return
         body = json.dumps({"detail": "missing or invalid bearer token"}).encode()
+        prefix = "http"
+        if scope["type"] == "websocket":
+            # A session is refused on its upgrade request, before it is accepted: the same 401 where the
+            # server can answer the handshake with a response (uvicorn can), else a close (HTTP 403).
+            if "websocket.http.response" not in (scope.get("extensions") or {}):
+                await send({"type": "websocket.close", "code": 1008, "reason": "missing or invalid bearer token"})
+                return
+            prefix = "websocket.http"
         await send(
             {
-                "type": "http.response.start",
+                "type": f"{prefix}.response.start",
                 "status": 401,
                 "headers": [
                     (b"content-type", b"application/json"),
@@ -42,7 +50,7 @@ class BearerAuthMiddleware:
                 ],
             }
         )
-        await send({"type": "http.response.body", "body": body})
+        await send({"type": f"{prefix}.response.body", "body": body})
 
     def _authorized(self, scope: Scope) -> bool:
         for name, value in scope.get("headers", ()):

@@ -1,0 +1,195 @@
+"""What every session (WebSocket sync and async, in-process) shares, free of I/O (README "Sessions").
+
+A session keeps, client-side, what reopening needs: the scene as last updated, the last
+committed `q` (the server's `q_prev`) and the committed coordinates. `request_for_reopen()`
+is a request that opens a new session in exactly that state, and `reopen()` (on each kind of
+session) does so, after a dropped connection too.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import orjson
+from numpy.typing import ArrayLike
+
+from client import codec
+from client.accept import as_request
+from client.errors import Fault, ServiceError
+from client.model import REVOLUTE_LIMIT, Array, Evaluation, Request
+from schemas import binary as wire
+from schemas import session as proto
+
+Frame = bytes | str
+_BINARY_ERROR = b"\xa4kind\xa5error"
+_JSON_ERROR = '{"kind":"error"'
+
+
+class SessionClosed(ServiceError):
+    """The session's connection is gone: closed by the server (a bound: `code`, `reason`), dropped, or never made.
+
+    `status` is the WebSocket close code (None when there was none). The session object still
+    holds the committed state: `reopen()` continues where the last commit left off.
+    """
+
+    def __init__(self, url: str, code: int | None, reason: str, cause: str = "") -> None:
+        self.url, self.code, self.reason = url, code, reason
+        self.status, self.faults = code or 0, [Fault((), reason or cause, "session_closed")]
+        what = f"closed with code {code}" + (f" ({reason})" if reason else "") if code else f"dropped ({cause})"
+        Exception.__init__(self, f"session at {url} {what}; reopen() continues from the last commit")
+
+
+def connection_options(http_options: dict[str, Any]) -> dict[str, Any]:
+    """A session's URL, upgrade headers (the bearer token, if any) and timeout from an HTTP client's options."""
+    t = http_options["timeout"]
+    return {
+        "url": ws_url(str(http_options["base_url"])),
+        "headers": {k: v for k, v in http_options["headers"].items() if k == "Authorization"},
+        "timeout": getattr(t, "read", t),  # an httpx.Timeout's read timeout, or the number itself
+    }
+
+
+def ws_url(base_url: str) -> str:
+    """The sessions endpoint of an HTTP base URL: http -> ws, https -> wss."""
+    base = base_url.rstrip("/")
+    scheme, sep, rest = base.partition("://")
+    if not sep:
+        scheme, rest = "http", base
+    return {"http": "ws", "https": "wss"}.get(scheme, scheme) + "://" + rest + proto.PATH
+
+
+class SessionState:
+    """The protocol of one session: frames to send, replies read, and the state kept for reopening."""
+
+    def __init__(self, request: Request | dict[str, Any], url: str, binary: bool) -> None:
+        """`request`: a `Request`, or what `Client.evaluate` also takes (wire JSON as a dict, a `schemas.EvaluateRequest`)."""
+        request = as_request(request)
+        self.url, self.binary = url, binary
+        # A private copy: later updates change it, the caller's request stays as it was.
+        self.request = replace(request, batches=[copy.deepcopy(b) for b in request.batches])
+        self.q_prev: Array = np.array(request.q_prev, dtype=np.float64)
+        self.coordinates: list[Array] = []
+        self.bytes_sent = self.bytes_received = 0
+
+    # ---------------------------------------------------------------- frames out
+
+    def open_frame(self) -> Frame:
+        content, _ = codec.encode(self.request, self.binary)
+        return self._out(content if self.binary else content.decode())
+
+    def evaluate_frame(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Frame:
+        doc: dict[str, Any] = {"kind": proto.EVALUATE, "q": self._q(q)}
+        if outputs is not None:
+            doc["outputs"] = list(outputs)
+        if hessian_mode is not None:
+            doc["hessian_mode"] = hessian_mode
+        if active_only is not None:
+            doc["active_only"] = bool(active_only)
+        return self._encode(doc)
+
+    def commit_frame(self, q: ArrayLike) -> Frame:
+        return self._encode({"kind": proto.COMMIT, "q": self._q(q)})
+
+    def update_frame(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Frame:
+        doc: dict[str, Any] = {"kind": proto.UPDATE, "batch": int(batch), "index": np.asarray(index, dtype=np.int64).reshape(-1)}
+        doc.update({k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in values.items() if v is not None})
+        return self._encode(doc)
+
+    def close_frame(self) -> Frame:
+        return self._encode({"kind": proto.CLOSE})
+
+    def _q(self, q: ArrayLike) -> Array:
+        return np.asarray(q, dtype=np.float64)
+
+    def _encode(self, doc: dict[str, Any]) -> Frame:
+        if self.binary:
+            doc = {k: wire.pack_array(v, wire.INT64 if v.dtype.kind == "i" else wire.FLOAT64) if isinstance(v, np.ndarray) else v
+                   for k, v in doc.items()}
+            return self._out(wire.dumps(doc))
+        doc = {k: np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v for k, v in doc.items()}
+        return self._out(orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY).decode())
+
+    def _out(self, frame: Frame) -> Frame:
+        self.bytes_sent += len(frame)
+        return frame
+
+    # ---------------------------------------------------------------- replies in
+
+    def read(self, frame: Frame, kind: str) -> dict[str, Any]:
+        """The reply document of `kind`; a fault reply raises `InvalidInput` / `TooLarge` (the session stays open)."""
+        self.bytes_received += len(frame)
+        doc = wire.loads(frame) if isinstance(frame, bytes) else orjson.loads(frame)
+        if doc.get("kind") == proto.ERROR:
+            raise ServiceError.from_body(int(doc.get("status", 422)), doc)
+        if doc.get("kind") != kind:
+            raise ServiceError(502, [Fault((), f"expected a {kind!r} reply, got {doc.get('kind')!r}", "protocol")])
+        return doc
+
+    def opened(self, frame: Frame) -> None:
+        doc = self.read(frame, proto.OPENED)
+        self.coordinates = [self._array(c) for c in doc["coordinates"]]
+
+    def evaluation(self, frame: Frame) -> Evaluation:
+        # Every reply starts with its kind (fixmap header, "kind", then the kind; or '{"kind":"...'): a fault is
+        # read as such, an evaluation is HTTP's answer document (plus kind), which HTTP's decoder reads.
+        if frame[1:12] == _BINARY_ERROR or frame[:15] == _JSON_ERROR:
+            self.read(frame, proto.EVALUATION)  # raises the fault
+        self.bytes_received += len(frame)
+        ev = codec.decode(frame, codec.BINARY if isinstance(frame, bytes) else codec.JSON)  # type: ignore[arg-type]
+        return ev.sized(self.request)  # each batch knows its size: `joint(k)` works under active_only
+
+    def committed(self, frame: Frame, q: ArrayLike) -> list[Array]:
+        doc = self.read(frame, proto.COMMITTED)
+        self.coordinates = [self._array(c) for c in doc["coordinates"]]
+        self.q_prev = np.array(q, dtype=np.float64)
+        return self.coordinates
+
+    def updated(self, frame: Frame, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
+        doc = self.read(frame, proto.UPDATED)
+        self.apply_update(batch, index, values)
+        if "coordinates" in doc:  # the batch's committed coordinates after a change of offsets
+            self.coordinates[batch] = self._array(doc["coordinates"])
+
+    def apply_update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
+        """The server accepted the update: the local copy of the scene follows it."""
+        b, idx = self.request.batches[batch], np.asarray(index, dtype=np.int64).reshape(-1)
+        for k, v in values.items():
+            if v is None:
+                continue
+            if getattr(b, k) is None:  # an offset given for the first time: the others stay 0
+                setattr(b, k, np.zeros(len(b)))
+            getattr(b, k)[idx] = np.asarray(v, dtype=np.float64).reshape(-1)
+
+    def _array(self, v: Any) -> Array:
+        if isinstance(v, dict):
+            return np.array(wire.unpack_array(v, wire.FLOAT64, 1))
+        return np.asarray(v, dtype=np.float64)
+
+    # ---------------------------------------------------------------- reopening
+
+    def request_for_reopen(self) -> Request:
+        """A request that opens a session in this one's committed state: `q_prev` and `q` the last committed
+        `q`, the scene as updated, the committed angles of revolute joints as `prev_coordinate` (contract v1.1)."""
+        batches = []
+        for b, coords in zip(self.request.batches, self.coordinates or [None] * len(self.request.batches)):
+            nb = copy.deepcopy(b)
+            if coords is not None and nb.constitution_uid == REVOLUTE_LIMIT:  # a slide is absolute: no state
+                nb.prev_coordinate = coords.copy()
+            batches.append(nb)
+        q = self.q_prev.copy()
+        return replace(self.request, q=q, q_prev=q.copy(), batches=batches)
+
+
+def options(request: Request, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> dict[str, Any]:
+    """The evaluate options of a call, the opening request's where not given (for the in-process session)."""
+    return {
+        "outputs": tuple(request.outputs if outputs is None else outputs),
+        "hessian_mode": request.hessian_mode if hessian_mode is None else hessian_mode,
+        "active_only": request.active_only if active_only is None else bool(active_only),
+    }
+
+
+__all__ = ["SessionClosed", "SessionState", "connection_options", "options", "ws_url"]

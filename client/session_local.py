@@ -1,0 +1,115 @@
+"""A session in-process (`LocalClient().session(request)`): the same API, straight on the core's prepared scene."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from types import TracebackType
+from typing import Any, TypeVar
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from client.errors import Fault, InvalidInput
+from client.model import Array, BatchResult, Evaluation, Request
+from client.session import SessionClosed, SessionState, options
+from service import core
+from service.core.prepared import prepare
+
+T = TypeVar("T")
+URL = "local://in-process"
+
+
+def core_batches(request: Request) -> list[core.Joints]:
+    """The request's batches as the core's `Joints` (copies: the session's own copy of the scene changes with updates)."""
+    c = lambda a: None if a is None else np.array(a)  # noqa: E731
+    return [
+        core.Joints(constitution_uid=b.constitution_uid, base_uid=b.base_uid if b.base_uid is not None else -1,
+                    body_ids=c(b.body_ids), edges=c(b.edges), lower=c(b.lower), upper=c(b.upper), strength=c(b.strength),
+                    offset=c(b.offset), prev_coordinate=c(b.prev_coordinate))
+        for b in request.batches
+    ]
+
+
+def result(ev: core.Evaluation) -> Evaluation:
+    return Evaluation(
+        total_energy=ev.total_energy,
+        batches=[BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, coordinate=r.coordinate) for r in ev.batches],
+    )
+
+
+def _call(fn: Callable[[], T]) -> T:
+    """`fn()`, its input faults raised as the server would answer them (`loc` starting with "body")."""
+    try:
+        with np.errstate(all="ignore"):
+            return fn()
+    except core.InputError as e:
+        # A session message's `q` is a top-level field, as the server names it: ("bodies", "q", i) -> ("q", i).
+        locs = [f.loc[1:] if f.loc[:2] == ("bodies", "q") else f.loc for f in e.faults]
+        raise InvalidInput(422, [Fault(("body", *loc), f.msg, f.type) for loc, f in zip(locs, e.faults)]) from None
+
+
+class LocalSession:
+    """`client.session_sync.Session`'s API on a `PreparedScene` in this process: bitwise the same numbers."""
+
+    def __init__(self, request: Request, *, threads: int = 1) -> None:
+        self.state = SessionState(request, URL, binary=True)
+        self.threads = threads
+        self._open()
+
+    url = URL
+
+    @property
+    def q_prev(self) -> Array:
+        return self.state.q_prev
+
+    @property
+    def coordinates(self) -> list[Array]:
+        return self.state.coordinates
+
+    def _open(self) -> None:
+        r = self.state.request
+        bodies = core.Bodies(np.asarray(r.q, np.float64), np.asarray(r.q_prev, np.float64), np.asarray(r.q_ref, np.float64))
+        self._scene = _call(lambda: prepare(bodies, core_batches(r), threads=self.threads))
+        self.state.coordinates = [np.array(c) for c in self._scene.coordinates()]
+
+    def _live(self) -> Any:
+        if self._scene is None:
+            raise SessionClosed(URL, None, "", "the session is closed")
+        return self._scene
+
+    def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
+                 active_only: bool | None = None) -> Evaluation:
+        scene, opts = self._live(), options(self.state.request, outputs, hessian_mode, active_only)
+        return result(_call(lambda: scene.evaluate(np.asarray(q, dtype=np.float64), **opts))).sized(self.state.request)
+
+    def commit(self, q: ArrayLike) -> list[Array]:
+        scene, q = self._live(), np.array(q, dtype=np.float64)
+        self.state.coordinates = [np.array(c) for c in _call(lambda: scene.commit(q))]
+        self.state.q_prev = q
+        return self.state.coordinates
+
+    def update(self, batch: int, index: ArrayLike, *, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
+               strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
+        scene = self._live()
+        values = {"lower": lower, "upper": upper, "strength": strength, "offset": offset}
+        given = {k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in values.items() if v is not None}
+        _call(lambda: scene.update(int(batch), np.asarray(index, dtype=np.int64).reshape(-1), **given))
+        self.state.apply_update(batch, index, values)
+        if offset is not None:  # a new offset moves the batch's committed coordinates with it
+            self.state.coordinates[batch] = np.array(scene.coordinates()[batch])
+
+    def request_for_reopen(self) -> Request:
+        return self.state.request_for_reopen()
+
+    def reopen(self) -> None:
+        self.state.request = self.state.request_for_reopen()
+        self._open()
+
+    def close(self) -> None:
+        self._scene = None
+
+    def __enter__(self) -> LocalSession:
+        return self
+
+    def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
+        self.close()

@@ -1,0 +1,134 @@
+"""A session over WebSocket, blocking (`Client(url).session(request)`), on `websockets.sync.client`."""
+
+from __future__ import annotations
+
+from contextlib import ExitStack
+from types import TracebackType
+from typing import Any
+
+from numpy.typing import ArrayLike
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import ClientConnection, connect
+
+from client import codec
+from client.model import Array, Evaluation, Request
+from client.session import Frame, SessionClosed, SessionState
+
+
+def handshake_error(url: str, e: Exception) -> Exception:
+    """A refused upgrade (401, 404, ...) as the `ServiceError` HTTP would raise; anything else as `SessionClosed`."""
+    if isinstance(e, InvalidStatus):
+        return codec.error(e.response.status_code, e.response.body or b"")
+    return SessionClosed(url, None, "", f"{type(e).__name__}: {e}")
+
+
+def closed_error(url: str, e: ConnectionClosed) -> SessionClosed:
+    frame = e.rcvd
+    return SessionClosed(url, frame.code if frame else None, frame.reason if frame else "", "no close frame")
+
+
+CONNECT_OPTIONS: dict[str, Any] = dict(
+    max_size=None,  # answers with Hessians are large; the server bounds what it sends by its scene limit
+    compression=None,  # float64 arrays barely compress: deflate would only cost time on both sides
+)
+
+
+class Session:
+    """A prepared scene on the server, held by one WebSocket connection (see `client.session`).
+
+    `evaluate(q, ...)` answers as `Client.evaluate` does; `commit(q)` ends a time step and
+    returns the committed coordinates (one (N,) array per batch); `update(batch, index, lower=...)`
+    changes limits, strengths or offsets of some joints. A fault raises `InvalidInput` and the
+    session stays open; a lost connection raises `SessionClosed`, and `reopen()` continues.
+    """
+
+    def __init__(self, url: str, request: Request, *, binary: bool = True, timeout: float | None = 60.0,
+                 headers: dict[str, str] | None = None) -> None:
+        self.state = SessionState(request, url, binary)
+        self.timeout, self.headers = timeout, dict(headers or {})
+        self._ws: ClientConnection | None = None
+        self._stack = ExitStack()
+        self._open()
+
+    @property
+    def url(self) -> str:
+        return self.state.url
+
+    @property
+    def q_prev(self) -> Array:
+        """The last committed `q` (the opening request's `q_prev` before any commit)."""
+        return self.state.q_prev
+
+    @property
+    def coordinates(self) -> list[Array]:
+        """The committed coordinates, one (N,) array per batch (as opened, before any commit)."""
+        return self.state.coordinates
+
+    def _open(self) -> None:
+        try:
+            # websockets 17 wants its connection used as a context manager: entered here, exited by `_drop`.
+            self._stack = ExitStack()
+            self._ws = self._stack.enter_context(
+                connect(self.url, additional_headers=self.headers, open_timeout=self.timeout, **CONNECT_OPTIONS))
+        except Exception as e:
+            raise handshake_error(self.url, e) from None
+        self.state.opened(self._exchange(self.state.open_frame()))
+
+    def _exchange(self, frame: Frame) -> Frame:
+        if self._ws is None:
+            raise SessionClosed(self.url, None, "", "the session is closed")
+        try:
+            self._ws.send(frame)
+            return self._ws.recv(timeout=self.timeout)
+        except ConnectionClosed as e:
+            self._drop()
+            raise closed_error(self.url, e) from None
+        except TimeoutError:
+            self._drop()
+            raise SessionClosed(self.url, None, "", f"no reply within {self.timeout} s") from None
+
+    def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
+                 active_only: bool | None = None) -> Evaluation:
+        """Energy, gradient, Hessian at `q` (B, 12); options default to the opening request's."""
+        return self.state.evaluation(self._exchange(self.state.evaluate_frame(q, outputs, hessian_mode, active_only)))
+
+    def commit(self, q: ArrayLike) -> list[Array]:
+        """End the time step at the accepted `q`: the committed coordinates; `q` becomes `q_prev`."""
+        return self.state.committed(self._exchange(self.state.commit_frame(q)), q)
+
+    def update(self, batch: int, index: ArrayLike, *, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
+               strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
+        """Change per-joint values of joints `index` of `batch` (each given array: one entry per index)."""
+        values = {"lower": lower, "upper": upper, "strength": strength, "offset": offset}
+        self.state.updated(self._exchange(self.state.update_frame(batch, index, values)), batch, index, values)
+
+    def request_for_reopen(self) -> Request:
+        return self.state.request_for_reopen()
+
+    def reopen(self) -> None:
+        """A new connection in the committed state (after a drop, or to move to another server)."""
+        self._drop()
+        self.state.request = self.state.request_for_reopen()
+        self._open()
+
+    def _drop(self) -> None:
+        if self._ws is not None:
+            self._ws = None
+            self._stack.close()
+
+    def close(self) -> None:
+        """Ask the server to close (code 1000); closing a closed session does nothing."""
+        if self._ws is None:
+            return
+        try:
+            self._ws.send(self.state.close_frame())
+            self._ws.recv(timeout=self.timeout)
+        except (ConnectionClosed, TimeoutError):
+            pass
+        self._drop()
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
+        self.close()

@@ -1,0 +1,103 @@
+"""Messages of the session protocol (`/v1/sessions`, README "Sessions"): shared by the service and the client.
+
+A session is one WebSocket connection. Its first message is a full evaluate request
+document (exactly `POST /v1/evaluate`'s body, JSON or msgpack): it opens the scene. Every
+later client message is a small map whose `kind` says what it asks:
+
+- `evaluate`: `q` (B, 12), optional `outputs`, `hessian_mode`, `active_only` -> `evaluation`
+  (the answer document of `POST /v1/evaluate` plus `kind`);
+- `commit`: `q` (B, 12) -> `committed` (`coordinates`: per batch, one number per joint);
+- `update`: `batch`, `index` (K,), any of `lower`, `upper`, `strength`, `offset` (K,) -> `updated`;
+- `close` -> the server closes the connection with code 1000.
+
+Any message may carry an `id` (an integer or a string); its reply repeats it. A fault is a
+reply `{"kind": "error", "status": 422 | 413, "detail": [...]}` in the format of HTTP's 4xx
+bodies and leaves the session as it was. Replies use the encoding of the message they
+answer: a text frame (JSON) is answered in JSON, a binary frame (msgpack) in msgpack, its
+arrays as the binary transport's array maps (`schemas/binary.py`). No numerics here.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+
+from schemas.evaluate import Dof, HessianMode, Int64, Output, Real
+
+PATH = "/v1/sessions"
+
+# Kinds of messages, client to server and server to client.
+EVALUATE, COMMIT, UPDATE, CLOSE = "evaluate", "commit", "update", "close"
+OPENED, EVALUATION, COMMITTED, UPDATED, ERROR = "opened", "evaluation", "committed", "updated", "error"
+REPLY = {EVALUATE: EVALUATION, COMMIT: COMMITTED, UPDATE: UPDATED}
+UPDATABLE = ("lower", "upper", "strength", "offset")
+"""Per-joint fields an `update` may change (one entry per index)."""
+
+# WebSocket close codes (RFC 6455 section 7.4; 4000-4999 are the application's: 4000 + the HTTP status
+# the same refusal would get).
+NORMAL = 1000  # the client sent `close` (or closed itself)
+GOING_AWAY = 1001  # the server is shutting down (uvicorn's)
+MESSAGE_TOO_BIG = 1009  # a message over the frame limit (uvicorn's own limit closes with it too)
+INTERNAL_ERROR = 1011  # a server failure (a bug: never for any input)
+IDLE_TIMEOUT = 4408  # no message for the idle time
+SCENE_TOO_LARGE = 4413  # the opening scene has more joints than the limit
+TOO_MANY_SESSIONS = 4429  # this worker holds its maximum number of sessions
+
+Id = Union[Int64, Annotated[str, Field(max_length=128)]]
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    id: Id | None = None
+
+
+class EvaluateMessage(_Message):
+    kind: Literal["evaluate"]
+    q: list[Dof]
+    outputs: Annotated[list[Output], Field(min_length=1)] | None = None
+    hessian_mode: HessianMode | None = None
+    active_only: Annotated[bool, Field(strict=True)] | None = None
+
+
+class CommitMessage(_Message):
+    kind: Literal["commit"]
+    q: list[Dof]
+
+
+class UpdateMessage(_Message):
+    kind: Literal["update"]
+    batch: Int64
+    index: list[Int64]
+    lower: list[Real] | None = None
+    upper: list[Real] | None = None
+    strength: list[Real] | None = None
+    offset: list[Real] | None = None
+
+
+class CloseMessage(_Message):
+    kind: Literal["close"]
+
+
+ClientMessage = Annotated[
+    Union[EvaluateMessage, CommitMessage, UpdateMessage, CloseMessage], Field(discriminator="kind")
+]
+CLIENT_MESSAGE = TypeAdapter(ClientMessage)
+"""Parses one JSON client message (after the opening one)."""
+
+# The keys of each kind in a msgpack message (True: required), for the binary reader: the models' own fields.
+KEYS: dict[str, dict[str, bool]] = {
+    m.model_fields["kind"].annotation.__args__[0]: {k: f.is_required() for k, f in m.model_fields.items()}
+    for m in (EvaluateMessage, CommitMessage, UpdateMessage, CloseMessage)
+}
+
+__all__ = [
+    "CLIENT_MESSAGE",
+    "KEYS",
+    "PATH",
+    "ClientMessage",
+    "CloseMessage",
+    "CommitMessage",
+    "EvaluateMessage",
+    "UpdateMessage",
+]

@@ -1,0 +1,176 @@
+"""Session messages (schemas/session.py): frames <-> core arguments and answers. No numerics.
+
+The opening message is decoded by the HTTP decoders themselves (`convert.decode` for JSON,
+`binary.decode` for msgpack); later messages by `CLIENT_MESSAGE` (JSON) or the binary
+transport's reader (msgpack). A reply is encoded in the encoding of the message it answers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import orjson
+from pydantic import ValidationError
+
+from schemas import binary as wire
+from schemas import session as proto
+from service.core import Evaluation, Fault, InputError
+from service.http import binary, convert
+from service.http.errors import HttpError, from_validation
+
+Frame = bytes | str
+
+
+@dataclass
+class Message:
+    """One client message after the opening one; `options` holds only the evaluate options it gave."""
+
+    kind: str
+    id: int | str | None = None
+    q: np.ndarray | None = None  # (B, 12)
+    options: dict[str, Any] = field(default_factory=dict)
+    batch: int = 0
+    index: np.ndarray | None = None  # (K,) int64
+    values: dict[str, np.ndarray] = field(default_factory=dict)  # update: (K,) per field given
+
+
+def decode_open(frame: Frame, max_joints: int) -> dict[str, Any]:
+    """Keyword arguments of the core for the opening document; `InputError` (422) or `HttpError` (413)."""
+    if isinstance(frame, str):
+        return convert.decode(frame.encode(), max_joints)
+    return binary.decode(frame, max_joints)
+
+
+def decode(frame: Frame) -> Message:
+    """A later message; `InputError` naming the key at fault."""
+    return _decode_json(frame) if isinstance(frame, str) else _decode_binary(frame)
+
+
+def _decode_json(frame: str) -> Message:
+    try:
+        m = proto.CLIENT_MESSAGE.validate_json(frame)
+    except ValidationError as e:
+        err = from_validation(e)
+        # The discriminated union puts the kind in front of each loc: ("evaluate", "q", 3) -> ("q", 3).
+        tag = _json_kind(frame)
+        raise InputError([_untagged(f, tag) for f in err.faults]) from None
+    out = Message(kind=m.kind, id=m.id)
+    if m.kind in (proto.EVALUATE, proto.COMMIT):
+        out.q = np.asarray(m.q, dtype=np.float64).reshape(len(m.q), 12)
+    if m.kind == proto.EVALUATE:
+        out.options = {k: getattr(m, k) for k in ("outputs", "hessian_mode", "active_only") if getattr(m, k) is not None}
+    if m.kind == proto.UPDATE:
+        out.batch, out.index = m.batch, np.asarray(m.index, dtype=np.int64)
+        out.values = {k: np.asarray(getattr(m, k), dtype=np.float64) for k in proto.UPDATABLE if getattr(m, k) is not None}
+    return out
+
+
+def _json_kind(frame: str) -> str | None:
+    try:
+        doc = orjson.loads(frame)
+    except orjson.JSONDecodeError:
+        return None
+    return doc.get("kind") if isinstance(doc, dict) and isinstance(doc.get("kind"), str) else None
+
+
+def _untagged(f: Fault, tag: str | None) -> Fault:
+    if f.type in ("union_tag_invalid", "union_tag_not_found"):
+        kinds = ", ".join(proto.KEYS)
+        return Fault(("kind",), f"must be one of {kinds}" if f.type == "union_tag_invalid" else "Field required", f.type)
+    return Fault(f.loc[1:], f.msg, f.type) if tag is not None and f.loc[:1] == (tag,) else f
+
+
+def _decode_binary(frame: bytes) -> Message:
+    try:
+        doc = wire.loads(frame)
+    except ValueError as e:
+        raise InputError([Fault((), str(e).replace("body is", "message is"), "msgpack_invalid")]) from None
+    r = binary._Reader()  # the binary transport's own reader: same checks, same messages
+    kind = doc.get("kind") if isinstance(doc, dict) else None
+    if not isinstance(kind, str) or kind not in proto.KEYS:
+        r.fault(("kind",), f"must be one of {', '.join(proto.KEYS)}", "union_tag_invalid")
+        raise InputError(r.faults)
+    fields = r.fields(doc, (), proto.KEYS[kind])
+    out = Message(kind=kind, id=_id(r, fields.get("id")))
+    if "q" in fields:
+        out.q = r.array(fields["q"], ("q",), wire.FLOAT64, 2, np.zeros((0, 12)))
+    if kind == proto.EVALUATE:
+        given = {k: fields[k] for k in ("outputs", "hessian_mode", "active_only") if k in fields}
+        parsed = dict(zip(("outputs", "hessian_mode", "active_only"), binary._options(r, given)))
+        out.options = {k: parsed[k] for k in given}
+    if kind == proto.UPDATE:
+        out.batch = r.int64(fields.get("batch", 0), ("batch",))
+        out.index = r.array(fields.get("index"), ("index",), wire.INT64, 1, np.zeros(0, np.int64))
+        out.values = {k: r.array(fields[k], (k,), wire.FLOAT64, 1, np.zeros(0)) for k in proto.UPDATABLE if k in fields}
+    if r.faults:
+        raise InputError(r.faults)
+    return out
+
+
+def _id(r: binary._Reader, v: Any) -> int | str | None:
+    if v is None or (isinstance(v, str) and len(v) <= 128):
+        return v
+    return r.int64(v, ("id",))
+
+
+def message_id(frame: Frame) -> int | str | None:
+    """The `id` of a message that could not be decoded, if it has a readable one (its fault reply repeats it)."""
+    try:
+        doc = orjson.loads(frame) if isinstance(frame, str) else wire.loads(frame)
+    except (orjson.JSONDecodeError, ValueError):
+        return None
+    v = doc.get("id") if isinstance(doc, dict) else None
+    ok = (isinstance(v, int) and not isinstance(v, bool) and -(2**63) <= v < 2**63) or (isinstance(v, str) and len(v) <= 128)
+    return v if ok else None
+
+
+# ------------------------------------------------------------------ replies
+
+
+def encode(doc: dict[str, Any], binary_frame: bool) -> Frame:
+    """A reply (not an evaluation): arrays as array maps (msgpack) or lists of shortest round-trip floats (JSON)."""
+    if binary_frame:
+        return wire.dumps(_walk(doc, lambda a: wire.pack_array(a, wire.INT64 if a.dtype.kind == "i" else wire.FLOAT64)))
+    return orjson.dumps(_walk(doc, np.ascontiguousarray), option=orjson.OPT_SERIALIZE_NUMPY).decode()
+
+
+def _walk(obj: Any, array: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return array(obj)
+    if isinstance(obj, dict):
+        return {k: _walk(v, array) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_walk(v, array) for v in obj]
+    return obj
+
+
+def encode_evaluation(ev: Evaluation, binary_frame: bool, id: int | str | None) -> Frame:
+    """`POST /v1/evaluate`'s answer document, bytes from its own encoder, with `kind` (and `id`) added in front."""
+    head = {"kind": proto.EVALUATION} if id is None else {"kind": proto.EVALUATION, "id": id}
+    if binary_frame:
+        body = binary.encode(ev)
+        # A msgpack map is a header (fixmap 0x80 | count, for < 16 keys) then its key/value pairs, in order.
+        assert 0x80 <= body[0] < 0x90 - len(head), "the answer document is a small map"
+        pairs = b"".join(wire.dumps({k: v})[1:] for k, v in head.items())
+        return bytes([body[0] + len(head)]) + pairs + body[1:]
+    body = convert.encode(ev)
+    return (orjson.dumps(head)[:-1] + b"," + body[1:]).decode()
+
+
+def at_message_q(e: InputError) -> InputError:
+    """The core names a bad `q` as in a request (`("bodies", "q", i)`); in a session message it is `("q", i)`."""
+    return InputError([Fault(f.loc[1:], f.msg, f.type) if f.loc[:2] == ("bodies", "q") else f for f in e.faults])
+
+
+def error(exc: InputError | HttpError, id: int | str | None) -> dict[str, Any]:
+    """A fault reply: HTTP's 4xx body (`detail`, every `loc` starting with "body") with its `status`."""
+    if isinstance(exc, HttpError):  # these faults carry their full loc already
+        status, detail = exc.status, [{"loc": list(f.loc), "msg": f.msg, "type": f.type} for f in exc.faults]
+    else:
+        status, detail = 422, [{"loc": ["body", *f.loc], "msg": f.msg, "type": f.type} for f in exc.faults]
+    doc: dict[str, Any] = {"kind": proto.ERROR, "status": status, "detail": detail}
+    if id is not None:
+        doc["id"] = id
+    return doc

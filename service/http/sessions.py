@@ -1,0 +1,254 @@
+"""`/v1/sessions`: a prepared scene per WebSocket connection (README "Sessions").
+
+Parse a frame, call the prepared scene, encode the reply: nothing else. The state (the
+prepared scene with its `q_prev` and committed coordinates) lives with the connection, so
+any worker of any pod can hold a session and a load balancer spreads connections.
+Bounds: sessions per worker, frame bytes, idle seconds, scene joints (+ `admit`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from fastapi import APIRouter, WebSocket
+from starlette.concurrency import run_in_threadpool
+from starlette.websockets import WebSocketDisconnect
+
+from schemas import session as proto
+from service.core import Evaluation, InputError
+from service.core.prepared import PreparedScene, prepare
+from service.http import limits
+from service.http import session_codec as codec
+from service.http.errors import HttpError
+from service.observability import ACCESS_LOGGER, Metrics
+from service.settings import Settings
+
+router = APIRouter()
+log = logging.getLogger(ACCESS_LOGGER)
+T = TypeVar("T")
+
+CLOSE_SECONDS = 5.0
+"""How long a close frame may wait to be sent (behind replies the client does not read) before the connection is dropped."""
+
+INLINE_JOINTS = 256
+"""Scenes up to this many joints (a millisecond or so of work) are evaluated on the event loop: the hop to a
+worker thread and back costs tens of microseconds on an idle machine and milliseconds on a loaded one
+(README, "Sessions and prepared scenes"). Larger ones run in a worker thread, so that one large session does
+not hold up the replies of the worker's other sessions."""
+
+
+def admit(settings: Settings, batch_joints: list[int], outputs: Sequence[str], binary_answer: bool) -> None:
+    """The one admission check of a session's work: the opening scene, then each `evaluate` (its outputs).
+
+    Raises `HttpError` 413 (a fault reply; at open, then close 4413). Today it bounds the scene's
+    joints by `max_joints`, as HTTP bounds a request. Where HTTP admits by cost (branch i9-admit's
+    `limits.admit(joints=, batches=, outputs=, binary_answer=, settings=)`) this is its one call.
+    """
+    limits.check_joints(sum(batch_joints), settings.max_joints)
+
+
+class Closing(Exception):
+    """End the session with this WebSocket close code (schemas/session.py) and reason."""
+
+    def __init__(self, code: int, reason: str, metric: str) -> None:
+        self.code, self.reason, self.metric = code, reason, metric
+        super().__init__(reason)
+
+
+@dataclass
+class Session:
+    """One connection's state: the prepared scene and the evaluate options of the opening document."""
+
+    scene: PreparedScene
+    defaults: dict[str, Any]
+    joints: int
+
+
+@router.websocket(proto.PATH)
+async def sessions(websocket: WebSocket) -> None:
+    app = websocket.app
+    settings: Settings = app.state.settings
+    metrics: Metrics = app.state.metrics
+    await websocket.accept()
+    state = app.state
+    open_now = getattr(state, "open_sessions", 0)
+    if open_now >= settings.max_sessions:
+        metrics.sessions.labels("too_many_sessions").inc()
+        await websocket.close(
+            proto.TOO_MANY_SESSIONS, f"this worker holds its maximum of {settings.max_sessions} sessions; retry later"
+        )
+        return
+    state.open_sessions = open_now + 1
+    metrics.sessions_open.inc()
+    started, reason, code = time.perf_counter(), "error", proto.INTERNAL_ERROR
+    try:
+        await _serve(websocket, settings, metrics)
+        reason, code = "client", proto.NORMAL
+    except Closing as c:
+        reason, code = c.metric, c.code
+        await _close(websocket, c.code, c.reason)
+    except WebSocketDisconnect as d:
+        reason, code = ("client" if d.code == proto.NORMAL else "disconnect"), d.code
+    except asyncio.CancelledError:
+        reason, code = "shutdown", proto.GOING_AWAY
+        raise
+    except Exception:
+        logging.getLogger("jointlimits").exception("session failed")
+        await _close(websocket, proto.INTERNAL_ERROR, "internal error")
+    finally:
+        state.open_sessions -= 1
+        metrics.sessions_open.dec()
+        metrics.sessions.labels(reason).inc()
+        _log(websocket, started, reason, code)
+
+
+async def _serve(websocket: WebSocket, settings: Settings, metrics: Metrics) -> None:
+    """Open a scene from the first message that is a valid scene, then answer messages until `close`."""
+    session: Session | None = None
+    while True:
+        frame = await _receive(websocket, settings)
+        t0 = time.perf_counter()
+        binary_frame = isinstance(frame, bytes)
+        kind, outcome, mid = "open" if session is None else "invalid", "ok", None
+        try:
+            if session is None:
+                session, reply = await _open(frame, settings)
+            else:
+                message = codec.decode(frame)
+                kind, mid = message.kind, message.id
+                if kind == proto.CLOSE:
+                    metrics.session_messages.labels(kind, outcome).inc()
+                    await websocket.close(proto.NORMAL, "closed by the client")
+                    return
+                reply = await _answer(session, message, binary_frame, settings)
+        except (InputError, HttpError) as e:
+            outcome = "fault"
+            if mid is None and session is not None:
+                mid = codec.message_id(frame)
+            reply = codec.encode(codec.error(e, mid), binary_frame)
+            if kind == "open" and isinstance(e, HttpError) and e.status == 413:
+                await _send(websocket, reply, settings)
+                metrics.session_messages.labels(kind, outcome).inc()
+                raise Closing(proto.SCENE_TOO_LARGE, "the scene is over this service's joint limit", "scene_too_large")
+        await _send(websocket, reply, settings)
+        metrics.session_messages.labels(kind, outcome).inc()
+        metrics.session_latency.labels(kind).observe(time.perf_counter() - t0)
+
+
+async def _receive(websocket: WebSocket, settings: Settings) -> codec.Frame:
+    """The next message's payload; `Closing` on idle time or an oversized frame, `WebSocketDisconnect` when gone."""
+    try:
+        message = await asyncio.wait_for(websocket.receive(), settings.session_idle_seconds)
+    except asyncio.TimeoutError:
+        raise Closing(
+            proto.IDLE_TIMEOUT, f"no message for {settings.session_idle_seconds:g} s: session closed", "idle"
+        ) from None
+    if message["type"] == "websocket.disconnect":
+        raise WebSocketDisconnect(message.get("code", 1000), message.get("reason"))
+    frame = message.get("bytes")
+    if frame is None:
+        frame = message.get("text") or ""
+        # UTF-8 takes at most 4 bytes per character: encode only when the count could matter.
+        size = len(frame) if len(frame) * 4 <= settings.max_frame_bytes else len(frame.encode())
+    else:
+        size = len(frame)
+    if size > settings.max_frame_bytes:
+        raise Closing(
+            proto.MESSAGE_TOO_BIG, f"message of {size} bytes; this service accepts at most {settings.max_frame_bytes}",
+            "frame_too_large",
+        )
+    return frame
+
+
+async def _close(websocket: WebSocket, code: int, reason: str) -> None:
+    """Close with `code`; a client already gone, or not reading, has nothing left to tell (the close frame
+    waits behind unread data at most CLOSE_SECONDS, then the connection is dropped). A reason holds 123 bytes."""
+    try:
+        await asyncio.wait_for(websocket.close(code, reason.encode()[:123].decode(errors="ignore")), CLOSE_SECONDS)
+    except (RuntimeError, OSError, WebSocketDisconnect, asyncio.TimeoutError):
+        pass
+
+
+async def _send(websocket: WebSocket, reply: codec.Frame, settings: Settings) -> None:
+    """Send a reply; a client that reads nothing for the idle time (the server's send buffer stays full) is closed."""
+    send = websocket.send_bytes(reply) if isinstance(reply, bytes) else websocket.send_text(reply)
+    try:
+        await asyncio.wait_for(send, settings.session_idle_seconds)
+    except asyncio.TimeoutError:
+        raise Closing(
+            proto.IDLE_TIMEOUT, f"no reply read for {settings.session_idle_seconds:g} s: session closed", "idle"
+        ) from None
+
+
+async def _open(frame: codec.Frame, settings: Settings) -> tuple[Session, codec.Frame]:
+    def work() -> tuple[Session, codec.Frame]:
+        kwargs = codec.decode_open(frame, settings.max_joints)
+        batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
+        admit(settings, batch_joints, kwargs["outputs"], isinstance(frame, bytes))
+        scene = prepare(kwargs["bodies"], kwargs["batches"])
+        defaults = {k: kwargs[k] for k in ("outputs", "hessian_mode", "active_only")}
+        opened = {
+            "kind": proto.OPENED,
+            "bodies": scene.n_bodies,
+            "batch_sizes": list(scene.batch_sizes),
+            "coordinates": scene.coordinates(),
+            "limits": {"max_frame_bytes": settings.max_frame_bytes, "idle_seconds": settings.session_idle_seconds},
+        }
+        return Session(scene, defaults, sum(batch_joints)), codec.encode(opened, isinstance(frame, bytes))
+
+    return await run_in_threadpool(work)
+
+
+async def _answer(session: Session, m: codec.Message, binary_frame: bool, settings: Settings) -> codec.Frame:
+    scene = session.scene
+    if m.kind == proto.EVALUATE:
+        options = {**session.defaults, **m.options}
+        admit(settings, list(scene.batch_sizes), options["outputs"], binary_frame)
+        ev: Evaluation = await _run(session, lambda: scene.evaluate(m.q, **options))
+        return codec.encode_evaluation(ev, binary_frame, m.id)
+    if m.kind == proto.COMMIT:
+        coords = await _run(session, lambda: scene.commit(m.q))
+        reply: dict[str, Any] = {"kind": proto.COMMITTED, "coordinates": coords}
+    else:  # update
+        await _run(session, lambda: scene.update(m.batch, m.index, **m.values))
+        reply = {"kind": proto.UPDATED, "batch": m.batch, "joints": int(m.index.shape[0])}
+        if "offset" in m.values:  # a new offset moves the batch's committed coordinates with it
+            reply["coordinates"] = scene.coordinates()[m.batch]
+    if m.id is not None:
+        reply["id"] = m.id
+    return codec.encode(reply, binary_frame)
+
+
+async def _run(session: Session, fn: Callable[[], T]) -> T:
+    try:
+        if session.joints <= INLINE_JOINTS:
+            return fn()
+        return await run_in_threadpool(fn)
+    except InputError as e:
+        raise codec.at_message_q(e) from None
+
+
+def _log(websocket: WebSocket, started: float, reason: str, code: int) -> None:
+    if not log.isEnabledFor(logging.INFO):
+        return
+    client = websocket.client
+    log.info(
+        "session",
+        extra={
+            "fields": {
+                "path": proto.PATH,
+                "reason": reason,
+                "close_code": code,
+                "duration_s": round(time.perf_counter() - started, 3),
+                "client": f"{client.host}:{client.port}" if client else None,
+                "pid": os.getpid(),
+            }
+        },
+    )
+

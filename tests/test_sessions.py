@@ -274,6 +274,20 @@ def test_scene_over_the_joint_limit_is_refused_and_closed():
     assert_counted(c, "scene_too_large")
 
 
+def test_an_evaluate_over_the_answer_bound_is_a_413_fault_and_the_session_goes_on():
+    """Sessions admit each evaluate on cost as POST /v1/evaluate does: the answer bound for its outputs."""
+    c = app(max_answer_bytes=20_000)
+    with c.websocket_connect(PATH) as ws:
+        s = Json(ws)
+        assert s.send({**BODY, "outputs": ["energy"]})["kind"] == "opened"
+        energy = s.send({"kind": "evaluate", "q": Q, "outputs": ["energy"]})
+        assert energy["kind"] == "evaluation"
+        reply = s.send({"kind": "evaluate", "q": Q, "outputs": ["energy", "gradient", "hessian"]})
+        assert reply["kind"] == "error" and reply["status"] == 413, reply
+        assert "JOINTLIMITS_MAX_ANSWER_BYTES" in reply["detail"][0]["msg"]
+        same(s.send({"kind": "evaluate", "q": Q, "outputs": ["energy"]}), energy)
+
+
 def test_metrics_count_sessions_and_messages():
     c = app(max_sessions=1)
     with c.websocket_connect(PATH) as ws:

@@ -46,11 +46,13 @@ not hold up the replies of the worker's other sessions."""
 def admit(settings: Settings, batch_joints: list[int], outputs: Sequence[str], binary_answer: bool) -> None:
     """The one admission check of a session's work: the opening scene, then each `evaluate` (its outputs).
 
-    Raises `HttpError` 413 (a fault reply; at open, then close 4413). Today it bounds the scene's
-    joints by `max_joints`, as HTTP bounds a request. Where HTTP admits by cost (branch i9-admit's
-    `limits.admit(joints=, batches=, outputs=, binary_answer=, settings=)`) this is its one call.
+    Raises `HttpError` 413 (a fault reply; at open, then close 4413): the same cost bounds as
+    `POST /v1/evaluate` (`limits.admit`: joints, batches, the answer's size for these outputs).
     """
-    limits.check_joints(sum(batch_joints), settings.max_joints)
+    limits.admit(
+        joints=list(batch_joints), batches=len(batch_joints), outputs=list(outputs), binary_answer=binary_answer,
+        settings=settings,
+    )
 
 
 class Closing(Exception):

@@ -185,6 +185,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="open WebSocket sessions per worker; one more is closed with code 4429 (JOINTLIMITS_MAX_SESSIONS)",
     )
     s.add_argument(
+        "--max-session-joints",
+        type=_positive_int,
+        default=int(_env("MAX_SESSION_JOINTS", "1000000")),
+        help="joints all open sessions of a worker hold together; a scene past it is refused with 413, then "
+        "code 4413 (JOINTLIMITS_MAX_SESSION_JOINTS)",
+    )
+    s.add_argument(
         "--max-frame-bytes",
         type=_positive_int,
         default=int(_env("MAX_FRAME_BYTES", str(64 * 2**20))),
@@ -282,7 +289,7 @@ def serve(args: argparse.Namespace) -> int:
             return 2
         os.environ[ENV_PREFIX + "TOKEN"] = token
 
-    for name in ("max_sessions", "max_frame_bytes", "session_idle_seconds"):  # WebSocket sessions
+    for name in ("max_sessions", "max_session_joints", "max_frame_bytes", "session_idle_seconds"):  # WebSocket sessions
         os.environ[ENV_PREFIX + name.upper()] = str(getattr(args, name))
 
     from service.settings import Settings

@@ -21,6 +21,9 @@ class Settings:
     """Open sessions per worker process; one more is closed at once with code 4429."""
     max_frame_bytes: int = field(default_factory=lambda: int(_env("MAX_FRAME_BYTES", str(64 * 2**20))))
     """Largest WebSocket message a session accepts; larger closes the session with code 1009."""
+    max_session_joints: int = field(default_factory=lambda: int(_env("MAX_SESSION_JOINTS", "1000000")))
+    """Joints all open sessions of a worker may hold together (a prepared scene keeps ~0.7 KiB per joint);
+    a scene that would pass it is refused (413, then close 4413)."""
     session_idle_seconds: float = field(default_factory=lambda: float(_env("SESSION_IDLE_SECONDS", "300")))
     """A session with no message from its client for this long is closed with code 4408."""
     token: str | None = field(default_factory=lambda: _env("TOKEN", "") or None)

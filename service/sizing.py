@@ -26,6 +26,9 @@ BYTES_PER_BODY = 1500
 (measured 1.44 KB: 9.2e5 bodies, +1265 MiB)."""
 MSGPACK_BYTES = {"joint": 8 * (2 + 6 + 3), "body": 3 * 12 * 8}
 """Request bytes of one joint and of one body in msgpack: a body of given size holds at most so many."""
+SESSION_BYTES_PER_JOINT = 768
+"""A joint of a WebSocket session's prepared scene, held for the connection's life (measured ~700 B:
+67 MB for the bench's 1e5-joint scene)."""
 ANSWER_FACTOR = 2.5
 """Peak over the answer's bound: the answer's arrays and the encoded message (measured <= 2.0 in
 msgpack at the bound once the request's own cost is taken off; JSON answers reach their bound only
@@ -43,8 +46,10 @@ def request_bytes(s: Settings) -> int:
 
 
 def worker_bytes(s: Settings) -> int:
-    """Memory one worker may reach on the costliest request its limits admit (then keeps, with keep_heap)."""
-    return WORKER_BASE_BYTES + request_bytes(s) + int(ANSWER_FACTOR * s.max_answer_bytes)
+    """Memory one worker may reach on the costliest request its limits admit (then keeps, with keep_heap),
+    beside the prepared scenes of its open sessions."""
+    sessions = SESSION_BYTES_PER_JOINT * s.max_session_joints
+    return WORKER_BASE_BYTES + request_bytes(s) + int(ANSWER_FACTOR * s.max_answer_bytes) + sessions
 
 
 def pod_bytes(s: Settings, workers: int) -> int:

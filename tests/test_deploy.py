@@ -98,7 +98,7 @@ def test_memory_limit_follows_from_the_request_limits(monkeypatch):
 
 
 def test_the_readmes_sizing_figures_are_the_rules(monkeypatch):
-    """README, "Sizing a pod": 2.6 GiB per worker and 5.4 GiB for 2 workers at the defaults; 902 MiB per worker in the manifest."""
+    """README, "Sizing a pod": the figures per worker and per 2-worker pod at the defaults, and per worker in the manifest."""
     from service import sizing
     from service.settings import Settings
 

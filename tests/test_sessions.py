@@ -288,6 +288,21 @@ def test_an_evaluate_over_the_answer_bound_is_a_413_fault_and_the_session_goes_o
         same(s.send({"kind": "evaluate", "q": Q, "outputs": ["energy"]}), energy)
 
 
+def test_the_sessions_of_a_worker_hold_at_most_max_session_joints():
+    """A scene that would bring the worker's sessions past the bound is refused (413, close 4413); one that
+    fits opens; closing a session gives its joints back, and a refused scene holds nothing."""
+    c = app(max_session_joints=sum(len(b["body_ids"]) for b in BODY["batches"]))
+    with c.websocket_connect(PATH) as first:
+        assert Json(first).send(BODY)["kind"] == "opened"
+        with c.websocket_connect(PATH) as second:
+            reply = Json(second).send(BODY)
+            assert reply["kind"] == "error" and reply["status"] == 413, reply
+            assert "JOINTLIMITS_MAX_SESSION_JOINTS" in reply["detail"][0]["msg"]
+            assert closed(second)["code"] == proto.SCENE_TOO_LARGE
+    with c.websocket_connect(PATH) as third:  # the first session's joints were given back
+        assert Json(third).send(BODY)["kind"] == "opened"
+
+
 def test_metrics_count_sessions_and_messages():
     c = app(max_sessions=1)
     with c.websocket_connect(PATH) as ws:

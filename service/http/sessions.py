@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect
 
 from schemas import session as proto
-from service.core import Evaluation, InputError
+from service.core import Evaluation, Fault, InputError
 from service.core.prepared import PreparedScene, prepare
 from service.http import limits
 from service.http import session_codec as codec
@@ -89,8 +90,9 @@ async def sessions(websocket: WebSocket) -> None:
     state.open_sessions = open_now + 1
     metrics.sessions_open.inc()
     started, reason, code = time.perf_counter(), "error", proto.INTERNAL_ERROR
+    held = _Held()
     try:
-        await _serve(websocket, settings, metrics)
+        await _serve(websocket, settings, metrics, held)
         reason, code = "client", proto.NORMAL
     except Closing as c:
         reason, code = c.metric, c.code
@@ -105,12 +107,20 @@ async def sessions(websocket: WebSocket) -> None:
         await _close(websocket, proto.INTERNAL_ERROR, "internal error")
     finally:
         state.open_sessions -= 1
+        _reserve(state, held, 0, settings.max_session_joints)  # its scene is gone
         metrics.sessions_open.dec()
         metrics.sessions.labels(reason).inc()
         _log(websocket, started, reason, code)
 
 
-async def _serve(websocket: WebSocket, settings: Settings, metrics: Metrics) -> None:
+@dataclass
+class _Held:
+    """Joints of this connection's scene, counted in the worker's `session_joints` while it is open."""
+
+    joints: int = 0
+
+
+async def _serve(websocket: WebSocket, settings: Settings, metrics: Metrics, held: _Held) -> None:
     """Open a scene from the first message that is a valid scene, then answer messages until `close`."""
     session: Session | None = None
     while True:
@@ -120,7 +130,7 @@ async def _serve(websocket: WebSocket, settings: Settings, metrics: Metrics) -> 
         kind, outcome, mid = "open" if session is None else "invalid", "ok", None
         try:
             if session is None:
-                session, reply = await _open(frame, settings)
+                session, reply = await _open(frame, settings, websocket.app.state, held)
             else:
                 message = codec.decode(frame)
                 kind, mid = message.kind, message.id
@@ -188,12 +198,34 @@ async def _send(websocket: WebSocket, reply: codec.Frame, settings: Settings) ->
         ) from None
 
 
-async def _open(frame: codec.Frame, settings: Settings) -> tuple[Session, codec.Frame]:
+_RESERVING = threading.Lock()  # opens run in worker threads: the check and the count change together
+
+
+def _reserve(state: Any, held: _Held, joints: int, most: int) -> None:
+    """Count this connection's scene as `joints` in the worker's `session_joints` (413 past `most`)."""
+    with _RESERVING:
+        others = getattr(state, "session_joints", 0) - held.joints
+        if others + joints > most:
+            msg = (
+                f"this scene's {joints} joints would bring the sessions of this worker to {others + joints}; it holds "
+                f"at most {most} (JOINTLIMITS_MAX_SESSION_JOINTS): retry later, or use POST /v1/evaluate"
+            )
+            raise HttpError(413, [Fault(("body", "batches"), msg, "too_large")])
+        state.session_joints, held.joints = others + joints, joints
+
+
+async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held) -> tuple[Session, codec.Frame]:
     def work() -> tuple[Session, codec.Frame]:
         kwargs = codec.decode_open(frame, settings.max_joints)
         batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
         admit(settings, batch_joints, kwargs["outputs"], isinstance(frame, bytes))
-        scene = prepare(kwargs["bodies"], kwargs["batches"])
+        joints = sum(batch_joints)
+        _reserve(state, held, joints, settings.max_session_joints)
+        try:
+            scene = prepare(kwargs["bodies"], kwargs["batches"])
+        except BaseException:
+            _reserve(state, held, 0, settings.max_session_joints)  # a refused scene holds nothing
+            raise
         defaults = {k: kwargs[k] for k in ("outputs", "hessian_mode", "active_only")}
         opened = {
             "kind": proto.OPENED,

@@ -1,17 +1,24 @@
-"""Answers assembled per body (`layout="bodies"`): the per-joint answer scattered and summed.
+"""Answers assembled per body (`layout="bodies"`): every joint's gradient and Hessian summed into its bodies' DOFs.
 
-A solver wants the scene's gradient (B, 12) and its Hessian as a sparse matrix over bodies,
-not one (24, 24) block per joint. The Hessian is kept as symmetric block-sparse: for each
-pair of bodies `rows[k] <= cols[k]` touched by a joint outside its range, `blocks[k]`
-(12, 12) = d2E / dq_rows dq_cols summed over those joints; the full matrix is the blocks plus
-the transposes of the off-diagonal ones. Pairs are sorted (row, then column) and summed in
-joint order (a stable sort, then `np.add.reduceat`), so the answer is reproducible and each
-diagonal block is bitwise symmetric like the per-joint blocks it sums.
+A joint on bodies `(i, j)` has a gradient `[g_i, g_j]` (24) and a Hessian with blocks
+`H_ii, H_ij, H_ji, H_jj` (12 x 12 each). Assembled over a request with B bodies:
+
+- `gradient` (B, 12): row `k` is the sum of every active joint's `g_k`;
+- the Hessian (12B x 12B, symmetric) as its upper block triangle: `rows`, `cols` (K,) body indices
+  with `rows <= cols`, sorted (row, then column), one entry per body pair that a joint outside its
+  range touches, and `blocks` (K, 12, 12) with block `(r, c)` = d2E / dq_r dq_c summed over those
+  joints. The full matrix is the blocks plus the transposes of the off-diagonal ones.
+
+Only joints outside their range are summed (the others' rows are exact zeros). Scatter-adds are
+one stable sort of integer keys and vectorised passes over the sorted terms: no Python loop over
+joints. Each key's terms are added one after the other in request order (batch, then joint, then
+`(i, i)`, `(j, j)`, `(i, j)`), so a plain loop adding them in that order gives the same bits
+(tests/test_assembled.py), and each diagonal block is bitwise symmetric like the blocks it sums.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -19,8 +26,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.core import penalty
-from service.core.errors import Fault, InputError
+from service.core.errors import MAX_FAULTS, Fault, InputError
 from service.core.scene import Array, BatchResult, Evaluation, Joints
+from service.core.validate import nonfinite_rows
 
 LAYOUTS = ("joints", "bodies")
 
@@ -60,75 +68,165 @@ class Assembled:
 
 
 def active_rows(joints: Joints, result: BatchResult, active_only: bool) -> NDArray[np.intp]:
-    """Positions in `result`'s rows of joints outside their range (the only rows with derivatives)."""
+    """Positions in `result`'s rows of joints outside their range (the only rows with derivatives).
+
+    The gap is the core's: `x` against `lower - offset`, `upper - offset` (bitwise its bounds).
+    """
     if active_only:
         return np.arange(result.index.shape[0])
     i = result.index
-    g, _ = penalty.gap(result.x, joints.lower[i], joints.upper[i])
+    lo, up = joints.lower[i], joints.upper[i]
+    if joints.offset is not None:
+        lo, up = lo - joints.offset[i], up - joints.offset[i]
+    g, _ = penalty.gap(result.x, lo, up)
     return np.flatnonzero((g > 0) & (joints.strength[i] > 0))
 
 
 def assemble(n_bodies: int, batches: Sequence[Joints], ev: Evaluation, active_only: bool) -> Assembled:
-    """The scatter-add of `ev`'s per-joint gradient and Hessian rows over the bodies of `batches`."""
-    ids, grads, hesses = [], [], []
+    """The scatter-add over the bodies of `batches` of `ev`'s per-joint rows (`layout="joints"`)."""
+    per_joint = []
     for joints, r in zip(batches, ev.batches):
         rows = active_rows(joints, r, active_only)
-        ids.append(np.asarray(joints.body_ids, dtype=np.int64)[r.index[rows]])
-        grads.append(None if r.gradient is None else r.gradient[rows])
-        hesses.append(None if r.hessian is None else r.hessian[rows])
-    body_ids = np.concatenate(ids) if ids else np.zeros((0, 2), np.int64)
+        ids = np.asarray(joints.body_ids, dtype=np.int64)[r.index[rows]]
+        per_joint.append((ids, None if r.gradient is None else r.gradient[rows], None if r.hessian is None else r.hessian[rows]))
+    want_g = bool(ev.batches) and ev.batches[0].gradient is not None
+    want_h = bool(ev.batches) and ev.batches[0].hessian is not None
+    return assemble_active(n_bodies, per_joint, want_g, want_h)
+
+
+def assemble_active(
+    n_bodies: int, batches: Sequence[tuple[NDArray[np.int64], Array | None, Array | None]], want_g: bool, want_h: bool
+) -> Assembled:
+    """The request's gradient (B, 12) and block-sparse Hessian from each batch's active joints: their body
+    ids (M, 2), gradient (M, 24) and Hessian (M, 24, 24) (None when not asked for), in request order.
+
+    Raises `InputError` at ("layout",) when a sum overflows float64 (each term is finite; their sum need not be).
+    """
+    pairs = np.concatenate([ids.reshape(-1, 2) for ids, _, _ in batches] or [np.zeros((0, 2), np.int64)])
     out = Assembled(n_bodies)
-    if ev.batches and grads[0] is not None:
-        out.gradient = _gradient(n_bodies, body_ids, np.concatenate(grads))
-    if ev.batches and hesses[0] is not None:
-        out.rows, out.cols, out.blocks = _hessian(body_ids, np.concatenate(hesses))
+    if want_g:
+        # (M, 24) -> (2M, 12): row 2m is joint m's g_i, row 2m + 1 its g_j, i.e. body pairs.reshape(-1).
+        g = np.concatenate([b[1].reshape(-1, 12) for b in batches] or [np.zeros((0, 12))])
+        keys, sums = _sum_by_key(pairs.reshape(-1), g.__getitem__, (12,))
+        out.gradient = np.zeros((n_bodies, 12))
+        out.gradient[keys] = sums
+    if want_h:
+        keys, take = _hessian_terms(n_bodies, pairs, [b[2] for b in batches])
+        keys, sums = _sum_by_key(keys, take, (12, 12))
+        out.rows, out.cols, out.blocks = keys // max(n_bodies, 1), keys % max(n_bodies, 1), sums
+    _raise_overflow(out)
     return out
 
 
-def _gradient(n_bodies: int, body_ids: NDArray[np.int64], g: Array) -> Array:
-    """(B, 12): each joint's `[g_i, g_j]` (M, 24) added to its bodies `body_ids` (M, 2), in joint order."""
-    out = np.zeros((n_bodies, 12), dtype=np.float64)
-    np.add.at(out, body_ids.reshape(-1), g.reshape(-1, 12))
-    return out
+Take = Callable[[NDArray[np.int64]], Array]
+"""The terms (n, ...) at the given term indices (n,): gathered when needed, never all at once."""
 
 
-def _hessian(body_ids: NDArray[np.int64], H: Array) -> tuple[NDArray[np.int64], NDArray[np.int64], Array]:
-    """Block-sparse upper triangle of the sum of each joint's (24, 24) `H` (M, 24, 24) over its bodies."""
-    m = H.shape[0]
-    i, j = body_ids[:, 0], body_ids[:, 1]
-    B = H.reshape(m, 2, 12, 2, 12)
-    # Three blocks per joint: (i, i), (j, j) and the off-diagonal one oriented so that row <= col.
-    swap = i > j
-    off = np.where(swap[:, None, None], B[:, 1, :, 0, :], B[:, 0, :, 1, :])
-    r = np.concatenate([i, j, np.minimum(i, j)])
-    c = np.concatenate([i, j, np.maximum(i, j)])
-    blocks = np.concatenate([B[:, 0, :, 0, :], B[:, 1, :, 1, :], off])  # i != j: validation rejects a joint on one body
-    return reduce_pairs(r, c, blocks)
+def _hessian_terms(n_bodies: int, pairs: NDArray[np.int64], hessians: list[Array]) -> tuple[NDArray[np.int64], Take]:
+    """Each active joint's three upper-triangle blocks, `(i, i)`, `(j, j)`, `(min, max)`, in that order
+    per joint: their keys `row * B + col` (3M,) and a gather of the blocks (n, 12, 12) by term index.
+
+    When `i > j` the upper block `(j, i)` is d2E/dq_j dq_i, the Hessian's lower-left block
+    `H[12:, :12]` (per-joint Hessians are bitwise symmetric, so that is `H_ij^T` exactly).
+    """
+    i, j = pairs[:, 0], pairs[:, 1]
+    # B <= 2**31 bodies (far beyond any request's bytes), so row * B + col fits int64.
+    keys = np.stack([i * n_bodies + i, j * n_bodies + j, np.minimum(i, j) * n_bodies + np.maximum(i, j)], axis=1)
+    swap = (i > j).astype(np.int64)
+    h5 = [h.reshape(-1, 2, 12, 2, 12) for h in hessians]
+    bounds = np.cumsum([0] + [h.shape[0] for h in hessians])
+    dtype = np.result_type(*hessians) if hessians else np.float64
+
+    def take(terms: NDArray[np.int64]) -> Array:
+        # Term 3m + t of active joint m: block (a, b) = H5[m, a, :, b, :], a = b = t for t = 0, 1;
+        # (0, 1) for t = 2, or (1, 0) when the joint's bodies come in descending order.
+        m, t = np.divmod(terms, 3)
+        a = np.where(t == 2, swap[m], t)
+        b = np.where(t == 2, 1 - swap[m], t)
+        if len(h5) == 1:
+            return h5[0][m, a, :, b, :]
+        out = np.empty((terms.shape[0], 12, 12), dtype)
+        batch = np.searchsorted(bounds, m, side="right") - 1
+        for k, h in enumerate(h5):  # one gather per batch, not per joint
+            sel = np.flatnonzero(batch == k)
+            out[sel] = h[m[sel] - bounds[k], a[sel], :, b[sel], :]
+        return out
+
+    return keys.reshape(-1), take
+
+
+def _sum_by_key(keys: NDArray[np.int64], take: Take, shape: tuple[int, ...]) -> tuple[NDArray[np.int64], Array]:
+    """The distinct `keys` (K,) ascending and the sum per key (K, *shape) of the terms `take` gathers.
+
+    Each key's terms are added one after the other in their order in `keys` (a stable sort groups
+    them), as a plain loop would: one vectorised pass per rank within the groups (`np.add.reduceat`
+    does not add in that order, and is slower on short groups), and a contiguous `sum(axis=0)`
+    (sequential along the outer axis) for the few groups still longer than that.
+    """
+    if keys.shape[0] == 0:
+        return keys.astype(np.int64), np.zeros((0, *shape))
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    starts = np.flatnonzero(np.concatenate([[True], sorted_keys[1:] != sorted_keys[:-1]]))
+    lengths = np.diff(starts, append=keys.shape[0])
+    sums = take(order[starts])
+    longer = np.flatnonzero(lengths > 1)
+    rank = 1
+    while longer.shape[0] > _FEW:
+        sums[longer] += take(order[starts[longer] + rank])
+        rank += 1
+        longer = longer[lengths[longer] > rank]
+    for k in longer:  # at most _FEW groups (a hub body's many joints): each summed afresh, in order
+        sums[k] = take(order[starts[k] : starts[k] + lengths[k]]).sum(axis=0)
+    return sorted_keys[starts].astype(np.int64), sums
+
+
+_FEW = 16
+"""Groups left when the rank passes stop; each pass costs ~10 us of overhead whatever its size."""
 
 
 def reduce_pairs(
     r: NDArray[np.int64], c: NDArray[np.int64], blocks: Array
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], Array]:
-    """Blocks (L, 12, 12) at pairs (r, c) summed per pair: sorted unique pairs and their sums."""
-    if r.shape[0] == 0:
-        return r.astype(np.int64), c.astype(np.int64), np.zeros((0, 12, 12))
-    order = np.lexsort((c, r))  # stable: equal pairs keep their order, so the sums are reproducible
-    r, c = r[order], c[order]
-    start = np.flatnonzero(np.concatenate([[True], (r[1:] != r[:-1]) | (c[1:] != c[:-1])]))
-    return r[start].astype(np.int64), c[start].astype(np.int64), np.add.reduceat(blocks[order], start, axis=0)
+    """Blocks (L, 12, 12) at pairs (r, c) summed per pair, in their order: sorted unique pairs and their sums."""
+    n = int(max(r.max(initial=-1), c.max(initial=-1))) + 1
+    keys, sums = _sum_by_key(np.asarray(r, np.int64) * n + c, blocks.__getitem__, (12, 12))
+    return keys // max(n, 1), keys % max(n, 1), sums
+
+
+def _raise_overflow(out: Assembled) -> None:
+    faults = []
+    if out.gradient is not None:
+        faults += [
+            Fault(("layout",), f"the assembled gradient of body {k} overflows float64 (its joints' sum)")
+            for k in nonfinite_rows(out.gradient)
+        ]
+    if out.blocks is not None:
+        faults += [
+            Fault(("layout",), f"the assembled Hessian block ({int(out.rows[k])}, {int(out.cols[k])}) overflows "
+                  "float64 (its joints' sum)")
+            for k in nonfinite_rows(out.blocks)
+        ]
+    if faults:
+        raise InputError(faults[:MAX_FAULTS])
 
 
 def check_layout(layout: str) -> list[Fault]:
     return [] if layout in LAYOUTS else [Fault(("layout",), f"unknown layout {layout!r}; expected 'joints' or 'bodies'", "literal_error")]
 
 
+def strip(ev: Evaluation, out: Assembled) -> Evaluation:
+    """`ev` with the assembled answer `out` and batches without derivatives (index, x, energy, coordinate kept)."""
+    ev = replace(ev, batches=[replace(r, gradient=None, hessian=None) for r in ev.batches])
+    ev.assembled = out
+    return ev
+
+
 def apply(ev: Evaluation, n_bodies: int, batches: Sequence[Joints], layout: str, active_only: bool) -> Evaluation:
-    """`ev` in `layout`: unchanged for "joints"; for "bodies" the assembled answer, batches without derivatives."""
+    """A per-joint `ev` in `layout`: unchanged for "joints"; for "bodies" the assembled answer, batches
+    without derivatives. (The core's evaluate with `layout="bodies"` assembles without per-joint rows.)"""
     if check_layout(layout):
         raise InputError(check_layout(layout))
     if layout == "joints":
         return ev
-    assembled = assemble(n_bodies, batches, ev, active_only)
-    out = replace(ev, batches=[replace(r, gradient=None, hessian=None) for r in ev.batches])
-    out.assembled = assembled
-    return out
+    return strip(ev, assemble(n_bodies, batches, ev, active_only))

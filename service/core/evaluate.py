@@ -40,25 +40,30 @@ def differentiate(
     active_only: bool,
     threads: int,
     deadline: float | None = None,
+    compact: bool = False,
 ) -> dict:
     """Energy (N,) of batch `b` at its frames `F` (N, 4, 3) and coordinate `x` (N,), and the asked-for
-    derivatives of its active joints: the fields of a `BatchResult`, plus `all_energy` (N,).
+    derivatives of its active joints: the fields of a `BatchResult`, plus `all_energy` (N,) and the
+    positions `active` (A,) of the joints outside their range.
 
     `v` (N, 4, 3) the body-local vectors; `lo`, `up` (N,) the bounds on `x`, `s` (N,) the strengths.
     Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
-    past `deadline` (a `time.monotonic()` value), checked before each derivative chunk.
+    past `deadline` (a `time.monotonic()` value), checked before each derivative chunk. `compact`:
+    derivative rows for the active joints only (as `active_only`) while index, x, energy keep every
+    joint; `active` (A,) says which (`layout="bodies"` sums those rows alone).
     """
     dtype = F.dtype
     energy = penalty.energy(x, lo, up, s)
 
     active = np.flatnonzero((penalty.gap(x, lo, up)[0] > 0) & (s > 0))
-    n = active.shape[0] if active_only else x.shape[0]
+    compact = compact or active_only  # derivative rows: the active joints only, or every joint
+    n = active.shape[0] if compact else x.shape[0]
     # Inactive rows are exact zeros that were never differentiated (calloc: untouched pages stay free);
     # when every row is differentiated each is written once, with no zero-fill before.
     alloc = np.empty if active.shape[0] == n else np.zeros
     gradient = alloc((n, 24), dtype=dtype) if want_g else None
     hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
-    out_pos = np.arange(n) if active_only else active
+    out_pos = np.arange(n) if compact else active
 
     def chunk(start: int) -> list[int]:
         """Differentiate active joints `start : start + CHUNK`; the rows among them that overflow."""
@@ -99,12 +104,13 @@ def differentiate(
     )
     return dict(
         constitution_uid=c.uid,
-        index=active if active_only else np.arange(n),
+        index=active if active_only else np.arange(x.shape[0]),
         x=x[active] if active_only else x,
         energy=energy[active] if active_only else energy,
         gradient=gradient,
         hessian=hessian,
         all_energy=energy,
+        active=active,
     )
 
 

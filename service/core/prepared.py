@@ -115,8 +115,10 @@ class PreparedScene:
         hessian_mode: str = "exact",
         active_only: bool = False,
         deadline: float | None = None,
+        layout: str = "joints",
     ) -> Evaluation:
-        """Energy, gradient and Hessian of every joint at `q` (B, 12), as CONTRACT.md defines them.
+        """Energy, gradient and Hessian of every joint at `q` (B, 12), as CONTRACT.md defines them
+        (`layout` "bodies": summed per body, `Evaluation.assembled`, service/core/assembled.py).
 
         Raises `InputError` naming every fault (bad `q`: loc ("bodies", "q", i, k); a configuration
         without derivatives or that overflows: the joint); never returns NaN or Infinity.
@@ -124,7 +126,7 @@ class PreparedScene:
         past it, `DeadlineExceeded`.
         """
         q = np.asarray(q, dtype=np.float64)
-        return self._evaluate(q, tuple(outputs), hessian_mode, active_only, checked=False, deadline=deadline)
+        return self._evaluate(q, tuple(outputs), hessian_mode, active_only, checked=False, deadline=deadline, layout=layout)
 
     def _evaluate(
         self,
@@ -134,9 +136,11 @@ class PreparedScene:
         active_only: bool,
         checked: bool,
         deadline: float | None = None,
+        layout: str = "joints",
     ) -> Evaluation:
         log = FaultLog()
         log.add(check_options(outputs, hessian_mode))
+        log.add(assembled.check_layout(layout))
         if not checked:
             log.add(check_dofs("q", q, self.n_bodies))
         log.raise_if_any()
@@ -145,7 +149,7 @@ class PreparedScene:
         # exact mode then locates the joints.
         with np.errstate(all="ignore"):
             try:
-                ev = self._run(q, outputs, hessian_mode, active_only, deadline)
+                ev = self._run(q, outputs, hessian_mode, active_only, deadline, layout)
             except np.linalg.LinAlgError:
                 self._run(q, outputs, "exact", active_only, deadline)
                 raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
@@ -153,7 +157,13 @@ class PreparedScene:
         return ev
 
     def _run(
-        self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool, deadline: float | None = None
+        self,
+        q: Array,
+        outputs: tuple[str, ...],
+        hessian_mode: str,
+        active_only: bool,
+        deadline: float | None = None,
+        layout: str = "joints",
     ) -> Evaluation:
         # The steps x takes now: all of them (v1), or from q_prev alone once the angle is a state.
         self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
@@ -163,7 +173,8 @@ class PreparedScene:
         psd = hessian_mode == "psd"
         results = run_all(
             [
-                partial(self._evaluate_batch, b, jb, want_g, want_h, psd, active_only, inner, deadline)
+                # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
+                partial(self._evaluate_batch, b, jb, want_g, want_h, psd, active_only, inner, deadline, layout == "bodies")
                 for b, jb in enumerate(self._batches)
             ],
             threads,
@@ -171,7 +182,12 @@ class PreparedScene:
         total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
         if not np.isfinite(total):
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
-        return Evaluation(total_energy=total, batches=[BatchResult(**r) for r in results])
+        active = [r.pop("active") for r in results]
+        ev = Evaluation(total_energy=total, batches=[BatchResult(**r) for r in results])
+        if layout == "joints":
+            return ev
+        per_joint = [(jb.pairs.T[a], r.gradient, r.hessian) for jb, a, r in zip(self._batches, active, ev.batches)]
+        return assembled.strip(ev, assembled.assemble_active(self.n_bodies, per_joint, want_g, want_h))
 
     def _load(self, q: Array, rows: Iterable[int], steps: Iterable[int]) -> None:
         """`q` (B, 12) into the body table's state 2 (scratch: the table's states 0, 1 are `q_ref`,
@@ -234,11 +250,14 @@ class PreparedScene:
         active_only: bool,
         threads: int,
         deadline: float | None = None,
+        compact: bool = False,
     ) -> dict:
         check_deadline(deadline)
         x, F, careful = self._x(jb, self._step(jb, jb.row, jb.r_origin))
         raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful))[:MAX_FAULTS])
-        r = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline)
+        r = differentiate(
+            b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact
+        )
         r["coordinate"] = _plus_offset(r["x"], jb.offset, r["index"] if active_only else None)
         return r
 
@@ -473,7 +492,8 @@ def evaluate(
     that many threads, with bitwise the same results; the HTTP service keeps 1, its worker
     processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
     `DeadlineExceeded` (checked between batches and derivative chunks). `layout` "bodies" answers
-    the gradient and Hessian summed per body (`service.core.assembled`) instead of per joint.
+    the gradient and Hessian summed per body (`service.core.assembled`) instead of per joint: only
+    the joints outside their range are differentiated and stored, then summed.
     """
     outputs = tuple(outputs)
     bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
@@ -484,5 +504,4 @@ def evaluate(
     log.raise_if_any()
     arrays = [_as_arrays(j) for j in batches]
     scene = _prepare(bodies, arrays, threads, dtype, own=False)
-    ev = scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True, deadline=deadline)
-    return assembled.apply(ev, scene.n_bodies, arrays, layout, active_only)
+    return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True, deadline=deadline, layout=layout)

@@ -193,3 +193,23 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
 
 
 __all__ = ["SessionClosed", "SessionState", "connection_options", "options", "ws_url"]
+
+
+class StateView:
+    """What each session (sync, async, local) shows of its `SessionState`: where, and the last commit."""
+
+    state: SessionState
+
+    @property
+    def url(self) -> str:
+        return self.state.url
+
+    @property
+    def q_prev(self) -> Array:
+        """The last committed `q` (the opening request's `q_prev` before any commit)."""
+        return self.state.q_prev
+
+    @property
+    def coordinates(self) -> list[Array]:
+        """The committed coordinates, one (N,) array per batch (as opened, before any commit)."""
+        return self.state.coordinates

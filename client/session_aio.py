@@ -16,11 +16,11 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
 from client.model import Array, Evaluation, Request
-from client.session import Frame, SessionClosed, SessionState
+from client.session import Frame, SessionClosed, SessionState, StateView
 from client.session_sync import CONNECT_OPTIONS, closed_error, handshake_error
 
 
-class AsyncSession:
+class AsyncSession(StateView):
     """The asyncio twin of `client.session_sync.Session` (same arguments, results and errors)."""
 
     def __init__(self, url: str, request: Request, *, binary: bool = True, timeout: float | None = 60.0,
@@ -28,18 +28,6 @@ class AsyncSession:
         self.state = SessionState(request, url, binary)
         self.timeout, self.headers = timeout, dict(headers or {})
         self._ws: ClientConnection | None = None
-
-    @property
-    def url(self) -> str:
-        return self.state.url
-
-    @property
-    def q_prev(self) -> Array:
-        return self.state.q_prev
-
-    @property
-    def coordinates(self) -> list[Array]:
-        return self.state.coordinates
 
     async def open(self) -> AsyncSession:
         try:

@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike
 
 from client.errors import Fault, InvalidInput
 from client.model import Array, BatchResult, Evaluation, Request
-from client.session import SessionClosed, SessionState, options
+from client.session import SessionClosed, SessionState, StateView, options
 from service import core
 from service.core.prepared import prepare
 
@@ -48,23 +48,13 @@ def _call(fn: Callable[[], T]) -> T:
         raise InvalidInput(422, [Fault(("body", *loc), f.msg, f.type) for loc, f in zip(locs, e.faults)]) from None
 
 
-class LocalSession:
+class LocalSession(StateView):
     """`client.session_sync.Session`'s API on a `PreparedScene` in this process: bitwise the same numbers."""
 
     def __init__(self, request: Request, *, threads: int = 1) -> None:
         self.state = SessionState(request, URL, binary=True)
         self.threads = threads
         self._open()
-
-    url = URL
-
-    @property
-    def q_prev(self) -> Array:
-        return self.state.q_prev
-
-    @property
-    def coordinates(self) -> list[Array]:
-        return self.state.coordinates
 
     def _open(self) -> None:
         r = self.state.request

@@ -12,7 +12,7 @@ from websockets.sync.client import ClientConnection, connect
 
 from client import codec
 from client.model import Array, Evaluation, Request
-from client.session import Frame, SessionClosed, SessionState
+from client.session import Frame, SessionClosed, SessionState, StateView
 
 
 def handshake_error(url: str, e: Exception) -> Exception:
@@ -33,7 +33,7 @@ CONNECT_OPTIONS: dict[str, Any] = dict(
 )
 
 
-class Session:
+class Session(StateView):
     """A prepared scene on the server, held by one WebSocket connection (see `client.session`).
 
     `evaluate(q, ...)` answers as `Client.evaluate` does; `commit(q)` ends a time step and
@@ -49,20 +49,6 @@ class Session:
         self._ws: ClientConnection | None = None
         self._stack = ExitStack()
         self._open()
-
-    @property
-    def url(self) -> str:
-        return self.state.url
-
-    @property
-    def q_prev(self) -> Array:
-        """The last committed `q` (the opening request's `q_prev` before any commit)."""
-        return self.state.q_prev
-
-    @property
-    def coordinates(self) -> list[Array]:
-        """The committed coordinates, one (N,) array per batch (as opened, before any commit)."""
-        return self.state.coordinates
 
     def _open(self) -> None:
         try:

@@ -93,13 +93,6 @@ def _positive_float(value: str) -> float:
     return x
 
 
-def _positive_float(value: str) -> float:
-    x = float(value)
-    if not x > 0 or not math.isfinite(x):
-        raise argparse.ArgumentTypeError("must be a positive number of seconds")
-    return x
-
-
 def _bool(value: str) -> bool:
     v = value.strip().lower()
     if v in ("1", "true", "yes", "on"):

@@ -5,6 +5,8 @@ from __future__ import annotations
 from types import TracebackType
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from client.accept import as_request
 from client.errors import Fault, InvalidInput
 from client.model import BatchResult, Evaluation, Request
@@ -19,6 +21,40 @@ HTTP_OPTIONS = frozenset(
      "concurrency", "http_transport"}
 )
 """Keywords of `Client` / `AsyncClient` that `LocalClient` accepts and ignores."""
+
+
+def core_batches(request: Request, copy: bool = False) -> list[core.Joints]:
+    """The request's batches as the core's `Joints`; `copy`: arrays of their own (a session's scene
+    changes with updates), else the request's own arrays (the core only reads them)."""
+    own = np.array if copy else (lambda a: a)
+    c = lambda a: None if a is None else own(a)  # noqa: E731
+    return [
+        core.Joints(
+            constitution_uid=b.constitution_uid,
+            base_uid=b.base_uid if b.base_uid is not None else -1,  # None only for an unknown constitution: refused
+            body_ids=c(b.body_ids),
+            edges=c(b.edges),
+            lower=c(b.lower),
+            upper=c(b.upper),
+            strength=c(b.strength),
+            offset=c(b.offset),
+            prev_coordinate=c(b.prev_coordinate),
+        )
+        for b in request.batches
+    ]
+
+
+def result(ev: core.Evaluation) -> Evaluation:
+    """The core's answer as the SDK's `Evaluation` (the same arrays, no copy)."""
+    return Evaluation(
+        assembled=ev.assembled,
+        total_energy=ev.total_energy,
+        batches=[
+            BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate)
+            for r in ev.batches
+        ],
+    )
+
 
 if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
     from client.session_local import LocalSession
@@ -56,20 +92,7 @@ class LocalClient:
         `e.loc` is what the service would answer); a non-request is a `TypeError`.
         """
         request = as_request(request)
-        joints = [
-            core.Joints(
-                constitution_uid=b.constitution_uid,
-                base_uid=b.base_uid if b.base_uid is not None else -1,
-                body_ids=b.body_ids,
-                edges=b.edges,
-                lower=b.lower,
-                upper=b.upper,
-                strength=b.strength,
-                offset=b.offset,
-                prev_coordinate=b.prev_coordinate,
-            )
-            for b in request.batches
-        ]
+        joints = core_batches(request)
         try:
             ev = core.evaluate(
                 bodies=core.Bodies(request.q, request.q_prev, request.q_ref),
@@ -84,14 +107,7 @@ class LocalClient:
             raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults], where="invalid input") from None
         if callable(progress):
             progress(request.n_joints, request.n_joints)
-        return Evaluation(
-            assembled=ev.assembled,
-            total_energy=ev.total_energy,
-            batches=[
-                BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, coordinate=r.coordinate)
-                for r in ev.batches
-            ],
-        ).sized(request)
+        return result(ev).sized(request)
 
     def session(self, request: Request) -> LocalSession:
         """`Client.session`'s API in-process, on the core's prepared scene (bitwise the same numbers)."""

@@ -10,31 +10,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from client.errors import Fault, InvalidInput
-from client.model import Array, BatchResult, Evaluation, Request
+from client.model import Array, Evaluation, Request
+from client.local import core_batches, result
 from client.session import SessionClosed, SessionState, StateView, options
 from service import core
 from service.core.prepared import prepare
 
 T = TypeVar("T")
 URL = "local://in-process"
-
-
-def core_batches(request: Request) -> list[core.Joints]:
-    """The request's batches as the core's `Joints` (copies: the session's own copy of the scene changes with updates)."""
-    c = lambda a: None if a is None else np.array(a)  # noqa: E731
-    return [
-        core.Joints(constitution_uid=b.constitution_uid, base_uid=b.base_uid if b.base_uid is not None else -1,
-                    body_ids=c(b.body_ids), edges=c(b.edges), lower=c(b.lower), upper=c(b.upper), strength=c(b.strength),
-                    offset=c(b.offset), prev_coordinate=c(b.prev_coordinate))
-        for b in request.batches
-    ]
-
-
-def result(ev: core.Evaluation) -> Evaluation:
-    return Evaluation(
-        total_energy=ev.total_energy,
-        batches=[BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, coordinate=r.coordinate) for r in ev.batches],
-    )
 
 
 def _call(fn: Callable[[], T]) -> T:
@@ -59,7 +42,7 @@ class LocalSession(StateView):
     def _open(self) -> None:
         r = self.state.request
         bodies = core.Bodies(np.asarray(r.q, np.float64), np.asarray(r.q_prev, np.float64), np.asarray(r.q_ref, np.float64))
-        self._scene = _call(lambda: prepare(bodies, core_batches(r), threads=self.threads))
+        self._scene = _call(lambda: prepare(bodies, core_batches(r, copy=True), threads=self.threads))
         self.state.coordinates = [np.array(c) for c in self._scene.coordinates()]
 
     def _live(self) -> Any:

@@ -30,7 +30,6 @@ PATH = "/v1/sessions"
 # Kinds of messages, client to server and server to client.
 EVALUATE, COMMIT, UPDATE, CLOSE = "evaluate", "commit", "update", "close"
 OPENED, EVALUATION, COMMITTED, UPDATED, ERROR = "opened", "evaluation", "committed", "updated", "error"
-REPLY = {EVALUATE: EVALUATION, COMMIT: COMMITTED, UPDATE: UPDATED}
 UPDATABLE = ("lower", "upper", "strength", "offset")
 """Per-joint fields an `update` may change (one entry per index)."""
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.core.constitution import Array, Curvature
+from service.core.kinematics import component_major
 
 MAX_FACTORS = 64
 """At most this many factors per joint (14 for the revolute joint): `finite_factor` relies on it."""
@@ -33,20 +34,25 @@ def finite_factor(dtype: type) -> float:
 
 
 def gradient(alpha: Array, v: Array, dF: Array) -> Array:
-    """`J^T dF`: (N, ..., 24) in DOF order from vectors `dF` (N, ..., 4, 3) in F; `v` (N, 4, 3)."""
-    n = dF.shape[0]
-    lead = dF.shape[:-2]
-    vb = v.reshape((n,) + (1,) * (len(lead) - 1) + (2, 2, 3))  # (N, .., body, k, c)
-    db = dF.reshape(lead + (2, 2, 3))  # (N, .., body, k, r)
-    out = np.empty(lead + (2, 12), dtype=dF.dtype)
-    # A[r, c] = sum over the body's two blocks k of dF_k[r] v_k[c]: (r x 2) @ (2 x c) per body.
-    np.matmul(db.swapaxes(-1, -2), vb, out=out[..., 3:].reshape(lead + (2, 3, 3)))
-    if alpha.any():
-        a = alpha.reshape(2, 2)  # (body, k)
-        out[..., :3] = a[:, 0, None] * db[..., :, 0, :] + a[:, 1, None] * db[..., :, 1, :]
-    else:
-        out[..., :3] = 0.0
-    return out.reshape(lead + (24,))
+    """`J^T dF`: (N, ..., 24) in DOF order, C order, from vectors `dF` (N, ..., 4, 3) in F; `v` (N, 4, 3)."""
+    n, lead = dF.shape[0], dF.shape[:-2]
+    e = int(np.prod(lead[1:], dtype=np.int64))
+    out = np.empty(lead + (24,), dtype=dF.dtype)
+    out.reshape(n, e, 24)[...] = chain(alpha, v, dF.reshape(n, e, 4, 3))
+    return out
+
+
+def chain(alpha: Array, v: Array, dF: Array) -> Array:
+    """`J^T dF` (N, e, 24) component-major of vectors `dF` (N, e, 4, 3) in F; `v` (N, 4, 3)."""
+    n, e = dF.shape[:2]
+    out = component_major(n, (e, 2, 12), dF.dtype)
+    out[..., 3:] = chain_directions(v, dF).reshape(n, e, 2, 9)
+    a = alpha.reshape(2, 2)
+    db = dF.reshape(n, e, 2, 2, 3)  # (joint, e, body, frame, r)
+    for b in range(2):  # the positions see the points' rows: sum over the body's frames of alpha_k dF_k
+        np.multiply(db[:, :, b, 0], a[b, 0], out=out[:, :, b, :3])
+        out[:, :, b, :3] += db[:, :, b, 1] * a[b, 1]
+    return out.reshape(n, e, 24)
 
 
 def hessian(
@@ -61,11 +67,102 @@ def hessian(
     entry of `out` is finite for sure (no check of `out` needed): |X| below `finite_factor`, so no sum of
     products overflows.
     """
+    if not alpha.any():
+        return _hessian_directions(v, curvature, dE, d2E, out, dx)
     X, sign, Jdx, bound = factors(alpha, v, curvature, dE, d2E, dx)
     # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
     # in the same order: the product is bitwise symmetric without a symmetrising pass.
     np.matmul((X * sign[:, :, None]).transpose(0, 2, 1), X, out=out)
     return Jdx, bool(bound < finite_factor(X.dtype)) and X.shape[1] <= MAX_FACTORS
+
+
+def _hessian_directions(
+    v: Array, curvature: Curvature, dE: Array, d2E: Array, out: Array, dx: Array | None
+) -> tuple[Array, bool]:
+    """`hessian` for frames without points (the revolute joint): the low-rank part as one GEMM of its
+    few factors, the Kronecker part added block by block.
+
+    `J^T (K (x) I_3) J` only touches the entries where a row r of body b's `A` meets the same row r
+    of body b''s: per r the 3 x 3 blocks `W_bb' = sum_kk' K_kk' v_k v_k'^T` over the two bodies' frames.
+    Three of them per body pair instead of 12 factors of 24 entries each in the GEMM (a revolute
+    joint's exact K has no same-body blocks: only W_ij and its transpose). Bitwise symmetric: the GEMM
+    as in `hessian`, `W_ji` is `W_ij` transposed, and each same-body `W_bb` is summed symmetrically.
+    """
+    n = v.shape[0]
+    dtype = v.dtype
+    basis = curvature.basis
+    k0 = basis.shape[1]
+    if curvature.dx_coef is None:  # E'' dx dx^T beside the basis, in the basis' layout
+        both = component_major(n, (k0 + 1, 4, 3), dtype)
+        both[:, :k0], both[:, k0] = basis, dx
+        basis = both
+    Y = chain_directions(v, basis)  # (N, k, 18), component-major
+    lam, Xl, Jdx_A = _low_rank(curvature, Y, k0, dE, d2E)
+    k = Xl.shape[1]
+    # The GEMM reads each joint's factors as a contiguous k x 24 matrix: one transposed copy of the few
+    # factors, translation columns zero.
+    X = np.empty((n, k, 2, 12), dtype=dtype)
+    X[..., :3] = 0.0
+    X[..., 3:] = Xl.reshape(n, k, 2, 9)
+    SX = np.empty_like(X)
+    SX[..., :3] = 0.0
+    SX[..., 3:] = (Xl * np.sign(lam)[:, :, None]).reshape(n, k, 2, 9)
+    np.matmul(SX.reshape(n, k, 24).transpose(0, 2, 1), X.reshape(n, k, 24), out=out)
+    W, same_body = _kron_blocks(v, curvature.kron, dE)
+    H = out.reshape(n, 2, 12, 2, 12)
+    for r in range(3):
+        s = slice(3 + 3 * r, 6 + 3 * r)
+        H[:, 0, s, 1, s] += W[:, 0, 1]
+        H[:, 1, s, 0, s] += W[:, 0, 1].transpose(0, 2, 1)
+        if same_body:
+            H[:, 0, s, 0, s] += W[:, 0, 0]
+            H[:, 1, s, 1, s] += W[:, 1, 1]
+    Jdx = np.zeros((n, 2, 12), dtype=dtype)
+    Jdx[..., 3:] = Jdx_A.reshape(n, 2, 9)
+    big = float(np.finfo(dtype).max) / 4
+    bound = max(np.abs(Xl).max(initial=0.0), 0.0)
+    finite = bool(bound < finite_factor(dtype)) and k <= MAX_FACTORS and bool(np.abs(W).max(initial=0.0) < big)
+    return Jdx.reshape(n, 24), finite
+
+
+def chain_directions(v: Array, dF: Array) -> Array:
+    """`J^T dF` restricted to the `A` entries, for frames without points: (N, e, 18) component-major
+    ((N,) contiguous per entry), entry `(b, r, c)` = sum over body b's frames k of `dF[k, r] v_k[c]`.
+
+    `v` (N, 4, 3), `dF` (N, e, 4, 3), any layouts: every pass runs along the joints.
+    """
+    n, e = dF.shape[:2]
+    out = component_major(n, (e, 2, 3, 3), dF.dtype)
+    vb = v.reshape(n, 1, 2, 2, 1, 3)  # (joint, 1, body, frame, 1, c)
+    db = dF.reshape(n, e, 2, 2, 3, 1)  # (joint, e, body, frame, r, 1)
+    np.multiply(db[:, :, :, 0], vb[:, :, :, 0], out=out)
+    out += db[:, :, :, 1] * vb[:, :, :, 1]
+    return out.reshape(n, e, 18)
+
+
+def _kron_blocks(v: Array, kron: Array, dE: Array) -> tuple[Array, bool]:
+    """`W` (N, 2, 2, 3, 3): `W[:, b, b']` = `sum_kk' dE K_kk' v_k v_k'^T` over body b's frames k and b''s
+    k' (`[:, 1, 0]` left unset: it is `[:, 0, 1]` transposed); and whether the same-body blocks are
+    set (False: K has none, they are left unset)."""
+    n = v.shape[0]
+    dtype = v.dtype
+    K = dE[:, None, None] * kron  # (N, 4, 4)
+    W = component_major(n, (2, 2, 3, 3), dtype)
+    vc = [v[:, k, :, None] for k in range(4)]  # (N, 3, 1): v_k as a column
+    vr = [v[:, k, None, :] for k in range(4)]  # (N, 1, 3): v_k as a row
+    cols = [K[:, a, b, None, None] for a in range(4) for b in range(4)]
+    Kab = lambda a, b: cols[4 * a + b]  # noqa: E731
+    np.multiply(Kab(0, 2) * vc[0] + Kab(1, 2) * vc[1], vr[2], out=W[:, 0, 1])
+    W[:, 0, 1] += (Kab(0, 3) * vc[0] + Kab(1, 3) * vc[1]) * vr[3]
+    same_body = bool(K[:, :2, :2].any() or K[:, 2:, 2:].any())
+    if same_body:
+        for b in range(2):
+            p, q = 2 * b, 2 * b + 1
+            # (v_p v_p^T) K_pp + (v_q v_q^T) K_qq + (v_p v_q^T + v_q v_p^T) K_pq: each term symmetric bitwise.
+            np.multiply(vc[p] * vr[p], Kab(p, p), out=W[:, b, b])
+            W[:, b, b] += (vc[q] * vr[q]) * Kab(q, q)
+            W[:, b, b] += (vc[p] * vr[q] + vc[q] * vr[p]) * Kab(p, q)
+    return W, same_body
 
 
 def factors(
@@ -85,7 +182,7 @@ def factors(
     k0 = basis.shape[1]
     if curvature.dx_coef is None:  # E'' dx dx^T beside the basis
         basis = np.concatenate([basis, dx[:, None]], axis=1)
-    Y = gradient(alpha, v, basis)  # (N, k, 24): the basis chained to DOFs
+    Y = chain(alpha, v, basis)  # (N, k, 24): the basis chained to DOFs, component-major
     lam, Xl, Jdx = _low_rank(curvature, Y, k0, dE, d2E)
     if curvature.kron_factors is None:  # generic: K's own eigen-decomposition
         w, f = np.linalg.eigh(curvature.kron)
@@ -94,13 +191,17 @@ def factors(
         w, f = curvature.kron_factors
         w = dE[:, None] * w
     m, k = w.shape[1], lam.shape[1]
-    # t[e, body, :] = sum over the body's blocks of f_e[block] [alpha, v][block], times sqrt|w_e|.
-    wv = np.empty((n, 2, 2, 4), dtype=dtype)  # (joint, body, block, [alpha, v])
+    # t[e, body, :] = sum over the body's blocks of f_e[block] [alpha, v][block], times sqrt|w_e|:
+    # elementwise along the joints (a 2 x 4 product per joint and body is a BLAS call each).
+    wv = component_major(n, (2, 2, 4), dtype)  # (joint, body, block, [alpha, v])
     wv[..., 0] = alpha.reshape(2, 2)
     wv[..., 1:] = v.reshape(n, 2, 2, 3)
-    f = np.broadcast_to(f, (n, m, 4)) * np.sqrt(np.abs(w))[:, :, None]
-    # Per body one (m x 2) @ (2 x 4) product: (N, body, m, 4), seen as (N, m, body, 4).
-    t = np.matmul(f.reshape(n, m, 2, 2).transpose(0, 2, 1, 3), wv).transpose(0, 2, 1, 3)
+    fs = component_major(n, (m, 2, 2, 1), dtype)
+    np.multiply(np.broadcast_to(f, (n, m, 4)), np.sqrt(np.abs(w))[:, :, None], out=fs.reshape(n, m, 4))
+    t = component_major(n, (m, 2, 4), dtype)
+    np.multiply(fs[:, :, :, 0], wv[:, None, :, 0], out=t)
+    t += fs[:, :, :, 1] * wv[:, None, :, 1]
+    t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
     X = np.zeros((n, k + 3 * m, 2, 12), dtype=dtype)
     X[:, :k] = Xl.reshape(n, k, 2, 12)
     Xk = X[:, k:].reshape(n, m, 3, 2, 12)  # (joint, e, row r, body, DOF)

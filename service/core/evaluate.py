@@ -12,7 +12,7 @@ import numpy as np
 from service.core import assembly, penalty
 from service.core.constitution import Array, Constitution, Curvature
 from service.core.errors import MAX_FAULTS, Fault, check_deadline
-from service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames
+from service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames, take_joints
 from service.core.parallel import run_all
 from service.core.validate import nonfinite_rows, raise_if
 
@@ -75,7 +75,8 @@ def differentiate(
         h_out = None
         if want_h:
             h_out = hessian[pos[0] : pos[-1] + 1] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
-        g, h_finite = _derivatives(c, F[sel], v[sel], x[sel], lo[sel], up[sel], s[sel], h_out, psd)
+        rows = partial(take_joints, sel=sel)
+        g, h_finite = _derivatives(c, rows(F), rows(v), rows(x), rows(lo), rows(up), rows(s), h_out, psd)
         # Only active rows can overflow: checked while they are still in cache (the Hessian only
         # when its factors do not already bound it).
         bad = nonfinite_rows(g) if want_g else []

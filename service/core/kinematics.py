@@ -86,6 +86,15 @@ def component_major(n: int, shape: tuple[int, ...], dtype: type = np.float64) ->
     return np.moveaxis(np.empty(shape + (n,), dtype=dtype), -1, 0)
 
 
+def take_joints(a: NDArray, sel: NDArray[np.intp]) -> NDArray:
+    """Rows `sel` (M,) of `a` (N, ...) in `a`'s layout: a contiguous range is a view, other rows one
+    `take` along the joints' axis (fancy indexing would give C order: a component-major array's
+    kernels would then run along its short trailing axes)."""
+    if sel.shape[0] and sel[-1] - sel[0] + 1 == sel.shape[0]:
+        return a[sel[0] : sel[-1] + 1]
+    return np.moveaxis(np.take(np.moveaxis(a, 0, -1), sel, axis=-1), -1, 0)
+
+
 class BodyTable:
     """Every body's positions, its `A` at `q_ref` and `A`'s increments, and its reference rotation, component-major.
 

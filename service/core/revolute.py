@@ -138,7 +138,7 @@ def _polar_derivatives(F: Array, second: bool) -> tuple[Array, Curvature | None]
     r2 = c * c + s * s
     x_c, x_s = -s / r2, c / r2
     # d cos/dF and d sin/dF, (N, 2, 4, 3): each block is one other block of F, halved.
-    g = np.empty((n, 2, 4, 3), dtype=F.dtype)
+    g = component_major(n, (2, 4, 3), F.dtype)
     g[:, 0, 0], g[:, 0, 1], g[:, 0, 2], g[:, 0, 3] = F[:, 2], F[:, 3], F[:, 0], F[:, 1]
     g[:, 1, 0], g[:, 1, 1], g[:, 1, 2], g[:, 1, 3] = F[:, 3], -F[:, 2], -F[:, 1], F[:, 0]
     g *= 0.5
@@ -150,32 +150,14 @@ def _polar_derivatives(F: Array, second: bool) -> tuple[Array, Curvature | None]
     coef[:, 0, 0] = 2.0 * c * s / r4
     coef[:, 1, 1] = -coef[:, 0, 0]
     coef[:, 0, 1] = coef[:, 1, 0] = (s * s - c * c) / r4
-    kron = x_c[:, None, None] * _COS_PAIRS + x_s[:, None, None] * _SIN_PAIRS  # (N, 4, 4)
-    # K = lambda0 (P_+ - P_-), lambda0 = 1 / (2 r): see the PSD notes; f_e unnormalised (|f_e|^2 = 2).
-    r = np.sqrt(r2)
-    weights = np.empty((n, 4), dtype=F.dtype)
-    weights[:, :2] = (0.25 / r)[:, None]
-    weights[:, 2:] = -weights[:, :2]
-    factors = _kron_vectors(c / r, s / r, np.array([1.0, 1.0, -1.0, -1.0], dtype=F.dtype))
-    return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1),
-                         kron_factors=(weights, factors))
-
-
-def _kron_vectors(cos_t: Array, sin_t: Array, signs: Array) -> Array:
-    """Eigenvectors (N, m, 4) of K's involution J (sign +1 or -1 each, `signs` (m,) or (N, m), m even, the
-    pairs alike), unnormalised: (e_1, sigma R^T e_1) and (e_2, sigma R^T e_2) with R = [[-sin, cos], [-cos, -sin]]
-    the i-j block of J. Rows 0, 2, .. take e_1, rows 1, 3, .. e_2."""
-    n = cos_t.shape[0]
-    sigma = np.broadcast_to(signs, (n, signs.shape[-1]))[:, 0::2]  # (N, m / 2)
-    sc, ss = sigma * cos_t[:, None], sigma * sin_t[:, None]
-    f = np.zeros((n, sigma.shape[1], 2, 4), dtype=cos_t.dtype)  # (joint, pair, e_1 or e_2, block)
-    f[:, :, 0, 0] = 1.0
-    f[:, :, 1, 1] = 1.0
-    np.negative(ss, out=f[:, :, 0, 2])
-    f[:, :, 0, 3] = sc
-    np.negative(sc, out=f[:, :, 1, 2])
-    np.negative(ss, out=f[:, :, 1, 3])
-    return f.reshape(n, -1, 4)
+    # K (N, 4, 4) = x_c COS_PAIRS + x_s SIN_PAIRS, component-major (the assembly reads it entry by entry).
+    kron = component_major(n, (4, 4), F.dtype)
+    kron[...] = 0.0
+    half_c, half_s = 0.5 * x_c, 0.5 * x_s
+    kron[:, 0, 2] = kron[:, 2, 0] = kron[:, 1, 3] = kron[:, 3, 1] = half_c
+    kron[:, 0, 3] = kron[:, 3, 0] = half_s
+    kron[:, 1, 2] = kron[:, 2, 1] = -half_s
+    return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1))
 
 
 class Revolute:
@@ -236,9 +218,6 @@ class Revolute:
                 curvature.kron[bad] = np.ldexp(cv_b.kron, -(eb[:, :, None] + eb[:, None, :]))
                 curvature.basis[bad] = np.ldexp(cv_b.basis, -eb[:, None, :, None])
                 curvature.coef[bad], curvature.dx_coef[bad] = cv_b.coef, cv_b.dx_coef
-                # K = sum_m w_m f_m f_m^T: each block k of the factors scales as K's rows do.
-                curvature.kron_factors[0][bad] = cv_b.kron_factors[0]
-                curvature.kron_factors[1][bad] = np.ldexp(cv_b.kron_factors[1], -eb[:, None, :])
         return dx, curvature
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
@@ -270,7 +249,7 @@ class Revolute:
             out[:, 3] = cos_t[:, 0] * v[:, 0] - sin_t[:, 0] * v[:, 1]
             return out
 
-        basis = np.empty((n, 3, 4, 3), dtype=dE.dtype)
+        basis = component_major(n, (3, 4, 3), dE.dtype)
         basis[:, 0] = 0.5 * (u + sign * J(u))  # h1 = P_sigma u
         basis[:, 1] = 0.5 * (d - sign * J(d))  # h3 = P_-sigma d
         basis[:, 2] = d
@@ -280,9 +259,7 @@ class Revolute:
         # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
         kron = (0.5 * dE)[:, None, None] * curvature.kron
         kron += (mu / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
-        weights = np.repeat((0.25 * mu / r)[:, None], 2, axis=1)
-        vectors = _kron_vectors(cos_t[:, 0, 0], sin_t[:, 0, 0], np.stack([sign[:, 0, 0], sign[:, 0, 0]], axis=1))
-        return Curvature(kron=kron, basis=basis, coef=coef, kron_factors=(weights, vectors), diagonal=True)
+        return Curvature(kron=kron, basis=basis, coef=coef, diagonal=True)
 
 
 REVOLUTE = Revolute()

@@ -5,16 +5,22 @@ Each F_k depends on its body's DOFs only through `alpha_k p + A v_k`, so
 `p_r` (weight alpha_k) and row r of A (weights v_k). `J` is never formed.
 
 The Hessian `E'' g g^T + J^T (E' d2x/dF2) J` is assembled from the structured
-curvature (`constitution.Curvature`) in two parts, each bitwise symmetric by
-construction, straight into the output in DOF order:
+curvature (`constitution.Curvature`), bitwise symmetric by construction, straight into
+the output in DOF order, as signed rank-1 factors `X^T diag(s) X` in one small GEMM per
+joint (the signs are exact, so `(s_e X_ei) X_ej == (s_e X_ej) X_ei`):
 
-- low rank: `Y^T S Y` with `Y = U J` (k x 24) and `S = E' C + E'' t t^T` (k x k): one
-  small GEMM per joint, then averaged with its transpose (for k = 1, `s (y_i y_j)`);
+- low rank: `Y^T S Y` with `Y = U J` (k x 24) and `S = E' C + E'' t t^T` (k x k) as its
+  eigen-factors;
 - Kronecker: `J^T (K (x) I_3) J` touches only the entries that share a row r of
-  `[p | A]`: per r an 8 x 8 (or, with no points, 6 x 6) block `W = w^T K w`.
+  `[p | A]`: per r an 8 x 8 (or, with no points, 6 x 6) block `W = w^T K w`. With points
+  (the prismatic joint) it enters the GEMM as 3 m more factors; without (the revolute
+  joint, whose translation rows and columns are then zero) its 3 x 3 blocks are added after
+  a GEMM of the k low-rank factors alone: 12 factors of 24 entries cost the GEMM more
+  than the 6 block additions (`python -m bench`, "Every joint active").
 
-A revolute joint has no points (alpha = 0): its translation rows and columns
-are never written beyond the zeros of the low-rank part.
+Every pass before the GEMM runs along the joints (component-major arrays, as the frames):
+a per-joint 2 x 3 product or a broadcast over a trailing axis of 3 costs a call or a loop
+per joint.
 """
 
 from __future__ import annotations

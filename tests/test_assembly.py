@@ -108,3 +108,34 @@ def test_finite_flag_is_false_when_products_may_overflow():
 def test_finite_bound_follows_the_dtype():
     assert assembly.finite_factor(np.float64) ** 2 * assembly.MAX_FACTORS <= np.finfo(np.float64).max
     assert 1e18 < assembly.finite_factor(np.float32) < 1e19
+
+
+def test_finite_flag_of_the_revolute_route():
+    """Without points the Kronecker blocks are added after the GEMM: their size enters the flag too."""
+    v, dx, curvature, dE, d2E = inputs(REVOLUTE, 20, 7)
+    out = np.empty((20, 24, 24))
+    with np.errstate(all="ignore"):  # the overflow this test provokes
+        _, finite = assembly.hessian(REVOLUTE.alpha, v * 1e160, curvature, dE, d2E, out)
+    assert not finite and not np.isfinite(out).all()
+    _, finite = assembly.hessian(REVOLUTE.alpha, v, curvature, dE, d2E, out)
+    assert finite and np.isfinite(out).all()
+
+
+@pytest.mark.parametrize("c", [REVOLUTE, PRISMATIC], ids=["revolute", "prismatic"])
+def test_component_major_inputs_give_the_same_bits(c):
+    """The core hands the assembly component-major chunks, the tests C-order arrays: same numbers."""
+    from service.core.kinematics import component_major
+
+    n = 300
+    v, dx, curvature, dE, d2E = inputs(c, n, 8)
+    F = np.random.default_rng(8).normal(size=(n, 4, 3))
+    dx, curvature = c.derivatives(F, second=True)
+    Fc = component_major(n, (4, 3))
+    Fc[...] = F
+    vc = component_major(n, (4, 3))
+    vc[...] = v
+    dxc, curvature_c = c.derivatives(Fc, second=True)
+    a, b = np.empty((n, 24, 24)), np.empty((n, 24, 24))
+    ga, _ = assembly.hessian(c.alpha, v, curvature, dE, d2E, a, dx=dx)
+    gb, _ = assembly.hessian(c.alpha, vc, curvature_c, dE, d2E, b, dx=dxc)
+    assert np.array_equal(a, b) and np.array_equal(ga, gb)

@@ -122,19 +122,19 @@ _STEADY_EXPONENTS = 60
 """A body whose A changes by more than 2^60 in one step takes the direct form for that step."""
 
 
-def _unsafe(F: Array) -> NDArray[np.bool_]:
-    """(N,) True where hypot(cos, sin) leaves `2^+-240` (`2^+-16` in float32), beyond which `r^4` or
-    a product in `_polar_derivatives` would not be a normal number."""
+def _unsafe(F: Array, cs: tuple[Array, Array]) -> NDArray[np.bool_]:
+    """(N,) True where hypot(cos, sin) (`cs` at `F`) leaves `2^+-240` (`2^+-16` in float32), beyond which
+    `r^4` or a product in `_polar_derivatives` would not be a normal number."""
     e = np.finfo(F.dtype).maxexp // 4 - 16
-    c, s = _cos_sin(F)
-    r = np.hypot(c, s)
+    r = np.hypot(*cs)
     return ~((r >= 2.0**-e) & (r <= 2.0**e))
 
 
-def _polar_derivatives(F: Array, second: bool) -> tuple[Array, Curvature | None]:
-    """dx/dF (N, 4, 3) and d2x/dF2: `d(x) = (cos d(sin) - sin d(cos)) / r^2`, `r^2 = cos^2 + sin^2`."""
+def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = None) -> tuple[Array, Curvature | None]:
+    """dx/dF (N, 4, 3) and d2x/dF2: `d(x) = (cos d(sin) - sin d(cos)) / r^2`, `r^2 = cos^2 + sin^2`
+    (`cs`: cos and sin at `F` if already known)."""
     n = F.shape[0]
-    c, s = _cos_sin(F)
+    c, s = _cos_sin(F) if cs is None else cs
     r2 = c * c + s * s
     x_c, x_s = -s / r2, c / r2
     # d cos/dF and d sin/dF, (N, 2, 4, 3): each block is one other block of F, halved.
@@ -206,9 +206,10 @@ class Revolute:
         # frames scaled by a power of two, then scaled back block by block (exact). `r^4` of a
         # frame of 1e-80 is 0 and `r^2` of 1e-160 subnormal: the plain formula would answer inf or
         # a number with few digits. (Only those rows can overflow in the first pass.)
-        bad = np.flatnonzero(_unsafe(F))
+        cs = _cos_sin(F)
+        bad = np.flatnonzero(_unsafe(F, cs))
         with np.errstate(all="ignore") if bad.shape[0] else nullcontext():  # else: the caller's error state
-            dx, curvature = _polar_derivatives(F, second)
+            dx, curvature = _polar_derivatives(F, second, cs)
         if bad.shape[0]:
             e = np.frexp(np.abs(F[bad]).max(axis=2).reshape(-1, 2, 2).max(axis=2))[1]  # (M, 2) per body
             eb = e[:, BLOCK_BODY]  # (M, 4)

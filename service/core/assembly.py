@@ -89,10 +89,11 @@ def _hessian_directions(
     few factors, the Kronecker part added block by block.
 
     `J^T (K (x) I_3) J` only touches the entries where a row r of body b's `A` meets the same row r
-    of body b''s: per r the 3 x 3 blocks `W_bb' = sum_kk' K_kk' v_k v_k'^T` over the two bodies' frames.
-    Three of them per body pair instead of 12 factors of 24 entries each in the GEMM (a revolute
-    joint's exact K has no same-body blocks: only W_ij and its transpose). Bitwise symmetric: the GEMM
-    as in `hessian`, `W_ji` is `W_ij` transposed, and each same-body `W_bb` is summed symmetrically.
+    of body b''s: per r the 3 x 3 blocks `W_bb' = sum_kk' K_kk' v_k v_k'^T` over the two bodies' frames,
+    added entry by entry after a GEMM of the k low-rank factors (12 more factors of 24 entries each
+    cost the GEMM more; a revolute joint's exact K has no same-body blocks: only W_ij and its
+    transpose). Bitwise symmetric: the GEMM as in `hessian`, `W_ji` is `W_ij` transposed, and each
+    same-body `W_bb` is summed symmetrically.
     """
     n = v.shape[0]
     dtype = v.dtype
@@ -115,20 +116,37 @@ def _hessian_directions(
     SX[..., 3:] = (Xl * np.sign(lam)[:, :, None]).reshape(n, k, 2, 9)
     np.matmul(SX.reshape(n, k, 24).transpose(0, 2, 1), X.reshape(n, k, 24), out=out)
     W, same_body = _kron_blocks(v, curvature.kron, dE)
-    H = out.reshape(n, 2, 12, 2, 12)
-    for r in range(3):
-        s = slice(3 + 3 * r, 6 + 3 * r)
-        H[:, 0, s, 1, s] += W[:, 0, 1]
-        H[:, 1, s, 0, s] += W[:, 0, 1].transpose(0, 2, 1)
-        if same_body:
-            H[:, 0, s, 0, s] += W[:, 0, 0]
-            H[:, 1, s, 1, s] += W[:, 1, 1]
+    # Entry by entry along the joints: a 3 x 3 block of 3-element rows costs the iterator a loop per row.
+    H = out.reshape(n, 576)
+    for b, b2 in ((0, 1), (0, 0), (1, 1)) if same_body else ((0, 1),):
+        for a, c, rows, cols in _KRON_ENTRIES[b, b2]:
+            w = W[:, b, b2, a, c]
+            for i, j in zip(rows, cols):
+                H[:, i] += w
+                if b != b2:
+                    H[:, j] += w
     Jdx = np.zeros((n, 2, 12), dtype=dtype)
     Jdx[..., 3:] = Jdx_A.reshape(n, 2, 9)
+    # |LR| <= k finite_factor^2 <= max / 4 and |W| < max / 4: no sum overflows (NaN fails both tests).
     big = float(np.finfo(dtype).max) / 4
-    bound = max(np.abs(Xl).max(initial=0.0), 0.0)
-    finite = bool(bound < finite_factor(dtype)) and k <= MAX_FACTORS and bool(np.abs(W).max(initial=0.0) < big)
+    finite = bool(np.abs(Xl).max(initial=0.0) < finite_factor(dtype)) and k <= MAX_FACTORS
+    finite = finite and bool(np.abs(W).max(initial=0.0) < big)
     return Jdx.reshape(n, 24), finite
+
+
+def _kron_entries(b: int, b2: int) -> list[tuple[int, int, list[int], list[int]]]:
+    """Per entry (a, c) of `W_bb'`: its flat positions in a 24 x 24 Hessian, (row r of body b's A, column
+    a) x (row r of body b''s A, column c) for r = 0, 1, 2, and the transposed positions."""
+    out = []
+    for a in range(3):
+        for c in range(3):
+            i = 12 * b + 3 + 3 * np.arange(3) + a
+            j = 12 * b2 + 3 + 3 * np.arange(3) + c
+            out.append((a, c, (24 * i + j).tolist(), (24 * j + i).tolist()))
+    return out
+
+
+_KRON_ENTRIES = {(b, b2): _kron_entries(b, b2) for b in range(2) for b2 in range(2)}
 
 
 def chain_directions(v: Array, dF: Array) -> Array:

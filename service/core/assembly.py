@@ -31,7 +31,7 @@ from service.core.constitution import Array, Curvature
 from service.core.kinematics import component_major
 
 MAX_FACTORS = 64
-"""At most this many factors per joint (14 for the revolute joint): `finite_factor` relies on it."""
+"""At most this many factors per joint (7 for the prismatic joint): `finite_factor` relies on it."""
 
 
 def finite_factor(dtype: type) -> float:

@@ -83,7 +83,8 @@ def component_major(n: int, shape: tuple[int, ...], dtype: type = np.float64) ->
     trailing 3-vectors (or a batched 3 x 3 matmul) spends its time in per-row loop
     overhead, 5x slower. Elementwise ufuncs keep this layout (order K).
     """
-    return np.moveaxis(np.empty(shape + (n,), dtype=dtype), -1, 0)
+    k = len(shape)
+    return np.empty(shape + (n,), dtype=dtype).transpose((k, *range(k)))  # moveaxis, less its checks (~3 us)
 
 
 def take_joints(a: NDArray, sel: NDArray[np.intp]) -> NDArray:

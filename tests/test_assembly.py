@@ -139,3 +139,19 @@ def test_component_major_inputs_give_the_same_bits(c):
     ga, _ = assembly.hessian(c.alpha, v, curvature, dE, d2E, a, dx=dx)
     gb, _ = assembly.hessian(c.alpha, vc, curvature_c, dE, d2E, b, dx=dxc)
     assert np.array_equal(a, b) and np.array_equal(ga, gb)
+
+
+@pytest.mark.parametrize("mode", ["exact", "psd"])
+@pytest.mark.parametrize("outputs", [("energy", "gradient"), ("energy", "gradient", "hessian")], ids=["EG", "EGH"])
+def test_derivatives_carry_no_negative_zero(mode: str, outputs: tuple[str, ...]):
+    """A negative E' times a zero entry (a revolute joint's translation) would answer -0.0; the answers
+    (JSON text included) show +0.0 there, whatever the sign of E'."""
+    from bench.scenes import make_scene
+    from service.core import evaluate
+
+    ev = evaluate(*make_scene(600, 1.0, seed=5), outputs=outputs, hessian_mode=mode)
+    for b in ev.batches:
+        for a in (b.gradient, b.hessian):
+            if a is not None:
+                assert (a == 0).any()  # the test has zeros to look at
+                assert not np.signbit(a[a == 0]).any()

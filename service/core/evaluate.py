@@ -123,7 +123,7 @@ def _derivatives(
     _, dE, d2E = penalty.derivatives(x, lo, up, s)
     dx, curvature = c.derivatives(F, second=h_out is not None)
     if h_out is None:
-        return dE[:, None] * assembly.gradient(c.alpha, v, dx), True
+        return _gradient(dE, assembly.gradient(c.alpha, v, dx)), True
     if psd:
         projected = c.projected_curvature(dE, curvature)
         if projected is None:  # the generic route: a 12 x 12 eigensolver per joint
@@ -135,7 +135,16 @@ def _derivatives(
         Jdx, finite = assembly.hessian(c.alpha, v, projected, np.ones_like(dE), d2E, h_out, dx=dx)
     else:
         Jdx, finite = assembly.hessian(c.alpha, v, curvature, dE, d2E, h_out)
-    return dE[:, None] * Jdx, finite  # J^T dx comes with the Hessian's factors
+    return _gradient(dE, Jdx), finite  # J^T dx comes with the Hessian's factors
+
+
+def _gradient(dE: Array, Jdx: Array) -> Array:
+    """`E' J^T dx` (M, 24) in C order, its zeros +0.0: a negative E' times a zero of `J^T dx` (a
+    revolute joint's translation entries, an axis-aligned edge's) would answer -0.0."""
+    g = np.empty(Jdx.shape, dtype=Jdx.dtype)
+    np.multiply(dE[:, None], Jdx, out=g)
+    g += 0.0  # -0.0 + 0.0 == +0.0, every other value unchanged
+    return g
 
 
 def collapsed_faults(

@@ -153,5 +153,5 @@ def test_derivatives_carry_no_negative_zero(mode: str, outputs: tuple[str, ...])
     for b in ev.batches:
         for a in (b.gradient, b.hessian):
             if a is not None:
-                assert (a == 0).any()  # the test has zeros to look at
+                assert (a == 0).any() or b.constitution_uid != 670  # the revolute rows have zeros to look at
                 assert not np.signbit(a[a == 0]).any()

@@ -88,10 +88,16 @@ def polar_rotation(a: Array) -> tuple[Array, Array]:
         X_new += np.multiply(C, np.divide(0.5, h, out=h), out=C)
         X -= X_new
         done = np.abs(X, out=X).max(axis=0) <= _NEWTON_TOL
-        if done.all() and R is None and going.shape[0] == m:
-            R, going = X_new, going[:0]  # the common case: all at once, no scatter
-            break
-        if done.any():
+        if R is None and going.shape[0] == m and done.any():
+            # Every body still going, column j body j: this step is R (the common case: all at once, no
+            # scatter). Columns not done yet are overwritten as they converge (or by the SVD below).
+            R = X_new
+            going, X_new = going[~done], X_new[:, ~done]
+        elif done.all():
+            R = np.empty_like(a) if R is None else R
+            R[:, going] = X_new
+            going = going[:0]
+        elif done.any():
             R = np.empty_like(a) if R is None else R
             R[:, going[done]] = X_new[:, done]
             going, X_new = going[~done], X_new[:, ~done]

@@ -351,9 +351,10 @@ def cross(a: Array, b: Array) -> Array:
     return out
 
 
-def to_local(R: Array, w: Array) -> Array:
-    """`R^T w` (N, 3), component-major, for rotations `R` (N, 3, 3) and world vectors `w` (N, 3)."""
-    out = component_major(w.shape[0], (3,), w.dtype)
+def to_local(R: Array, w: Array, out: Array | None = None) -> Array:
+    """`R^T w` (N, 3), component-major (or into `out`, columns contiguous), for rotations `R` (N, 3, 3)
+    and world vectors `w` (N, 3)."""
+    out = component_major(w.shape[0], (3,), w.dtype) if out is None else out
     for c in range(3):
         np.add(R[:, 0, c] * w[:, 0] + R[:, 1, c] * w[:, 1], R[:, 2, c] * w[:, 2], out=out[:, c])
     return out

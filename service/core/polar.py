@@ -70,11 +70,11 @@ def polar_rotation(a: Array) -> tuple[Array, Array]:
         est = np.abs(det) / (nA * nC)
     good = est >= _NEWTON_RATIO
     newton = np.flatnonzero(good)
-    ratio[newton] = est[newton]
     if newton.shape[0] < m:
+        ratio[newton] = est[newton]
         X, C, det, nA, nC = a[:, newton], C[:, newton], det[newton], nA[newton], nC[newton]
     else:
-        X = a.copy()  # updated in place below
+        ratio, X = est, a  # `a` itself is only read
     R = None  # filled as bodies converge; while none has, `going` is every Newton body, in order
     # Each body stops on its own test: its factor never depends on which others it was batched with.
     going = newton
@@ -86,8 +86,8 @@ def polar_rotation(a: Array) -> tuple[Array, Array]:
         X_new = X * (0.5 * g)
         h = np.multiply(g, det, out=nA)
         X_new += np.multiply(C, np.divide(0.5, h, out=h), out=C)
-        X -= X_new
-        done = np.abs(X, out=X).max(axis=0) <= _NEWTON_TOL
+        step = np.subtract(X, X_new, out=None if X is a else X)
+        done = np.abs(step, out=step).max(axis=0) <= _NEWTON_TOL
         if R is None and going.shape[0] == m and done.any():
             # Every body still going, column j body j: this step is R (the common case: all at once, no
             # scatter). Columns not done yet are overwritten as they converge (or by the SVD below).

@@ -18,9 +18,13 @@ def gap(x: Array, lower: Array, upper: Array) -> tuple[Array, Array]:
     """Distance outside the range and the side: `(g >= 0, side in {-1, 0, +1})`."""
     above = x > upper
     below = x < lower
-    g = np.where(above, x - upper, np.where(below, lower - x, 0.0))
     side = above.astype(np.float64) - below.astype(np.float64)
-    return g, side
+    return _distance(x, lower, upper, above, below), side
+
+
+def _distance(x: Array, lower: Array, upper: Array, above: NDArray[np.bool_], below: NDArray[np.bool_]) -> Array:
+    """`gap`'s g (N,) from its sides `above` (x > upper) and `below` (x < lower)."""
+    return np.where(above, x - upper, np.where(below, lower - x, 0.0))
 
 
 def width(lower: Array, upper: Array) -> Array:
@@ -28,7 +32,7 @@ def width(lower: Array, upper: Array) -> Array:
 
 
 def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
-    g, _ = gap(x, lower, upper)
+    g = _distance(x, lower, upper, x > upper, x < lower)  # the side is not needed
     r = g / width(lower, upper)
     return strength * (r * r * r)
 

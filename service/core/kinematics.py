@@ -86,6 +86,16 @@ def component_major(n: int, shape: tuple[int, ...], dtype: type = np.float64) ->
     return np.moveaxis(np.empty(shape + (n,), dtype=dtype), -1, 0)
 
 
+TRANSPOSE_BLOCK = 1024
+"""Bodies `transpose_into` moves at once: a block's rows stay in cache while its columns are written."""
+
+
+def transpose_into(out: Array, a: Array) -> None:
+    """`out[...] = a.T` for `a` (B, K), `out` (K, B), a block of bodies at a time (a fifth faster at 5e4 x 12)."""
+    for s in range(0, a.shape[0], TRANSPOSE_BLOCK):
+        out[:, s : s + TRANSPOSE_BLOCK] = a[s : s + TRANSPOSE_BLOCK].T
+
+
 class BodyTable:
     """Every body's positions, its `A` at `q_ref` and `A`'s increments, and its reference rotation, component-major.
 
@@ -108,7 +118,7 @@ class BodyTable:
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
         dofs = np.empty((3, 12, n), dtype=dtype)  # (q_ref, q_prev, q; DOF; body): one transposed copy per state
         for s in {0, *(s for row in rows for s in STEPS[row])}:
-            dofs[s] = q[s].T
+            transpose_into(dofs[s], q[s])
         self.dofs = dofs  # (state; DOF; body), the unfilled states garbage
         self.positions = dofs[:, :3]  # (state; xyz; body)
         self.states = dofs[:, 3:]  # (state; A[r, c]; body): A itself in each spanned state
@@ -127,7 +137,7 @@ class BodyTable:
 
     def load(self, state: int, q: Array) -> None:
         """Bodies' DOFs `q` (B, 12) into `state` (the rows of A's increments from or to it keep their old values)."""
-        self.dofs[state] = q.T
+        transpose_into(self.dofs[state], q)
         self._norms.pop(("state", state), None)
 
     def increments(self, rows: Iterable[int]) -> None:

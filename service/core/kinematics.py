@@ -332,7 +332,7 @@ def frame_quantities(r: Array | None, A: Array, alpha: Array, v: Array) -> Array
             out += np.multiply(A[:, side, row, 2], v[:, k, 2], out=tmp)
     for k in (2, 3):  # body i is the origin: F_0, F_1 see no position
         if alpha[k]:
-            F[:, k] += alpha[k] * r
+            F[:, k] += r if alpha[k] == 1.0 else alpha[k] * r  # 1.0 * r is r: no pass for it
     return F
 
 

@@ -160,6 +160,8 @@ class BodyTable:
 
     def plain_joints(self, pairs: NDArray[np.intp]) -> NDArray[np.bool_]:
         """(N,) True where both bodies of joints `pairs` (2, N) are `plain` (see `_plain_bodies`)."""
+        if self.plain.all():  # the common case: no gather
+            return np.ones(pairs.shape[1], dtype=bool)
         return np.take(self.plain, pairs).all(axis=0)
 
     def linear_at(self, pairs: NDArray[np.intp], state: int) -> Array:

@@ -23,8 +23,21 @@ def gap(x: Array, lower: Array, upper: Array) -> tuple[Array, Array]:
 
 
 def _distance(x: Array, lower: Array, upper: Array, above: NDArray[np.bool_], below: NDArray[np.bool_]) -> Array:
-    """`gap`'s g (N,) from its sides `above` (x > upper) and `below` (x < lower)."""
-    return np.where(above, x - upper, np.where(below, lower - x, 0.0))
+    """`gap`'s g (N,) from its sides `above` (x > upper) and `below` (x < lower): `x - upper` where
+    above, else `lower - x` where below, else +0 (a NaN `x` too).
+
+    The very bits `np.where` would select, blended with integer masks: `np.where` branches per element
+    and mispredicts on the random sides of a scene with every joint out of range (3x slower there).
+    """
+    a, b = np.asarray(np.subtract(x, upper)), np.asarray(np.subtract(lower, x))
+    if a.dtype.kind != "f" or b.dtype != a.dtype:
+        return np.where(above, a, np.where(below, b, 0.0))
+    bits = np.dtype(f"i{a.dtype.itemsize}")
+    take_a = np.negative(above, dtype=bits)  # all ones where above, else 0
+    take_b = np.negative(below & ~above, dtype=bits)
+    g = np.bitwise_and(a.view(bits), take_a, out=a.view(bits))
+    g |= np.bitwise_and(b.view(bits), take_b, out=b.view(bits))
+    return a
 
 
 def width(lower: Array, upper: Array) -> Array:

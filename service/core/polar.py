@@ -18,20 +18,26 @@ _NEWTON_TOL = 1e-8
 U (I + E^2 / 2 + O(E^3)), so the step just taken left an error of about half its square (< 1e-16)."""
 
 
-def _cofactors_t(a: Array) -> tuple[Array, Array]:
+def _cofactors_t(a: Array, out: Array | None = None) -> tuple[Array, Array]:
     """Cofactors and determinant in component-major layout: `a` (9, M) -> `C` (9, M), det (M,).
 
     Row i of the cofactor matrix is row (i+1) x row (i+2); contiguous (M,) components
-    make every product a SIMD pass (strided views of (M, 3, 3) are 10x slower).
+    make every product a SIMD pass (strided views of (M, 3, 3) are 10x slower). Each
+    entry is written in place (`out`, else a new array): no copy of a temporary.
     """
-    C = np.empty_like(a)
+    C = np.empty_like(a) if out is None else out
+    tmp = np.empty_like(a[0])
     for r in range(3):
         u0, u1, u2 = a[3 * ((r + 1) % 3) : 3 * ((r + 1) % 3) + 3]
         w0, w1, w2 = a[3 * ((r + 2) % 3) : 3 * ((r + 2) % 3) + 3]
-        C[3 * r] = u1 * w2 - u2 * w1
-        C[3 * r + 1] = u2 * w0 - u0 * w2
-        C[3 * r + 2] = u0 * w1 - u1 * w0
-    return C, a[0] * C[0] + a[1] * C[1] + a[2] * C[2]
+        for k, (p, q, s, t) in enumerate(((u1, w2, u2, w1), (u2, w0, u0, w2), (u0, w1, u1, w0))):
+            c = C[3 * r + k]
+            np.multiply(p, q, out=c)
+            c -= np.multiply(s, t, out=tmp)
+    det = np.multiply(a[0], C[0])
+    det += np.multiply(a[1], C[1], out=tmp)
+    det += np.multiply(a[2], C[2], out=tmp)
+    return C, det
 
 
 def _frobenius_t(a: Array) -> Array:
@@ -64,31 +70,41 @@ def polar_rotation(a: Array) -> tuple[Array, Array]:
         est = np.abs(det) / (nA * nC)
     good = est >= _NEWTON_RATIO
     newton = np.flatnonzero(good)
-    ratio[newton] = est[newton]
     if newton.shape[0] < m:
+        ratio[newton] = est[newton]
         X, C, det, nA, nC = a[:, newton], C[:, newton], det[newton], nA[newton], nC[newton]
     else:
-        X = a.copy()  # updated in place below
+        ratio, X = est, a  # `a` itself is only read
     R = None  # filled as bodies converge; while none has, `going` is every Newton body, in order
     # Each body stops on its own test: its factor never depends on which others it was batched with.
     going = newton
     for _ in range(_NEWTON_STEPS):
-        g = np.sqrt(nC / (np.abs(det) * nA))  # sqrt(|X^-1|_F / |X|_F)
+        # In place where a value is not needed again (C, the step in X): the same operations.
+        g = np.abs(det)
+        g *= nA
+        g = np.sqrt(np.divide(nC, g, out=g), out=g)  # sqrt(|X^-1|_F / |X|_F)
         X_new = X * (0.5 * g)
-        X_new += C * (0.5 / (g * det))
-        X -= X_new
-        done = np.abs(X, out=X).max(axis=0) <= _NEWTON_TOL
-        if done.all() and R is None and going.shape[0] == m:
-            R, going = X_new, going[:0]  # the common case: all at once, no scatter
-            break
-        if done.any():
+        h = np.multiply(g, det, out=nA)
+        X_new += np.multiply(C, np.divide(0.5, h, out=h), out=C)
+        step = np.subtract(X, X_new, out=None if X is a else X)
+        done = np.abs(step, out=step).max(axis=0) <= _NEWTON_TOL
+        if R is None and going.shape[0] == m and done.any():
+            # Every body still going, column j body j: this step is R (the common case: all at once, no
+            # scatter). Columns not done yet are overwritten as they converge (or by the SVD below).
+            R = X_new
+            going, X_new = going[~done], X_new[:, ~done]
+        elif done.all():
+            R = np.empty_like(a) if R is None else R
+            R[:, going] = X_new
+            going = going[:0]
+        elif done.any():
             R = np.empty_like(a) if R is None else R
             R[:, going[done]] = X_new[:, done]
             going, X_new = going[~done], X_new[:, ~done]
         if going.shape[0] == 0:
             break
         X = X_new
-        C, det = _cofactors_t(X)
+        C, det = _cofactors_t(X, out=C if C.shape == X.shape else None)
         nA = _frobenius_t(X)
         nC = _frobenius_t(C)
     R = np.empty_like(a) if R is None else R

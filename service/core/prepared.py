@@ -34,7 +34,6 @@ from service.core.kinematics import (
     CarefulFrames,
     careful_frames,
     frame_quantities,
-    _plain_bodies,
     relative_position,
     state_frames,
 )
@@ -102,7 +101,7 @@ class PreparedScene:
         self._table = table
         self._batches = batches
         self._threads = threads
-        self._dtype = table.linear.dtype
+        self._dtype = table.dtype
         self.n_bodies: int = table.dofs.shape[2]
         self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches]
 
@@ -194,11 +193,9 @@ class PreparedScene:
         `q_prev`), the increments `rows` of `A` to it (`STEP` from q_prev, `TOTAL_STEP` from q_ref),
         and which bodies the common frame path serves over the increments `steps` (`table.plain`)."""
         t = self._table
-        t.dofs[2] = q.T
-        for row in rows:
-            a, b = STEPS[row]
-            np.subtract(t.dofs[b, 3:], t.dofs[a, 3:], out=t.linear[row])
-        t.plain = _plain_bodies(t.states, t.linear, tuple(steps))
+        t.load(2, q)
+        t.increments(rows)
+        t.plain = t.plain_over(steps)
 
     @staticmethod
     def _x_rows(jb: _Batch) -> tuple[int, ...]:
@@ -286,7 +283,7 @@ class PreparedScene:
             for jb, (F_q, x) in zip(self._batches, new):
                 if not jb.c.telescopes:
                     jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (origin 1)
-            self._table.dofs[1] = self._table.dofs[2]
+            self._table.load(1, self._table.dofs[2].T)
             return [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
 
     def _from_ref(self, jb: _Batch) -> tuple[Array, Array, CarefulFrames | None]:
@@ -403,14 +400,15 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
 def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog, own: bool) -> _Batch:
     c = CONSTITUTIONS[joints.constitution_uid]
     pairs = np.ascontiguousarray(joints.body_ids.T)  # (2, N): contiguous indices gather 30% faster
-    dtype = table.linear.dtype
+    dtype = table.dtype
     points = bool(c.alpha.any())
     rows = _increments(c)
     A_ref = table.linear_of(pairs, REF)
     origin = STEPS[rows[-1]][0]
     states = {0, origin} | {s for row in rows[:-1] for s in STEPS[row]}
-    r = {s: relative_position(table.positions_of(pairs, s)) for s in states} if points else {}
-    p_ref = table.positions_of(pairs, 0) if points else None
+    p = {s: table.positions_of(pairs, s) for s in states} if points else {}
+    r = {s: relative_position(ps) for s, ps in p.items()}
+    p_ref = p.get(0)
     v = c.local_vectors(joints.edges.astype(dtype, copy=False), p_ref, A_ref, table.rotations(pairs))
     F_ref = frame_quantities(r.get(0), A_ref, c.alpha, v)
     # The steps before the last one (q_ref -> q_prev) and where each starts.

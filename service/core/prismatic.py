@@ -51,7 +51,7 @@ class Prismatic:
         for r in range(3):
             v[:, 0::2, r] = c[r]
         for side in range(2):
-            v[:, 2 * side + 1] = to_local(R_ref[:, side], t)  # t_k = R_k^T t
+            to_local(R_ref[:, side], t, out=v[:, 2 * side + 1])  # t_k = R_k^T t
         return v
 
     def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:

@@ -179,7 +179,7 @@ class Revolute:
         b = unit(cross(t, n))
         v = component_major(t.shape[0], (4, 3), t.dtype)
         for k, (side, w) in enumerate(((0, b), (0, n), (1, b), (1, n))):
-            v[:, k] = to_local(R_ref[:, side], w)  # body-local b_k = R_k^T b
+            to_local(R_ref[:, side], w, out=v[:, k])  # body-local b_k = R_k^T b
         return v
 
     def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:

@@ -39,15 +39,6 @@ def finite_factor(dtype: type) -> float:
     return float(np.sqrt(np.finfo(dtype).max / MAX_FACTORS))
 
 
-def gradient(alpha: Array, v: Array, dF: Array) -> Array:
-    """`J^T dF`: (N, ..., 24) in DOF order, C order, from vectors `dF` (N, ..., 4, 3) in F; `v` (N, 4, 3)."""
-    n, lead = dF.shape[0], dF.shape[:-2]
-    e = int(np.prod(lead[1:], dtype=np.int64))
-    out = np.empty(lead + (24,), dtype=dF.dtype)
-    out.reshape(n, e, 24)[...] = chain(alpha, v, dF.reshape(n, e, 4, 3))
-    return out
-
-
 def chain(alpha: Array, v: Array, dF: Array) -> Array:
     """`J^T dF` (N, e, 24) component-major of vectors `dF` (N, e, 4, 3) in F; `v` (N, 4, 3)."""
     n, e = dF.shape[:2]

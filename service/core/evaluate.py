@@ -75,17 +75,16 @@ def differentiate(
         h_out = None
         if want_h:
             h_out = hessian[pos[0] : pos[-1] + 1] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
+        g_out = gradient[pos[0] : pos[-1] + 1] if want_g and contiguous else np.empty((sel.shape[0], 24), dtype)
         rows = partial(take_joints, sel=sel)
-        g, h_finite = _derivatives(c, rows(F), rows(v), rows(x), rows(lo), rows(up), rows(s), h_out, psd)
+        h_finite = _derivatives(c, rows(F), rows(v), rows(x), rows(lo), rows(up), rows(s), g_out, h_out, psd)
         # Only active rows can overflow: checked while they are still in cache (the Hessian only
         # when its factors do not already bound it).
-        bad = nonfinite_rows(g) if want_g else []
+        bad = nonfinite_rows(g_out) if want_g else []
         if want_h and not h_finite:
             bad += nonfinite_rows(h_out)
-        if want_g and contiguous:
-            gradient[pos[0] : pos[-1] + 1] = g
-        elif want_g:
-            gradient[pos] = g
+        if want_g and not contiguous:
+            gradient[pos] = g_out
         if want_h and not contiguous:
             hessian[pos] = h_out
         return [int(sel[i]) for i in bad]
@@ -116,14 +115,24 @@ def differentiate(
 
 
 def _derivatives(
-    c: Constitution, F: Array, v: Array, x: Array, lo: Array, up: Array, s: Array, h_out: Array | None, psd: bool
-) -> tuple[Array, bool]:
-    """Gradient (M, 24) of active joints; their Hessian (M, 24, 24) into `h_out` if given, and whether it
-    is finite for sure (False: check it)."""
+    c: Constitution,
+    F: Array,
+    v: Array,
+    x: Array,
+    lo: Array,
+    up: Array,
+    s: Array,
+    g_out: Array,
+    h_out: Array | None,
+    psd: bool,
+) -> bool:
+    """Gradient (M, 24) of active joints into `g_out`; their Hessian (M, 24, 24) into `h_out` if given;
+    whether the Hessian is finite for sure (False: check it)."""
     _, dE, d2E = penalty.derivatives(x, lo, up, s)
     dx, curvature = c.derivatives(F, second=h_out is not None)
     if h_out is None:
-        return _gradient(dE, assembly.gradient(c.alpha, v, dx)), True
+        _gradient(dE, assembly.chain(c.alpha, v, dx[:, None])[:, 0], g_out)
+        return True
     if psd:
         projected = c.projected_curvature(dE, curvature)
         if projected is None:  # the generic route: a 12 x 12 eigensolver per joint
@@ -135,16 +144,15 @@ def _derivatives(
         Jdx, finite = assembly.hessian(c.alpha, v, projected, np.ones_like(dE), d2E, h_out, dx=dx)
     else:
         Jdx, finite = assembly.hessian(c.alpha, v, curvature, dE, d2E, h_out)
-    return _gradient(dE, Jdx), finite  # J^T dx comes with the Hessian's factors
+    _gradient(dE, Jdx, g_out)  # J^T dx comes with the Hessian's factors
+    return finite
 
 
-def _gradient(dE: Array, Jdx: Array) -> Array:
-    """`E' J^T dx` (M, 24) in C order, its zeros +0.0: a negative E' times a zero of `J^T dx` (a
+def _gradient(dE: Array, Jdx: Array, out: Array) -> None:
+    """`E' J^T dx` (M, 24) into `out`, its zeros +0.0: a negative E' times a zero of `J^T dx` (a
     revolute joint's translation entries, an axis-aligned edge's) would answer -0.0."""
-    g = np.empty(Jdx.shape, dtype=Jdx.dtype)
-    np.multiply(dE[:, None], Jdx, out=g)
-    g += 0.0  # -0.0 + 0.0 == +0.0, every other value unchanged
-    return g
+    np.multiply(dE[:, None], Jdx, out=out)
+    out += 0.0  # -0.0 + 0.0 == +0.0, every other value unchanged
 
 
 def collapsed_faults(

@@ -66,10 +66,10 @@ def hessian(
     """
     if not alpha.any():
         return _hessian_directions(v, curvature, dE, d2E, out, dx)
-    X, sign, Jdx, bound = factors(alpha, v, curvature, dE, d2E, dx)
+    X, SX, Jdx, bound = factors(alpha, v, curvature, dE, d2E, dx)
     # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
     # in the same order: the product is bitwise symmetric without a symmetrising pass.
-    np.matmul((X * sign[:, :, None]).transpose(0, 2, 1), X, out=out)
+    np.matmul(SX.transpose(0, 2, 1), X, out=out)
     return Jdx, bool(bound < finite_factor(X.dtype)) and X.shape[1] <= MAX_FACTORS
 
 
@@ -98,20 +98,18 @@ def _hessian_directions(
     lam, Xl, Jdx_A = _low_rank(curvature, Y, k0, dE, d2E)
     k = Xl.shape[1]
     # The GEMM reads each joint's factors as a contiguous k x 24 matrix: one transposed copy of the few
-    # factors, translation columns zero.
-    X = np.empty((n, k, 2, 12), dtype=dtype)
-    X[..., :3] = 0.0
+    # factors, translation columns zero, and S X from it in the same layout.
+    X = np.zeros((n, k, 2, 12), dtype=dtype)
     X[..., 3:] = Xl.reshape(n, k, 2, 9)
-    SX = np.empty_like(X)
-    SX[..., :3] = 0.0
-    SX[..., 3:] = (Xl * np.sign(lam)[:, :, None]).reshape(n, k, 2, 9)
-    np.matmul(SX.reshape(n, k, 24).transpose(0, 2, 1), X.reshape(n, k, 24), out=out)
-    W, same_body = _kron_blocks(v, curvature.kron, dE)
+    X = X.reshape(n, k, 24)
+    SX = np.multiply(X, np.sign(lam)[:, :, None])
+    np.matmul(SX.transpose(0, 2, 1), X, out=out)
+    W = _kron_blocks(v, curvature.kron, dE)
     # Entry by entry along the joints: a 3 x 3 block of 3-element rows costs the iterator a loop per row.
     H = out.reshape(n, 576)
-    for b, b2 in ((0, 1), (0, 0), (1, 1)) if same_body else ((0, 1),):
+    for (b, b2), block in W.items():
         for a, c, rows, cols in _KRON_ENTRIES[b, b2]:
-            w = W[:, b, b2, a, c]
+            w = block[:, a, c]
             for i, j in zip(rows, cols):
                 H[:, i] += w
                 if b != b2:
@@ -121,7 +119,7 @@ def _hessian_directions(
     # |LR| <= k finite_factor^2 <= max / 4 and |W| < max / 4: no sum overflows (NaN fails both tests).
     big = float(np.finfo(dtype).max) / 4
     finite = bool(np.abs(Xl).max(initial=0.0) < finite_factor(dtype)) and k <= MAX_FACTORS
-    finite = finite and bool(np.abs(W).max(initial=0.0) < big)
+    finite = finite and all(bool(np.abs(block).max(initial=0.0) < big) for block in W.values())
     return Jdx.reshape(n, 24), finite
 
 
@@ -155,36 +153,36 @@ def chain_directions(v: Array, dF: Array) -> Array:
     return out.reshape(n, e, 18)
 
 
-def _kron_blocks(v: Array, kron: Array, dE: Array) -> tuple[Array, bool]:
-    """`W` (N, 2, 2, 3, 3): `W[:, b, b']` = `sum_kk' dE K_kk' v_k v_k'^T` over body b's frames k and b''s
-    k' (`[:, 1, 0]` left unset: it is `[:, 0, 1]` transposed); and whether the same-body blocks are
-    set (False: K has none, they are left unset)."""
+def _kron_blocks(v: Array, kron: Array, dE: Array) -> dict[tuple[int, int], Array]:
+    """The nonzero blocks `W_bb'` (N, 3, 3) = `sum_kk' dE K_kk' v_k v_k'^T` over body b's frames k and
+    b''s k', by (b, b'): (0, 1) always (`W_10` is its transpose), (0, 0) and (1, 1) where K has
+    same-body entries. Component-major."""
     n = v.shape[0]
     dtype = v.dtype
     K = dE[:, None, None] * kron  # (N, 4, 4)
-    W = component_major(n, (2, 2, 3, 3), dtype)
     vc = [v[:, k, :, None] for k in range(4)]  # (N, 3, 1): v_k as a column
     vr = [v[:, k, None, :] for k in range(4)]  # (N, 1, 3): v_k as a row
     cols = [K[:, a, b, None, None] for a in range(4) for b in range(4)]
     Kab = lambda a, b: cols[4 * a + b]  # noqa: E731
-    np.multiply(Kab(0, 2) * vc[0] + Kab(1, 2) * vc[1], vr[2], out=W[:, 0, 1])
-    W[:, 0, 1] += (Kab(0, 3) * vc[0] + Kab(1, 3) * vc[1]) * vr[3]
-    same_body = bool(K[:, :2, :2].any() or K[:, 2:, 2:].any())
-    if same_body:
+    W = {(0, 1): component_major(n, (3, 3), dtype)}
+    np.multiply(Kab(0, 2) * vc[0] + Kab(1, 2) * vc[1], vr[2], out=W[0, 1])
+    W[0, 1] += (Kab(0, 3) * vc[0] + Kab(1, 3) * vc[1]) * vr[3]
+    if K[:, :2, :2].any() or K[:, 2:, 2:].any():
         for b in range(2):
             p, q = 2 * b, 2 * b + 1
             # (v_p v_p^T) K_pp + (v_q v_q^T) K_qq + (v_p v_q^T + v_q v_p^T) K_pq: each term symmetric bitwise.
-            np.multiply(vc[p] * vr[p], Kab(p, p), out=W[:, b, b])
-            W[:, b, b] += (vc[q] * vr[q]) * Kab(q, q)
-            W[:, b, b] += (vc[p] * vr[q] + vc[q] * vr[p]) * Kab(p, q)
-    return W, same_body
+            W[b, b] = component_major(n, (3, 3), dtype)
+            np.multiply(vc[p] * vr[p], Kab(p, p), out=W[b, b])
+            W[b, b] += (vc[q] * vr[q]) * Kab(q, q)
+            W[b, b] += (vc[p] * vr[q] + vc[q] * vr[p]) * Kab(p, q)
+    return W
 
 
 def factors(
     alpha: Array, v: Array, curvature: Curvature, dE: Array, d2E: Array, dx: Array | None = None
 ) -> tuple[Array, Array, Array, float]:
-    """Factors `X` (N, p, 24) and signs (N, p) with `X^T diag(sign) X` the Hessian of `hessian`; `J^T dx`
-    (N, 24); max |X| (NaN if any entry is NaN).
+    """Factors `X` (N, p, 24) and `S X` (N, p, 24), `S` the diagonal of their signs, with `X^T S X` the
+    Hessian of `hessian`; `J^T dx` (N, 24); max |X| (NaN if any entry is NaN).
 
     Low rank: `S = E' C + E'' t t^T` (or `E'' dx dx^T` beside it) as `sum_e lam_e z_e z_e^T` over
     combinations `z_e` of the chained basis. Kronecker: `E' K = sum_e w_e f_e f_e^T`, so
@@ -229,7 +227,8 @@ def factors(
     np.sign(lam, out=sign[:, :k])
     sign[:, k:].reshape(n, m, 3)[...] = np.sign(w)[:, :, None]
     bound = max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0))  # X holds these values and zeros
-    return X.reshape(n, k + 3 * m, 24), sign, Jdx, bound
+    X = X.reshape(n, k + 3 * m, 24)
+    return X, X * sign[:, :, None], Jdx, bound
 
 
 def _low_rank(curvature: Curvature, Y: Array, k0: int, dE: Array, d2E: Array) -> tuple[Array, Array, Array]:

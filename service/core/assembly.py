@@ -159,15 +159,17 @@ def _kron_blocks(v: Array, kron: Array, dE: Array) -> dict[tuple[int, int], Arra
     same-body entries. Component-major."""
     n = v.shape[0]
     dtype = v.dtype
-    K = dE[:, None, None] * kron  # (N, 4, 4)
     vc = [v[:, k, :, None] for k in range(4)]  # (N, 3, 1): v_k as a column
     vr = [v[:, k, None, :] for k in range(4)]  # (N, 1, 3): v_k as a row
-    cols = [K[:, a, b, None, None] for a in range(4) for b in range(4)]
-    Kab = lambda a, b: cols[4 * a + b]  # noqa: E731
+
+    def Kab(a: int, b: int) -> Array:
+        """`dE K_ab` (N, 1, 1), formed where used (8 of the 16 entries for an exact revolute K)."""
+        return (dE * kron[:, a, b])[:, None, None]
+
     W = {(0, 1): component_major(n, (3, 3), dtype)}
     np.multiply(Kab(0, 2) * vc[0] + Kab(1, 2) * vc[1], vr[2], out=W[0, 1])
     W[0, 1] += (Kab(0, 3) * vc[0] + Kab(1, 3) * vc[1]) * vr[3]
-    if K[:, :2, :2].any() or K[:, 2:, 2:].any():
+    if kron[:, :2, :2].any() or kron[:, 2:, 2:].any():
         for b in range(2):
             p, q = 2 * b, 2 * b + 1
             # (v_p v_p^T) K_pp + (v_q v_q^T) K_qq + (v_p v_q^T + v_q v_p^T) K_pq: each term symmetric bitwise.

@@ -139,9 +139,8 @@ def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = 
     x_c, x_s = -s / r2, c / r2
     # d cos/dF and d sin/dF, (N, 2, 4, 3): each block is one other block of F, halved.
     g = component_major(n, (2, 4, 3), F.dtype)
-    g[:, 0, 0], g[:, 0, 1], g[:, 0, 2], g[:, 0, 3] = F[:, 2], F[:, 3], F[:, 0], F[:, 1]
-    g[:, 1, 0], g[:, 1, 1], g[:, 1, 2], g[:, 1, 3] = F[:, 3], -F[:, 2], -F[:, 1], F[:, 0]
-    g *= 0.5
+    for (e, k), (j, half) in zip(np.ndindex(2, 4), ((2, 0.5), (3, 0.5), (0, 0.5), (1, 0.5), (3, 0.5), (2, -0.5), (1, -0.5), (0, 0.5))):
+        np.multiply(F[:, j], half, out=g[:, e, k])
     dx = x_c[:, None, None] * g[:, 0] + x_s[:, None, None] * g[:, 1]
     if not second:
         return dx, None

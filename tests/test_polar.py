@@ -82,3 +82,46 @@ def test_kept_norms_follow_each_load():
     table.load(1, table.dofs[2].T)  # q_prev := q
     table.increments(rows)
     assert np.array_equal(table.plain_over(rows), _plain_bodies(table.states, table.linear, rows))
+
+
+@pytest.mark.parametrize("svd", [False, True])
+@pytest.mark.parametrize("seed", range(3))
+def test_factors_of_the_used_bodies_only_and_every_ratio(seed, svd):
+    """`used`: the read bodies' factors bit for bit as without it, 0 for the others, and every ratio
+    as without it (a singular A_ref is refused whether a joint reads it or not)."""
+    rng = np.random.default_rng(10 + seed)
+    a = _mixed(rng, 400, svd)
+    used = rng.random(400) < 0.3
+    with np.errstate(all="ignore"):
+        R, ratio = polar_rotation(a)
+        R_used, ratio_used = polar_rotation(a, used)
+    assert ratio_used.tobytes() == ratio.tobytes()
+    assert R_used[:, used].tobytes() == R[:, used].tobytes()
+    # Not taken (0) where Newton's iteration would have; the few the SVD takes for their ratio keep it.
+    unused = R_used[:, ~used]
+    zero, same = ~unused.any(axis=0), (unused == R[:, ~used]).all(axis=0)
+    assert (zero | same).all() and zero.any()
+
+
+def test_unused_bodies_change_no_bit_and_a_singular_one_is_still_refused():
+    """A scene padded with bodies no joint reads answers every bit as without them; one of them
+    with a singular A_ref is a 422 naming it, as before."""
+    from bench.scenes import make_scene
+    from service.core import InputError, evaluate
+
+    bodies, batches = make_scene(400, 0.5, seed=3)
+    B = bodies.q.shape[0]
+    rng = np.random.default_rng(3)
+    extra = np.concatenate([rng.normal(size=(5 * B, 3)), np.tile(np.eye(3).ravel(), (5 * B, 1))], axis=1)
+    padded = Bodies(*(np.concatenate([a, extra]) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
+    for mode in ("exact", "psd"):
+        want, got = evaluate(bodies, batches, hessian_mode=mode), evaluate(padded, batches, hessian_mode=mode)
+        assert got.total_energy == want.total_energy
+        for g, w in zip(got.batches, want.batches):
+            for f in ("x", "energy", "gradient", "hessian"):
+                assert getattr(g, f).tobytes() == getattr(w, f).tobytes()
+    q_ref = padded.q_ref.copy()
+    q_ref[B + 7, 3:] = np.diag([1.0, 1.0, 0.0]).ravel()  # an unused body, singular
+    with pytest.raises(InputError) as e:
+        evaluate(Bodies(padded.q, padded.q_prev, q_ref), batches)
+    assert [f.loc for f in e.value.faults] == [("bodies", "q_ref", B + 7)]

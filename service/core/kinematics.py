@@ -121,8 +121,11 @@ class BodyTable:
         dtype: type = np.float64,
         threads: int = 1,
         rows: Iterable[int] = STEPS,
+        used: NDArray[np.bool_] | None = None,
     ) -> None:
-        """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage)."""
+        """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage).
+        `used` (B,): the bodies some joint reads; only theirs are sure to have a polar factor, every
+        body has its conditioning ratio (`polar_rotation`)."""
         n = bodies.q.shape[0]
         rows = tuple(rows)
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
@@ -140,8 +143,9 @@ class BodyTable:
         self.plain = self.plain_over(rows)
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
-        parts = np.array_split(A_ref, threads, axis=1) if threads > 1 else [A_ref]
-        parts = run_all([partial(polar_rotation, a) for a in parts], threads)
+        split = (lambda a: np.array_split(a, threads, axis=-1)) if threads > 1 else (lambda a: [a])  # noqa: E731
+        masks = [None] * threads if used is None else split(used)
+        parts = run_all([partial(polar_rotation, a, u) for a, u in zip(split(A_ref), masks)], threads)
         R, self.ratio = parts[0] if len(parts) == 1 else (np.concatenate(a, axis=-1) for a in zip(*parts))
         self.rotation = R.astype(dtype, copy=False)  # (9, B)
 

@@ -49,10 +49,13 @@ def _frobenius_t(a: Array) -> Array:
     return np.sqrt(s, out=s)
 
 
-def polar_rotation(a: Array) -> tuple[Array, Array]:
+def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Array, Array]:
     """Orthogonal polar factor `R` (9, M) of each `A` and its conditioning ratio `s_min / s_max` (M,).
 
-    Component-major in and out: `a[3 r + c]` is `A[r, c]` of all M matrices.
+    Component-major in and out: `a[3 r + c]` is `A[r, c]` of all M matrices. `used` (M,): Newton's
+    iteration only for these (the bodies some joint reads; the others' columns of `R` are 0 unless
+    the SVD below took them), the ratio of every one, exactly as without `used` (a singular `A_ref`
+    is refused whether a joint reads it or not).
 
     Why not an SVD for every body: it was 95% of an energy-only evaluation. Newton's
     iteration `X <- (g X + X^-T / g) / 2` (Frobenius scaling `g`), with cofactor inverses
@@ -69,13 +72,14 @@ def polar_rotation(a: Array) -> tuple[Array, Array]:
         nC = _frobenius_t(C)
         est = np.abs(det) / (nA * nC)
     good = est >= _NEWTON_RATIO
-    newton = np.flatnonzero(good)
-    if newton.shape[0] < m:
-        ratio[newton] = est[newton]
+    subset = used is not None and not used.all()
+    newton = np.flatnonzero(good & used if subset else good)
+    R = np.zeros_like(a) if subset else None  # filled as bodies converge; None: `going` is every body, in order
+    if subset or newton.shape[0] < m:
+        ratio[good] = est[good]  # a Newton body's ratio is its estimate, read or not
         X, C, det, nA, nC = a[:, newton], C[:, newton], det[newton], nA[newton], nC[newton]
     else:
         ratio, X = est, a  # `a` itself is only read
-    R = None  # filled as bodies converge; while none has, `going` is every Newton body, in order
     # Each body stops on its own test: its factor never depends on which others it was batched with.
     going = newton
     for _ in range(_NEWTON_STEPS):

@@ -381,9 +381,9 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     used = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
     # q_prev is always in the table: the state a commit replaces.
     rows = {PREV_STEP} | {row for c in used for row in _increments(c)[:-1]}
-    with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
-        table = BodyTable(bodies, dtype, threads, rows=rows)
     n_bodies = bodies.q_ref.shape[0]
+    with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
+        table = BodyTable(bodies, dtype, threads, rows=rows, used=_bodies_used(batches, n_bodies))
     log = FaultLog()
     log.add(check_rotations(table.ratio))
     for b, joints in enumerate(batches):
@@ -395,6 +395,17 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
         prepared = [_prepare_batch(b, j, table, log, own) for b, j in enumerate(batches)]
     log.raise_if_any()
     return PreparedScene(table, prepared, threads)
+
+
+def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
+    """(B,) True for the bodies some joint of `batches` reads (indices out of range are faults of
+    `check_joints`, not counted here)."""
+    used = np.zeros(n_bodies, dtype=bool)
+    for j in batches:
+        ids = np.asarray(j.body_ids).ravel()
+        if ids.dtype.kind in "iu":
+            used[ids[(ids >= 0) & (ids < n_bodies)]] = True
+    return used
 
 
 def _prepare_batch(b: int, joints: Joints, table: BodyTable, log: FaultLog, own: bool) -> _Batch:

@@ -88,12 +88,7 @@ def _hessian_directions(
     """
     n = v.shape[0]
     dtype = v.dtype
-    basis = curvature.basis
-    k0 = basis.shape[1]
-    if curvature.dx_coef is None:  # E'' dx dx^T beside the basis, in the basis' layout
-        both = component_major(n, (k0 + 1, 4, 3), dtype)
-        both[:, :k0], both[:, k0] = basis, dx
-        basis = both
+    basis, k0 = _with_dx(curvature, dx)
     Y = chain_directions(v, basis)  # (N, k, 18), component-major
     lam, Xl, Jdx_A = _low_rank(curvature, Y, k0, dE, d2E)
     k = Xl.shape[1]
@@ -121,6 +116,18 @@ def _hessian_directions(
     finite = bool(np.abs(Xl).max(initial=0.0) < finite_factor(dtype)) and k <= MAX_FACTORS
     finite = finite and all(bool(np.abs(block).max(initial=0.0) < big) for block in W.values())
     return Jdx.reshape(n, 24), finite
+
+
+def _with_dx(curvature: Curvature, dx: Array | None) -> tuple[Array, int]:
+    """The vectors in F (N, k, 4, 3) whose chained factors the low-rank part needs: the curvature's
+    basis, then `dx` when the gradient is not in its span (E'' dx dx^T beside it); and the basis' size."""
+    basis = curvature.basis
+    n, k0 = basis.shape[:2]
+    if curvature.dx_coef is not None:
+        return basis, k0
+    both = component_major(n, (k0 + 1, 4, 3), basis.dtype)  # every pass after it runs along the joints
+    both[:, :k0], both[:, k0] = basis, dx
+    return both, k0
 
 
 def _kron_entries(b: int, b2: int) -> list[tuple[int, int, list[int], list[int]]]:
@@ -193,10 +200,7 @@ def factors(
     """
     n = v.shape[0]
     dtype = v.dtype
-    basis = curvature.basis
-    k0 = basis.shape[1]
-    if curvature.dx_coef is None:  # E'' dx dx^T beside the basis
-        basis = np.concatenate([basis, dx[:, None]], axis=1)
+    basis, k0 = _with_dx(curvature, dx)
     Y = chain(alpha, v, basis)  # (N, k, 24): the basis chained to DOFs, component-major
     lam, Xl, Jdx = _low_rank(curvature, Y, k0, dE, d2E)
     if curvature.kron_factors is None:  # generic: K's own eigen-decomposition

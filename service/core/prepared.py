@@ -378,9 +378,9 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     """`prepare` of bodies whose states are already checked, and joints as arrays. `own`: the scene's
     limits are its own arrays (`update` writes them); else the stateless call's, which allocates
     nothing it does not need (every fresh array here is page faults of its own)."""
-    used = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
+    constitutions = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
     # q_prev is always in the table: the state a commit replaces.
-    rows = {PREV_STEP} | {row for c in used for row in _increments(c)[:-1]}
+    rows = {PREV_STEP} | {row for c in constitutions for row in _increments(c)[:-1]}
     n_bodies = bodies.q_ref.shape[0]
     with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
         table = BodyTable(bodies, dtype, threads, rows=rows, used=_bodies_used(batches, n_bodies))

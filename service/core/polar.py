@@ -12,6 +12,8 @@ SINGULAR_RATIO = 1e-12
 
 _NEWTON_RATIO = 1e-4
 """Below this estimated conditioning ratio the polar factor comes from an SVD, not Newton's iteration."""
+_SUBSET_FRACTION = 0.5
+"""`polar_rotation(a, used)` iterates on the used bodies alone when they are fewer than this fraction."""
 _NEWTON_STEPS = 12
 _NEWTON_TOL = 1e-8
 """Stop once a step changes no entry by more than this: near the factor, X = U (I + E) steps to
@@ -52,10 +54,10 @@ def _frobenius_t(a: Array) -> Array:
 def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Array, Array]:
     """Orthogonal polar factor `R` (9, M) of each `A` and its conditioning ratio `s_min / s_max` (M,).
 
-    Component-major in and out: `a[3 r + c]` is `A[r, c]` of all M matrices. `used` (M,): Newton's
-    iteration only for these (the bodies some joint reads; the others' columns of `R` are 0 unless
-    the SVD below took them), the ratio of every one, exactly as without `used` (a singular `A_ref`
-    is refused whether a joint reads it or not).
+    Component-major in and out: `a[3 r + c]` is `A[r, c]` of all M matrices. `used` (M,): where
+    fewer than half the bodies are used, Newton's iteration only for these (the bodies some joint
+    reads; the others' columns of `R` are 0 unless the SVD below took them); the ratio of every one,
+    exactly as without `used` (a singular `A_ref` is refused whether a joint reads it or not).
 
     Why not an SVD for every body: it was 95% of an energy-only evaluation. Newton's
     iteration `X <- (g X + X^-T / g) / 2` (Frobenius scaling `g`), with cofactor inverses
@@ -72,7 +74,9 @@ def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Arr
         nC = _frobenius_t(C)
         est = np.abs(det) / (nA * nC)
     good = est >= _NEWTON_RATIO
-    subset = used is not None and not used.all()
+    # A subset costs a gather and scatters (the common case hands a step over as R whole): worth it
+    # only where most bodies are not read.
+    subset = used is not None and np.count_nonzero(used) < _SUBSET_FRACTION * m
     newton = np.flatnonzero(good & used if subset else good)
     R = np.zeros_like(a) if subset else None  # filled as bodies converge; None: `going` is every body, in order
     if subset or newton.shape[0] < m:

@@ -43,7 +43,7 @@ def chain(alpha: Array, v: Array, dF: Array) -> Array:
     """`J^T dF` (N, e, 24) component-major of vectors `dF` (N, e, 4, 3) in F; `v` (N, 4, 3)."""
     n, e = dF.shape[:2]
     out = component_major(n, (e, 2, 12), dF.dtype)
-    out[..., 3:] = chain_directions(v, dF).reshape(n, e, 2, 9)
+    chain_directions(v, dF, out=out[..., 3:].reshape(n, e, 2, 3, 3))  # a view: written in place
     a = alpha.reshape(2, 2)
     db = dF.reshape(n, e, 2, 2, 3)  # (joint, e, body, frame, r)
     for b in range(2):  # the positions see the points' rows: sum over the body's frames of alpha_k dF_k
@@ -145,19 +145,21 @@ def _kron_entries(b: int, b2: int) -> list[tuple[int, int, list[int], list[int]]
 _KRON_ENTRIES = {(b, b2): _kron_entries(b, b2) for b in range(2) for b2 in range(2)}
 
 
-def chain_directions(v: Array, dF: Array) -> Array:
+def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
     """`J^T dF` restricted to the `A` entries, for frames without points: (N, e, 18) component-major
-    ((N,) contiguous per entry), entry `(b, r, c)` = sum over body b's frames k of `dF[k, r] v_k[c]`.
+    ((N,) contiguous per entry), entry `(b, r, c)` = sum over body b's frames k of `dF[k, r] v_k[c]`;
+    or into `out` (N, e, 2, 3, 3), returned as given.
 
     `v` (N, 4, 3), `dF` (N, e, 4, 3), any layouts: every pass runs along the joints.
     """
     n, e = dF.shape[:2]
-    out = component_major(n, (e, 2, 3, 3), dF.dtype)
+    given = out is not None
+    out = component_major(n, (e, 2, 3, 3), dF.dtype) if out is None else out
     vb = v.reshape(n, 1, 2, 2, 1, 3)  # (joint, 1, body, frame, 1, c)
     db = dF.reshape(n, e, 2, 2, 3, 1)  # (joint, e, body, frame, r, 1)
     np.multiply(db[:, :, :, 0], vb[:, :, :, 0], out=out)
     out += db[:, :, :, 1] * vb[:, :, :, 1]
-    return out.reshape(n, e, 18)
+    return out if given else out.reshape(n, e, 18)
 
 
 def _kron_blocks(v: Array, kron: Array, dE: Array) -> dict[tuple[int, int], Array]:

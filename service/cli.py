@@ -160,6 +160,13 @@ def build_parser() -> argparse.ArgumentParser:
         "(JOINTLIMITS_REQUEST_TIMEOUT)",
     )
     s.add_argument(
+        "--queue-timeout",
+        type=_positive_float,
+        default=_env("QUEUE_TIMEOUT", "30"),
+        help="seconds a request may wait for the worker's memory budget of requests in flight before it starts; "
+        "past it 503 busy with Retry-After, nothing evaluated (JOINTLIMITS_QUEUE_TIMEOUT)",
+    )
+    s.add_argument(
         "--healthcheck-timeout",
         type=_positive_int,
         default=_env("HEALTHCHECK_TIMEOUT", "30"),
@@ -270,7 +277,7 @@ def serve(args: argparse.Namespace) -> int:
     os.environ[ENV_PREFIX + "MAX_BODY_BYTES"] = str(args.max_body_bytes)
     os.environ[ENV_PREFIX + "MAX_JOINTS"] = str(args.max_joints)
     os.environ[ENV_PREFIX + "CORS_ORIGINS"] = args.cors_origins
-    for name in ("max_batches", "max_answer_bytes", "max_json_values", "request_timeout"):
+    for name in ("max_batches", "max_answer_bytes", "max_json_values", "request_timeout", "queue_timeout"):
         os.environ[ENV_PREFIX + name.upper()] = str(getattr(args, name))
     os.environ[ENV_PREFIX + "KEEP_HEAP"] = "true" if args.keep_heap else "false"
     os.environ[ENV_PREFIX + "HEADER_TIMEOUT"] = str(args.header_timeout)  # read by ReadTimeoutProtocol

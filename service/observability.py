@@ -138,6 +138,25 @@ class Metrics:
             registry=reg,
             multiprocess_mode="livesum",
         )
+        # The memory budget of requests in flight (service/http/budget.py).
+        self.budget_held = Gauge(
+            "jointlimits_inflight_budget_bytes",
+            "Bytes of the workers' memory budgets held by requests in flight (summed over live workers).",
+            registry=reg,
+            multiprocess_mode="livesum",
+        )
+        self.uploads_held = Gauge(
+            "jointlimits_upload_budget_bytes",
+            "Bytes of the workers' upload budgets held by request bodies being received (summed over live workers).",
+            registry=reg,
+            multiprocess_mode="livesum",
+        )
+        self.budget_queued = Gauge(
+            "jointlimits_inflight_budget_queued",
+            "Requests waiting for their worker's memory budget (summed over live workers).",
+            registry=reg,
+            multiprocess_mode="livesum",
+        )
         # WebSocket sessions (/v1/sessions, service/http/sessions.py).
         self.sessions_open = Gauge(
             "jointlimits_sessions_open",

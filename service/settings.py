@@ -47,6 +47,9 @@ class Settings:
     """Largest answer, bounded from joints x outputs x encoding before any work; larger answers 413."""
     request_timeout: float = field(default_factory=lambda: float(_env("REQUEST_TIMEOUT", "60")))
     """Seconds one evaluation may take (parse, core, encode); past it 503 with Retry-After."""
+    queue_timeout: float = field(default_factory=lambda: float(_env("QUEUE_TIMEOUT", "30")))
+    """Seconds a request may wait for the worker's memory budget of requests in flight
+    (`service/http/budget.py`) before it starts; past it 503 `busy` with Retry-After, its body unread."""
     max_json_values: int = field(default_factory=lambda: int(_env("MAX_JSON_VALUES", "2000000")))
     """Most values (numbers and list items, counted as commas + 1) in a JSON body: parsing costs ~90 bytes
     and 0.2-2.5 us each (more under load), whatever their length; more answers 413 before parsing."""

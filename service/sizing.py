@@ -8,6 +8,10 @@ bound is loose by up to ~1.6x at the defaults: a budget, not a prediction.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+from schemas import OUTPUTS
+from schemas.answer import answer_bytes
 from service.settings import Settings
 
 MiB = 2**20
@@ -26,6 +30,10 @@ BYTES_PER_BODY = 1500
 (measured 1.44 KB: 9.2e5 bodies, +1265 MiB)."""
 MSGPACK_BYTES = {"joint": 8 * (2 + 6 + 3), "body": 3 * 12 * 8}
 """Request bytes of one joint and of one body in msgpack: a body of given size holds at most so many."""
+JSON_BYTES_PER_VALUE_MIN = 2
+"""The shortest JSON value and its separator (`0,`): a body of `b` bytes holds at most `b / 2 + 1` values."""
+JSON_VALUES_PER_JOINT = 11
+"""Values one joint adds to a JSON body at least: 2 body ids, 6 edge coordinates, lower, upper, strength."""
 SESSION_BYTES_PER_JOINT = 768
 """A joint of a WebSocket session's prepared scene, held for the connection's life (measured ~700 B:
 67 MB for the bench's 1e5-joint scene)."""
@@ -45,11 +53,66 @@ def request_bytes(s: Settings) -> int:
     return max(json_body, BYTES_PER_JOINT * joints + BYTES_PER_BODY * bodies)
 
 
+def inflight_bytes(s: Settings) -> int:
+    """The memory budget of a worker's requests in flight: the costliest request its limits admit and its
+    answer. Requests start only while their costs (`cost_before_body`, then `request_cost`) fit in it
+    together (service/http/budget.py), so it bounds a worker however many requests arrive at once."""
+    return request_bytes(s) + int(ANSWER_FACTOR * s.max_answer_bytes)
+
+
+UPLOAD_FACTOR = 2
+"""A body being received is held twice at its end: its chunks and their joined copy."""
+
+
+def upload_bytes(s: Settings) -> int:
+    """The memory budget of the bodies a worker is receiving: one body at the limit (more smaller ones)."""
+    return UPLOAD_FACTOR * s.max_body_bytes
+
+
 def worker_bytes(s: Settings) -> int:
-    """Memory one worker may reach on the costliest request its limits admit (then keeps, with keep_heap),
-    beside the prepared scenes of its open sessions."""
+    """Memory one worker may reach with its budgets full (then keeps, with keep_heap): the bodies it is
+    receiving, its requests in flight, the prepared scenes of its open sessions."""
     sessions = SESSION_BYTES_PER_JOINT * s.max_session_joints
-    return WORKER_BASE_BYTES + request_bytes(s) + int(ANSWER_FACTOR * s.max_answer_bytes) + sessions
+    return WORKER_BASE_BYTES + upload_bytes(s) + inflight_bytes(s) + sessions
+
+
+def cost_before_body(body_bytes: int, binary_request: bool, binary_answer: bool, s: Settings) -> int:
+    """Memory a request of `body_bytes` bytes may take before it is parsed: the costliest request of that
+    size and its answer, every joint with every output. At most `inflight_bytes(s)`.
+
+    The terms are `request_bytes`' at this size: msgpack's joints cost more per byte than its bodies, so
+    its worst body is joints alone; a JSON body's worst is its shortest values (`0,`).
+    """
+    b = min(body_bytes, s.max_body_bytes)
+    if binary_request:
+        joints = min(s.max_joints, b // MSGPACK_BYTES["joint"])
+        bodies = (b - joints * MSGPACK_BYTES["joint"]) // MSGPACK_BYTES["body"]
+        request = BYTES_PER_JOINT * joints + BYTES_PER_BODY * bodies
+    else:
+        values = min(s.max_json_values, b // JSON_BYTES_PER_VALUE_MIN + 1)
+        joints = min(s.max_joints, values // JSON_VALUES_PER_JOINT)
+        request = b + JSON_BYTES_PER_VALUE * values
+    answer = min(s.max_answer_bytes, answer_bytes([joints], OUTPUTS, binary_answer))
+    return min(inflight_bytes(s), request + int(ANSWER_FACTOR * answer))
+
+
+def request_cost(
+    body_bytes: int,
+    json_values: int | None,
+    batch_joints: Sequence[int],
+    n_bodies: int,
+    outputs: Sequence[str],
+    binary_answer: bool,
+    s: Settings,
+) -> int:
+    """Memory of a parsed request by the same terms as `cost_before_body`, from what it holds: its JSON
+    values (None: a msgpack body), joints per batch, bodies and outputs. At most `inflight_bytes(s)`."""
+    if json_values is None:
+        request = BYTES_PER_JOINT * sum(batch_joints) + BYTES_PER_BODY * n_bodies
+    else:
+        request = body_bytes + JSON_BYTES_PER_VALUE * json_values
+    answer = min(s.max_answer_bytes, answer_bytes(batch_joints, outputs, binary_answer))
+    return min(inflight_bytes(s), request + int(ANSWER_FACTOR * answer))
 
 
 def pod_bytes(s: Settings, workers: int) -> int:

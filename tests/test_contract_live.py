@@ -14,6 +14,7 @@ from contextlib import contextmanager
 import httpx
 import pytest
 import uvicorn
+from fastapi import FastAPI
 
 from service.app import create_app
 from service.settings import Settings
@@ -23,13 +24,13 @@ LIMITS = Settings(max_body_bytes=2_000_000, max_joints=400, token=None, cors_ori
 
 
 @contextmanager
-def serve(settings: Settings = LIMITS) -> Iterator[str]:
-    """Run the app under uvicorn in a thread; yields its base URL, stops it on exit."""
+def serve(settings: Settings = LIMITS, app: FastAPI | None = None) -> Iterator[str]:
+    """Run the app (`create_app(settings)`, or `app`) under uvicorn in a thread; yields its base URL, stops it on exit."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), log_level="warning", lifespan="off"))
+    server = uvicorn.Server(uvicorn.Config(app or create_app(settings), log_level="warning", lifespan="off"))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     deadline = time.monotonic() + 10

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import re
 import socket
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 
 from client import Request, codec
+from service.app import create_app
 from service.settings import Settings
 from tests.test_contract_live import serve
 from tests.test_errors_http import base_request, edit, edit_body, with_batch
@@ -117,6 +119,20 @@ def _past_deadline(url: str) -> httpx.Response:
         return _sdk(lambda r: r)(other)
 
 
+def _busy(budget: str) -> Callable[[str], httpx.Response]:
+    """The base request on a server whose `budget` ("uploads" or "in_flight") other requests hold in full."""
+    def send(url: str) -> httpx.Response:
+        app = create_app(replace(SETTINGS, queue_timeout=0.1))
+        b = getattr(app.state, budget)
+        hold = asyncio.run(b.acquire(b.capacity, 1.0))
+        try:
+            with serve(app=app) as other:
+                return _sdk(lambda r: r)(other)
+        finally:
+            hold.release()
+    return send
+
+
 EMPTY_BATCH = {"constitution_uid": 670, "body_ids": [], "edges": [], "lower": [], "upper": []}
 
 
@@ -149,6 +165,8 @@ CASES: dict[str, Callable[[str], httpx.Response]] = {
     "JSON body with more values than `JOINTLIMITS_MAX_JSON_VALUES` (commas + 1, before parsing)": _raw(
         b'{"bodies": {"q": [' + b"0," * 2_000_000 + b"0]}}", J),
     "evaluation past `JOINTLIMITS_REQUEST_TIMEOUT`": _past_deadline,
+    "body over the worker's upload budget (other bodies being received)": _busy("uploads"),
+    "not started within `JOINTLIMITS_QUEUE_TIMEOUT` (the worker's in-flight budget held by other requests)": _busy("in_flight"),
     "a key twice in one object / map (JSON or msgpack)": _twice("lower"),
     "a msgpack map key that is not a `str` (e.g. `bin`)": _doc(
         lambda doc: doc["batches"][0].__setitem__(b"lower", doc["batches"][0].pop("lower")), binary=True),

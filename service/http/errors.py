@@ -1,4 +1,4 @@
-"""Every 4xx of the service in FastAPI's `{"detail": [{"loc", "msg", "type"}]}` format.
+"""Every 4xx (and 503) of the service in FastAPI's `{"detail": [{"loc", "msg", "type"}]}` format.
 
 `render` is the one place faults become JSON: whatever a decoder put in a fault (a msgpack
 `bin` key, a 2 MB misspelt key, a list of a million faults), the answer is JSON-safe and
@@ -29,11 +29,12 @@ MAX_MSG_CHARS = 1024
 
 
 class HttpError(Exception):
-    """A request refused before the core sees it: 413 too large, 415 / 406 unknown media type."""
+    """A request refused before the core sees it: 413 too large, 415 / 406 unknown media type, 503 busy."""
 
-    def __init__(self, status: int, faults: list[Fault]) -> None:
+    def __init__(self, status: int, faults: list[Fault], headers: dict[str, str] | None = None) -> None:
         self.status = status
         self.faults = faults
+        self.headers = headers  # e.g. Retry-After of a 503 busy
         super().__init__("; ".join(f.msg for f in faults))
 
 
@@ -68,7 +69,7 @@ async def input_error_handler(request: Request, exc: Exception) -> JSONResponse:
 async def http_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, HttpError)
     # These faults carry their own full loc (["body"], ["header", "accept"], ...).
-    return JSONResponse(render(exc.faults), status_code=exc.status)
+    return JSONResponse(render(exc.faults), status_code=exc.status, headers=exc.headers)
 
 
 CLIENT_CLOSED = 499

@@ -4,6 +4,7 @@ admission by cost (joints, batches, the answer's size) before any evaluation."""
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 
 from fastapi import Request
 
@@ -20,8 +21,11 @@ def _too_large(loc: tuple[str, ...], msg: str) -> HttpError:
     return HttpError(413, [Fault(loc, msg, "too_large")])
 
 
-async def read_body(request: Request, max_bytes: int) -> bytes:
-    """The body, refused with 413 as soon as it is known to exceed `max_bytes` (by header or while streaming)."""
+async def read_body(request: Request, max_bytes: int, take: Callable[[int], None] | None = None) -> bytes:
+    """The body, refused with 413 as soon as it is known to exceed `max_bytes` (by header or while streaming).
+
+    `take(n)` is called with each chunk's size as it arrives, before it is kept (the worker's upload
+    budget, `budget.receive`; it raises to refuse the body)."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > max_bytes:
         raise _too_large(("body",), f"request body is {int(declared)} bytes; this service accepts at most {max_bytes}")
@@ -30,6 +34,8 @@ async def read_body(request: Request, max_bytes: int) -> bytes:
         size += len(chunk)
         if size > max_bytes:
             raise _too_large(("body",), f"request body exceeds {max_bytes} bytes, the most this service accepts")
+        if take is not None:
+            take(len(chunk))
         chunks.append(chunk)
     return b"".join(chunks)
 
@@ -111,13 +117,13 @@ def json_batches_upper_bound(body: bytes) -> int:
     return body.count(b"{") - 2
 
 
-def check_json_values(body: bytes, max_values: int) -> None:
+def check_json_values(body: bytes, max_values: int) -> int:
     """Refuse a JSON body whose parse would cost too much, before parsing it (one C-speed count).
 
     Parsing costs time (0.2-2.5 us, more under load) and memory (~60-90 bytes as Python objects) per value,
     whatever its length: `[0,0,...]` weighs 40 times its bytes, full-precision floats 3 times.
     Every value but the last of each list or object is followed by a comma, so `commas + 1`
-    bounds the values from above for well-formed bodies.
+    bounds the values from above for well-formed bodies. Returns that bound.
     """
     values = body.count(b",") + 1
     if values > max_values:
@@ -127,3 +133,4 @@ def check_json_values(body: bytes, max_values: int) -> None:
             f"{max_values} per JSON request (JOINTLIMITS_MAX_JSON_VALUES): send msgpack "
             "(Content-Type: application/msgpack, no per-value cost), or split the request",
         )
+    return values

@@ -2,7 +2,8 @@
 
 Order, outermost first: observability (sees every request, including 401s and CORS
 preflights, and serves `/metrics`), CORS (answers preflights before auth could refuse
-them), bearer auth (refuses before the body is read), the body's read timeout, then the routes.
+them), bearer auth (refuses before the body is read), the release of the memory budgets an
+evaluation took (after its answer is sent), the body's read timeout, then the routes.
 """
 
 from __future__ import annotations
@@ -10,7 +11,9 @@ from __future__ import annotations
 from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
 
+from service import sizing
 from service.http.auth import BearerAuthMiddleware
+from service.http.budget import Budget, ReleaseMiddleware
 from service.http.timeouts import BodyTimeoutMiddleware
 from service.observability import Metrics, ObservabilityMiddleware
 from service.settings import Settings
@@ -19,6 +22,19 @@ from service.settings import Settings
 def install(app: FastAPI, settings: Settings) -> None:
     # Starlette wraps in reverse: the middleware added last is the outermost.
     app.add_middleware(BodyTimeoutMiddleware, timeout=settings.body_timeout)  # innermost: only the body's reads
+    metrics = app.state.metrics = Metrics()
+
+    def show(b: Budget) -> None:
+        metrics.budget_held.set(b.held)
+        metrics.budget_queued.set(b.queued)
+
+    def show_uploads(b: Budget) -> None:
+        metrics.uploads_held.set(b.held)
+
+    # The worker's memory budgets (service/http/budget.py): taken by the routes, given back after the answer.
+    app.state.uploads = Budget(sizing.upload_bytes(settings), on_change=show_uploads)
+    app.state.in_flight = Budget(sizing.inflight_bytes(settings), on_change=show)
+    app.add_middleware(ReleaseMiddleware)
     if settings.token:
         app.add_middleware(BearerAuthMiddleware, token=settings.token)
     if settings.cors_origins:
@@ -30,10 +46,9 @@ def install(app: FastAPI, settings: Settings) -> None:
             expose_headers=["X-Request-ID"],
             max_age=600,
         )
-    app.state.metrics = Metrics()
     app.add_middleware(
         ObservabilityMiddleware,
-        metrics=app.state.metrics,
+        metrics=metrics,
         route_paths=lambda: _route_paths(app),
     )
 

@@ -43,7 +43,8 @@ def error_responses() -> dict[int | str, dict[str, Any]]:
         415: {"description": "Content-Type is neither JSON nor msgpack", "content": content},
         422: {"description": "Malformed or physically meaningless input; loc names the field", "content": content},
         503: {
-            "description": "The evaluation passed the request timeout and was stopped; see Retry-After",
+            "description": "type busy: the worker's memory budgets were full and nothing was evaluated (retry after "
+            "Retry-After); type timeout: the evaluation passed the request timeout and was stopped",
             "content": content,
             "headers": {"Retry-After": {"schema": {"type": "integer"}, "description": "seconds"}},
         },

@@ -12,7 +12,8 @@ from starlette.requests import ClientDisconnect
 from schemas import ConstitutionsResponse, EvaluateResponse
 from service.core import InputError, evaluate
 from service.core.errors import DeadlineExceeded, check_deadline
-from service.http import binary, convert, discovery, limits, negotiate, openapi
+from service import sizing
+from service.http import binary, budget, convert, discovery, limits, negotiate, openapi
 from service.http.errors import HttpError, client_gone, deadline_handler, http_error_handler, input_error_handler
 from service.settings import Settings
 
@@ -46,8 +47,9 @@ async def evaluate_joints(request: Request) -> Response:
     settings = request.app.state.settings
     decoder = CODECS[negotiate.request_type(request.headers.get("content-type"))]
     answer = negotiate.response_type(request.headers.get("accept"), decoder.MEDIA_TYPE)
-    body = await limits.read_body(request, settings.max_body_bytes)
-    # The deadline covers the work (parse, core, encode), not the upload (read timeouts bound that).
+    # Received within the worker's memory budgets, then its turn among the requests in flight.
+    body = await budget.receive(request, settings, decoder is binary, answer == negotiate.BINARY)
+    # The deadline covers the work (parse, core, encode), not the upload or the wait (bounded above).
     deadline = time.monotonic() + settings.request_timeout
     # Parsing and NumPy run in a worker thread, so the event loop stays free.
     content = await run_in_threadpool(_evaluate, body, decoder, CODECS[answer], settings, request.state, deadline)
@@ -57,21 +59,27 @@ async def evaluate_joints(request: Request) -> Response:
 def _evaluate(  # noqa: ANN001 (codec modules)
     body: bytes, decoder, encoder, settings: Settings, state=None, deadline: float | None = None
 ) -> bytes:
+    json_values = None
     if decoder is convert:  # the JSON parse costs per value, not per byte: bounded before it starts
-        limits.check_json_values(body, settings.max_json_values)
+        json_values = limits.check_json_values(body, settings.max_json_values)
         limits.check_batches(limits.json_batches_upper_bound(body), settings.max_batches, "counted by their braces")
         kwargs = decoder.decode(body, settings.max_joints)
     else:  # msgpack: batches counted before any of them is read
         kwargs = decoder.decode(body, settings.max_joints, max_batches=settings.max_batches)
     check_deadline(deadline)
     # Admission by cost, before any evaluation: joints, batches, the answer's size in its encoding.
+    batch_joints = [len(j.body_ids) for j in kwargs["batches"]]
     limits.admit(
-        joints=[len(j.body_ids) for j in kwargs["batches"]],
+        joints=batch_joints,
         batches=len(kwargs["batches"]),
         outputs=kwargs["outputs"],
         binary_answer=encoder is binary,
         settings=settings,
     )
+    # From the bound of its size to what it holds: room for the requests waiting.
+    n_bodies, outputs = kwargs["bodies"].q.shape[0], kwargs["outputs"]
+    cost = sizing.request_cost(len(body), json_values, batch_joints, n_bodies, outputs, encoder is binary, settings)
+    budget.settle(state, cost)
     if state is not None:  # joint counts for the access log and metrics (service/observability.py)
         by_uid: dict[int, int] = {}
         for j in kwargs["batches"]:

@@ -24,8 +24,10 @@ from starlette.websockets import WebSocketDisconnect
 from schemas import session as proto
 from service.core import Evaluation, Fault, InputError
 from service.core.prepared import PreparedScene, prepare
+from service import sizing
 from service.http import limits
 from service.http import session_codec as codec
+from service.http.budget import Busy, Reservation, queue_full
 from service.http.errors import HttpError
 from service.observability import ACCESS_LOGGER, Metrics
 from service.settings import Settings
@@ -122,8 +124,22 @@ class _Held:
 
 async def _serve(websocket: WebSocket, settings: Settings, metrics: Metrics, held: _Held) -> None:
     """Open a scene from the first message that is a valid scene, then answer messages until `close`."""
+    reservations: list[Reservation] = []  # an evaluation's share of the in-flight budget, until its reply is sent
+    try:
+        await _messages(websocket, settings, metrics, held, reservations)
+    finally:
+        for r in reservations:
+            r.release()
+
+
+async def _messages(
+    websocket: WebSocket, settings: Settings, metrics: Metrics, held: _Held, reservations: list[Reservation]
+) -> None:
     session: Session | None = None
     while True:
+        for r in reservations:  # the previous reply has been sent
+            r.release()
+        reservations.clear()
         frame = await _receive(websocket, settings)
         t0 = time.perf_counter()
         binary_frame = isinstance(frame, bytes)
@@ -138,7 +154,7 @@ async def _serve(websocket: WebSocket, settings: Settings, metrics: Metrics, hel
                     metrics.session_messages.labels(kind, outcome).inc()
                     await websocket.close(proto.NORMAL, "closed by the client")
                     return
-                reply = await _answer(session, message, binary_frame, settings)
+                reply = await _answer(session, message, binary_frame, settings, websocket.app.state, reservations)
         except (InputError, HttpError) as e:
             outcome = "fault"
             if mid is None and session is not None:
@@ -239,11 +255,21 @@ async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held)
     return await run_in_threadpool(work)
 
 
-async def _answer(session: Session, m: codec.Message, binary_frame: bool, settings: Settings) -> codec.Frame:
+async def _answer(
+    session: Session, m: codec.Message, binary_frame: bool, settings: Settings, state: Any, reservations: list[Reservation]
+) -> codec.Frame:
+    """The reply to `m`; an evaluation first takes its share of the worker's in-flight budget (as `POST
+    /v1/evaluate` does: its core and its answer), appended to `reservations` (released once the reply is sent)."""
     scene = session.scene
     if m.kind == proto.EVALUATE:
         options = {**session.defaults, **m.options}
-        admit(settings, list(scene.batch_sizes), options["outputs"], binary_frame)
+        batch_sizes = list(scene.batch_sizes)
+        admit(settings, batch_sizes, options["outputs"], binary_frame)
+        cost = sizing.request_cost(0, None, batch_sizes, scene.n_bodies, options["outputs"], binary_frame, settings)
+        try:
+            reservations.append(await state.in_flight.acquire(cost, settings.queue_timeout))
+        except Busy:
+            raise queue_full(settings, state.in_flight) from None
         ev: Evaluation = await _run(session, lambda: scene.evaluate(m.q, **options))
         return codec.encode_evaluation(ev, binary_frame, m.id)
     if m.kind == proto.COMMIT:

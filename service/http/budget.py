@@ -1,0 +1,266 @@
+"""A worker's memory budgets: what its requests in flight may hold together, whatever arrives at once.
+
+Each request is admitted on its own cost (`limits`), but a worker serves many at once: four
+requests at the body bound, each within the limits, held 1.5 times the memory the pod was sized
+for. Two budgets per worker (sizes from the limits, `service.sizing`):
+
+- **uploads** (`sizing.upload_bytes`): the bodies being received, counted as their bytes arrive
+  (twice: the chunks and their joined copy). Nothing waits for it: a chunk that does not fit is a
+  503 `busy` at once. So a client that sends slowly holds only what it sent, and no upload can
+  wait on another.
+- **in flight** (`sizing.inflight_bytes`): a received request's cost, first bounded from its body's
+  size (`sizing.cost_before_body`), then cut to what it holds once parsed (`sizing.request_cost`,
+  before the core runs), released when its answer has been sent. Requests wait for it in arrival
+  order (a large one is not passed for ever by small ones); its size is the costliest request the
+  limits admit, so every admitted request fits alone. One that has not started after
+  `queue_timeout` seconds is a 503 `busy` with `Retry-After`: nothing was evaluated, a client may
+  retry it (the Python SDK does).
+
+Neither waits on the other (a body's upload bytes are given back once its request is in flight),
+so no request holds one while waiting for the other.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from typing import Any
+
+from starlette.requests import Request
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from service import sizing
+from service.core import Fault
+from service.http import limits
+from service.http.errors import RETRY_AFTER_SECONDS, HttpError
+from service.settings import Settings
+from service.sizing import UPLOAD_FACTOR
+
+RESERVATIONS = "reservations"
+"""Key in a request's scope state of the reservations `ReleaseMiddleware` gives back after its answer."""
+IN_FLIGHT = "in_flight"
+"""Key in a request's scope state of its in-flight reservation, cut to its parsed cost by the route."""
+EVALUATE_PATH = "/v1/evaluate"
+
+
+SMALL_SHARE = 16
+"""A request of at most this fraction of the budget (~160 MB at the defaults, ~50 MB at the manifest's
+limits: every request of a few thousand joints) passes the waiters when it fits."""
+
+
+class Busy(Exception):
+    """Not admitted within the wait allowed (`Budget.acquire`)."""
+
+
+@dataclass(eq=False)
+class _Waiter:
+    size: int
+    future: asyncio.Future[None]
+    loop: asyncio.AbstractEventLoop
+    granted: bool = False
+
+
+def _resolve(future: asyncio.Future[None]) -> None:
+    if not future.done():  # a waiter that timed out meanwhile is done (cancelled)
+        future.set_result(None)
+
+
+@dataclass(eq=False)
+class Reservation:
+    """Bytes held in a `Budget` by one request; `shrink` and `release` may be called from any thread."""
+
+    budget: Budget
+    size: int
+    _released: bool = field(default=False, repr=False)
+
+    def try_grow(self, size: int) -> bool:
+        """Hold `size` more bytes if they fit now (no waiting: for the uploads budget); whether they did."""
+        return self.budget._try_take(self, size)
+
+    def shrink(self, size: int) -> None:
+        """Hold `size` bytes from now on, if less than now (it never waits to grow: no request waits holding)."""
+        self.budget._give_back(self, max(0, self.size - max(size, 0)))
+
+    def release(self) -> None:
+        """Give every byte back (idempotent)."""
+        self.budget._give_back(self, self.size, final=True)
+
+
+class Budget:
+    """`capacity` bytes shared by the requests in flight; waiters served in arrival order (a small arrival,
+    at most `capacity / SMALL_SHARE`, that fits starts at once).
+
+    Thread-safe: the event loop acquires, worker threads may shrink and release (waking the
+    waiters through their loop).
+    """
+
+    def __init__(self, capacity: int, on_change: Callable[[Budget], None] | None = None) -> None:
+        self.capacity = capacity
+        self.held = 0
+        self._lock = threading.Lock()
+        self._waiters: deque[_Waiter] = deque()
+        self._on_change = on_change  # metrics: held bytes and queue length, after each change
+
+    @property
+    def queued(self) -> int:
+        return len(self._waiters)
+
+    async def acquire(self, size: int, timeout: float) -> Reservation:
+        """Reserve `size` bytes (at most `capacity`: every request fits alone): at once if they fit and nobody
+        waits (or they are small), else once every earlier waiter has been served and they fit; `Busy` after
+        `timeout` seconds of waiting (the waiter leaves the queue)."""
+        size = min(max(size, 0), self.capacity)
+        loop = asyncio.get_running_loop()
+        with self._lock:
+            # A small request that fits starts at once, even past waiters: it does not queue behind a large
+            # one for the seconds that one may wait (which may then wait as long as smalls keep its room).
+            passes = not self._waiters or size <= self.capacity // SMALL_SHARE
+            granted = passes and self.held + size <= self.capacity
+            if granted:
+                self.held += size
+            else:
+                waiter = _Waiter(size, loop.create_future(), loop)
+                self._waiters.append(waiter)
+        self._changed()
+        if granted:
+            return Reservation(self, size)
+        try:
+            await asyncio.wait_for(waiter.future, timeout)
+        except BaseException as e:  # timed out, or the request was cancelled (its client left)
+            with self._lock:
+                if waiter.granted:  # granted in the same instant: hand the bytes on
+                    self.held -= size
+                else:
+                    self._waiters.remove(waiter)
+                self._wake()  # a large waiter leaving the head may let the next ones in
+            self._changed()
+            if isinstance(e, TimeoutError):
+                raise Busy from None
+            raise
+        return Reservation(self, size)
+
+    def reserve_now(self) -> Reservation:
+        """An empty reservation, grown by `Reservation.try_grow` as bytes arrive."""
+        return Reservation(self, 0)
+
+    def _try_take(self, reservation: Reservation, size: int) -> bool:
+        with self._lock:
+            fits = not reservation._released and not self._waiters and self.held + size <= self.capacity
+            if fits:
+                self.held += size
+                reservation.size += size
+        if fits:
+            self._changed()
+        return fits
+
+    def _give_back(self, reservation: Reservation, size: int, final: bool = False) -> None:
+        with self._lock:
+            if reservation._released:
+                return
+            size = min(size, reservation.size)
+            reservation.size -= size
+            reservation._released = final
+            self.held -= size
+            self._wake()
+        self._changed()
+
+    def _changed(self) -> None:
+        if self._on_change is not None:
+            self._on_change(self)
+
+    def _wake(self) -> None:
+        """Grant waiters from the head while they fit (lock held)."""
+        while self._waiters and self.held + self._waiters[0].size <= self.capacity:
+            waiter = self._waiters.popleft()
+            self.held += waiter.size
+            waiter.granted = True
+            waiter.loop.call_soon_threadsafe(_resolve, waiter.future)
+
+
+def busy(what: str, close: bool = False) -> HttpError:
+    """503 `busy`: refused before any evaluation, for `what` reason; a client may retry after Retry-After.
+    `close`: the body was not read to its end, so the connection cannot carry another request."""
+    msg = f"{what}; nothing was evaluated: retry after Retry-After seconds (the Python SDK does), or send smaller requests"
+    headers = {"Retry-After": str(RETRY_AFTER_SECONDS), **({"Connection": "close"} if close else {})}
+    return HttpError(503, [Fault(("body",), msg, "busy")], headers=headers)
+
+
+def uploads_full(budget: Budget) -> HttpError:
+    return busy(
+        f"this worker is receiving as many request bodies as its upload budget holds ({budget.capacity} bytes, "
+        "README 'Limits and sizing a pod')",
+        close=True,
+    )
+
+
+def queue_full(settings: Settings, budget: Budget) -> HttpError:
+    return busy(
+        f"this worker's requests in flight hold its memory budget ({budget.capacity} bytes, README 'Limits and "
+        f"sizing a pod') and this request waited {settings.queue_timeout:g} s (JOINTLIMITS_QUEUE_TIMEOUT) without starting",
+    )
+
+
+async def receive(request: Request, settings: Settings, binary_request: bool, binary_answer: bool) -> bytes:
+    """The request's body, received within the worker's upload budget (a chunk that does not fit: 503 busy,
+    the connection closed); then its turn in the in-flight budget (bounded from the body's size until
+    parsed: `settle`), which counts the body, so its upload bytes are given back. Past `queue_timeout`
+    seconds of waiting: 503 busy. Both reservations are given back once the answer has been sent
+    (`ReleaseMiddleware`)."""
+    reservations = held(request.state)
+    uploads, in_flight = request.app.state.uploads, request.app.state.in_flight
+    upload = uploads.reserve_now()
+    reservations.append(upload)
+
+    def take(n: int) -> None:
+        if not upload.try_grow(UPLOAD_FACTOR * n):
+            raise uploads_full(uploads)
+
+    try:
+        body = await limits.read_body(request, settings.max_body_bytes, take)
+        cost = sizing.cost_before_body(len(body), binary_request, binary_answer, settings)
+        reservation = await in_flight.acquire(cost, settings.queue_timeout)
+    except Busy:
+        raise queue_full(settings, in_flight) from None
+    finally:
+        upload.release()
+    reservations.append(reservation)
+    setattr(request.state, IN_FLIGHT, reservation)
+    return body
+
+
+def settle(state: Any, cost: int) -> None:
+    """Cut the request's in-flight reservation (if any) to `cost`, its parsed cost (`sizing.request_cost`):
+    room for the requests waiting."""
+    reservation = getattr(state, IN_FLIGHT, None) if state is not None else None
+    if reservation is not None:
+        reservation.shrink(cost)
+
+
+class ReleaseMiddleware:
+    """Gives back every reservation a `POST /v1/evaluate` took (`held(scope)`) once its answer has been sent,
+    or it failed, or its client left: the answer's bytes are held until then."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["path"] != EVALUATE_PATH:
+            await self.app(scope, receive, send)
+            return
+        reservations: list[Reservation] = []
+        scope.setdefault("state", {})[RESERVATIONS] = reservations
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            for r in reservations:
+                r.release()
+
+
+def held(state: Any) -> list[Reservation]:
+    """The list `ReleaseMiddleware` releases, from a request's `state` (without the middleware: a list nobody reads)."""
+    found = getattr(state, RESERVATIONS, None) if state is not None else None
+    return [] if found is None else found

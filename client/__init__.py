@@ -4,14 +4,15 @@
     scene = Scene(); ...; result = Client("http://127.0.0.1:8000").evaluate(scene.request())
 
 `Client` (sync) and `AsyncClient` speak HTTP (binary by default); `LocalClient` calls the
-core in-process with the same API. Server faults raise `ServiceError` / `InvalidInput`.
+core in-process with the same API. Server faults raise `ServiceError` / `InvalidInput`
+(`Busy`: a busy 503 still busy after the retries).
 `client.session(request)` on any of the three keeps the scene prepared (a WebSocket session,
 or in-process) for a solver loop: `evaluate(q)`, `commit(q)`, `update(...)`; a lost connection
 raises `SessionClosed` and `reopen()` continues from the last commit.
 """
 
 from client.aio import AsyncClient
-from client.errors import Fault, InvalidInput, ServiceError, TooLarge, Unreachable, WrongURL
+from client.errors import Busy, Fault, InvalidInput, ServiceError, TooLarge, Unreachable, WrongURL
 from client.local import LocalClient
 from client.model import (
     PRISMATIC_LIMIT,
@@ -32,6 +33,7 @@ __all__ = [
     "REVOLUTE_LIMIT",
     "AsyncClient",
     "BatchResult",
+    "Busy",
     "Client",
     "Evaluation",
     "Fault",

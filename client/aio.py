@@ -38,6 +38,7 @@ class AsyncClient(BaseClient):
         token: str | None = None,
         max_joints_per_request: int | None = None,
         progress: bool | ProgressCallback = False,
+        max_retry_after: float = transport.MAX_RETRY_AFTER,
         concurrency: int = 4,
         http_transport: httpx.AsyncBaseTransport | None = None,
     ) -> None:
@@ -51,6 +52,7 @@ class AsyncClient(BaseClient):
             token=token,
             max_joints_per_request=max_joints_per_request,
             progress=progress,
+            max_retry_after=max_retry_after,
         )
         self.concurrency = concurrency
         self._http = httpx.AsyncClient(**self._http_options, transport=http_transport)
@@ -89,9 +91,14 @@ class AsyncClient(BaseClient):
         retry = self._retry(request)
         while True:
             try:
-                return await self._http.send(request)
+                response = await self._http.send(request)
             except transport.RETRYABLE as e:
                 await asyncio.sleep(retry.pause(e))
+                continue
+            pause = retry.busy(response)  # None: the answer; else a busy 503 to retry
+            if pause is None:
+                return response
+            await asyncio.sleep(pause)
 
     async def aclose(self) -> None:
         await self._http.aclose()

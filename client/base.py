@@ -1,7 +1,8 @@
 """What `Client` and `AsyncClient` share: their settings, the requests they send, what they make of the answers.
 
 As in httpx's own `BaseClient`, everything here is free of I/O; the subclasses only send
-(blocking or awaited), sleep between retries, and run the parts of a split in turn or concurrently.
+(blocking or awaited), sleep between retries (as long as `transport.Retry` says), and run the
+parts of a split in turn or concurrently.
 """
 
 from __future__ import annotations
@@ -44,9 +45,11 @@ class BaseClient:
         token: str | None,
         max_joints_per_request: int | None,
         progress: bool | ProgressCallback,
+        max_retry_after: float,
     ) -> None:
         self.binary = binary
         self.retries, self.backoff = retries, backoff
+        self.max_retry_after = max_retry_after
         self.max_joints_per_request = max_joints_per_request
         self.progress = progress
         self._limits: ConstitutionsResponse | None = None
@@ -64,7 +67,7 @@ class BaseClient:
         return self._http.build_request("POST", "/v1/evaluate", content=content, headers={"Content-Type": content_type})
 
     def _retry(self, request: httpx.Request) -> transport.Retry:
-        return transport.Retry(self.retries, self.backoff, f"{request.method} {request.url}")
+        return transport.Retry(self.retries, self.backoff, f"{request.method} {request.url}", self.max_retry_after)
 
     def _job(self, request: Request, progress: bool | ProgressCallback | None) -> Job:
         """`request` in parts that fit `self._limits` (fetched by the caller: that is I/O)."""

@@ -49,7 +49,8 @@ class ServiceError(Exception):
             ]
         else:
             faults = [Fault((), str(detail if detail is not None else body), "http_error")]
-        return _BY_STATUS.get(status, cls)(status, faults)
+        kind = _BY_TYPE.get((status, faults[0].type)) if faults else None
+        return (kind or _BY_STATUS.get(status, cls))(status, faults)
 
 
 class InvalidInput(ServiceError):
@@ -75,4 +76,40 @@ class WrongURL(ServiceError):
     """A 404, or an answer that is not the service's: `base_url` does not point at the service's root."""
 
 
+class Busy(ServiceError):
+    """503 whose first fault has type "busy": the server had no room for the request and computed
+    nothing, so the clients retried it (after its `Retry-After`) until `retries` were spent, or
+    stopped at once because it asked to wait longer than `max_retry_after`.
+
+    `retry_after`: the seconds of the last answer's `Retry-After` header (None when absent or not
+    a number of seconds); `attempts`: the tries made, every cause counted. `status` is 503. (The
+    deadline's 503, type "timeout", is a plain `ServiceError`: it ran for the whole timeout and
+    is never retried.)
+    """
+
+    def __init__(
+        self,
+        status: int,
+        faults: list[Fault],
+        where: str | None = None,
+        *,
+        retry_after: float | None = None,
+        attempts: int = 1,
+        max_retry_after: float | None = None,
+    ) -> None:
+        """`max_retry_after`: set when the server's `Retry-After` was over it (the reason to stop)."""
+        super().__init__(status, faults, where)
+        self.retry_after, self.attempts = retry_after, attempts
+        tries = f"{attempts} attempt{'s' * (attempts != 1)}"
+        if max_retry_after is not None and retry_after is not None:
+            why = (f"busy after {tries}; it asked to retry after {retry_after:g} s, "
+                   f"over max_retry_after={max_retry_after:g} s")
+        else:
+            after = f"; Retry-After {retry_after:g} s" if retry_after is not None else ""
+            why = f"busy after {tries}{after}"
+        self.args = (f"{self.args[0]} ({why})",)
+
+
 _BY_STATUS: dict[int, type[ServiceError]] = {422: InvalidInput, 413: TooLarge, 404: WrongURL}
+_BY_TYPE: dict[tuple[int, str], type[ServiceError]] = {(503, "busy"): Busy}
+"""(status, first fault's type) pairs with a class of their own; they take precedence over `_BY_STATUS`."""

@@ -18,7 +18,7 @@ from service import core
 
 HTTP_OPTIONS = frozenset(
     {"binary", "timeout", "connect_timeout", "retries", "backoff", "token", "max_joints_per_request", "progress",
-     "concurrency", "http_transport"}
+     "concurrency", "http_transport", "max_retry_after"}
 )
 """Keywords of `Client` / `AsyncClient` that `LocalClient` accepts and ignores."""
 

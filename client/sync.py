@@ -28,7 +28,11 @@ class Client(BaseClient):
     `max_joints_per_request`) are split and their answers merged; `progress=True` shows
     a stderr bar while they run, or pass a callback `(done, total)`.
     Connection failures are retried `retries` times with exponential `backoff` (seconds);
-    a 4xx/5xx raises `ServiceError` (`InvalidInput` for 422) carrying the server's `loc`s.
+    so is a busy 503 (the server had no room and computed nothing), after its `Retry-After`
+    (at least the backoff step; a server asking more than `max_retry_after` seconds raises
+    `Busy` at once), all from the one `retries` budget. No other status is retried (not the
+    deadline's 503 either); a 4xx/5xx raises `ServiceError` (`InvalidInput` for 422) carrying
+    the server's `loc`s, `Busy` for a 503 still busy when the retries are spent.
     """
 
     _http: httpx.Client
@@ -47,6 +51,7 @@ class Client(BaseClient):
         token: str | None = None,
         max_joints_per_request: int | None = None,
         progress: bool | ProgressCallback = False,
+        max_retry_after: float = transport.MAX_RETRY_AFTER,
         http_transport: httpx.BaseTransport | None = None,
     ) -> None:
         super().__init__(
@@ -59,6 +64,7 @@ class Client(BaseClient):
             token=token,
             max_joints_per_request=max_joints_per_request,
             progress=progress,
+            max_retry_after=max_retry_after,
         )
         self._http = httpx.Client(**self._http_options, transport=http_transport)
 
@@ -84,7 +90,8 @@ class Client(BaseClient):
         one joint by the handle `Scene` returned, with or without `active_only`.
 
         Raises `InvalidInput` (422: `e.loc` like `("body", "batches", 1, "lower", 2)`, `e.faults`),
-        `TooLarge` (413), `ServiceError` (any other 4xx/5xx), `Unreachable` (no connection after
+        `TooLarge` (413), `Busy` (503 "busy" after the retries, or a `Retry-After` over
+        `max_retry_after`), `ServiceError` (any other 4xx/5xx), `Unreachable` (no connection after
         the retries), `WrongURL` (`base_url` is not the service), `TypeError` (not a request).
         Requests over the server's limits are split and merged; `progress` overrides the client's.
 
@@ -113,9 +120,14 @@ class Client(BaseClient):
         retry = self._retry(request)
         while True:
             try:
-                return self._http.send(request)
+                response = self._http.send(request)
             except transport.RETRYABLE as e:
                 time.sleep(retry.pause(e))
+                continue
+            pause = retry.busy(response)  # None: the answer; else a busy 503 to retry
+            if pause is None:
+                return response
+            time.sleep(pause)
 
     def close(self) -> None:
         self._http.close()

@@ -2,19 +2,23 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 
 import httpx
 
 from client import codec
-from client.errors import Fault, Unreachable, WrongURL
+from client.errors import Busy, Fault, Unreachable, WrongURL
 from client.model import Evaluation
 from schemas import OUTPUTS, ConstitutionsResponse, answer
 
 RETRYABLE = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError)
-"""Connection failures only: the request never reached the server or the connection dropped
-before any answer (evaluation is idempotent). Timeouts while the server computes, and every
-HTTP status, are never retried."""
+"""Connection failures: the request never reached the server or the connection dropped before
+any answer (evaluation is idempotent). Besides these only a busy 503 is retried (`Retry.busy`);
+timeouts while the server computes, and every other HTTP status, are never retried."""
+
+MAX_RETRY_AFTER = 30.0
+"""Longest `Retry-After` (seconds) the clients sleep for; a server asking more raises `Busy` at once."""
 
 CONNECT_TIMEOUT = 5.0
 """Seconds to open a connection: a host that drops packets fails in seconds, not in `timeout`."""
@@ -49,12 +53,27 @@ def delays(retries: int, backoff: float) -> list[float]:
     return [backoff * 2**k for k in range(retries)]
 
 
-class Retry:
-    """The retries of one request: the pause before each next try, until `retries` are spent."""
+_SECONDS = re.compile(r"[0-9]+(\.[0-9]+)?")
 
-    def __init__(self, retries: int, backoff: float, url: str) -> None:
+
+def retry_after(response: httpx.Response) -> float | None:
+    """The seconds of `response`'s `Retry-After` header (digits, with or without a decimal part),
+    else None (absent, an HTTP-date, or anything else)."""
+    value = response.headers.get("retry-after", "").strip()
+    return float(value) if _SECONDS.fullmatch(value) else None
+
+
+class Retry:
+    """The retries of one request: the pause before each next try, until `retries` are spent.
+
+    Connection errors and busy 503s draw on the same budget and the same backoff steps: each
+    retry, whatever its cause, spends the next step.
+    """
+
+    def __init__(self, retries: int, backoff: float, url: str, max_retry_after: float = MAX_RETRY_AFTER) -> None:
         self._pauses = iter(delays(retries, backoff))
         self.url = url
+        self.max_retry_after = max_retry_after
         self.attempts = 0
 
     def pause(self, error: Exception) -> float:
@@ -64,6 +83,24 @@ class Retry:
         if pause is None:
             raise Unreachable(self.url, self.attempts, error) from error
         return pause
+
+    def busy(self, response: httpx.Response) -> float | None:
+        """None if `response` is an answer to hand on; else (a busy 503) seconds to sleep before
+        the next try: its `Retry-After`, at least the backoff step. `Busy` if no retry is left or
+        the server asks for more than `max_retry_after` seconds."""
+        if response.status_code != 503:
+            return None
+        error = codec.error(response.status_code, response.content)
+        if not isinstance(error, Busy):  # the deadline's 503 ran for the whole timeout: not retried
+            return None
+        self.attempts += 1
+        after = retry_after(response)
+        too_long = after is not None and after > self.max_retry_after
+        step = None if too_long else next(self._pauses, None)
+        if step is None:
+            raise Busy(error.status, error.faults, retry_after=after, attempts=self.attempts,
+                       max_retry_after=self.max_retry_after if too_long else None)
+        return max(step, after or 0.0)
 
 
 def part_joints(

@@ -27,7 +27,6 @@ import threading
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-
 from typing import Any
 
 from starlette.requests import Request
@@ -45,8 +44,6 @@ RESERVATIONS = "reservations"
 IN_FLIGHT = "in_flight"
 """Key in a request's scope state of its in-flight reservation, cut to its parsed cost by the route."""
 EVALUATE_PATH = "/v1/evaluate"
-
-
 SMALL_SHARE = 16
 """A request of at most this fraction of the budget (~160 MB at the defaults, ~50 MB at the manifest's
 limits: every request of a few thousand joints) passes the waiters when it fits."""

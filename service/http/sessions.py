@@ -137,9 +137,6 @@ async def _messages(
 ) -> None:
     session: Session | None = None
     while True:
-        for r in reservations:  # the previous reply has been sent
-            r.release()
-        reservations.clear()
         frame = await _receive(websocket, settings)
         t0 = time.perf_counter()
         binary_frame = isinstance(frame, bytes)
@@ -165,6 +162,9 @@ async def _messages(
                 metrics.session_messages.labels(kind, outcome).inc()
                 raise Closing(proto.SCENE_TOO_LARGE, "the scene is over this service's joint limit", "scene_too_large")
         await _send(websocket, reply, settings)
+        for r in reservations:  # the reply has been sent: its bytes are free
+            r.release()
+        reservations.clear()
         metrics.session_messages.labels(kind, outcome).inc()
         metrics.session_latency.labels(kind).observe(time.perf_counter() - t0)
 

@@ -46,6 +46,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Sequence
@@ -867,6 +868,52 @@ def scenario_peak(env: dict[str, str] | None = None, cases: Sequence[str] | None
     return out
 
 
+BURST_CASES = ("answer_bound_msgpack", "body_bound_energy")
+
+
+def scenario_burst(
+    copies: int, env: dict[str, str] | None = None, cases: Sequence[str] = BURST_CASES
+) -> dict[str, Any]:
+    """`copies` concurrent copies of the costliest request of each of `cases` (`peak_cases`, this environment's
+    limits), each on its own connection, on a fresh 1-worker server: the answers (status, or the error of a
+    connection the server closed while the body was still being sent), the worker's peak RSS against the
+    sizing rule (`sizing.worker_bytes`), whether the worker survived, and a request alone afterwards."""
+    from service import sizing
+    from service.settings import Settings
+
+    rule_mib = round(sizing.worker_bytes(Settings()) / 2**20)
+    out: dict[str, Any] = {}
+    for name in cases:
+        body, content_type, accept, joints = peak_cases()[name]()
+        answers: list[Any] = []
+
+        def one() -> None:
+            try:
+                answers.append(_one(server.port, body, content_type, accept)[0])
+            except OSError as e:  # refused while its body was still being sent (503 busy, connection closed)
+                answers.append(type(e).__name__)
+
+        with Server(workers=1, env=env) as server:
+            pid = server.worker_pids()[0]
+            threads = [threading.Thread(target=one) for _ in range(copies)]
+            t = time.monotonic()
+            for th in threads:
+                th.start()
+            for th in threads:
+                th.join()
+            seconds = round(time.monotonic() - t, 2)
+            peak = peak_kib(pid)
+            survived = server.worker_pids() == [pid]
+            after = _one(server.port, body, content_type, accept)[0]
+        out[name] = {
+            "joints": joints, "body_bytes": len(body), "copies": copies, "seconds": seconds,
+            "answers": sorted(answers, key=str), "peak_rss_mib": round((peak or 0) / 1024), "rule_mib": rule_mib,
+            "same_worker": survived, "alone_after": after,
+        }  # fmt: skip
+        del body
+    return out
+
+
 def answer_joints(max_answer_bytes: int = 256 * 2**20) -> tuple[int, int]:
     """Joints of a `scene` with E+G+H whose JSON answer bound is just within / just over `max_answer_bytes`."""
     from service.http.limits import answer_bytes
@@ -914,7 +961,9 @@ def scenario_answer(
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m service.loadtest", description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenario", choices=["mixed", "flood", "kill", "sigterm", "slowloris", "answer", "peak", "all"], default="mixed")
+    p.add_argument(
+        "--scenario", choices=["mixed", "flood", "kill", "sigterm", "slowloris", "answer", "peak", "burst", "all"], default="mixed"
+    )
     p.add_argument("--spawn", action="store_true", help="start `jointlimits serve` on a free loopback port")
     p.add_argument("--port", type=int, default=8000, help="port of a running service on 127.0.0.1 (without --spawn)")
     p.add_argument("--workers", type=int, default=2)
@@ -938,10 +987,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     report: dict[str, Any] = {"workers": a.workers, "clients": a.clients, "duration_s": a.duration}
     scenarios = ["mixed", "flood", "kill", "sigterm", "slowloris", "answer"] if a.scenario == "all" else [a.scenario]
-    if a.scenario == "peak":  # each case on its own fresh server
+    if a.scenario in ("peak", "burst"):  # each case on its own fresh server, at this environment's limits
         if not a.spawn:
-            p.error("--scenario peak needs --spawn (it reads the worker's peak memory)")
-        print(json.dumps({"peak": scenario_peak(env)}, indent=2))
+            p.error(f"--scenario {a.scenario} needs --spawn (it reads the worker's peak memory)")
+        result = scenario_peak(env) if a.scenario == "peak" else scenario_burst(min(a.clients, 32), env)
+        print(json.dumps({a.scenario: result}, indent=2))
         return 0
     for name in scenarios:
         if not a.spawn:

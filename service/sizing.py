@@ -64,9 +64,14 @@ UPLOAD_FACTOR = 2
 """A body being received is held twice at its end: its chunks and their joined copy."""
 
 
+UPLOAD_FLOOR = 128 * MiB
+"""The upload budget's least size: with small body limits, a burst of bodies being received (a flood of
+oversized ones among them, each held until it passes the limit) still leaves room for the others."""
+
+
 def upload_bytes(s: Settings) -> int:
-    """The memory budget of the bodies a worker is receiving: one body at the limit (more smaller ones)."""
-    return UPLOAD_FACTOR * s.max_body_bytes
+    """The memory budget of the bodies a worker is receiving: one body at the limit, and at least `UPLOAD_FLOOR`."""
+    return max(UPLOAD_FACTOR * s.max_body_bytes, UPLOAD_FLOOR)
 
 
 def worker_bytes(s: Settings) -> int:

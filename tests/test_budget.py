@@ -226,6 +226,7 @@ def test_the_sizing_rule_counts_both_budgets():
         + sizing.SESSION_BYTES_PER_JOINT * s.max_session_joints
     )
     assert sizing.upload_bytes(s) == 2 * s.max_body_bytes  # one body at the limit, chunks and joined copy
+    assert sizing.upload_bytes(Settings(max_body_bytes=2**20)) == sizing.UPLOAD_FLOOR
 
 
 # ------------------------------------------------------------------ every reservation given back
@@ -269,18 +270,18 @@ def test_every_answer_gives_its_reservations_back():
     assert "jointlimits_inflight_budget_bytes 0.0" in metrics and "jointlimits_upload_budget_bytes 0.0" in metrics
 
 
-def test_a_body_over_the_upload_budget_is_503_busy_and_closed():
-    # max_body 1 MiB: the upload budget holds 2 MiB, one body at the limit; a second one that would
-    # pass it while the first is held is refused as its chunk arrives.
+def test_a_body_over_the_upload_budget_is_drained_and_503_busy():
+    # Bodies being received hold all but 1000 bytes of the upload budget: the next body is refused as
+    # its chunk arrives.
     c = _client(max_body_bytes=2**20)
     held = c.app.state.uploads.reserve_now()
-    assert held.try_grow(2 * 2**20 - 1000)
+    assert held.try_grow(c.app.state.uploads.capacity - 1000)
     r = c.post("/v1/evaluate", content=orjson_bytes(lt.scene(4)), headers={"Content-Type": J})
     assert r.status_code == 503
     item = r.json()["detail"][0]
     assert item["type"] == "busy" and item["loc"] == ["body"]
     assert "upload budget" in item["msg"] and "nothing was evaluated" in item["msg"]
-    assert r.headers["retry-after"] == "5" and r.headers["connection"] == "close"
+    assert r.headers["retry-after"] == "5" and "connection" not in r.headers  # drained: keep-alive
     held.release()
     assert _budgets_free(c)
     assert c.post("/v1/evaluate", content=orjson_bytes(lt.scene(4)), headers={"Content-Type": J}).status_code == 200
@@ -315,36 +316,19 @@ def _bad_range(doc: dict) -> dict:
 # ------------------------------------------------------------------ the probe, on a real server
 
 
-@pytest.mark.parametrize("case", ["answer_bound_msgpack", "body_bound_energy"])
-def test_concurrent_requests_at_the_limits_keep_a_worker_within_the_sizing_rule(case, monkeypatch):
-    """Six concurrent copies of the costliest request of a kind, at the manifest's limits, on one worker:
-    each answers 200 or 503 busy (or, refused mid-upload, finds its connection closed), at least one is
-    served, the worker survives, and its peak memory stays within `sizing.worker_bytes`."""
+def test_concurrent_requests_at_the_limits_keep_a_worker_within_the_sizing_rule(monkeypatch):
+    """Six concurrent copies of the costliest request of each kind (`loadtest.scenario_burst`: the answer bound,
+    the body bound), at the manifest's limits, on one worker: each answers 200 or 503 busy (a body refused
+    as it arrives is drained, not reset), at least one is served, the worker survives, serves the request
+    again once quiet, and its peak memory stays within `sizing.worker_bytes`."""
     for k, v in DEPLOY.items():
         monkeypatch.setenv(k, v)
-    s = Settings()
-    body, content_type, accept, _ = lt.peak_cases()[case]()
-    with lt.Server(workers=1, env=DEPLOY) as server:
-        pid = server.worker_pids()[0]
-        results: list[object] = []
-
-        def one() -> None:
-            try:
-                results.append(lt._one(server.port, body, content_type, accept)[0])
-            except OSError as e:  # refused while still sending its body (503 busy, connection closed)
-                results.append(type(e).__name__)
-
-        threads = [threading.Thread(target=one) for _ in range(6)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        peak_mib = lt.peak_kib(pid) / 1024
-        assert server.worker_pids() == [pid]
-        assert lt._one(server.port, body, content_type, accept)[0] == 200  # served again once quiet
-    assert len(results) == 6 and results.count(200) >= 1
-    assert all(r in (200, 503) or isinstance(r, str) for r in results), results
-    assert peak_mib <= sizing.worker_bytes(s) / 2**20, (peak_mib, results)
+    report = lt.scenario_burst(6, env=DEPLOY)
+    for case, r in report.items():
+        assert r["same_worker"] and r["alone_after"] == 200, (case, r)
+        assert r["answers"].count(200) >= 1, (case, r)
+        assert set(r["answers"]) <= {200, 503}, (case, r)
+        assert r["peak_rss_mib"] <= r["rule_mib"] == round(sizing.worker_bytes(Settings()) / 2**20), (case, r)
 
 
 def test_a_session_evaluate_takes_its_share_and_waits_its_turn():

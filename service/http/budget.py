@@ -5,9 +5,9 @@ requests at the body bound, each within the limits, held 1.5 times the memory th
 for. Two budgets per worker (sizes from the limits, `service.sizing`):
 
 - **uploads** (`sizing.upload_bytes`): the bodies being received, counted as their bytes arrive
-  (twice: the chunks and their joined copy). Nothing waits for it: a chunk that does not fit is a
-  503 `busy` at once. So a client that sends slowly holds only what it sent, and no upload can
-  wait on another.
+  (twice: the chunks and their joined copy). Nothing waits for it: once a chunk does not fit, the
+  rest of the body is read and dropped and the answer is a 503 `busy`. So a client that sends
+  slowly holds only what it sent, and no upload can wait on another.
 - **in flight** (`sizing.inflight_bytes`): a received request's cost, first bounded from its body's
   size (`sizing.cost_before_body`), then cut to what it holds once parsed (`sizing.request_cost`,
   before the core runs), released when its answer has been sent. Requests wait for it in arrival
@@ -178,19 +178,16 @@ class Budget:
             waiter.loop.call_soon_threadsafe(_resolve, waiter.future)
 
 
-def busy(what: str, close: bool = False) -> HttpError:
-    """503 `busy`: refused before any evaluation, for `what` reason; a client may retry after Retry-After.
-    `close`: the body was not read to its end, so the connection cannot carry another request."""
+def busy(what: str) -> HttpError:
+    """503 `busy`: refused before any evaluation, for `what` reason; a client may retry after Retry-After."""
     msg = f"{what}; nothing was evaluated: retry after Retry-After seconds (the Python SDK does), or send smaller requests"
-    headers = {"Retry-After": str(RETRY_AFTER_SECONDS), **({"Connection": "close"} if close else {})}
-    return HttpError(503, [Fault(("body",), msg, "busy")], headers=headers)
+    return HttpError(503, [Fault(("body",), msg, "busy")], headers={"Retry-After": str(RETRY_AFTER_SECONDS)})
 
 
 def uploads_full(budget: Budget) -> HttpError:
     return busy(
         f"this worker is receiving as many request bodies as its upload budget holds ({budget.capacity} bytes, "
-        "README 'Limits and sizing a pod')",
-        close=True,
+        "README 'Limits and sizing a pod')"
     )
 
 
@@ -202,8 +199,8 @@ def queue_full(settings: Settings, budget: Budget) -> HttpError:
 
 
 async def receive(request: Request, settings: Settings, binary_request: bool, binary_answer: bool) -> bytes:
-    """The request's body, received within the worker's upload budget (a chunk that does not fit: 503 busy,
-    the connection closed); then its turn in the in-flight budget (bounded from the body's size until
+    """The request's body, received within the worker's upload budget (once a chunk does not fit, the rest is
+    read and dropped, then 503 busy); then its turn in the in-flight budget (bounded from the body's size until
     parsed: `settle`), which counts the body, so its upload bytes are given back. Past `queue_timeout`
     seconds of waiting: 503 busy. Both reservations are given back once the answer has been sent
     (`ReleaseMiddleware`)."""
@@ -212,12 +209,16 @@ async def receive(request: Request, settings: Settings, binary_request: bool, bi
     upload = uploads.reserve_now()
     reservations.append(upload)
 
-    def take(n: int) -> None:
-        if not upload.try_grow(UPLOAD_FACTOR * n):
-            raise uploads_full(uploads)
+    def take(n: int) -> bool:
+        if upload.try_grow(UPLOAD_FACTOR * n):
+            return True
+        upload.release()  # the chunks kept so far are dropped with it
+        return False
 
     try:
         body = await limits.read_body(request, settings.max_body_bytes, take)
+        if body is None:  # refused as it arrived, then drained
+            raise uploads_full(uploads)
         cost = sizing.cost_before_body(len(body), binary_request, binary_answer, settings)
         reservation = await in_flight.acquire(cost, settings.queue_timeout)
     except Busy:

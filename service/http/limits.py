@@ -21,23 +21,26 @@ def _too_large(loc: tuple[str, ...], msg: str) -> HttpError:
     return HttpError(413, [Fault(loc, msg, "too_large")])
 
 
-async def read_body(request: Request, max_bytes: int, take: Callable[[int], None] | None = None) -> bytes:
+async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool] | None = None) -> bytes | None:
     """The body, refused with 413 as soon as it is known to exceed `max_bytes` (by header or while streaming).
 
-    `take(n)` is called with each chunk's size as it arrives, before it is kept (the worker's upload
-    budget, `budget.receive`; it raises to refuse the body)."""
+    `take(n)` is asked with each chunk's size as it arrives whether to keep it (the worker's upload
+    budget, `budget.receive`); after a refusal the rest is read and dropped (the client gets an answer,
+    not a reset connection, and nothing is held) and the result is None."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > max_bytes:
         raise _too_large(("body",), f"request body is {int(declared)} bytes; this service accepts at most {max_bytes}")
-    chunks, size = [], 0
+    chunks: list[bytes] | None = []
+    size = 0
     async for chunk in request.stream():
         size += len(chunk)
         if size > max_bytes:
             raise _too_large(("body",), f"request body exceeds {max_bytes} bytes, the most this service accepts")
-        if take is not None:
-            take(len(chunk))
-        chunks.append(chunk)
-    return b"".join(chunks)
+        if chunks is not None and (take is None or take(len(chunk))):
+            chunks.append(chunk)
+        else:
+            chunks = None  # refused: drain
+    return None if chunks is None else b"".join(chunks)
 
 
 def json_joints_upper_bound(body: bytes) -> int:

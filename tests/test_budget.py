@@ -15,6 +15,7 @@ import json
 import threading
 import time
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 
@@ -379,3 +380,31 @@ def test_the_sdk_waits_out_a_busy_worker_and_gets_the_same_answer(monkeypatch):
     for g, w in zip(got.batches, want.batches):
         assert (g.hessian == w.hessian).all() and (g.gradient == w.gradient).all()
     assert b.held == 0
+
+
+def test_a_client_that_leaves_mid_body_or_mid_queue_holds_nothing():
+    """Raw sockets on a live server: a body cut off halfway, and a request that leaves while it waits for the
+    in-flight budget, give every byte back (the metrics' gauges read 0 again)."""
+    import socket
+
+    from tests.test_contract_live import serve
+
+    app = create_app(Settings(token=None, cors_origins=(), queue_timeout=1.0))
+    body = orjson_bytes(lt.scene(50))
+    head = (f"POST /v1/evaluate HTTP/1.1\r\nHost: x\r\nContent-Type: {J}\r\nContent-Length: {len(body)}\r\n\r\n").encode()
+    with serve(app=app) as url:
+        port = int(url.rsplit(":", 1)[1])
+        with socket.create_connection(("127.0.0.1", port)) as s:  # half a body, then gone
+            s.sendall(head + body[: len(body) // 2])
+            assert _soon(lambda: app.state.uploads.held > 0)
+        assert _soon(lambda: app.state.uploads.held == 0)
+        b = app.state.in_flight
+        hog = asyncio.run(b.acquire(b.capacity, 1.0))
+        with socket.create_connection(("127.0.0.1", port)) as s:  # a whole body, then gone while queued
+            s.sendall(head + body)
+            assert _soon(lambda: b.queued == 1)
+        hog.release()
+        assert _soon(lambda: _budgets_free(type("C", (), {"app": app})()))
+        with httpx.Client(base_url=url) as c:
+            assert c.post("/v1/evaluate", content=body, headers={"Content-Type": J}).status_code == 200
+            assert "jointlimits_inflight_budget_bytes 0.0" in c.get("/metrics").text

@@ -408,3 +408,20 @@ def test_a_client_that_leaves_mid_body_or_mid_queue_holds_nothing():
         with httpx.Client(base_url=url) as c:
             assert c.post("/v1/evaluate", content=body, headers={"Content-Type": J}).status_code == 200
             assert "jointlimits_inflight_budget_bytes 0.0" in c.get("/metrics").text
+
+
+def test_opening_a_session_waits_for_its_share_too():
+    """Preparing a scene is charged like a request of its message's size: while the in-flight budget is full,
+    the opening document is a 503 busy fault (the connection stays, a later opening works)."""
+    from tests.test_sessions import BODY, PATH, Json
+
+    c = _client(queue_timeout=0.2)
+    b = c.app.state.in_flight
+    hog = asyncio.run(b.acquire(b.capacity, 1.0))
+    with c.websocket_connect(PATH) as ws:
+        s = Json(ws)
+        reply = s.send(BODY)
+        assert reply["kind"] == "error" and reply["status"] == 503 and reply["detail"][0]["type"] == "busy", reply
+        hog.release()
+        assert s.send(BODY)["kind"] == "opened"
+    assert _soon(lambda: _budgets_free(c))

@@ -14,7 +14,8 @@ for. Two budgets per worker (sizes from the limits, `service.sizing`):
   order (a large one is not passed for ever by small ones); its size is the costliest request the
   limits admit, so every admitted request fits alone. One that has not started after
   `queue_timeout` seconds is a 503 `busy` with `Retry-After`: nothing was evaluated, a client may
-  retry it (the Python SDK does).
+  retry it (the Python SDK does). A WebSocket session's opening and each of its evaluates wait for
+  their share the same way (`service/http/sessions.py`).
 
 Neither waits on the other (a body's upload bytes are given back once its request is in flight),
 so no request holds one while waiting for the other.

@@ -27,7 +27,7 @@ from service.core.prepared import PreparedScene, prepare
 from service import sizing
 from service.http import limits
 from service.http import session_codec as codec
-from service.http.budget import Busy, Reservation, queue_full
+from service.http.budget import Budget, Busy, Reservation, queue_full
 from service.http.errors import HttpError
 from service.observability import ACCESS_LOGGER, Metrics
 from service.settings import Settings
@@ -143,6 +143,10 @@ async def _messages(
         kind, outcome, mid = "open" if session is None else "invalid", "ok", None
         try:
             if session is None:
+                # Preparing a scene takes what a request of its size may take: a share of the in-flight budget
+                # (bounded from the message's size), until the reply is sent.
+                cost = sizing.cost_before_body(len(frame), binary_frame, binary_frame, settings)  # JSON text: ASCII
+                reservations.append(await _take(websocket.app.state.in_flight, cost, settings))
                 session, reply = await _open(frame, settings, websocket.app.state, held)
             else:
                 message = codec.decode(frame)
@@ -266,10 +270,7 @@ async def _answer(
         batch_sizes = list(scene.batch_sizes)
         admit(settings, batch_sizes, options["outputs"], binary_frame)
         cost = sizing.request_cost(0, None, batch_sizes, scene.n_bodies, options["outputs"], binary_frame, settings)
-        try:
-            reservations.append(await state.in_flight.acquire(cost, settings.queue_timeout))
-        except Busy:
-            raise queue_full(settings, state.in_flight) from None
+        reservations.append(await _take(state.in_flight, cost, settings))
         ev: Evaluation = await _run(session, lambda: scene.evaluate(m.q, **options))
         return codec.encode_evaluation(ev, binary_frame, m.id)
     if m.kind == proto.COMMIT:
@@ -283,6 +284,14 @@ async def _answer(
     if m.id is not None:
         reply["id"] = m.id
     return codec.encode(reply, binary_frame)
+
+
+async def _take(budget: Budget, cost: int, settings: Settings) -> Reservation:
+    """`cost` bytes of the worker's in-flight budget, waited for as `POST /v1/evaluate` waits; 503 busy past it."""
+    try:
+        return await budget.acquire(cost, settings.queue_timeout)
+    except Busy:
+        raise queue_full(settings, budget) from None
 
 
 async def _run(session: Session, fn: Callable[[], T]) -> T:

@@ -44,7 +44,6 @@ RESERVATIONS = "reservations"
 """Key in a request's scope state of the reservations `ReleaseMiddleware` gives back after its answer."""
 IN_FLIGHT = "in_flight"
 """Key in a request's scope state of its in-flight reservation, cut to its parsed cost by the route."""
-EVALUATE_PATH = "/v1/evaluate"
 SMALL_SHARE = 16
 """A request of at most this fraction of the budget (~160 MB at the defaults, ~50 MB at the manifest's
 limits: every request of a few thousand joints) passes the waiters when it fits."""
@@ -240,14 +239,14 @@ def settle(state: Any, cost: int) -> None:
 
 
 class ReleaseMiddleware:
-    """Gives back every reservation a `POST /v1/evaluate` took (`held(scope)`) once its answer has been sent,
-    or it failed, or its client left: the answer's bytes are held until then."""
+    """Gives back every reservation a request took (`held(state)`: `receive` appends them) once its answer has
+    been sent, or it failed, or its client left: the answer's bytes are held until then."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["path"] != EVALUATE_PATH:
+        if scope["type"] != "http":  # every HTTP request, whatever its path (a proxy's prefix included)
             await self.app(scope, receive, send)
             return
         reservations: list[Reservation] = []
@@ -260,6 +259,8 @@ class ReleaseMiddleware:
 
 
 def held(state: Any) -> list[Reservation]:
-    """The list `ReleaseMiddleware` releases, from a request's `state` (without the middleware: a list nobody reads)."""
+    """The list `ReleaseMiddleware` releases, from a request's `state`."""
     found = getattr(state, RESERVATIONS, None) if state is not None else None
-    return [] if found is None else found
+    if found is None:  # without the middleware nothing would give the bytes back
+        raise RuntimeError("budget.ReleaseMiddleware is not installed: reservations would never be released")
+    return found

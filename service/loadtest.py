@@ -875,9 +875,9 @@ def scenario_burst(
     copies: int, env: dict[str, str] | None = None, cases: Sequence[str] = BURST_CASES
 ) -> dict[str, Any]:
     """`copies` concurrent copies of the costliest request of each of `cases` (`peak_cases`, this environment's
-    limits), each on its own connection, on a fresh 1-worker server: the answers (status, or the error of a
-    connection the server closed while the body was still being sent), the worker's peak RSS against the
-    sizing rule (`sizing.worker_bytes`), whether the worker survived, and a request alone afterwards."""
+    limits), each on its own connection, on a fresh 1-worker server: the answers (status, or the name of the
+    error of a connection that broke), the worker's peak RSS against the sizing rule (`sizing.worker_bytes`),
+    whether the worker survived, and a request alone afterwards."""
     from service import sizing
     from service.settings import Settings
 
@@ -887,15 +887,15 @@ def scenario_burst(
         body, content_type, accept, joints = peak_cases()[name]()
         answers: list[Any] = []
 
-        def one() -> None:
+        def one(port: int, body: bytes) -> None:
             try:
-                answers.append(_one(server.port, body, content_type, accept)[0])
-            except OSError as e:  # refused while its body was still being sent (503 busy, connection closed)
+                answers.append(_one(port, body, content_type, accept)[0])
+            except OSError as e:  # a broken connection is an answer too (the server should never cause one)
                 answers.append(type(e).__name__)
 
         with Server(workers=1, env=env) as server:
             pid = server.worker_pids()[0]
-            threads = [threading.Thread(target=one) for _ in range(copies)]
+            threads = [threading.Thread(target=one, args=(server.port, body)) for _ in range(copies)]
             t = time.monotonic()
             for th in threads:
                 th.start()

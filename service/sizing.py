@@ -97,8 +97,7 @@ def cost_before_body(body_bytes: int, binary_request: bool, binary_answer: bool,
         values = min(s.max_json_values, b // JSON_BYTES_PER_VALUE_MIN + 1)
         joints = min(s.max_joints, values // JSON_VALUES_PER_JOINT)
         request = b + JSON_BYTES_PER_VALUE * values
-    answer = min(s.max_answer_bytes, answer_bytes([joints], OUTPUTS, binary_answer))
-    return min(inflight_bytes(s), request + int(ANSWER_FACTOR * answer))
+    return _with_answer(request, [joints], OUTPUTS, binary_answer, s)
 
 
 def request_cost(
@@ -116,6 +115,11 @@ def request_cost(
         request = BYTES_PER_JOINT * sum(batch_joints) + BYTES_PER_BODY * n_bodies
     else:
         request = body_bytes + JSON_BYTES_PER_VALUE * json_values
+    return _with_answer(request, batch_joints, outputs, binary_answer, s)
+
+
+def _with_answer(request: int, batch_joints: Sequence[int], outputs: Sequence[str], binary_answer: bool, s: Settings) -> int:
+    """`request` bytes and the answer's (its bound within the limit, `ANSWER_FACTOR` times), at most the budget."""
     answer = min(s.max_answer_bytes, answer_bytes(batch_joints, outputs, binary_answer))
     return min(inflight_bytes(s), request + int(ANSWER_FACTOR * answer))
 

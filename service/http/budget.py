@@ -198,6 +198,15 @@ def queue_full(settings: Settings, budget: Budget) -> HttpError:
     )
 
 
+async def reserve(budget: Budget, cost: int, settings: Settings) -> Reservation:
+    """`cost` bytes of the worker's in-flight `budget` once there is room (HTTP requests and WebSocket session
+    messages alike); 503 busy after `queue_timeout` seconds of waiting."""
+    try:
+        return await budget.acquire(cost, settings.queue_timeout)
+    except Busy:
+        raise queue_full(settings, budget) from None
+
+
 async def receive(request: Request, settings: Settings, binary_request: bool, binary_answer: bool) -> bytes:
     """The request's body, received within the worker's upload budget (once a chunk does not fit, the rest is
     read and dropped, then 503 busy); then its turn in the in-flight budget (bounded from the body's size until
@@ -220,9 +229,7 @@ async def receive(request: Request, settings: Settings, binary_request: bool, bi
         if body is None:  # refused as it arrived, then drained
             raise uploads_full(uploads)
         cost = sizing.cost_before_body(len(body), binary_request, binary_answer, settings)
-        reservation = await in_flight.acquire(cost, settings.queue_timeout)
-    except Busy:
-        raise queue_full(settings, in_flight) from None
+        reservation = await reserve(in_flight, cost, settings)
     finally:
         upload.release()
     reservations.append(reservation)

@@ -25,9 +25,9 @@ from schemas import session as proto
 from service.core import Evaluation, Fault, InputError
 from service.core.prepared import PreparedScene, prepare
 from service import sizing
-from service.http import limits
+from service.http import budget, limits
 from service.http import session_codec as codec
-from service.http.budget import Budget, Busy, Reservation, queue_full
+from service.http.budget import Reservation
 from service.http.errors import HttpError
 from service.observability import ACCESS_LOGGER, Metrics
 from service.settings import Settings
@@ -128,8 +128,13 @@ async def _serve(websocket: WebSocket, settings: Settings, metrics: Metrics, hel
     try:
         await _messages(websocket, settings, metrics, held, reservations)
     finally:
-        for r in reservations:
-            r.release()
+        _release(reservations)
+
+
+def _release(reservations: list[Reservation]) -> None:
+    for r in reservations:
+        r.release()
+    reservations.clear()
 
 
 async def _messages(
@@ -146,7 +151,7 @@ async def _messages(
                 # Preparing a scene takes what a request of its size may take: a share of the in-flight budget
                 # (bounded from the message's size), until the reply is sent.
                 cost = sizing.cost_before_body(len(frame), binary_frame, binary_frame, settings)  # JSON text: ASCII
-                reservations.append(await _take(websocket.app.state.in_flight, cost, settings))
+                reservations.append(await budget.reserve(websocket.app.state.in_flight, cost, settings))
                 session, reply = await _open(frame, settings, websocket.app.state, held)
             else:
                 message = codec.decode(frame)
@@ -166,9 +171,7 @@ async def _messages(
                 metrics.session_messages.labels(kind, outcome).inc()
                 raise Closing(proto.SCENE_TOO_LARGE, "the scene is over this service's joint limit", "scene_too_large")
         await _send(websocket, reply, settings)
-        for r in reservations:  # the reply has been sent: its bytes are free
-            r.release()
-        reservations.clear()
+        _release(reservations)  # the reply has been sent: its bytes are free
         metrics.session_messages.labels(kind, outcome).inc()
         metrics.session_latency.labels(kind).observe(time.perf_counter() - t0)
 
@@ -270,7 +273,7 @@ async def _answer(
         batch_sizes = list(scene.batch_sizes)
         admit(settings, batch_sizes, options["outputs"], binary_frame)
         cost = sizing.request_cost(0, None, batch_sizes, scene.n_bodies, options["outputs"], binary_frame, settings)
-        reservations.append(await _take(state.in_flight, cost, settings))
+        reservations.append(await budget.reserve(state.in_flight, cost, settings))
         ev: Evaluation = await _run(session, lambda: scene.evaluate(m.q, **options))
         return codec.encode_evaluation(ev, binary_frame, m.id)
     if m.kind == proto.COMMIT:
@@ -284,14 +287,6 @@ async def _answer(
     if m.id is not None:
         reply["id"] = m.id
     return codec.encode(reply, binary_frame)
-
-
-async def _take(budget: Budget, cost: int, settings: Settings) -> Reservation:
-    """`cost` bytes of the worker's in-flight budget, waited for as `POST /v1/evaluate` waits; 503 busy past it."""
-    try:
-        return await budget.acquire(cost, settings.queue_timeout)
-    except Busy:
-        raise queue_full(settings, budget) from None
 
 
 async def _run(session: Session, fn: Callable[[], T]) -> T:

@@ -26,6 +26,7 @@ per joint.
 from __future__ import annotations
 
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 
 from service.core.constitution import Array, Curvature
 from service.core.kinematics import component_major
@@ -100,15 +101,14 @@ def _hessian_directions(
     SX = np.multiply(X, np.sign(lam)[:, :, None])
     np.matmul(SX.transpose(0, 2, 1), X, out=out)
     W = _kron_blocks(v, curvature.kron, dE)
-    # Entry by entry along the joints: a 3 x 3 block of 3-element rows costs the iterator a loop per row.
-    H = out.reshape(n, 576)
+    # Along the joints, a row of W at a time: a 3 x 3 block of 3-element rows costs NumPy's iterator a
+    # loop per row, and one call per entry 3x the calls (the Python overhead the threads share).
     for (b, b2), block in W.items():
-        for a, c, rows, cols in _KRON_ENTRIES[b, b2]:
-            w = block[:, a, c]
-            for i, j in zip(rows, cols):
-                H[:, i] += w
-                if b != b2:
-                    H[:, j] += w
+        w = block.transpose(1, 2, 0)  # (a, c, N): rows of N contiguous
+        for view in (_kron_view(out, b, b2), _kron_view(out, b2, b, transpose=True))[: 1 + (b != b2)]:
+            for r in range(3):
+                for a in range(3):
+                    np.add(view[r, a], w[a], out=view[r, a])
     Jdx = np.zeros((n, 2, 12), dtype=dtype)
     Jdx[..., 3:] = Jdx_A.reshape(n, 2, 9)
     # |LR| <= k finite_factor^2 <= max / 4 and |W| < max / 4: no sum overflows (NaN fails both tests).
@@ -130,19 +130,12 @@ def _with_dx(curvature: Curvature, dx: Array | None) -> tuple[Array, int]:
     return both, k0
 
 
-def _kron_entries(b: int, b2: int) -> list[tuple[int, int, list[int], list[int]]]:
-    """Per entry (a, c) of `W_bb'`: its flat positions in a 24 x 24 Hessian, (row r of body b's A, column
-    a) x (row r of body b''s A, column c) for r = 0, 1, 2, and the transposed positions."""
-    out = []
-    for a in range(3):
-        for c in range(3):
-            i = 12 * b + 3 + 3 * np.arange(3) + a
-            j = 12 * b2 + 3 + 3 * np.arange(3) + c
-            out.append((a, c, (24 * i + j).tolist(), (24 * j + i).tolist()))
-    return out
-
-
-_KRON_ENTRIES = {(b, b2): _kron_entries(b, b2) for b in range(2) for b2 in range(2)}
+def _kron_view(H: Array, b: int, b2: int, transpose: bool = False) -> Array:
+    """The entries of `H` (N, 24, 24) where row r of body b's `A` (column a) meets row r of body b2's
+    (column c), as a view (r, a, c, N); with `transpose`, indexed (r, c, a, N) (H's transposed block)."""
+    s0, s1, s2 = H.strides
+    inner = (s2, s1) if transpose else (s1, s2)
+    return as_strided(H[:, 12 * b + 3, 12 * b2 + 3 :], shape=(3, 3, 3, H.shape[0]), strides=(3 * (s1 + s2), *inner, s0))
 
 
 def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:

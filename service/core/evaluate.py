@@ -16,8 +16,11 @@ from service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames, 
 from service.core.parallel import run_all
 from service.core.validate import nonfinite_rows, raise_if
 
-CHUNK = 1024
-"""Active joints differentiated at once: bounds temporaries to a few MB whatever the batch size."""
+CHUNK = 8192
+"""Active joints whose coordinate derivatives are taken at once: per-joint scalars cost a call each per
+chunk (its overhead, and on threads a GIL hand-off), so chunks are long; temporaries stay a few MB."""
+BLOCK = 1024
+"""Active joints whose Hessians are assembled at once: their factors and the rows just written stay in cache."""
 
 
 def _increments(c: Constitution) -> tuple[int, ...]:
@@ -65,11 +68,14 @@ def differentiate(
     hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
     out_pos = np.arange(n) if compact else active
 
+    # On threads, at least two chunks per thread (a batch differentiated alone keeps them busy).
+    size = CHUNK if threads <= 1 else min(CHUNK, BLOCK * max(1, -(-active.shape[0] // (2 * threads * BLOCK))))
+
     def chunk(start: int) -> list[int]:
-        """Differentiate active joints `start : start + CHUNK`; the rows among them that overflow."""
+        """Differentiate active joints `start : start + size`; the rows among them that overflow."""
         check_deadline(deadline)
-        sel = active[start : start + CHUNK]
-        pos = out_pos[start : start + CHUNK]
+        sel = active[start : start + size]
+        pos = out_pos[start : start + size]
         # Contiguous rows (active_only, or a fully active stretch) are written in place.
         contiguous = pos[-1] - pos[0] + 1 == pos.shape[0]
         h_out = None
@@ -77,7 +83,8 @@ def differentiate(
             h_out = hessian[pos[0] : pos[-1] + 1] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
         g_out = gradient[pos[0] : pos[-1] + 1] if want_g and contiguous else np.empty((sel.shape[0], 24), dtype)
         rows = partial(take_joints, sel=sel)
-        h_finite = _derivatives(c, rows(F), rows(v), rows(x), rows(lo), rows(up), rows(s), g_out, h_out, psd)
+        part = slice(start, start + size)
+        h_finite = _derivatives(c, rows(F), rows(v), dE[part], d2E[part], g_out, h_out, psd)
         # Only active rows can overflow: checked while they are still in cache (the Hessian only
         # when its factors do not already bound it).
         bad = nonfinite_rows(g_out) if want_g else []
@@ -91,7 +98,10 @@ def differentiate(
 
     overflow = nonfinite_rows(energy)
     if want_g or want_h:
-        for bad in run_all([partial(chunk, start) for start in range(0, active.shape[0], CHUNK)], threads):
+        # Per-joint scalars for every active joint at once: per chunk they would be a dozen short
+        # calls each (call overhead, and a GIL hand-off each on threads).
+        _, dE, d2E = penalty.derivatives(*(a[active] for a in (x, lo, up, s)))
+        for bad in run_all([partial(chunk, start) for start in range(0, active.shape[0], size)], threads):
             overflow += bad
     raise_if(
         [
@@ -118,21 +128,20 @@ def _derivatives(
     c: Constitution,
     F: Array,
     v: Array,
-    x: Array,
-    lo: Array,
-    up: Array,
-    s: Array,
+    dE: Array,
+    d2E: Array,
     g_out: Array,
     h_out: Array | None,
     psd: bool,
 ) -> bool:
     """Gradient (M, 24) of active joints into `g_out`; their Hessian (M, 24, 24) into `h_out` if given;
-    whether the Hessian is finite for sure (False: check it)."""
-    _, dE, d2E = penalty.derivatives(x, lo, up, s)
+    whether the Hessian is finite for sure (False: check it). `dE`, `d2E` (M,) the penalty's
+    derivatives in x."""
     dx, curvature = c.derivatives(F, second=h_out is not None)
     if h_out is None:
         _gradient(dE, assembly.chain(c.alpha, v, dx[:, None])[:, 0], g_out)
         return True
+    dE_h, dx_h = dE, None
     if psd:
         projected = c.projected_curvature(dE, curvature)
         if projected is None:  # the generic route: a 12 x 12 eigensolver per joint
@@ -141,10 +150,15 @@ def _derivatives(
             projected = Curvature(kron=np.zeros((m, 4, 4), lam.dtype), basis=basis, coef=lam[:, :, None] * np.eye(12, dtype=lam.dtype),
                                   kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)), diagonal=True)
         # The projection already carries E': the chain rule sees E' = 1 (E'' dx dx^T beside it, PSD as it is).
-        Jdx, finite = assembly.hessian(c.alpha, v, projected, np.ones_like(dE), d2E, h_out, dx=dx)
-    else:
-        Jdx, finite = assembly.hessian(c.alpha, v, curvature, dE, d2E, h_out)
-    _gradient(dE, Jdx, g_out)  # J^T dx comes with the Hessian's factors
+        curvature, dE_h, dx_h = projected, np.ones_like(dE), dx
+    finite = True
+    for start in range(0, F.shape[0], BLOCK):
+        q = slice(start, start + BLOCK)
+        Jdx, ok = assembly.hessian(
+            c.alpha, v[q], curvature.rows(q), dE_h[q], d2E[q], h_out[q], dx=None if dx_h is None else dx_h[q]
+        )
+        _gradient(dE[q], Jdx, g_out[q])  # J^T dx comes with the Hessian's factors
+        finite = finite and ok
     return finite
 
 

@@ -25,11 +25,18 @@ per joint.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
 from service.core.constitution import Array, Curvature
 from service.core.kinematics import component_major
+
+BLOCK = 1024
+"""Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just
+written stay in cache. Per-joint scalars are taken for every joint of a call at once: per block
+they would cost a call each (its overhead, and on threads a GIL hand-off)."""
 
 MAX_FACTORS = 64
 """At most this many factors per joint (7 for the prismatic joint): `finite_factor` relies on it."""
@@ -55,27 +62,87 @@ def chain(alpha: Array, v: Array, dF: Array) -> Array:
 
 def hessian(
     alpha: Array, v: Array, curvature: Curvature, dE: Array, d2E: Array, out: Array, dx: Array | None = None
-) -> Array:
+) -> tuple[Array, bool]:
     """`E'' g g^T + J^T (E' d2x/dF2) J` (N, 24, 24) into `out`, bitwise symmetric, each entry written once.
 
     `curvature` is `d2x/dF2` (after a PSD projection it already carries E': pass `dE = 1`). `dx`
     (N, 4, 3) only when `curvature.dx_coef` is None. The Hessian is `X^T diag(s) X` with `X`
-    (N, p, 24) signed rank-1 factors (`s` in {-1, 0, 1}): one small GEMM per joint.
+    (N, p, 24) signed rank-1 factors (`s` in {-1, 0, 1}): one small GEMM per joint, `BLOCK`
+    joints at a time; the per-joint scalars (eigen-decompositions, weights, signs) once for all N.
     Returns `J^T dx` (N, 24), a by-product of the factors (the gradient over E'), and whether every
     entry of `out` is finite for sure (no check of `out` needed): |X| below `finite_factor`, so no sum of
     products overflows.
     """
+    basis, k0 = _with_dx(curvature, dx)
+    mix = _Mix.of(curvature, k0, dE, d2E)
+    blocks = [slice(s, s + BLOCK) for s in range(0, v.shape[0], BLOCK)]
     if not alpha.any():
-        return _hessian_directions(v, curvature, dE, d2E, out, dx)
-    X, SX, Jdx, bound = factors(alpha, v, curvature, dE, d2E, dx)
-    # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
-    # in the same order: the product is bitwise symmetric without a symmetrising pass.
-    np.matmul(SX.transpose(0, 2, 1), X, out=out)
-    return Jdx, bool(bound < finite_factor(X.dtype)) and X.shape[1] <= MAX_FACTORS
+        return _hessian_directions(v, basis, mix, curvature.kron, dE, out, blocks)
+    return _hessian_points(alpha, v, basis, mix, curvature, dE, out, blocks)
+
+
+def _hessian_points(
+    alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: Curvature, dE: Array, out: Array, blocks: list[slice]
+) -> tuple[Array, bool]:
+    """`hessian` for frames with points (the prismatic joint): low-rank and Kronecker factors in one GEMM.
+
+    `E' K = sum_e w_e f_e f_e^T`, so `J^T (E' K (x) I_3) J = sum_{e, r} w_e (J^T (f_e (x) e_r)) (J^T (f_e (x) e_r))^T`,
+    and `J^T (f (x) e_r)` is nonzero only in row r of `[p | A]` of each body.
+    """
+    n, dtype = v.shape[0], v.dtype
+    if curvature.kron_factors is None:  # generic: K's own eigen-decomposition
+        w, f = np.linalg.eigh(curvature.kron)
+        w, f = dE[:, None] * w, f.transpose(0, 2, 1)
+    else:
+        w, f = curvature.kron_factors
+        w = dE[:, None] * w
+    m, k = w.shape[1], mix.lam.shape[1]
+    fs = component_major(n, (m, 2, 2, 1), dtype)  # sqrt|w_e| f_e, by body and block
+    np.multiply(np.broadcast_to(f, (n, m, 4)), np.sqrt(np.abs(w))[:, :, None], out=fs.reshape(n, m, 4))
+    sign = np.empty((n, k + 3 * m), dtype=dtype)
+    np.sign(mix.lam, out=sign[:, :k])
+    sign[:, k:].reshape(n, m, 3)[...] = np.sign(w)[:, :, None]
+    Jdx = component_major(n, (24,), dtype)
+    finite = k + 3 * m <= MAX_FACTORS
+    for q in blocks:
+        X, bound = _point_factors(alpha, v[q], basis[q], mix.rows(q), fs[q], Jdx[q])
+        SX = X * sign[q, :, None]
+        # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
+        # in the same order: the product is bitwise symmetric without a symmetrising pass.
+        np.matmul(SX.transpose(0, 2, 1), X, out=out[q])
+        finite = finite and bool(bound < finite_factor(dtype))
+    return Jdx, finite
+
+
+def _point_factors(alpha: Array, v: Array, basis: Array, mix: _Mix, fs: Array, Jdx: Array) -> tuple[Array, float]:
+    """A block's factors `X` (M, k + 3 m, 24), C order for the GEMM, and max |X| (NaN if any is NaN);
+    `J^T dx` (M, 24) into `Jdx`. `fs` (M, m, 2, 2, 1): the Kronecker weights' `sqrt|w_e| f_e`."""
+    n, dtype = v.shape[0], v.dtype
+    Y = chain(alpha, v, basis)  # (M, k, 24): the basis chained to DOFs, component-major
+    Xl = mix.factors(Y)
+    Jdx[...] = mix.jdx(Y)
+    m, k = fs.shape[1], Xl.shape[1]
+    # t[e, body, :] = sum over the body's blocks of f_e[block] [alpha, v][block], times sqrt|w_e|:
+    # elementwise along the joints (a 2 x 4 product per joint and body is a BLAS call each).
+    wv = component_major(n, (2, 2, 4), dtype)  # (joint, body, block, [alpha, v])
+    wv[..., 0] = alpha.reshape(2, 2)
+    wv[..., 1:] = v.reshape(n, 2, 2, 3)
+    t = component_major(n, (m, 2, 4), dtype)
+    np.multiply(fs[:, :, :, 0], wv[:, None, :, 0], out=t)
+    t += fs[:, :, :, 1] * wv[:, None, :, 1]
+    t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
+    X = np.zeros((n, k + 3 * m, 2, 12), dtype=dtype)
+    X[:, :k] = Xl.reshape(n, k, 2, 12)
+    Xk = X[:, k:].reshape(n, m, 3, 2, 12)  # (joint, e, row r, body, DOF)
+    for r in range(3):
+        Xk[:, :, r, :, 3 + 3 * r : 6 + 3 * r] = t[..., 1:]
+        Xk[:, :, r, :, r] = t[..., 0]
+    bound = max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0))  # X holds these values and zeros
+    return X.reshape(n, k + 3 * m, 24), bound
 
 
 def _hessian_directions(
-    v: Array, curvature: Curvature, dE: Array, d2E: Array, out: Array, dx: Array | None
+    v: Array, basis: Array, mix: _Mix, kron: Array, dE: Array, out: Array, blocks: list[slice]
 ) -> tuple[Array, bool]:
     """`hessian` for frames without points (the revolute joint): the low-rank part as one GEMM of its
     few factors, the Kronecker part added block by block.
@@ -87,34 +154,41 @@ def _hessian_directions(
     transpose). Bitwise symmetric: the GEMM as in `hessian`, `W_ji` is `W_ij` transposed, and each
     same-body `W_bb` is summed symmetrically.
     """
-    n = v.shape[0]
-    dtype = v.dtype
-    basis, k0 = _with_dx(curvature, dx)
-    Y = chain_directions(v, basis)  # (N, k, 18), component-major
-    lam, Xl, Jdx_A = _low_rank(curvature, Y, k0, dE, d2E)
-    k = Xl.shape[1]
-    # The GEMM reads each joint's factors as a contiguous k x 24 matrix: one transposed copy of the few
-    # factors, translation columns zero, and S X from it in the same layout.
-    X = np.zeros((n, k, 2, 12), dtype=dtype)
-    X[..., 3:] = Xl.reshape(n, k, 2, 9)
-    X = X.reshape(n, k, 24)
-    SX = np.multiply(X, np.sign(lam)[:, :, None])
-    np.matmul(SX.transpose(0, 2, 1), X, out=out)
-    W = _kron_blocks(v, curvature.kron, dE)
-    # Along the joints, a row of W at a time: a 3 x 3 block of 3-element rows costs NumPy's iterator a
-    # loop per row, and one call per entry 3x the calls (the Python overhead the threads share).
-    for (b, b2), block in W.items():
-        w = block.transpose(1, 2, 0)  # (a, c, N): rows of N contiguous
-        for view in (_kron_view(out, b, b2), _kron_view(out, b2, b, transpose=True))[: 1 + (b != b2)]:
-            for r in range(3):
-                for a in range(3):
-                    np.add(view[r, a], w[a], out=view[r, a])
-    Jdx = np.zeros((n, 2, 12), dtype=dtype)
-    Jdx[..., 3:] = Jdx_A.reshape(n, 2, 9)
+    n, dtype = v.shape[0], v.dtype
+    k = mix.lam.shape[1]
+    sign = np.sign(mix.lam)
+    same = bool(kron[:, :2, :2].any() or kron[:, 2:, 2:].any())  # only after a PSD projection
+    pairs = [(0, 2), (1, 2), (0, 3), (1, 3)] + ([(0, 0), (1, 1), (0, 1), (2, 2), (3, 3), (2, 3)] if same else [])
+    dK = {(a, b): dE * kron[:, a, b] for a, b in pairs}  # the entries of E' K the blocks use, (N,) each
+    Jdx = np.empty((n, 2, 12), dtype=dtype)
+    Jdx[..., :3] = 0.0  # the translations: no points
     # |LR| <= k finite_factor^2 <= max / 4 and |W| < max / 4: no sum overflows (NaN fails both tests).
     big = float(np.finfo(dtype).max) / 4
-    finite = bool(np.abs(Xl).max(initial=0.0) < finite_factor(dtype)) and k <= MAX_FACTORS
-    finite = finite and all(bool(np.abs(block).max(initial=0.0) < big) for block in W.values())
+    finite = k <= MAX_FACTORS
+    for q in blocks:
+        Y = chain_directions(v[q], basis[q])  # (M, k, 18), component-major
+        mq = mix.rows(q)
+        Xl = mq.factors(Y)
+        Jdx[q, :, 3:] = mq.jdx(Y).reshape(-1, 2, 9)
+        m = Xl.shape[0]
+        # The GEMM reads each joint's factors as a contiguous k x 24 matrix: one transposed copy of the
+        # few factors, translation columns zero, and S X from it in the same layout.
+        X = np.zeros((m, k, 2, 12), dtype=dtype)
+        X[..., 3:] = Xl.reshape(m, k, 2, 9)
+        X = X.reshape(m, k, 24)
+        SX = np.multiply(X, sign[q, :, None])
+        np.matmul(SX.transpose(0, 2, 1), X, out=out[q])
+        W = _kron_blocks(v[q], {key: d[q] for key, d in dK.items()}, same)
+        # Along the joints, a row of W at a time: a 3 x 3 block of 3-element rows costs NumPy's iterator a
+        # loop per row, and one call per entry 3x the calls (the Python overhead the threads share).
+        for (b, b2), block in W.items():
+            w = block.transpose(1, 2, 0)  # (a, c, M): rows of M contiguous
+            for view in (_kron_view(out[q], b, b2), _kron_view(out[q], b2, b, transpose=True))[: 1 + (b != b2)]:
+                for r in range(3):
+                    for a in range(3):
+                        np.add(view[r, a], w[a], out=view[r, a])
+        finite = finite and bool(np.abs(Xl).max(initial=0.0) < finite_factor(dtype))
+        finite = finite and all(bool(np.abs(block).max(initial=0.0) < big) for block in W.values())
     return Jdx.reshape(n, 24), finite
 
 
@@ -155,23 +229,22 @@ def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
     return out if given else out.reshape(n, e, 18)
 
 
-def _kron_blocks(v: Array, kron: Array, dE: Array) -> dict[tuple[int, int], Array]:
+def _kron_blocks(v: Array, dK: dict[tuple[int, int], Array], same: bool) -> dict[tuple[int, int], Array]:
     """The nonzero blocks `W_bb'` (N, 3, 3) = `sum_kk' dE K_kk' v_k v_k'^T` over body b's frames k and
-    b''s k', by (b, b'): (0, 1) always (`W_10` is its transpose), (0, 0) and (1, 1) where K has
-    same-body entries. Component-major."""
+    b''s k', by (b, b'): (0, 1) always (`W_10` is its transpose), (0, 0) and (1, 1) when `same` (K
+    has same-body entries). `dK` the entries `dE K_kk'` (N,) by (k, k'). Component-major."""
     n = v.shape[0]
     dtype = v.dtype
     vc = [v[:, k, :, None] for k in range(4)]  # (N, 3, 1): v_k as a column
     vr = [v[:, k, None, :] for k in range(4)]  # (N, 1, 3): v_k as a row
 
     def Kab(a: int, b: int) -> Array:
-        """`dE K_ab` (N, 1, 1), formed where used (8 of the 16 entries for an exact revolute K)."""
-        return (dE * kron[:, a, b])[:, None, None]
+        return dK[a, b][:, None, None]
 
     W = {(0, 1): component_major(n, (3, 3), dtype)}
     np.multiply(Kab(0, 2) * vc[0] + Kab(1, 2) * vc[1], vr[2], out=W[0, 1])
     W[0, 1] += (Kab(0, 3) * vc[0] + Kab(1, 3) * vc[1]) * vr[3]
-    if kron[:, :2, :2].any() or kron[:, 2:, 2:].any():
+    if same:
         for b in range(2):
             p, q = 2 * b, 2 * b + 1
             # (v_p v_p^T) K_pp + (v_q v_q^T) K_qq + (v_p v_q^T + v_q v_p^T) K_pq: each term symmetric bitwise.
@@ -182,104 +255,90 @@ def _kron_blocks(v: Array, kron: Array, dE: Array) -> dict[tuple[int, int], Arra
     return W
 
 
-def factors(
-    alpha: Array, v: Array, curvature: Curvature, dE: Array, d2E: Array, dx: Array | None = None
-) -> tuple[Array, Array, Array, float]:
-    """Factors `X` (N, p, 24) and `S X` (N, p, 24), `S` the diagonal of their signs, with `X^T S X` the
-    Hessian of `hessian`; `J^T dx` (N, 24); max |X| (NaN if any entry is NaN).
+@dataclass
+class _Mix:
+    """The low-rank part `S` (k x k per joint) over the chained basis `Y` (N, k, 24), as factors
+    `Xl_e = sqrt|lam_e| (V^T Y)_e` with eigenvalues `lam` (N, k), and `J^T dx` from `Y`.
 
-    Low rank: `S = E' C + E'' t t^T` (or `E'' dx dx^T` beside it) as `sum_e lam_e z_e z_e^T` over
-    combinations `z_e` of the chained basis. Kronecker: `E' K = sum_e w_e f_e f_e^T`, so
-    `J^T (E' K (x) I_3) J = sum_{e, r} w_e (J^T (f_e (x) e_r)) (J^T (f_e (x) e_r))^T`, and
-    `J^T (f (x) e_r)` is nonzero only in row r of `[p | A]` of each body.
+    `S = E' C + E'' t t^T` (`t` = `dx_coef`), or `E'' dx dx^T` beside it when dx is outside the
+    basis (its row `k0` of Y). Per-joint scalars, taken once per call: `scale` (N, k) when S is
+    diagonal, `rot` (4 x (N,)) for k = 2 in closed form, else `VT` (N, k, k) (V^T, rows scaled).
     """
-    n = v.shape[0]
-    dtype = v.dtype
-    basis, k0 = _with_dx(curvature, dx)
-    Y = chain(alpha, v, basis)  # (N, k, 24): the basis chained to DOFs, component-major
-    lam, Xl, Jdx = _low_rank(curvature, Y, k0, dE, d2E)
-    if curvature.kron_factors is None:  # generic: K's own eigen-decomposition
-        w, f = np.linalg.eigh(curvature.kron)
-        w, f = dE[:, None] * w, f.transpose(0, 2, 1)
-    else:
-        w, f = curvature.kron_factors
-        w = dE[:, None] * w
-    m, k = w.shape[1], lam.shape[1]
-    # t[e, body, :] = sum over the body's blocks of f_e[block] [alpha, v][block], times sqrt|w_e|:
-    # elementwise along the joints (a 2 x 4 product per joint and body is a BLAS call each).
-    wv = component_major(n, (2, 2, 4), dtype)  # (joint, body, block, [alpha, v])
-    wv[..., 0] = alpha.reshape(2, 2)
-    wv[..., 1:] = v.reshape(n, 2, 2, 3)
-    fs = component_major(n, (m, 2, 2, 1), dtype)
-    np.multiply(np.broadcast_to(f, (n, m, 4)), np.sqrt(np.abs(w))[:, :, None], out=fs.reshape(n, m, 4))
-    t = component_major(n, (m, 2, 4), dtype)
-    np.multiply(fs[:, :, :, 0], wv[:, None, :, 0], out=t)
-    t += fs[:, :, :, 1] * wv[:, None, :, 1]
-    t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
-    X = np.zeros((n, k + 3 * m, 2, 12), dtype=dtype)
-    X[:, :k] = Xl.reshape(n, k, 2, 12)
-    Xk = X[:, k:].reshape(n, m, 3, 2, 12)  # (joint, e, row r, body, DOF)
-    points = bool(alpha.any())
-    for r in range(3):
-        Xk[:, :, r, :, 3 + 3 * r : 6 + 3 * r] = t[..., 1:]
-        if points:
-            Xk[:, :, r, :, r] = t[..., 0]
-    sign = np.empty((n, k + 3 * m), dtype=dtype)
-    np.sign(lam, out=sign[:, :k])
-    sign[:, k:].reshape(n, m, 3)[...] = np.sign(w)[:, :, None]
-    bound = max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0))  # X holds these values and zeros
-    X = X.reshape(n, k + 3 * m, 24)
-    return X, X * sign[:, :, None], Jdx, bound
 
+    lam: Array
+    k0: int
+    t: Array | None = None
+    scale: Array | None = None
+    rot: tuple[Array, Array, Array, Array] | None = None
+    VT: Array | None = None
 
-def _low_rank(curvature: Curvature, Y: Array, k0: int, dE: Array, d2E: Array) -> tuple[Array, Array, Array]:
-    """`S` over the chained basis `Y` (N, k, 24) (its first `k0` rows the curvature's basis, then dx if
-    outside it) as eigenvalues (N, k), factors `sqrt|lam_e| sum_b V_be Y_b` (N, k, 24), and `J^T dx`."""
-    n, k = Y.shape[:2]
-    if curvature.dx_coef is None:
-        Jdx = Y[:, k0]
-        if curvature.diagonal:
-            lam = np.empty((n, k), dtype=Y.dtype)
-            lam[:, :k0] = dE[:, None] * np.diagonal(curvature.coef, axis1=1, axis2=2)
-            lam[:, k0] = d2E
-            return lam, Y * np.sqrt(np.abs(lam))[:, :, None], Jdx
-        S = np.zeros((n, k, k), dtype=Y.dtype)
-        S[:, :k0, :k0] = dE[:, None, None] * curvature.coef
-        S[:, k0, k0] = d2E
-    else:
-        t = curvature.dx_coef
+    @classmethod
+    def of(cls, curvature: Curvature, k0: int, dE: Array, d2E: Array) -> _Mix:
+        n, t, C = dE.shape[0], curvature.dx_coef, curvature.coef
+        k = k0 + (t is None)
+        if t is None:
+            if curvature.diagonal:
+                lam = np.empty((n, k), dtype=dE.dtype)
+                lam[:, :k0] = dE[:, None] * np.diagonal(C, axis1=1, axis2=2)
+                lam[:, k0] = d2E
+                return cls(lam, k0, scale=np.sqrt(np.abs(lam)))
+            S = np.zeros((n, k, k), dtype=dE.dtype)
+            S[:, :k0, :k0] = dE[:, None, None] * C
+            S[:, k0, k0] = d2E
+        else:
+            if k == 1:
+                lam = dE[:, None] * C[:, 0] + d2E[:, None] * (t * t)
+                return cls(lam, k0, t, scale=np.sqrt(np.abs(lam)))
+            if k == 2:  # per-joint scalars (N,): a batched 2 x 2 is slower than these few passes
+                p, q, u = (dE * C[:, a, b] + d2E * (t[:, a] * t[:, b]) for a, b in ((0, 0), (0, 1), (1, 1)))
+                return cls._eig2(p, q, u, k0, t)
+            S = dE[:, None, None] * C + d2E[:, None, None] * (t[:, :, None] * t[:, None, :])
+        if k == 2:
+            return cls._eig2(S[:, 0, 0], S[:, 0, 1], S[:, 1, 1], k0, t)
+        lam, V = np.linalg.eigh(S)
+        V *= np.sqrt(np.abs(lam))[:, None, :]
+        return cls(lam, k0, t, VT=V.transpose(0, 2, 1))
+
+    @classmethod
+    def _eig2(cls, p: Array, q: Array, u: Array, k0: int, t: Array | None) -> _Mix:
+        """`[[p, q], [q, u]]` (each (N,)) in closed form."""
+        mean, h = 0.5 * (p + u), np.hypot(0.5 * (p - u), q)
+        phi = 0.5 * np.arctan2(q, 0.5 * (p - u))  # rotation taking e_1 to the eigenvector of mean + h
+        c, s = np.cos(phi), np.sin(phi)
+        lam = np.stack([mean + h, mean - h], axis=1)
+        r = np.sqrt(np.abs(lam))
+        return cls(lam, k0, t, rot=(r[:, 0] * c, r[:, 0] * s, r[:, 1] * c, r[:, 1] * s))
+
+    def rows(self, q: slice) -> _Mix:
+        """Joints `q` (views)."""
+        cut = lambda a: None if a is None else a[q]  # noqa: E731
+        rot = None if self.rot is None else tuple(a[q] for a in self.rot)
+        return _Mix(self.lam[q], self.k0, cut(self.t), cut(self.scale), rot, cut(self.VT))  # type: ignore[arg-type]
+
+    def factors(self, Y: Array) -> Array:
+        """`Xl` (N, k, 24), in Y's layout."""
+        if self.scale is not None:
+            return Y * self.scale[:, :, None]
+        if self.rot is None:
+            return np.matmul(self.VT, Y)
+        rc0, rs0, rc1, rs1 = self.rot
+        Xl = np.empty_like(Y)
+        # Eigenvectors (c, s) and (-s, c).
+        np.multiply(rc0[:, None], Y[:, 0], out=Xl[:, 0])
+        Xl[:, 0] += rs0[:, None] * Y[:, 1]
+        np.multiply(rc1[:, None], Y[:, 1], out=Xl[:, 1])
+        Xl[:, 1] -= rs1[:, None] * Y[:, 0]
+        return Xl
+
+    def jdx(self, Y: Array) -> Array:
+        """`J^T dx` (N, 24): `t . Y`, or Y's row `k0`."""
+        if self.t is None:
+            return Y[:, self.k0]
+        t = self.t
         Jdx = t[:, 0, None] * Y[:, 0]
-        for b in range(1, k):
+        for b in range(1, t.shape[1]):
             Jdx += t[:, b, None] * Y[:, b]
-        if k == 1:
-            lam = dE[:, None] * curvature.coef[:, 0] + d2E[:, None] * (t * t)
-            return lam, Y * np.sqrt(np.abs(lam))[:, :, None], Jdx
-        if k == 2:  # per-joint scalars (N,): a batched 2 x 2 is slower than these few passes
-            C = curvature.coef
-            p, q, u = (dE * C[:, a, b] + d2E * (t[:, a] * t[:, b]) for a, b in ((0, 0), (0, 1), (1, 1)))
-            return _eig2_factors(p, q, u, Y, Jdx)
-        S = dE[:, None, None] * curvature.coef + d2E[:, None, None] * (t[:, :, None] * t[:, None, :])
-    if k == 2:
-        return _eig2_factors(S[:, 0, 0], S[:, 0, 1], S[:, 1, 1], Y, Jdx)
-    lam, V = np.linalg.eigh(S)
-    V *= np.sqrt(np.abs(lam))[:, None, :]
-    return lam, np.matmul(V.transpose(0, 2, 1), Y), Jdx
-
-
-def _eig2_factors(p: Array, q: Array, u: Array, Y: Array, Jdx: Array) -> tuple[Array, Array, Array]:
-    """`[[p, q], [q, u]]` (each (N,)) in closed form: eigenvalues (N, 2), `sqrt|lam_e| (V^T Y)_e` (N, 2, 24)."""
-    mean, h = 0.5 * (p + u), np.hypot(0.5 * (p - u), q)
-    phi = 0.5 * np.arctan2(q, 0.5 * (p - u))  # rotation taking e_1 to the eigenvector of mean + h
-    c, s = np.cos(phi), np.sin(phi)
-    lam = np.stack([mean + h, mean - h], axis=1)
-    r = np.sqrt(np.abs(lam))
-    Xl = np.empty_like(Y)
-    # Eigenvectors (c, s) and (-s, c).
-    np.multiply((r[:, 0] * c)[:, None], Y[:, 0], out=Xl[:, 0])
-    Xl[:, 0] += (r[:, 0] * s)[:, None] * Y[:, 1]
-    np.multiply((r[:, 1] * c)[:, None], Y[:, 1], out=Xl[:, 1])
-    Xl[:, 1] -= (r[:, 1] * s)[:, None] * Y[:, 0]
-    return lam, Xl, Jdx
+        return Jdx
 
 
 def psd_projection(M: Array) -> Array:

@@ -42,15 +42,6 @@ class Curvature:
     kron_factors: tuple[Array, Array] | None = None
     diagonal: bool = False
 
-    def rows(self, q: slice) -> Curvature:
-        """The joints `q` (views): a block of the chunk it was formed for."""
-        factors = None
-        if self.kron_factors is not None:
-            w, f = self.kron_factors
-            factors = (w[q], f if f.shape[0] == 1 else f[q])  # f may be shared by every joint
-        dx_coef = None if self.dx_coef is None else self.dx_coef[q]
-        return Curvature(self.kron[q], self.basis[q], self.coef[q], dx_coef, factors, self.diagonal)
-
     def dense(self) -> Array:
         """(N, 12, 12): the generic form, for the eigensolver of the PSD projection."""
         n, k = self.basis.shape[:2]

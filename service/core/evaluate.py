@@ -19,8 +19,8 @@ from service.core.validate import nonfinite_rows, raise_if
 CHUNK = 8192
 """Active joints whose coordinate derivatives are taken at once: per-joint scalars cost a call each per
 chunk (its overhead, and on threads a GIL hand-off), so chunks are long; temporaries stay a few MB."""
-BLOCK = 1024
-"""Active joints whose Hessians are assembled at once: their factors and the rows just written stay in cache."""
+SCATTER_CHUNK = 2048
+"""The chunk when Hessian rows are scattered (some joints inside their range): its scratch rows, 9 MB."""
 
 
 def _increments(c: Constitution) -> tuple[int, ...]:
@@ -68,8 +68,12 @@ def differentiate(
     hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
     out_pos = np.arange(n) if compact else active
 
-    # On threads, at least two chunks per thread (a batch differentiated alone keeps them busy).
-    size = CHUNK if threads <= 1 else min(CHUNK, BLOCK * max(1, -(-active.shape[0] // (2 * threads * BLOCK))))
+    # Rows written in place when every row is differentiated; else a chunk's go through a scratch array
+    # first, kept to a few MB. On threads, at least two chunks per thread (a batch alone keeps them busy).
+    block = assembly.BLOCK
+    size = CHUNK if active.shape[0] == n or not want_h else SCATTER_CHUNK
+    if threads > 1:
+        size = min(size, block * max(1, -(-active.shape[0] // (2 * threads * block))))
 
     def chunk(start: int) -> list[int]:
         """Differentiate active joints `start : start + size`; the rows among them that overflow."""
@@ -151,14 +155,8 @@ def _derivatives(
                                   kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)), diagonal=True)
         # The projection already carries E': the chain rule sees E' = 1 (E'' dx dx^T beside it, PSD as it is).
         curvature, dE_h, dx_h = projected, np.ones_like(dE), dx
-    finite = True
-    for start in range(0, F.shape[0], BLOCK):
-        q = slice(start, start + BLOCK)
-        Jdx, ok = assembly.hessian(
-            c.alpha, v[q], curvature.rows(q), dE_h[q], d2E[q], h_out[q], dx=None if dx_h is None else dx_h[q]
-        )
-        _gradient(dE[q], Jdx, g_out[q])  # J^T dx comes with the Hessian's factors
-        finite = finite and ok
+    Jdx, finite = assembly.hessian(c.alpha, v, curvature, dE_h, d2E, h_out, dx=dx_h)
+    _gradient(dE, Jdx, g_out)  # J^T dx comes with the Hessian's factors
     return finite
 
 

@@ -259,3 +259,26 @@ def test_plot_labels_of_close_points_are_lifted_apart():
     assert h[0] >= h[1] + 0.1 - 1e-12  # the upper one is lifted clear of it
     assert h[2] == pytest.approx(np.log10(4.05e5))  # nine decades away in error: left alone
     assert h[3] == pytest.approx(np.log10(2e3))
+
+
+def test_ab_compares_this_tree_with_a_revision_in_one_process(tmp_path: Path):
+    """`python -m bench.ab REV` imports REV's core beside this one (from `git archive`) and alternates
+    their calls; against HEAD both are present and every line names both."""
+    import shutil
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    if shutil.which("git") is None or subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True).returncode:
+        pytest.skip("not a git checkout")
+    run = subprocess.run([sys.executable, "-m", "bench.ab", "HEAD", "--joints", "60", "--pairs", "3", "--threads", "1", "2"],
+                         cwd=root, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.strip().split("\n")
+    assert lines[0] == "60 joints, 100% outside, outputs energy,gradient,hessian: this tree against HEAD"
+    for threads, line in zip((1, 2), lines[1:], strict=True):
+        assert re.fullmatch(rf"threads {threads}: this tree \d+\.\d ms, HEAD \d+\.\d ms, ratio \d\.\d{{3}}, "
+                            r"this tree faster in [0-3] of 3 pairs", line), line
+    import importlib.util
+
+    assert importlib.util.find_spec("_ab_service") is None  # nothing left importable here

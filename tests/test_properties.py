@@ -369,7 +369,7 @@ def test_threads_give_bitwise_the_same_answer(seed: int, mode: str) -> None:
 
 @pytest.mark.parametrize("active_only", [False, True])
 def test_threads_over_derivative_chunks(active_only: bool) -> None:
-    """One batch of > 2 x 4096 active joints: its chunks run on two threads into the same output."""
+    """One batch of ~8300 active joints: its derivative chunks run on two threads into the same output."""
     sc = scene(3)
     b = sc.batches[0]
     x = sc.x()[0]
@@ -398,3 +398,36 @@ def test_threads_keep_the_callers_error_state() -> None:
         with pytest.raises(InputError) as err:
             evaluate(**sc.core_args(), threads=2)
     assert err.value.faults[0].loc == ("batches", 0, "strength", 0)
+
+
+@pytest.mark.parametrize("mode", ["exact", "psd"])
+def test_blocks_and_chunks_change_no_bit(monkeypatch: pytest.MonkeyPatch, mode: str) -> None:
+    """The Hessian's blocks (factors and GEMMs per block, scalars per call) and the derivative chunks
+    (in place, or scattered through scratch rows) are a matter of cache: tiny ones, with partial last
+    blocks and chunks, give bitwise the default's answer, every joint active and some."""
+    import importlib
+
+    assembly_module = importlib.import_module("service.core.assembly")
+    evaluate_module = importlib.import_module("service.core.evaluate")  # the package's `evaluate` is the function
+
+    sc = scene(5)
+    tile = lambda a: np.concatenate([a] * 13)  # noqa: E731  (39 joints per batch)
+    sc = replace(sc, batches=[replace(b, body_ids=tile(b.body_ids), edges=tile(b.edges), lower=tile(b.lower),
+                                      upper=tile(b.upper), strength=tile(b.strength)) for b in sc.batches])
+    x = sc.x()
+    for fraction in (1.0, 0.5):
+        batches = []
+        for b, xb in zip(sc.batches, x):
+            lo, up = b.lower.copy(), b.upper.copy()
+            out = np.arange(xb.shape[0]) < fraction * xb.shape[0]
+            lo[out], up[out] = xb[out] + 1.0, xb[out] + 2.0
+            batches.append(replace(b, lower=lo, upper=up))
+        args = replace(sc, batches=batches).core_args(hessian_mode=mode)
+        want = evaluate(**args)
+        assert sum(int(np.count_nonzero(b.gradient.any(axis=1))) for b in want.batches) >= 39  # several blocks and chunks
+        with monkeypatch.context() as m:
+            m.setattr(assembly_module, "BLOCK", 3)
+            m.setattr(evaluate_module, "CHUNK", 7)
+            m.setattr(evaluate_module, "SCATTER_CHUNK", 5)
+            _same(want, evaluate(**args))
+            _same(want, evaluate(**args, threads=2))

@@ -28,7 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 
 from service.core.constitution import Array, Curvature
 from service.core.kinematics import component_major
@@ -120,7 +119,7 @@ def _point_factors(alpha: Array, v: Array, basis: Array, mix: _Mix, fs: Array, J
     n, dtype = v.shape[0], v.dtype
     Y = chain(alpha, v, basis)  # (M, k, 24): the basis chained to DOFs, component-major
     Xl = mix.factors(Y)
-    Jdx[...] = mix.jdx(Y)
+    mix.jdx(Y, out=Jdx)
     m, k = fs.shape[1], Xl.shape[1]
     # t[e, body, :] = sum over the body's blocks of f_e[block] [alpha, v][block], times sqrt|w_e|:
     # elementwise along the joints (a 2 x 4 product per joint and body is a BLAS call each).
@@ -169,7 +168,7 @@ def _hessian_directions(
         Y = chain_directions(v[q], basis[q])  # (M, k, 18), component-major
         mq = mix.rows(q)
         Xl = mq.factors(Y)
-        Jdx[q, :, 3:] = mq.jdx(Y).reshape(-1, 2, 9)
+        Jdx[q, :, 3:] = mq.jdx(Y, out=np.empty_like(Y[:, 0])).reshape(-1, 2, 9)
         m = Xl.shape[0]
         # The GEMM reads each joint's factors as a contiguous k x 24 matrix: one transposed copy of the
         # few factors, translation columns zero, and S X from it in the same layout.
@@ -179,14 +178,16 @@ def _hessian_directions(
         SX = np.multiply(X, sign[q, :, None])
         np.matmul(SX.transpose(0, 2, 1), X, out=out[q])
         W = _kron_blocks(v[q], {key: d[q] for key, d in dK.items()}, same)
-        # Along the joints, a row of W at a time: a 3 x 3 block of 3-element rows costs NumPy's iterator a
-        # loop per row, and one call per entry 3x the calls (the Python overhead the threads share).
+        # Entry by entry along the joints: a 3 x 3 block of 3-element rows costs the iterator a loop per
+        # row (and a row of W at a time, as strided views, measured slower still).
+        H = out[q].reshape(m, 576)
         for (b, b2), block in W.items():
-            w = block.transpose(1, 2, 0)  # (a, c, M): rows of M contiguous
-            for view in (_kron_view(out[q], b, b2), _kron_view(out[q], b2, b, transpose=True))[: 1 + (b != b2)]:
-                for r in range(3):
-                    for a in range(3):
-                        np.add(view[r, a], w[a], out=view[r, a])
+            for a, c, rows, cols in _KRON_ENTRIES[b, b2]:
+                w = block[:, a, c]
+                for i, j in zip(rows, cols):
+                    H[:, i] += w
+                    if b != b2:
+                        H[:, j] += w
         finite = finite and bool(np.abs(Xl).max(initial=0.0) < finite_factor(dtype))
         finite = finite and all(bool(np.abs(block).max(initial=0.0) < big) for block in W.values())
     return Jdx.reshape(n, 24), finite
@@ -204,12 +205,19 @@ def _with_dx(curvature: Curvature, dx: Array | None) -> tuple[Array, int]:
     return both, k0
 
 
-def _kron_view(H: Array, b: int, b2: int, transpose: bool = False) -> Array:
-    """The entries of `H` (N, 24, 24) where row r of body b's `A` (column a) meets row r of body b2's
-    (column c), as a view (r, a, c, N); with `transpose`, indexed (r, c, a, N) (H's transposed block)."""
-    s0, s1, s2 = H.strides
-    inner = (s2, s1) if transpose else (s1, s2)
-    return as_strided(H[:, 12 * b + 3, 12 * b2 + 3 :], shape=(3, 3, 3, H.shape[0]), strides=(3 * (s1 + s2), *inner, s0))
+def _kron_entries(b: int, b2: int) -> list[tuple[int, int, list[int], list[int]]]:
+    """Per entry (a, c) of `W_bb'`: its flat positions in a 24 x 24 Hessian, (row r of body b's A, column
+    a) x (row r of body b''s A, column c) for r = 0, 1, 2, and the transposed positions."""
+    out = []
+    for a in range(3):
+        for c in range(3):
+            i = 12 * b + 3 + 3 * np.arange(3) + a
+            j = 12 * b2 + 3 + 3 * np.arange(3) + c
+            out.append((a, c, (24 * i + j).tolist(), (24 * j + i).tolist()))
+    return out
+
+
+_KRON_ENTRIES = {(b, b2): _kron_entries(b, b2) for b in range(2) for b2 in range(2)}
 
 
 def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
@@ -330,15 +338,16 @@ class _Mix:
         Xl[:, 1] -= rs1[:, None] * Y[:, 0]
         return Xl
 
-    def jdx(self, Y: Array) -> Array:
-        """`J^T dx` (N, 24): `t . Y`, or Y's row `k0`."""
+    def jdx(self, Y: Array, out: Array) -> Array:
+        """`J^T dx` (N, 24) into `out`: `t . Y`, or Y's row `k0`."""
         if self.t is None:
-            return Y[:, self.k0]
+            out[...] = Y[:, self.k0]
+            return out
         t = self.t
-        Jdx = t[:, 0, None] * Y[:, 0]
+        np.multiply(t[:, 0, None], Y[:, 0], out=out)
         for b in range(1, t.shape[1]):
-            Jdx += t[:, b, None] * Y[:, b]
-        return Jdx
+            out += t[:, b, None] * Y[:, b]
+        return out
 
 
 def psd_projection(M: Array) -> Array:

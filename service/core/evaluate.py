@@ -104,7 +104,7 @@ def differentiate(
     if want_g or want_h:
         # Per-joint scalars for every active joint at once: per chunk they would be a dozen short
         # calls each (call overhead, and a GIL hand-off each on threads).
-        _, dE, d2E = penalty.derivatives(*(a[active] for a in (x, lo, up, s)))
+        _, dE, d2E = penalty.derivatives(*(take_joints(a, active) for a in (x, lo, up, s)))
         for bad in run_all([partial(chunk, start) for start in range(0, active.shape[0], size)], threads):
             overflow += bad
     raise_if(

@@ -350,8 +350,8 @@ def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtyp
     """A scene prepared for evaluating many `q`: `bodies.q_prev`, `bodies.q_ref` (B, 12) and the joints.
 
     Raises `InputError` naming every fault of the static data. `bodies.q` is not used.
-    `threads` > 1 takes the polar factors and later evaluations on that many threads (bitwise
-    the same numbers). `dtype` np.float32 is the benchmark's single-precision variant.
+    `threads` > 1 takes the polar factors, each batch's frames and later evaluations on that many
+    threads (bitwise the same numbers). `dtype` np.float32 is the benchmark's single-precision variant.
     """
     q_prev, q_ref = (np.array(a, dtype=np.float64) for a in (bodies.q_prev, bodies.q_ref))
     log = FaultLog()
@@ -499,8 +499,8 @@ def evaluate(
     Infinity. Only the outputs asked for are computed, and only joints outside their range are
     differentiated. `dtype` np.float32 runs everything after validation and the polar factors in
     single precision (a benchmark variant: ~1e-5 relative error; the wire is float64). `threads`
-    > 1 evaluates the polar factors, the batches (or, for one batch, its derivative chunks) on
-    that many threads, with bitwise the same results; the HTTP service keeps 1, its worker
+    > 1 evaluates the polar factors, each batch's frames, then the batches (or, for one batch, its
+    derivative chunks) on that many threads, with bitwise the same results; the HTTP service keeps 1, its worker
     processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
     `DeadlineExceeded` (checked between batches and derivative chunks). `layout` "bodies" answers
     the gradient and Hessian summed per body (`service.core.assembled`) instead of per joint: only

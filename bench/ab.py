@@ -1,0 +1,98 @@
+"""`python -m bench.ab REV`: the core of this tree against the core of git revision REV, in one process.
+
+On a noisy machine two runs minutes apart differ by more than most changes (the same tree
+measured 140 ms, then 200 ms, a minute later on the development VM). Here both trees' `service`
+packages are imported side by side (REV's as `_ab_service`, from `git archive`) and their
+`evaluate` calls alternate on the same scene and the same heap, so drift hits both alike. Each
+pair's order alternates too. Prints, per thread count, the medians, their ratio and in how many
+pairs this tree was faster. The packages REV's core imports besides `service` (`schemas`) come
+from this tree.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import re
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from collections.abc import Callable
+from io import BytesIO
+from pathlib import Path
+from typing import Any
+
+from bench.scenes import make_scene
+
+ALIAS = "_ab_service"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def import_revision(rev: str, into: Path) -> Any:
+    """REV's `service` package, written under `into` and imported as `_ab_service`; its `evaluate`."""
+    archive = subprocess.run(["git", "archive", rev, "service"], cwd=ROOT, capture_output=True, check=True).stdout
+    with tarfile.open(fileobj=BytesIO(archive)) as tar:
+        try:
+            tar.extractall(into, filter="data")
+        except TypeError:  # Python before 3.11.4: no filters (the archive is this repository's own)
+            tar.extractall(into)
+    (into / "service").rename(into / ALIAS)
+    for path in (into / ALIAS).rglob("*.py"):
+        text = path.read_text()
+        text = re.sub(r"\bfrom service(\.| import)", rf"from {ALIAS}\1", text)
+        text = re.sub(r"\bimport service\.", f"import {ALIAS}.", text)
+        path.write_text(text)
+    sys.path.insert(0, str(into))
+    return importlib.import_module(f"{ALIAS}.core").evaluate
+
+
+def pairs(new: Callable[[], Any], old: Callable[[], Any], n: int) -> tuple[list[float], list[float]]:
+    """Seconds of `n` alternated calls of each (after one warm-up each); the pair's order alternates."""
+    new(), old()
+    t_new: list[float] = []
+    t_old: list[float] = []
+    for i in range(n):
+        order = [(new, t_new), (old, t_old)] if i % 2 == 0 else [(old, t_old), (new, t_new)]
+        for fn, out in order:
+            t = time.perf_counter()
+            fn()
+            out.append(time.perf_counter() - t)
+    return t_new, t_old
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.ab", description=__doc__.split("\n\n")[0])
+    ap.add_argument("rev", help="the git revision to compare against (e.g. main, HEAD~1, a commit)")
+    ap.add_argument("--joints", type=int, default=100_000, help="joints of the bench scene (default 1e5)")
+    ap.add_argument("--outside", type=float, default=1.0, help="fraction of joints outside their range (default 1: all active)")
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="core threads, each measured (default 1 2)")
+    ap.add_argument("--pairs", type=int, default=21, help="alternated pairs per thread count (default 21)")
+    ap.add_argument("--outputs", default="energy,gradient,hessian", help="comma-separated outputs (default all)")
+    args = ap.parse_args(argv)
+
+    from service.core import evaluate
+    from service.core.heap import keep_heap
+
+    keep_heap()  # as the service and the bench run
+    outputs = tuple(args.outputs.split(","))
+    with tempfile.TemporaryDirectory() as tmp:
+        old_evaluate = import_revision(args.rev, Path(tmp))
+        scene = make_scene(args.joints, args.outside, seed=args.joints % 89)
+        print(f"{args.joints} joints, {args.outside:.0%} outside, outputs {','.join(outputs)}: this tree against {args.rev}")
+        for threads in args.threads:
+            t_new, t_old = pairs(
+                lambda: evaluate(*scene, outputs=outputs, threads=threads),  # noqa: B023
+                lambda: old_evaluate(*scene, outputs=outputs, threads=threads),  # noqa: B023
+                args.pairs,
+            )
+            a, b = sorted(t_new)[len(t_new) // 2], sorted(t_old)[len(t_old) // 2]
+            wins = sum(x < y for x, y in zip(t_new, t_old))
+            print(f"threads {threads}: this tree {a * 1e3:.1f} ms, {args.rev} {b * 1e3:.1f} ms, "
+                  f"ratio {a / b:.3f}, this tree faster in {wins} of {args.pairs} pairs")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -424,3 +424,29 @@ def test_careful_joints_in_a_large_batch_answer_as_alone(uid: int) -> None:
         one = evaluate(b, [Joints(uid, j.base_uid, j.body_ids, j.edges, lower[n : n + 1] - 1.0, lower[n : n + 1], np.ones(1))], outputs=("energy", "gradient"))
         assert ev.batches[0].x[n] == one.batches[0].x[0] == xs[n]
         np.testing.assert_array_equal(ev.batches[0].gradient[n], one.batches[0].gradient[0])
+
+
+def test_frames_prepared_on_threads_name_the_same_collapsed_joints_in_batch_order() -> None:
+    """Each batch's frames are prepared on the core's threads: a frame collapsed at q_prev in batches 0
+    and 2 (batch 1 is fine) is refused with the same faults on 1, 2 and 3 threads: a prepared scene
+    names both in batch order, the stateless call the first batch's (it stops at the first batch)."""
+    import dataclasses
+
+    from service.core import prepare
+
+    bodies = _revolute_probe({"q_prev": np.zeros((3, 3))})
+    fine = Bodies(bodies.q, bodies.q_ref, bodies.q_ref)  # the same joint without the collapse
+    rows = np.concatenate([bodies.q_prev, fine.q_prev])  # bodies 0, 1 collapse at q_prev; 2, 3 do not
+    scene = Bodies(np.concatenate([bodies.q, fine.q]), rows, np.concatenate([bodies.q_ref, fine.q_ref]))
+    joint = _joint(670, Z_EDGE)
+    batches = [joint, dataclasses.replace(joint, body_ids=np.array([[2, 3]])), joint]
+    faults = []
+    for threads in (1, 2, 3):
+        for call in (lambda: evaluate(scene, batches, threads=threads), lambda: prepare(scene, batches, threads=threads)):  # noqa: B023
+            with pytest.raises(InputError) as err:
+                call()
+            faults.append([(f.loc, f.msg) for f in err.value.faults])
+    assert [loc[:2] for loc, _ in faults[0]] == [("batches", 0)]
+    assert [loc[:2] for loc, _ in faults[1]] == [("batches", 0), ("batches", 2)]
+    assert all("at q_prev " in msg for _, msg in faults[1])
+    assert all(f == faults[0] for f in faults[::2]) and all(f == faults[1] for f in faults[1::2])

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
@@ -9,7 +13,14 @@ from service.core.heap import keep_heap
 from service.http import sessions
 from service.http.routes import install
 from service.http import middleware as ops
+from service.observability import LIFESPAN_METRICS
 from service.settings import Settings
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[dict[str, Any]]:
+    """The lifespan state: the metrics, for the connection layer (`service.http.timeouts`)."""
+    yield {LIFESPAN_METRICS: app.state.metrics}
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -20,6 +31,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # validator badge would fetch an image from outside, so it is off.
     app = FastAPIOffline(
         swagger_ui_parameters={"validatorUrl": None},
+        lifespan=_lifespan,
         title="Joint-limit constitution service",
         version="1.0.0",
         description="Energy, gradient and Hessian of #670 AffineBodyRevoluteJointLimit "

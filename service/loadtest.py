@@ -717,6 +717,7 @@ def scenario_slowloris(
     span = max(header_timeout, body_timeout) + 5.0
     baseline = asyncio.run(run_load(server.port, valid, clients, span / 2, seed=1))
     closed: list[dict[str, Any]] = []
+    counted_before = connections_closed_counted(server.port)
 
     async def drill() -> Stats:
         async def slowloris() -> None:
@@ -737,12 +738,25 @@ def scenario_slowloris(
             "max_closed_after_s": max(times, default=None),
             "statuses": dict(Counter(str(c["status"]) for c in rows)),
         }
+    counted = connections_closed_counted(server.port)
     return {
         "valid_alone": baseline.summary(),
         "valid_under_slowloris": under.summary(),
         "slow": by_kind,
+        # What /metrics says the connection layer closed meanwhile (all workers).
+        "metrics_closed_delta": {reason: counted[reason] - counted_before[reason] for reason in counted},
         "healthz_after": get(server.port, "/healthz")[0],
     }
+
+
+def connections_closed_counted(port: int) -> dict[str, float]:
+    """`jointlimits_connections_closed_total` by reason (silent, slow_head), summed over the workers; NaN
+    when /metrics does not answer."""
+    status, text = get(port, "/metrics", timeout=10)
+    reasons = ("silent", "slow_head")
+    if status != 200:
+        return {r: float("nan") for r in reasons}
+    return {r: metric_total(text.decode(), "jointlimits_connections_closed_total", reason=r) for r in reasons}
 
 
 EGH = ("energy", "gradient", "hessian")

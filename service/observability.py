@@ -97,6 +97,11 @@ def log_config(level: str = "info", access_log: bool = True) -> dict[str, Any]:
 # --------------------------------------------------------------------------- metrics
 
 
+LIFESPAN_METRICS = "jointlimits_metrics"
+"""The application's `Metrics` in its lifespan state: what uvicorn hands its protocols (`app_state`),
+so the connection layer counts what happens before any request exists."""
+
+
 def multiprocess_dir() -> str | None:
     return os.environ.get("PROMETHEUS_MULTIPROC_DIR") or os.environ.get("prometheus_multiproc_dir")
 
@@ -156,6 +161,15 @@ class Metrics:
             "Requests waiting for their worker's memory budget (summed over live workers).",
             registry=reg,
             multiprocess_mode="livesum",
+        )
+        # Connections closed before a request head was complete (service/http/timeouts.py): no request
+        # exists for them, so jointlimits_http_requests_total cannot count them.
+        self.connections_closed = Counter(
+            "jointlimits_connections_closed_total",
+            "Connections the server closed for want of a complete request head within JOINTLIMITS_HEADER_TIMEOUT, "
+            "by reason (silent: not a byte, closed without an answer; slow_head: part of a head, answered 408).",
+            ["reason"],
+            registry=reg,
         )
         # WebSocket sessions (/v1/sessions, service/http/sessions.py).
         self.sessions_open = Gauge(

@@ -107,6 +107,9 @@ def test_slowloris_connections_are_closed_and_normal_clients_unaffected():
     assert r["slow"]["headers"]["statuses"] == {"408": r["slow"]["headers"]["connections"]}
     assert r["slow"]["body"]["statuses"] == {"408": r["slow"]["body"]["connections"]}
     assert r["slow"]["silent"]["statuses"] == {"None": r["slow"]["silent"]["connections"]}  # closed, no answer
+    # /metrics (both workers) counts each connection the head's timeout closed, by what it had sent.
+    assert r["metrics_closed_delta"] == {"silent": r["slow"]["silent"]["connections"],
+                                         "slow_head": r["slow"]["headers"]["connections"]}
     valid = r["valid_under_slowloris"]
     assert valid["requests"] > 0 and set(valid["statuses"]) == {"200"}
     assert valid["dropped"] == 0 and valid["connection_errors"] == 0

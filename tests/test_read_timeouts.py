@@ -35,7 +35,7 @@ def serve_with_timeouts() -> Iterator[int]:
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
     config = uvicorn.Config(
-        create_app(settings), log_level="warning", lifespan="off", http=timeouts.http_protocol(HEADER_TIMEOUT)
+        create_app(settings), log_level="warning", lifespan="on", http=timeouts.http_protocol(HEADER_TIMEOUT)
     )
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
@@ -63,6 +63,12 @@ def requests_counted(port: int, status: str) -> float:
     return metric_total(text, "jointlimits_http_requests_total", route="/v1/evaluate", status=status)
 
 
+def closed_counted(port: int, reason: str) -> float:
+    """Connections closed for a slow head, by `reason` (silent, slow_head), as /metrics counts them."""
+    text = httpx.get(f"http://127.0.0.1:{port}/metrics").text
+    return metric_total(text, "jointlimits_connections_closed_total", reason=reason)
+
+
 def wait_closed(s: socket.socket, give_up: float) -> tuple[float | None, bytes]:
     """Seconds until the server closes `s` (None: still open after `give_up`), and what it sent."""
     t0, got = time.monotonic(), b""
@@ -84,18 +90,24 @@ HEAD = b"POST /v1/evaluate HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: applicat
 
 
 def test_a_connection_that_sends_nothing_is_closed(port):
+    before = closed_counted(port, "silent"), closed_counted(port, "slow_head")
     with socket.create_connection(("127.0.0.1", port)) as s:
         after, got = wait_closed(s, HEADER_TIMEOUT + 10)
     assert after is not None and after < HEADER_TIMEOUT + SLACK, after
     assert got == b""  # nothing to answer
+    # No request exists for it: the connection layer counts it (the lifespan state hands it the metrics).
+    assert (closed_counted(port, "silent"), closed_counted(port, "slow_head")) == (before[0] + 1, before[1])
 
 
 def test_half_headers_get_408_and_are_closed(port):
+    before = closed_counted(port, "silent"), closed_counted(port, "slow_head"), requests_counted(port, "408")
     with socket.create_connection(("127.0.0.1", port)) as s:
         s.sendall(HEAD)  # no blank line, ever
         after, got = wait_closed(s, HEADER_TIMEOUT + 10)
     assert after is not None and HEADER_TIMEOUT - 0.1 < after < HEADER_TIMEOUT + SLACK, after
     assert got.startswith(b"HTTP/1.1 408 ")
+    assert closed_counted(port, "slow_head") == before[1] + 1 and closed_counted(port, "silent") == before[0]
+    assert requests_counted(port, "408") == before[2]  # not a request: its head never completed
 
 
 def test_headers_trickled_one_byte_at_a_time_are_cut_at_the_deadline(port):
@@ -132,11 +144,13 @@ def test_half_body_gets_408_naming_the_body_and_is_closed(port):
 
 def test_keep_alive_idle_is_not_a_slow_head(port):
     """Idle time between two requests on one connection is the keep-alive timeout's, not the head's."""
+    before = closed_counted(port, "silent") + closed_counted(port, "slow_head")
     with httpx.Client(base_url=f"http://127.0.0.1:{port}") as c:
         assert c.post("/v1/evaluate", json=_json()).status_code == 200
         time.sleep(HEADER_TIMEOUT + 0.5)  # longer than a head may take, shorter than keep-alive (5 s)
         assert c.post("/v1/evaluate", json=_json()).status_code == 200
         assert c.get("/healthz").status_code == 200
+    assert closed_counted(port, "silent") + closed_counted(port, "slow_head") == before
 
 
 def test_a_body_sent_in_pieces_within_the_deadline_is_answered(port):

@@ -26,6 +26,8 @@ from typing import Any
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
+from service.observability import LIFESPAN_METRICS
+
 BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `client_gone`
 _408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"
 log = logging.getLogger("jointlimits.timeouts")
@@ -83,6 +85,9 @@ class ReadTimeoutProtocol(HttpToolsProtocol):
         if self.transport.is_closing():
             return
         log.debug("request head not complete within %s s: closing %s", self.header_timeout, self.client)
+        metrics = self.app_state.get(LIFESPAN_METRICS)  # absent when uvicorn runs without the lifespan
+        if metrics is not None:
+            metrics.connections_closed.labels(reason="slow_head" if self._head_bytes else "silent").inc()
         if self._head_bytes:
             self.transport.write(_408)
         self.transport.close()

@@ -509,12 +509,21 @@ def metric_total(text: str, name: str, **labels: str) -> float:
     return total
 
 
+def metrics_text(port: int) -> str | None:
+    """The server's own /metrics (all workers), or None when it does not answer."""
+    status, text = get(port, "/metrics", timeout=10)
+    return text.decode() if status == 200 else None
+
+
+def scraped(port: int, name: str, **labels: str) -> float:
+    """`metric_total` of one scrape of the server's /metrics; NaN when it does not answer."""
+    text = metrics_text(port)
+    return float("nan") if text is None else metric_total(text, name, **labels)
+
+
 def evaluate_requests_counted(port: int) -> float:
     """POST /v1/evaluate requests answered, according to the server's own /metrics (all workers)."""
-    status, text = get(port, "/metrics", timeout=10)
-    if status != 200:
-        return float("nan")
-    return metric_total(text.decode(), "jointlimits_http_requests_total", route="/v1/evaluate")
+    return scraped(port, "jointlimits_http_requests_total", route="/v1/evaluate")
 
 
 # --------------------------------------------------------------------------- scenarios
@@ -750,13 +759,12 @@ def scenario_slowloris(
 
 
 def connections_closed_counted(port: int) -> dict[str, float]:
-    """`jointlimits_connections_closed_total` by reason (silent, slow_head), summed over the workers; NaN
-    when /metrics does not answer."""
-    status, text = get(port, "/metrics", timeout=10)
+    """`jointlimits_connections_closed_total` by reason (silent, slow_head), summed over the workers."""
+    text = metrics_text(port)  # one scrape for both
     reasons = ("silent", "slow_head")
-    if status != 200:
+    if text is None:
         return {r: float("nan") for r in reasons}
-    return {r: metric_total(text.decode(), "jointlimits_connections_closed_total", reason=r) for r in reasons}
+    return {r: metric_total(text, "jointlimits_connections_closed_total", reason=r) for r in reasons}
 
 
 EGH = ("energy", "gradient", "hessian")

@@ -20,7 +20,7 @@ import uvicorn
 
 from service.app import create_app
 from service.http import timeouts
-from service.loadtest import metric_total
+from service.loadtest import scraped
 from service.settings import Settings
 from tests.test_errors_http import _json
 
@@ -59,14 +59,12 @@ def port() -> Iterator[int]:
 
 
 def requests_counted(port: int, status: str) -> float:
-    text = httpx.get(f"http://127.0.0.1:{port}/metrics").text
-    return metric_total(text, "jointlimits_http_requests_total", route="/v1/evaluate", status=status)
+    return scraped(port, "jointlimits_http_requests_total", route="/v1/evaluate", status=status)
 
 
 def closed_counted(port: int, reason: str) -> float:
     """Connections closed for a slow head, by `reason` (silent, slow_head), as /metrics counts them."""
-    text = httpx.get(f"http://127.0.0.1:{port}/metrics").text
-    return metric_total(text, "jointlimits_connections_closed_total", reason=reason)
+    return scraped(port, "jointlimits_connections_closed_total", reason=reason)
 
 
 def wait_closed(s: socket.socket, give_up: float) -> tuple[float | None, bytes]:

@@ -21,11 +21,15 @@ from service.core.kinematics import CarefulFrames, component_major, dot, edge_ax
 _D = np.array([-1.0, 0.0, 1.0, 0.0])
 _S = np.array([0.0, 1.0, 0.0, 1.0])
 _PAIRS = 0.5 * (np.outer(_D, _S) + np.outer(_S, _D))  # (4, 4) block coefficients of d2theta/dF2
-# PAIRS = (u+ u+^T - u- u-^T) with u+- = (D +- S) / 2 orthonormal (D perp S, |D| = |S| = sqrt 2):
-# eigenvalues +-1, so the PSD part of dE PAIRS is |dE| u u^T, u chosen by the sign of dE.
-_U_PLUS = 0.5 * (_D + _S)
-_U_MINUS = 0.5 * (_D - _S)
-_UU = np.stack([_U_PLUS, _U_MINUS])[None]  # (1, 2, 4): PAIRS = u+ u+^T - u- u-^T, the chain rule's factors
+_UU = np.stack([0.5 * (_D + _S), 0.5 * (_D - _S)])[None]  # (1, 2, 4): PAIRS = u+ u+^T - u- u-^T, the chain rule's factors
+
+# The engine's PSD projection (contract v1.2) is taken in the 9 quantities F01 = [D, T_i, -T_j], where
+# x = D . (T_i - (-T_j)) / 2: per component d2x/dF01^2 = [[0, 1/2, -1/2], [1/2, 0, 0], [-1/2, 0, 0]],
+# eigenvalues +-1/sqrt 2 and 0, so the PSD part of E' d2x/dF01^2 is (|E'| / sqrt 2) w w^T with
+# w = (1/sqrt 2, s/2, -s/2), s = sign(E'). Back in F = [C_i, T_i, C_j, T_j] (D = C_j - C_i) that is
+# (|E'| / sqrt 2) f f^T, f = (-1/sqrt 2, s/2, 1/sqrt 2, s/2): one rank-1 factor per joint, no eigensolver.
+_F01_POS = np.array([-np.sqrt(0.5), 0.5, np.sqrt(0.5), 0.5])
+_F01_NEG = np.array([-np.sqrt(0.5), -0.5, np.sqrt(0.5), -0.5])
 
 
 def _theta2(F: Array) -> Array:
@@ -89,11 +93,12 @@ class Prismatic:
                              dx_coef=np.ones((n, 1), F.dtype), kron_factors=factors)
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
-        u = np.where((dE >= 0)[:, None], _U_PLUS, _U_MINUS)  # (N, 4)
-        kron = np.abs(dE)[:, None, None] * (u[:, :, None] * u[:, None, :])
+        """The engine's projection (contract v1.2, 9 quantities): `(|E'| / sqrt 2) f f^T` per joint (see `_F01_POS`)."""
+        f = np.where((dE >= 0)[:, None], _F01_POS, _F01_NEG).astype(dE.dtype)  # (N, 4)
+        w = np.abs(dE) * np.sqrt(0.5)
         n = dE.shape[0]
-        return Curvature(kron=kron, basis=curvature.basis, coef=np.zeros((n, 1, 1), dE.dtype), dx_coef=curvature.dx_coef,
-                         kron_factors=(np.abs(dE)[:, None], u[:, None]))
+        return Curvature(kron=w[:, None, None] * (f[:, :, None] * f[:, None, :]), basis=curvature.basis,
+                         coef=np.zeros((n, 1, 1), dE.dtype), dx_coef=curvature.dx_coef, kron_factors=(w[:, None], f[:, None]))
 
 
 PRISMATIC = Prismatic()

@@ -1,0 +1,389 @@
+"""Read a libuipc scene (`uipc.core.Scene`, the `pyuipc` package) into a request, and write committed angles back.
+
+    from client import LocalClient
+    from client.uipc import request_from_scene, write_back
+
+    req, joints = request_from_scene(scene)             # every #670 / #669 joint edge of the scene
+    ev = LocalClient().evaluate(req)                     # or Client / AsyncClient / .session(req)
+    write_back(scene, [b.coordinate for b in ev.batches], joints)
+
+It needs the extra `jointlimits[uipc]` (pyuipc). Nothing here starts a simulation: it reads the
+scene's geometries and attributes only (CONTRACT v1.2, "Reading an engine scene"):
+
+- Bodies: every affine-body geometry's instances, numbered as the engine numbers them: geometries
+  in slot (id) order, stable-sorted by constitution UID, instances consecutive. `q` is each
+  instance's current `transform`, `q_ref` the rest geometry's (the transforms at `world.init()`),
+  `q_prev` is `q_ref` unless given. A body geometry that carries the engine's
+  `backend_abd_body_offset` must agree with that numbering.
+- Joints: one per edge of every joint geometry (meta `constitution_uid` 18 / 20) whose
+  `extra_constitution_uids` holds 670 / 669; world edges (vertex positions) or local edges
+  (`l_position0/1`, `r_position0/1`, the engine's test: all four present). `origin="absolute"`
+  (the engine's zero), `offset` = `init_angle` / `init_distance`, `strength` = `limit/strength`
+  as is, `hessian_mode="psd"` (the engine's only mode). `prev_coordinate` = `angle` (670),
+  per `committed`.
+- `joints[k][r]` is the `(geometry id, edge index)` of batch `k`'s row `r` (the id is the joint
+  geometry slot's `id()`); `write_back` uses it.
+
+A scene the adapter cannot read raises `SceneError` before anything is built or written.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Array, BatchResult, Evaluation, JointBatch, Request
+
+REVOLUTE_JOINT, PRISMATIC_JOINT = 18, 20
+LIMIT_OF = {REVOLUTE_JOINT: REVOLUTE_LIMIT, PRISMATIC_JOINT: PRISMATIC_LIMIT}
+OFFSET_ATTR = {REVOLUTE_LIMIT: "init_angle", PRISMATIC_LIMIT: "init_distance"}
+STATE_ATTR = {REVOLUTE_LIMIT: "angle", PRISMATIC_LIMIT: "distance"}
+"""The engine's published coordinate per edge: the committed unwrapped angle (670), the slide (669)."""
+LOCAL_ATTRS = ("l_position0", "l_position1", "r_position0", "r_position1")
+BODY_OFFSET = "backend_abd_body_offset"
+
+JointRef = tuple[int, int]
+"""(joint geometry id, edge index)."""
+
+
+class SceneError(ValueError):
+    """The scene cannot be read (or written back to) as the engine would: `msg` says why,
+    `geometry_id` / `edge` name the joint geometry slot and edge at fault when there is one.
+    Raised before anything is built or written, so nothing is left half-converted."""
+
+    def __init__(self, msg: str, geometry_id: int | None = None, edge: int | None = None, hint: str = "") -> None:
+        self.msg, self.geometry_id, self.edge, self.hint = msg, geometry_id, edge, hint
+        where = "" if geometry_id is None else f"geometry {geometry_id}" + ("" if edge is None else f", edge {edge}") + ": "
+        super().__init__(f"{where}{msg}{f' ({hint})' if hint else ''}")
+
+
+def _uipc() -> Any:
+    """The `uipc` module, or an ImportError that says which extra installs it."""
+    try:
+        import uipc
+    except ImportError as e:
+        raise ImportError(
+            "client.uipc reads libuipc scenes and needs the pyuipc package: pip install 'jointlimits[uipc]'"
+        ) from e
+    return uipc
+
+
+# ------------------------------------------------------------------------------------- scene reads
+
+
+def _slots(scene: Any) -> list[tuple[int, Any, Any]]:
+    """Every geometry as `(id, slot, rest_slot)`, in the engine's slot order (ascending id)."""
+    objects = scene.objects()
+    ids: set[int] = set()
+    for oid in range(objects.created_count()):  # object ids are 0..created_count-1, destroyed ones gone
+        obj = objects.find(oid)
+        if obj is not None:
+            ids.update(int(i) for i in np.asarray(obj.geometries().ids()).ravel())
+    out = []
+    for gid in sorted(ids):
+        slot, rest = scene.geometries().find(gid)
+        if slot is not None:
+            out.append((gid, slot, rest))
+    return out
+
+
+def _meta_uid(geo: Any) -> int | None:
+    attr = geo.meta().find("constitution_uid")
+    return None if attr is None else int(np.asarray(attr.view()).ravel()[0])
+
+
+def _extra_uids(geo: Any) -> set[int]:
+    """meta `extra_constitution_uids` (a VectorXu64 that pyuipc only exposes through JSON)."""
+    if geo.meta().find("extra_constitution_uids") is None:
+        return set()
+    values = geo.meta().to_json()["extra_constitution_uids"]["attribute"]["values"]
+    if isinstance(values, str):  # defensive: some builds serialise nested JSON as a string
+        values = json.loads(values)
+    return {int(u) for u in np.asarray(values, dtype=np.float64).ravel()}
+
+
+def _is_affine_body(uid: int | None) -> bool:
+    if uid is None:
+        return False
+    reg = _uipc().builtin.ConstitutionUIDCollection.instance()
+    return bool(reg.exists(uid)) and reg.find(uid).type == "AffineBody"
+
+
+def _transforms_to_q(T: ArrayLike) -> Array:
+    """(I, 4, 4) -> (I, 12): `q = [T[0:3, 3], T[0, 0:3], T[1, 0:3], T[2, 0:3]]` (the engine's `transform_to_q`)."""
+    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
+    return np.concatenate([T[:, :3, 3], T[:, :3, :3].reshape(-1, 9)], axis=1)
+
+
+@dataclass
+class _Bodies:
+    """The engine's body numbering: `offset[geo id]`, `count[geo id]`; `q`, `q_ref` (B, 12); `published`
+    is how many body geometries carry `backend_abd_body_offset`."""
+
+    offset: dict[int, int]
+    count: dict[int, int]
+    q: Array
+    q_ref: Array
+    published: int
+    n_geometries: int
+
+
+def _bodies(slots: list[tuple[int, Any, Any]]) -> _Bodies:
+    geos = [(gid, slot, rest, _meta_uid(slot.geometry())) for gid, slot, rest in slots]
+    geos = [g for g in geos if _is_affine_body(g[3])]
+    geos.sort(key=lambda g: g[3])  # stable: slot order within a constitution UID
+    offset, count, qs, q_refs, published, at = {}, {}, [], [], 0, 0
+    for gid, slot, rest, _ in geos:
+        geo = slot.geometry()
+        T = np.asarray(geo.transforms().view(), dtype=np.float64)
+        T_ref = np.asarray(rest.geometry().transforms().view(), dtype=np.float64) if rest is not None else T
+        if T_ref.shape != T.shape:
+            raise SceneError(f"body geometry has {T.shape[0]} instances but its rest geometry {T_ref.shape[0]}", gid)
+        mine = geo.meta().find(BODY_OFFSET)
+        if mine is not None:
+            published += 1
+            theirs = int(np.asarray(mine.view()).ravel()[0])
+            if theirs != at:
+                raise SceneError(
+                    f"the engine numbers this body geometry's first body {theirs}, the adapter {at}", gid,
+                    hint="geometries created or destroyed after world.init() and not yet rebuilt by the engine?")
+        offset[gid], count[gid] = at, T.shape[0]
+        qs.append(_transforms_to_q(T))
+        q_refs.append(_transforms_to_q(T_ref))
+        at += T.shape[0]
+    empty = np.zeros((0, 12))
+    return _Bodies(offset, count, np.concatenate(qs or [empty]), np.concatenate(q_refs or [empty]),
+                   published, len(geos))
+
+
+def _edge_attr(geo: Any, name: str, gid: int, required: bool = True) -> NDArray[Any] | None:
+    attr = geo.edges().find(name)
+    if attr is None:
+        if required:
+            raise SceneError(f"the joint edges have no `{name}` attribute", gid)
+        return None
+    return np.asarray(attr.view())
+
+
+@dataclass
+class _Rows:
+    """Joints of one batch (one constitution, one edge variant), gathered geometry by geometry."""
+
+    uid: int
+    local: bool
+    refs: list[JointRef] = field(default_factory=list)
+    body_ids: list[NDArray[np.int64]] = field(default_factory=list)
+    edges: list[Array] = field(default_factory=list)
+    lower: list[Array] = field(default_factory=list)
+    upper: list[Array] = field(default_factory=list)
+    strength: list[Array] = field(default_factory=list)
+    offset: list[Array] = field(default_factory=list)
+    prev: list[Array] = field(default_factory=list)
+
+
+def _body_ids(bodies: _Bodies, gid: int, geo_ids: NDArray[Any], inst_ids: NDArray[Any], side: str) -> NDArray[np.int64]:
+    """(E,) body rows of one side of a joint geometry's edges; a missing body geometry or instance is a SceneError."""
+    out = np.empty(geo_ids.shape[0], dtype=np.int64)
+    for g in np.unique(geo_ids):
+        at = geo_ids == g
+        if int(g) not in bodies.offset:
+            e = int(np.flatnonzero(at)[0])
+            raise SceneError(f"`{side}_geo_id` {int(g)} is not an affine-body geometry of the scene "
+                             "(missing, destroyed, or without an affine-body constitution)", gid, e)
+        inst = inst_ids[at].astype(np.int64)
+        bad = (inst < 0) | (inst >= bodies.count[int(g)])
+        if np.any(bad):
+            e = int(np.flatnonzero(at)[np.argmax(bad)])
+            raise SceneError(f"`{side}_inst_id` {int(inst[np.argmax(bad)])} is out of range: body geometry "
+                             f"{int(g)} has {bodies.count[int(g)]} instances", gid, e)
+        out[at] = bodies.offset[int(g)] + inst
+    return out
+
+
+def _read_joints(gid: int, geo: Any, uid: int, bodies: _Bodies, use_angle: bool) -> tuple[bool, dict[str, Any]]:
+    """One limited joint geometry's edges, as arrays (E rows), with the engine's checks."""
+    E = int(geo.edges().size())
+    local = all(geo.edges().find(n) is not None for n in LOCAL_ATTRS)  # the engine's `use_local`
+    ints = {n: _edge_attr(geo, n, gid).astype(np.int64).ravel() for n in ("l_geo_id", "l_inst_id", "r_geo_id", "r_inst_id")}
+    ids = np.stack([_body_ids(bodies, gid, ints["l_geo_id"], ints["l_inst_id"], "l"),
+                    _body_ids(bodies, gid, ints["r_geo_id"], ints["r_inst_id"], "r")], axis=1)
+    lim = {n: np.asarray(_edge_attr(geo, f"limit/{n}", gid), dtype=np.float64).reshape(E) for n in ("lower", "upper", "strength")}
+    if local:
+        le = np.stack([np.asarray(_edge_attr(geo, n, gid), dtype=np.float64).reshape(E, 3) for n in LOCAL_ATTRS], axis=1)
+        edges = le.reshape(E, 2, 2, 3)  # [[l0, l1], [r0, r1]]
+        axis = edges[:, 0, 1] - edges[:, 0, 0]
+    else:
+        P = np.asarray(geo.positions().view(), dtype=np.float64).reshape(-1, 3)
+        topo = np.asarray(geo.edges().topo().view()).reshape(E, 2)
+        edges = P[topo]  # (E, 2, 3): world positions at q_ref
+        axis = edges[:, 1] - edges[:, 0]
+    # The engine refuses a zero axis at world.init() (revolute: |t|^2 <= 1e-24, prismatic: P0 == P1).
+    short = ~(np.einsum("ek,ek->e", axis, axis) > (1e-24 if uid == REVOLUTE_LIMIT else 0.0))
+    if np.any(short):
+        raise SceneError("the joint's axis has zero length (the engine refuses it at world.init())", gid, int(np.argmax(short)))
+    offset = _edge_attr(geo, OFFSET_ATTR[uid], gid, required=False)
+    prev = None
+    if uid == REVOLUTE_LIMIT and use_angle:
+        prev = np.asarray(_edge_attr(geo, "angle", gid), dtype=np.float64).reshape(E)
+    return local, dict(
+        refs=[(gid, e) for e in range(E)], body_ids=ids, edges=edges, prev=prev,
+        offset=np.zeros(E) if offset is None else np.asarray(offset, dtype=np.float64).reshape(E), **lim,
+    )
+
+
+def request_from_scene(
+    scene: Any,
+    q: ArrayLike | None = None,
+    q_prev: ArrayLike | None = None,
+    q_ref: ArrayLike | None = None,
+    committed: bool | None = None,
+    outputs: Sequence[str] = ("energy", "gradient", "hessian"),
+) -> tuple[Request, list[list[JointRef]]]:
+    """The request that evaluates every #670 / #669 joint of a `uipc.core.Scene` as the engine does,
+    and `joints`: `joints[k][r]` = (joint geometry id, edge index) of batch `k`'s row `r`.
+
+    `q`, `q_prev`, `q_ref` (B, 12) override the bodies' DOFs (B = the scene's affine bodies, in the
+    engine's numbering); by default `q` = the instances' current transforms, `q_ref` = the rest
+    geometries' transforms, `q_prev` = `q_ref`. `committed` says whether the edges' `angle` is the
+    engine's committed angle at `q_prev` (`prev_coordinate`): True: yes; False: no (the service
+    measures from `q_ref`); None: yes once the engine has published it (the body geometries carry
+    `backend_abd_body_offset`, which `world.init()` of a simulating backend writes).
+
+    One batch per constitution and edge variant (world edges, local edges), 670 first; rows in
+    slot order, then edge order. Raises `SceneError` for a scene the engine would refuse or that
+    cannot be read, and ImportError without pyuipc.
+    """
+    _uipc()
+    slots = _slots(scene)
+    bodies = _bodies(slots)
+    if committed is None:
+        if 0 < bodies.published < bodies.n_geometries:
+            raise SceneError(f"{bodies.published} of {bodies.n_geometries} body geometries carry `{BODY_OFFSET}`: "
+                             "the engine has not numbered every body yet", hint="pass committed=True or False")
+        use_angle = bodies.n_geometries > 0 and bodies.published == bodies.n_geometries
+    else:
+        use_angle = bool(committed)
+
+    # Joint geometries per base UID; the engine indexes a limit by its base joint's rows, so a limit
+    # on only some of the base joint's geometries is refused at world.init() (joint count mismatch).
+    limited: dict[int, list[tuple[int, Any]]] = {REVOLUTE_JOINT: [], PRISMATIC_JOINT: []}
+    bare: dict[int, list[int]] = {REVOLUTE_JOINT: [], PRISMATIC_JOINT: []}
+    for gid, slot, _ in slots:
+        geo = slot.geometry()
+        base = _meta_uid(geo)
+        if base in LIMIT_OF:
+            (limited[base].append((gid, geo)) if LIMIT_OF[base] in _extra_uids(geo) else bare[base].append(gid))
+    for base, with_limit in limited.items():
+        if with_limit and bare[base]:
+            raise SceneError(
+                f"#{LIMIT_OF[base]} is on joint geometries {[g for g, _ in with_limit]} but not on their siblings "
+                f"{bare[base]} (base joint UID {base}): the engine aligns the limit with every base joint row and "
+                "refuses this scene at world.init()", bare[base][0],
+                hint=f"apply the limit to every UID-{base} joint geometry (a wide range leaves a joint free)")
+
+    rows: dict[tuple[int, bool], _Rows] = {}
+    for base in (REVOLUTE_JOINT, PRISMATIC_JOINT):
+        uid = LIMIT_OF[base]
+        for gid, geo in limited[base]:
+            local, arrays = _read_joints(gid, geo, uid, bodies, use_angle)
+            r = rows.setdefault((uid, local), _Rows(uid, local))
+            r.refs += arrays["refs"]
+            for name in ("body_ids", "edges", "lower", "upper", "strength", "offset"):
+                getattr(r, name).append(arrays[name])
+            if arrays["prev"] is not None:
+                r.prev.append(arrays["prev"])
+    rows = {k: r for k, r in rows.items() if r.refs}
+    if not rows:
+        raise SceneError("the scene has no joint edge with a #670 or #669 limit (zero edges to evaluate)")
+
+    B = bodies.q.shape[0]
+    def dofs(a: ArrayLike | None, default: Array, name: str) -> Array:
+        if a is None:
+            return default
+        a = np.asarray(a, dtype=np.float64)
+        if a.shape != (B, 12):
+            raise SceneError(f"`{name}` has shape {a.shape}; the scene has {B} affine bodies, so (B, 12) = ({B}, 12)")
+        return a
+    q_ref_ = dofs(q_ref, bodies.q_ref, "q_ref")
+    q_ = dofs(q, bodies.q, "q")
+    q_prev_ = dofs(q_prev, q_ref_, "q_prev")
+
+    batches, joints = [], []
+    for (uid, local), r in rows.items():
+        cat = lambda parts: np.concatenate(parts, axis=0)  # noqa: E731
+        edges = cat(r.edges)
+        batches.append(JointBatch.of(
+            uid, cat(r.body_ids), None if local else edges, cat(r.lower), cat(r.upper), cat(r.strength),
+            offset=cat(r.offset), prev_coordinate=cat(r.prev) if r.prev else None,
+            local_edges=edges if local else None, origin="absolute",
+        ))
+        joints.append(r.refs)
+    req = Request(q=q_, q_prev=q_prev_, q_ref=q_ref_, batches=batches, outputs=tuple(outputs), hessian_mode="psd")
+    return req, joints
+
+
+# ------------------------------------------------------------------------------------- write back
+
+
+def write_back(
+    scene: Any,
+    coordinates: Evaluation | Sequence[ArrayLike | BatchResult],
+    joints: Sequence[Sequence[JointRef]],
+) -> None:
+    """Write committed coordinates into the joint edges: `angle` (670, what the engine reads as
+    `prev_coordinate`) and `distance` (669, the engine's published slide), row `r` of batch `k`
+    into `joints[k][r]`.
+
+    `coordinates`: one (N_k,) array per batch (a session's `commit(q)`), or an `Evaluation` /
+    its `BatchResult`s (their `coordinate`; every row must be there, so no `active_only`).
+    Everything is checked before the first write: a SceneError leaves the scene as it was.
+    """
+    _uipc()
+    if isinstance(coordinates, Evaluation):
+        coordinates = coordinates.batches
+    if len(coordinates) != len(joints):
+        raise SceneError(f"{len(coordinates)} batches of coordinates for {len(joints)} batches of joints")
+    writes: dict[int, tuple[Any, str, list[int], list[float]]] = {}
+    for k, (c, refs) in enumerate(zip(coordinates, joints)):
+        values = _batch_values(c, len(refs), k)
+        for (gid, e), v in zip(refs, values):
+            if gid not in writes:
+                slot, _ = scene.geometries().find(int(gid))
+                if slot is None:
+                    raise SceneError("the joint geometry is not in the scene", int(gid))
+                geo = slot.geometry()
+                base = _meta_uid(geo)
+                if base not in LIMIT_OF:
+                    raise SceneError(f"not a revolute or prismatic joint geometry (constitution UID {base})", int(gid))
+                name = STATE_ATTR[LIMIT_OF[base]]
+                if geo.edges().find(name) is None:
+                    raise SceneError(f"the joint edges have no `{name}` attribute", int(gid))
+                writes[gid] = (geo, name, [], [])
+            geo, name, rows_, vals = writes[gid]
+            if not 0 <= e < geo.edges().size():
+                raise SceneError(f"edge out of range: the geometry has {geo.edges().size()} edges", int(gid), int(e))
+            rows_.append(int(e))
+            vals.append(float(v))
+    view = _uipc().view
+    for geo, name, rows_, vals in writes.values():
+        view(geo.edges().find(name))[np.asarray(rows_)] = np.asarray(vals)
+
+
+def _batch_values(c: ArrayLike | BatchResult, n: int, k: int) -> Array:
+    """Batch `k`'s (n,) coordinates, all finite."""
+    if isinstance(c, BatchResult):
+        if c.coordinate is None or len(c.index) != n or not np.array_equal(c.index, np.arange(n)):
+            raise SceneError(f"batch {k}: the answer lacks the coordinate of some of its {n} joints "
+                             "(evaluate without active_only)")
+        c = c.coordinate
+    values = np.asarray(c, dtype=np.float64).reshape(-1)
+    if values.shape != (n,):
+        raise SceneError(f"batch {k}: {values.shape[0]} coordinates for {n} joints")
+    if not np.all(np.isfinite(values)):
+        raise SceneError(f"batch {k}: coordinate {int(np.argmax(~np.isfinite(values)))} is not finite")
+    return values

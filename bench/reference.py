@@ -15,7 +15,10 @@ Use `reference_request(request)` for a whole CONTRACT v1 / v1.1 request dict, or
 `JointRef` for one joint (e.g. to finite-difference the reference energy). v1.1's
 `offset` shifts the bounds (`l = lower - offset`, `u = upper - offset`, exactly, at 50 digits)
 and the reported `coordinate = x + offset`; `prev_coordinate` replaces the accumulated angle
-`DeltaTheta(q_prev, q_ref)` by `prev_coordinate - offset`.
+`DeltaTheta(q_prev, q_ref)` by `prev_coordinate - offset`. v1.2: body-local `local_edges`
+(`JointRef(..., local_edge=...)`), `origin: "absolute"` (the frames' own coordinate at `q_ref` added
+to `x`) and the engine's prismatic `psd`, projected in the 9 quantities `[C_j - C_i, T_i, -T_j]`
+(differentiated in those variables directly, then carried to `F` by their linear map).
 """
 
 from __future__ import annotations
@@ -240,14 +243,30 @@ def penalty_jet(x: Any, lower: float, upper: float, strength: float) -> tuple[An
 class JointRef:
     """One joint's frames (from `q_ref` and the edge) and its evaluation at 50 digits."""
 
-    def __init__(self, uid: int, q_ref_i: Sequence[float], q_ref_j: Sequence[float], edge: Sequence[Sequence[float]]) -> None:
+    def __init__(
+        self,
+        uid: int,
+        q_ref_i: Sequence[float],
+        q_ref_j: Sequence[float],
+        edge: Sequence[Sequence[float]] | None = None,
+        local_edge: Sequence[Sequence[Sequence[float]]] | None = None,
+    ) -> None:
+        """From a world `edge` [p0, p1] (v1) or a body-local `local_edge` [[l0, l1], [r0, r1]] (v1.2)."""
         assert uid in (669, 670), uid
         self.uid = uid
         with mp.workdps(DPS):
-            p0, p1 = _mpv(edge[0]), _mpv(edge[1])
-            t = _normalize([p1[r] - p0[r] for r in range(3)])
             refs = [_split(q_ref_i), _split(q_ref_j)]
             R = [polar_rotation(A) for _, A in refs]
+            if local_edge is None:
+                p0, p1 = _mpv(edge[0]), _mpv(edge[1])
+                t = _normalize([p1[r] - p0[r] for r in range(3)])
+                c = None
+            else:
+                (l0, l1), (r0, _) = ([_mpv(p) for p in side] for side in local_edge)
+                # The engine carries the local edge to the world by R_i (670) or A_ref_i itself (669).
+                turn = R[0] if uid == 670 else refs[0][1]
+                t = _normalize(_matvec(turn, [l1[r] - l0[r] for r in range(3)]))
+                c = [l0, r0]
             if uid == 670:
                 test = [mpf(0), mpf(1), mpf(0)] if abs(t[0]) > mpf("0.9") else [mpf(1), mpf(0), mpf(0)]
                 n = _normalize(_cross(t, test))
@@ -256,11 +275,12 @@ class JointRef:
                 self.local = [_tmatvec(R[0], b), _tmatvec(R[0], n), _tmatvec(R[1], b), _tmatvec(R[1], n)]
                 self.alpha = [0, 0, 0, 0]
             else:
-                # F = [C_i, T_i, C_j, T_j]: anchors c_k = A_ref_k^-1 (p0 - p_ref_k), axes R_k^T t.
-                c = []
-                for p_ref, A_ref in refs:
-                    sol = mp.lu_solve(mp.matrix(A_ref), mp.matrix([p0[r] - p_ref[r] for r in range(3)]))
-                    c.append([sol[r] for r in range(3)])
+                # F = [C_i, T_i, C_j, T_j]: anchors c_k = A_ref_k^-1 (p0 - p_ref_k) (or as given), axes R_k^T t.
+                if c is None:
+                    c = []
+                    for p_ref, A_ref in refs:
+                        sol = mp.lu_solve(mp.matrix(A_ref), mp.matrix([p0[r] - p_ref[r] for r in range(3)]))
+                        c.append([sol[r] for r in range(3)])
                 self.local = [c[0], _tmatvec(R[0], t), c[1], _tmatvec(R[1], t)]
                 self.alpha = [1, 0, 1, 0]
             self.t, self.R = t, R
@@ -275,15 +295,24 @@ class JointRef:
             F.append([Av[r] + p[r] for r in range(3)] if self.alpha[k] else Av)
         return F
 
-    def _x_value(self, F: list, F_prev: list, F_ref: list, theta_prev: Any = None) -> Any:
-        """x; `theta_prev` (v1.1, 670: prev_coordinate - offset) replaces DeltaTheta(q_prev, q_ref)."""
+    def absolute_zero(self, F_ref: list) -> Any:
+        """v1.2 `origin: "absolute"`: x at q_ref from the frames' own zero (atan2(sin, cos), or theta)."""
+        if self.uid == 670:
+            c, s = _cos_sin(F_ref)
+            return mp.atan2(s, c)
+        return _theta(F_ref)
+
+    def _x_value(self, F: list, F_prev: list, F_ref: list, theta_prev: Any = None, absolute: bool = False) -> Any:
+        """x; `theta_prev` (v1.1, 670: prev_coordinate - offset) replaces DeltaTheta(q_prev, q_ref) and
+        whatever origin; `absolute` (v1.2) adds `absolute_zero` otherwise."""
+        x0 = self.absolute_zero(F_ref) if absolute and theta_prev is None else mpf(0)
         if self.uid == 670:
             cs_prev = _cos_sin(F_prev)
             if theta_prev is None:
-                theta_prev = _delta_theta(cs_prev, _cos_sin(F_ref))
+                theta_prev = x0 + _delta_theta(cs_prev, _cos_sin(F_ref))
             return theta_prev + _delta_theta(_cos_sin(F), cs_prev)
         th_prev = _theta(F_prev)
-        return (th_prev - _theta(F_ref)) + (_theta(F) - th_prev)
+        return x0 + (th_prev - _theta(F_ref)) + (_theta(F) - th_prev)
 
     def _x_jet(self, F: list) -> Jet:
         """dx/dF and d2x/dF2 (12 variables, index 3k + r) from the q-dependent term only."""
@@ -330,14 +359,15 @@ class JointRef:
         derivatives: bool = True,
         offset: float = 0.0,
         prev_coordinate: float | None = None,
+        origin: str = "q_ref",
     ) -> JointResult:
         """x, E and (if asked) the gradient and both Hessians w.r.t. [q_i, q_j]; v1.1's `offset` and
-        `prev_coordinate` (670 only) as CONTRACT.md defines them."""
+        `prev_coordinate` (670 only) and v1.2's `origin` as CONTRACT.md defines them."""
         with mp.workdps(DPS):
             off = mpf(float(offset))
             theta_prev = None if prev_coordinate is None else mpf(float(prev_coordinate)) - off
             F = self.frames(*q)
-            x = self._x_value(F, self.frames(*q_prev), self.frames(*q_ref), theta_prev)
+            x = self._x_value(F, self.frames(*q_prev), self.frames(*q_ref), theta_prev, origin == "absolute")
             E, dE, d2E = penalty_jet(x, mpf(float(lower)) - off, mpf(float(upper)) - off, strength)
             zero_g = [mpf(0)] * 24
             zero_h = [[mpf(0)] * 24 for _ in range(24)]
@@ -348,7 +378,7 @@ class JointRef:
             rank1 = [[d2E * dx[a] * dx[b] for b in range(12)] for a in range(12)]
             curv = [[dE * Hx[a][b] for b in range(12)] for a in range(12)]
             M_exact = [[rank1[a][b] + curv[a][b] for b in range(12)] for a in range(12)]
-            P = _psd(curv)
+            P = _psd(curv) if self.uid == 670 else _prismatic_psd(dE, F)
             M_psd = [[rank1[a][b] + P[a][b] for b in range(12)] for a in range(12)]
             J = self.J()
             grad = [mpf(0)] * 24
@@ -370,6 +400,26 @@ def _psd(M: Mat) -> Mat:
     return [[mp.fsum(V[a, i] * lam[i] * V[b, i] for i in keep) for b in range(n)] for a in range(n)]
 
 
+def _prismatic_psd(dE: Any, F: list) -> Mat:
+    """The engine's prismatic projection (v1.2): `E' d2x/dF01^2` projected in `F01 = [D, T_i, -T_j]`
+    (9 variables, `D = C_j - C_i`, x = D . (T_i - (-T_j)) / 2 differentiated there), then `M^T P M`
+    with `M = dF01/dF` (9 x 12)."""
+    C_i, T_i, C_j, T_j = F
+    F01 = [[C_j[r] - C_i[r] for r in range(3)], T_i, [-v for v in T_j]]
+    V = [[Jet.var(F01[k][r], 3 * k + r) for r in range(3)] for k in range(3)]
+    x = _jdot(V[0], [V[1][r] - V[2][r] for r in range(3)]) * mpf(0.5)
+    H = x.hess(9)
+    P = _psd([[dE * H[a][b] for b in range(9)] for a in range(9)])
+    # M: D from -C_i + C_j, T_i from T_i, -T_j from T_j (blocks of F: C_i 0, T_i 1, C_j 2, T_j 3).
+    M = [[mpf(0)] * 12 for _ in range(9)]
+    for r in range(3):
+        M[r][r], M[r][6 + r] = mpf(-1), mpf(1)
+        M[3 + r][3 + r] = mpf(1)
+        M[6 + r][9 + r] = mpf(-1)
+    return [[mp.fsum(M[a][f] * P[a][b] * M[b][g] for a in range(9) for b in range(9) if M[a][f] and M[b][g])
+             for g in range(12)] for f in range(12)]
+
+
 def _congruence(J: list[list[tuple[int, Any]]], M: Mat) -> Mat:
     """J^T M J (24 x 24) with the sparse J of `JointRef.J`."""
     H = [[mpf(0)] * 24 for _ in range(24)]
@@ -389,7 +439,7 @@ def _congruence(J: list[list[tuple[int, Any]]], M: Mat) -> Mat:
 
 
 def reference_request(request: Mapping[str, Any], derivatives: bool = True) -> list[dict[str, Any]]:
-    """Every joint of a CONTRACT v1 / v1.1 request dict, per batch, as float64 arrays rounded from 50 digits.
+    """Every joint of a CONTRACT v1 / v1.1 / v1.2 request dict, per batch, as float64 arrays rounded from 50 digits.
 
     Each batch: `x`, `coordinate`, `energy` (N,), `gradient` (N, 24), `hessian_exact`, `hessian_psd`
     (N, 24, 24), and `mp` (the `JointResult`s). Inactive joints have exact zeros.
@@ -402,11 +452,16 @@ def reference_request(request: Mapping[str, Any], derivatives: bool = True) -> l
         n = len(batch["body_ids"])
         offsets = batch.get("offset") or [0.0] * n
         prev = batch.get("prev_coordinate") or [None] * n
-        rows = zip(batch["body_ids"], batch["edges"], batch["lower"], batch["upper"], batch["strength"], offsets, prev)
+        strength = batch.get("strength") or [1.0] * n
+        local = "local_edges" in batch and batch["local_edges"] is not None
+        edges = batch["local_edges"] if local else batch["edges"]
+        rows = zip(batch["body_ids"], edges, batch["lower"], batch["upper"], strength, offsets, prev)
         for (i, j), edge, lo, up, s, off, pc in rows:
-            ref = JointRef(int(batch["constitution_uid"]), q_ref[i], q_ref[j], edge)
+            geometry = {"local_edge": edge} if local else {"edge": edge}
+            ref = JointRef(int(batch["constitution_uid"]), q_ref[i], q_ref[j], **geometry)
             res.append(
-                ref.evaluate((q[i], q[j]), (q_prev[i], q_prev[j]), (q_ref[i], q_ref[j]), lo, up, s, derivatives, off, pc)
+                ref.evaluate((q[i], q[j]), (q_prev[i], q_prev[j]), (q_ref[i], q_ref[j]), lo, up, s, derivatives, off, pc,
+                             batch.get("origin", "q_ref"))
             )
         flo = [r.as_float() for r in res]
         n = len(flo)

@@ -60,12 +60,18 @@ class Constitution(Protocol):
     telescopes: bool
     """True when the incremental `x` telescopes to a function of `q` and `q_ref`: `q_prev` is not needed."""
 
-    def local_vectors(self, edges: Array, p_ref: Array | None, A_ref: Array, R_ref: Array) -> Array:
-        """Body-local `v` (N, 4, 3) from the joint edges (N, 2, 3) and the bodies at `q_ref`.
+    axis_by_rotation: bool
+    """How a body-local edge (`local_edges`) gives the world axis: by body i's rotation `R_i` (True) or
+    its `A_ref_i` (False), as the reference engine does for this constitution (`service.core.geometry`)."""
 
-        `p_ref` (N, 2, 3) (None when `alpha` is zero), `A_ref` (N, 2, 3, 3) and its rotation
-        `R_ref` (N, 2, 3, 3) of bodies i, j.
-        """
+    def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
+        """Body-local `v` (N, 4, 3) from the unit world axis `t` (N, 3) at `q_ref`, the body-local
+        anchors (N, 2, 3) of bodies i, j (None when `alpha` is zero) and their rotations `R_ref` (N, 2, 3, 3)."""
+        ...
+
+    def value(self, F: Array) -> Array:
+        """The coordinate (N,) of frames `F` (N, 4, 3) measured from the constitution's own zero (the
+        reference engine's): `origin: "absolute"` adds it at `q_ref` to `x`."""
         ...
 
     def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:

@@ -268,12 +268,12 @@ class CarefulFrames:
         return np.ldexp(self.states[state], e)
 
 
-def _exponents(A: Array) -> NDArray[np.int_]:
+def exponents(A: Array) -> NDArray[np.int_]:
     """(M, 2): `e` with the largest entry of each `2^-e A` (M, 2, 3, 3) in [0.5, 1) (0 for A = 0)."""
     return np.frexp(np.abs(A).max(axis=(-2, -1)))[1]
 
 
-def _scaled_frames(r: Array | None, A: Array, e: NDArray[np.int_], alpha: Array, v: Array) -> Array:
+def scaled_frames(r: Array | None, A: Array, e: NDArray[np.int_], alpha: Array, v: Array) -> Array:
     """`frame_quantities` of bodies `A` (M, 2, 3, 3), body j at `r` (M, 3), each body scaled by `2^-e` (M, 2)."""
     rs = None if r is None else np.ldexp(r, -e[:, 1, None])
     return frame_quantities(rs, np.ldexp(A, -e[:, :, None, None]), alpha, v)
@@ -290,14 +290,14 @@ def careful_frames(
     r = {s: relative_position(table.positions_of(sub, s)) for s in states} if alpha.any() else {}
     # Frames with points (the anchors: r + A c) stay unscaled: a power of two common to r and A
     # could push r to 0 next to a large A, and their coordinate is not scale-invariant anyway.
-    e = {s: np.zeros((idx.shape[0], 2), dtype=np.int32) if r else _exponents(A[s]) for s in states}
+    e = {s: np.zeros((idx.shape[0], 2), dtype=np.int32) if r else exponents(A[s]) for s in states}
     starts, steps = [], []
     for row in rows:
         a, b = STEPS[row]
         common = np.maximum(e[a], e[b])  # both states' A (and so the step) at most ~1 once scaled
-        starts.append(_scaled_frames(r.get(a), A[a], common, alpha, v))
-        steps.append(_scaled_frames(r[b] - r[a] if r else None, table.linear_of(sub, row), common, alpha, v))
-    direct = [_scaled_frames(r.get(s), A[s], e[s], alpha, v) for s in states]
+        starts.append(scaled_frames(r.get(a), A[a], common, alpha, v))
+        steps.append(scaled_frames(r[b] - r[a] if r else None, table.linear_of(sub, row), common, alpha, v))
+    direct = [scaled_frames(r.get(s), A[s], e[s], alpha, v) for s in states]
     return CarefulFrames(idx, [e[s] for s in states], direct, starts, steps)
 
 
@@ -395,7 +395,11 @@ def edge_axis(edges: Array) -> Array:
     (`validate.check_joints` refuses the others); for ordinary edges the result is bitwise
     that of `d / |d|`.
     """
-    d = edge_vector(edges)
+    return axis(edge_vector(edges))
+
+
+def axis(d: Array) -> Array:
+    """`d / |d|` (N, 3), component-major, of nonzero, finite vectors `d` (N, 3) (see `edge_axis`)."""
     lo, hi = plain_range(d.dtype)
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # the odd rows are redone below
         dd = dot(d, d)
@@ -405,6 +409,14 @@ def edge_axis(edges: Array) -> Array:
         _, e = np.frexp(max_abs(d[odd]))
         t[odd] = unit(np.ldexp(d[odd], -e[:, None]))
     return t
+
+
+def from_local(M: Array, w: Array) -> Array:
+    """`M w` (N, 3), component-major, for matrices `M` (N, 3, 3) and vectors `w` (N, 3)."""
+    out = component_major(w.shape[0], (3,), w.dtype)
+    for r in range(3):
+        np.add(M[:, r, 0] * w[:, 0] + M[:, r, 1] * w[:, 1], M[:, r, 2] * w[:, 2], out=out[:, r])
+    return out
 
 
 def edge_vector(edges: Array) -> Array:

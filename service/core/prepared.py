@@ -33,10 +33,13 @@ from service.core.kinematics import (
     BodyTable,
     CarefulFrames,
     careful_frames,
+    exponents,
     frame_quantities,
     relative_position,
+    scaled_frames,
     state_frames,
 )
+from service.core.geometry import axis_and_anchors
 from service.core.parallel import run_all
 from service.core.registry import CONSTITUTIONS
 from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
@@ -88,6 +91,7 @@ class _Batch:
     up: Array
     s: Array
     theta: Array | None  # the committed angle at q_prev (coordinate - offset), None: summed over the steps
+    x0: Array | None  # origin "absolute": x's value at q_ref from the constitution's own zero (None: 0, the specs' origin)
     faults: list[Fault]  # the stateless call's collapsed frames at q_ref, q_prev: reported with those at q
 
 
@@ -232,6 +236,7 @@ class PreparedScene:
         the careful frames of the state at q (`_last_state`)."""
         if jb.theta is None:
             states, careful, x = self._to_q(jb, jb.starts, jb.fixed, jb.rows, dF)
+            x = _from_origin(x, jb)
         else:
             states, careful, x = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF)
             x = jb.theta + x
@@ -293,13 +298,13 @@ class PreparedScene:
         if jb.c.alpha.any():
             r_ref = jb.r_origin if jb.origin == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
         states, careful, x = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), self._step(jb, TOTAL_STEP, r_ref))
-        return states[-1], x, _last_state(careful)
+        return states[-1], _from_origin(x, jb), _last_state(careful)
 
     def _angle(self, jb: _Batch) -> Array:
         """The committed angle at q_prev: `theta`, or DeltaTheta(q_prev, q_ref) before any commit."""
         if jb.theta is not None:
             return jb.theta
-        return jb.c.coordinate(jb.starts[:1], jb.fixed[:1], jb.prev_careful)
+        return _from_origin(jb.c.coordinate(jb.starts[:1], jb.fixed[:1], jb.prev_careful), jb)
 
     def coordinates(self) -> list[Array]:
         """The committed coordinates at `q_prev`, one (N,) per batch (`x(q_prev) + offset`)."""
@@ -367,6 +372,11 @@ def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:
     return CarefulFrames(careful.idx, careful.exponents[-1:], careful.states[-1:], [], [])
 
 
+def _from_origin(x: Array, jb: _Batch) -> Array:
+    """`x` (N,) measured from the batch's origin: plus its value at q_ref where that is "absolute"."""
+    return x if jb.x0 is None else x + jb.x0
+
+
 def _plus_offset(x: Array, offset: Array | None, index: NDArray[np.int64] | None = None) -> Array:
     """The coordinate `x + offset` (M,) of `x` (M,), at joints `index` (M,) of `offset` if given."""
     if offset is None:
@@ -424,9 +434,12 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool) -> _Batc
     states = {0, origin} | {s for row in rows[:-1] for s in STEPS[row]}
     p = {s: table.positions_of(pairs, s) for s in states} if points else {}
     r = {s: relative_position(ps) for s, ps in p.items()}
-    p_ref = p.get(0)
-    v = c.local_vectors(joints.edges.astype(dtype, copy=False), p_ref, A_ref, table.rotations(pairs))
+    cast = lambda a: None if a is None else a.astype(dtype, copy=False)  # noqa: E731
+    R_ref = table.rotations(pairs)
+    t, anchors = axis_and_anchors(c, cast(joints.edges), cast(joints.local_edges), p.get(0), A_ref, R_ref)
+    v = c.local_vectors(t, anchors, R_ref)
     F_ref = frame_quantities(r.get(0), A_ref, c.alpha, v)
+    x0 = _absolute_zero(c, F_ref, A_ref, v) if joints.origin == "absolute" else None
     # The steps before the last one (q_ref -> q_prev) and where each starts.
     fixed = []
     for row in rows[:-1]:
@@ -462,8 +475,20 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool) -> _Batc
         up=up.astype(dtype, copy=False),
         s=strength.astype(dtype, copy=own),
         theta=theta,
+        x0=x0,
         faults=faults,
     )
+
+
+def _absolute_zero(c: Constitution, F_ref: Array, A_ref: Array, v: Array) -> Array:
+    """x at q_ref measured from the constitution's own zero (N,), `F_ref` (N, 4, 3) the frames there.
+
+    A coordinate of directions alone (no points: the angle) reads them from `A_ref` scaled per body
+    by a power of two (exact): frames at the edge of float64 keep every digit of their angle.
+    """
+    if c.alpha.any():
+        return c.value(F_ref)
+    return c.value(scaled_frames(None, A_ref, exponents(A_ref), c.alpha, v))
 
 
 def _as_arrays(j: Joints, copy: bool = False) -> Joints:
@@ -473,6 +498,8 @@ def _as_arrays(j: Joints, copy: bool = False) -> Joints:
         base_uid=int(j.base_uid),
         body_ids=np.array(j.body_ids, dtype=np.int64, copy=copy or None),
         edges=f64(j.edges),
+        local_edges=f64(j.local_edges),
+        origin=j.origin,
         lower=f64(j.lower),
         upper=f64(j.upper),
         strength=f64(j.strength),

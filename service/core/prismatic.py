@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.core.constitution import Array, Curvature
-from service.core.kinematics import CarefulFrames, component_major, dot, edge_axis, solve3, to_local
+from service.core.kinematics import CarefulFrames, component_major, dot, to_local
 
 # theta = D.S / 2 with D = C_j - C_i, S = T_i + T_j: coefficients of D and S per block.
 _D = np.array([-1.0, 0.0, 1.0, 0.0])
@@ -44,19 +44,17 @@ class Prismatic:
     alpha = np.array([1.0, 0.0, 1.0, 0.0])
     telescopes = True
 
-    def local_vectors(self, edges: Array, p_ref: Array | None, A_ref: Array, R_ref: Array) -> Array:
-        t = edge_axis(edges)
+    axis_by_rotation = False
+
+    def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
         v = component_major(t.shape[0], (4, 3), t.dtype)
-        # c_k = A_ref_k^{-1} (p0 - p_ref_k): the difference first, then the solve.
-        d = component_major(t.shape[0], (2, 3), t.dtype)
-        for r in range(3):
-            np.subtract(edges[:, 0, r, None], p_ref[:, :, r], out=d[:, :, r])
-        c = solve3(A_ref, d)  # 3 x (N, 2)
-        for r in range(3):
-            v[:, 0::2, r] = c[r]
+        v[:, 0::2] = anchors  # c_i, c_j
         for side in range(2):
             to_local(R_ref[:, side], t, out=v[:, 2 * side + 1])  # t_k = R_k^T t
         return v
+
+    def value(self, F: Array) -> Array:
+        return 0.5 * _theta2(F)
 
     def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:
         (F_ref,), (dF,) = starts, steps

@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.core.constitution import Array, Curvature
-from service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot, edge_axis, to_local, unit
+from service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot, to_local, unit
 
 # Constant second derivatives of the bilinear cos and sin in the (4 x 4) block
 # layout of F; each block is a multiple of the 3 x 3 identity.
@@ -166,8 +166,9 @@ class Revolute:
     alpha = np.zeros(4)
     telescopes = False
 
-    def local_vectors(self, edges: Array, p_ref: Array | None, A_ref: Array, R_ref: Array) -> Array:
-        t = edge_axis(edges)
+    axis_by_rotation = True
+
+    def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
         # n = t x test with test = e_y where |t . e_x| > 0.9, else e_x; written out, both cases at once.
         y = np.abs(t[:, 0]) > 0.9
         n = component_major(t.shape[0], (3,), t.dtype)
@@ -180,6 +181,9 @@ class Revolute:
         for k, (side, w) in enumerate(((0, b), (0, n), (1, b), (1, n))):
             to_local(R_ref[:, side], w, out=v[:, k])  # body-local b_k = R_k^T b
         return v
+
+    def value(self, F: Array) -> Array:
+        return np.arctan2(*_cos_sin(F)[::-1])
 
     def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:
         x, cs = 0.0, _cos_sin(starts[0])

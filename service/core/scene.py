@@ -27,12 +27,14 @@ class Joints:
     constitution_uid: int
     base_uid: int
     body_ids: NDArray[np.int64]  # (N, 2)
-    edges: Array  # (N, 2, 3), world space at q_ref
+    edges: Array | None  # (N, 2, 3), world space at q_ref; None where `local_edges` are given
     lower: Array  # (N,)
     upper: Array  # (N,)
     strength: Array  # (N,)
     offset: Array | None = None  # (N,) v1.1: coordinate = x + offset; lower/upper bound the coordinate (None: 0)
     prev_coordinate: Array | None = None  # (N,) v1.1, 670 only: the committed coordinate at q_prev (None: from q_prev)
+    local_edges: Array | None = None  # (N, 2, 2, 3) v1.2: [[l0, l1], [r0, r1]] in bodies i's and j's own coordinates
+    origin: str = "q_ref"  # v1.2: where x = 0: "q_ref" (the specs) or "absolute" (the reference engine's zero)
 
 
 @dataclass

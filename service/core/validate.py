@@ -22,6 +22,9 @@ REVOLUTE_UID = 670
 """The one constitution with a state (`prev_coordinate`): its angle leaves (-pi, pi] over time steps."""
 
 HESSIAN_MODES = ("exact", "psd")
+ORIGINS = ("q_ref", "absolute")
+EDGE_SHAPES = {"edges": (2, 3), "local_edges": (2, 2, 3)}
+"""A batch's joint geometry, one of these per joint (CONTRACT.md v1.2): world edges or body-local edges."""
 
 
 def _where(mask: np.ndarray) -> list[int]:
@@ -98,10 +101,17 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
                 f"constitution {c.uid} ({c.name}) needs base_uid {c.base_uid}, got {joints.base_uid}",
             )
         ]
+    given = [k for k in EDGE_SHAPES if getattr(joints, k) is not None]
+    if len(given) != 1:
+        said = "both" if given else "neither"
+        return [Fault(at(), f"give exactly one of edges (world, (N, 2, 3)) and local_edges (body-local, (N, 2, 2, 3)); got {said}")]
+    if joints.origin not in ORIGINS:
+        return [Fault(at("origin"), "Input should be 'q_ref' or 'absolute'", "literal_error")]
+    geometry = given[0]
     n = joints.body_ids.shape[0] if joints.body_ids.ndim == 2 else -1
     shapes = {
         "body_ids": (joints.body_ids, (n, 2)),
-        "edges": (joints.edges, (n, 2, 3)),
+        geometry: (getattr(joints, geometry), (n, *EDGE_SHAPES[geometry])),
         "lower": (joints.lower, (n,)),
         "upper": (joints.upper, (n,)),
         "strength": (joints.strength, (n,)),
@@ -123,7 +133,7 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     ]
     if faults:
         return faults
-    for name in ("edges", "lower", "upper", "strength", *state):
+    for name in (geometry, "lower", "upper", "strength", *state):
         faults += nonfinite_faults(getattr(joints, name), *at(name))
     ids = joints.body_ids
     outside = (ids < 0) | (ids >= n_bodies)
@@ -145,15 +155,18 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     faults += [Fault(at("strength", j), f"strength {float(s[j])!r} < 0: must be >= 0") for j in _where(s < 0)]
     if "offset" in state:
         faults += check_offset(b, lo, up, state["offset"], np.arange(n))
+    # Exactly the edges `kinematics.edge_axis` (and `geometry.axis_and_anchors`) cannot normalise: they
+    # scale the edge vector by a power of two first, so any nonzero, finite difference (even 5e-324)
+    # has an axis; a body-local one is then carried by a nonsingular A_ref (check_rotations).
+    edge = joints.edges if geometry == "edges" else joints.local_edges[:, 0]  # p0 -> p1, or l0 -> l1 on body i
+    p0, p1 = ("p0", "p1") if geometry == "edges" else ("l0", "l1")
     with np.errstate(over="ignore", invalid="ignore"):
-        # Exactly the edges `kinematics.edge_axis` cannot normalise: it scales p1 - p0 by a power of
-        # two first, so any nonzero, finite difference (even 5e-324) has an axis.
-        size = max_abs(edge_vector(joints.edges))
+        size = max_abs(edge_vector(edge))
     faults += [
-        Fault(at("edges", j), "zero-length edge: p0 == p1 gives no joint axis") for j in _where(size == 0)
+        Fault(at(geometry, j), f"zero-length edge: {p0} == {p1} gives no joint axis") for j in _where(size == 0)
     ]
     faults += [
-        Fault(at("edges", j), "edge too long: p1 - p0 overflows float64") for j in _where(~np.isfinite(size))
+        Fault(at(geometry, j), f"edge too long: {p1} - {p0} overflows float64") for j in _where(~np.isfinite(size))
     ]
     return faults
 

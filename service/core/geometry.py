@@ -1,0 +1,52 @@
+"""A joint's geometry at `q_ref`: its world axis `t` and its anchors in the two bodies' own coordinates.
+
+Two ways to give a joint (CONTRACT.md v1.2) lead here, and from here one code path: each
+constitution turns `(t, anchors)` into its body-local vectors (`Constitution.local_vectors`).
+
+- `edges` (N, 2, 3), an edge `p0 -> p1` in world space at `q_ref` (v1): `t = (p1 - p0) / |p1 - p0|`,
+  anchors `c_k = A_ref_k^{-1} (p0 - p_ref_k)`.
+- `local_edges` (N, 2, 2, 3), `[[l0, l1], [r0, r1]]` in body i's and body j's coordinates (the
+  reference engine's local variant): `t` is `l1 - l0` carried to the world by body i at `q_ref`,
+  by its rotation `R_i` or by `A_ref_i` itself (`Constitution.axis_by_rotation`, as the engine
+  does for each), anchors `c_i = l0`, `c_j = r0` as given.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.core.constitution import Array, Constitution
+from service.core.kinematics import axis, component_major, edge_axis, edge_vector, from_local, solve3
+
+
+def axis_and_anchors(
+    c: Constitution, edges: Array | None, local_edges: Array | None, p_ref: Array | None, A_ref: Array, R_ref: Array
+) -> tuple[Array, Array | None]:
+    """The unit world axis `t` (N, 3) and, for a constitution with points, the body-local anchors (N, 2, 3)
+    (else None), both component-major. `p_ref` (N, 2, 3), `A_ref` and `R_ref` (N, 2, 3, 3) of bodies i, j."""
+    points = bool(c.alpha.any())
+    if local_edges is None:
+        return edge_axis(edges), (_world_anchors(edges, p_ref, A_ref) if points else None)
+    d = edge_vector(local_edges[:, 0])  # l1 - l0, in body i's coordinates
+    # Both factors scaled by powers of two (exact; the direction is all that counts): `M d` then
+    # neither overflows nor underflows for any finite, nonzero `d` and a nonsingular `A_ref`.
+    _, e = np.frexp(np.abs(d).max(axis=1))
+    M = R_ref[:, 0] if c.axis_by_rotation else np.ldexp(A_ref[:, 0], -np.frexp(np.abs(A_ref[:, 0]).max(axis=(1, 2)))[1][:, None, None])
+    t = axis(from_local(M, np.ldexp(d, -e[:, None])))
+    if not points:
+        return t, None
+    anchors = component_major(t.shape[0], (2, 3), t.dtype)
+    anchors[...] = local_edges[:, :, 0]  # l0 on body i, r0 on body j
+    return t, anchors
+
+
+def _world_anchors(edges: Array, p_ref: Array, A_ref: Array) -> Array:
+    """`c_k = A_ref_k^{-1} (p0 - p_ref_k)` (N, 2, 3): the difference first, then the solve."""
+    n = edges.shape[0]
+    d = component_major(n, (2, 3), edges.dtype)
+    for r in range(3):
+        np.subtract(edges[:, 0, r, None], p_ref[:, :, r], out=d[:, :, r])
+    anchors = component_major(n, (2, 3), edges.dtype)
+    for r, c in enumerate(solve3(A_ref, d)):
+        anchors[:, :, r] = c
+    return anchors

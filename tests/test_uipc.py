@@ -88,7 +88,7 @@ from uipc.constitution import (  # noqa: E402
     AffineBodyRevoluteJoint,
     AffineBodyRevoluteJointLimit,
 )
-from uipc.geometry import tetmesh  # noqa: E402
+from uipc.geometry import ground, tetmesh  # noqa: E402
 
 from client.uipc import SceneError, request_from_scene, write_back  # noqa: E402
 
@@ -153,7 +153,7 @@ def q_of(scene, gid: int, inst: int, rest: bool = False) -> np.ndarray:
     return ref.transform_to_q(T)[0]
 
 
-def reference(scene, joints_of_batch, *, committed: bool, q_prev_of=None) -> ref.Result:
+def reference(scene, joints_of_batch, *, committed: bool, q_prev_of=None, origin: str = "absolute") -> ref.Result:
     """The engine's numbers for the rows `[(geometry id, edge), ...]` of one batch, read straight
     from the scene's attributes: each side's body is its geometry's instance transform (current for
     `q`, rest for `q_ref`; `q_prev_of(gid, inst)` or `q_ref` for `q_prev`)."""
@@ -184,7 +184,7 @@ def reference(scene, joints_of_batch, *, committed: bool, q_prev_of=None) -> ref
             P = np.asarray(geo.positions().view()).reshape(-1, 3)
             rows["e"].append(P[np.asarray(geo.edges().topo().view()).reshape(-1, 2)[e]])
     A = {k: np.array(v, dtype=np.float64) for k, v in rows.items() if v}
-    kw = dict(edges=A.get("e"), local_edges=A.get("le"), offset=A["off"], origin="absolute")
+    kw = dict(edges=A.get("e"), local_edges=A.get("le"), offset=A["off"], origin=origin)
     args = ((A["qi"], A["qj"]), (A["pi"], A["pj"]), (A["ri"], A["rj"]), A["lo"], A["up"], A["s"])
     if uid == 670:
         return ref.revolute(*args, prev_coordinate=A["angle"] if committed else None, **kw)
@@ -214,14 +214,16 @@ def hinge_and_slider_scene(local: bool):
     """Two body geometries (3 and 2 instances, scaled and sheared rest transforms); 3 hinges and 2
     sliders sharing bodies; offsets; the current transforms turned and slid past the limits."""
     scene = Scene(Scene.default_config())
+    scene.objects().create("ground").geometries().create(ground(-1.0))  # an implicit geometry: no body, no joint
     obj = scene.objects().create("links")
     shear = np.array([[1.0, 0.3, 0.0], [0.0, 1.0, 0.2], [0.0, 0.0, 1.0]])
     stretch = np.diag([1.5, 0.7, 1.2])
     A = [rot([0, 0, 1], 0.2) @ shear, np.eye(3) * 2.0, rot([1, 1, 0], 0.4) @ stretch]
     a = body(obj, [transform(A[0], [0, 0, 0]), transform(A[1], [1, 0, 0]), transform(A[2], [2, 0.5, 0])])
     b = body(obj, [transform(stretch, [0, 1, 0]), transform(rot([0, 1, 0], 0.3), [1, 1, 1])])
-    # hinges: a0-a1, a1-b0, b0-b1 (a1 and b0 in two joints each); sliders: a2-b1, a0-b0
-    l = ([a, a, b], [0, 1, 0], [a, b, b], [1, 0, 1])
+    # hinges: a0-a1, a1-b0, a2-b0; sliders: a2-b1, a0-b0 (a0, a1, a2, b0 in two joints or more). a2 and
+    # b0 stretch along different axes: their frames at q_ref are not at angle 0 (the engine's zero).
+    l = ([a, a, a], [0, 1, 2], [a, b, b], [1, 0, 0])
     p0 = np.array([[0.5, 0.0, 0.0], [1.0, 0.5, 0.2], [0.5, 1.0, 0.5]])
     p1 = p0 + np.array([[0.0, 0.0, 1.0], [0.3, 1.0, 0.1], [1.0, 0.2, -0.4]])
     rj, pj = AffineBodyRevoluteJoint(), AffineBodyPrismaticJoint()
@@ -262,10 +264,14 @@ def test_world_and_local_scenes_match_the_engine(local):
     assert [b.constitution_uid for b in req.batches] == [670, 669]
     assert joints == [[(hs.id(), 0), (hs.id(), 1), (hs.id(), 2)], [(ss.id(), 0), (ss.id(), 1)]]
     assert all((b.local_edges is not None) == local and (b.edges is None) == local for b in req.batches)
-    np.testing.assert_array_equal(req.batches[0].body_ids, [[0, 1], [1, 3], [3, 4]])
+    np.testing.assert_array_equal(req.batches[0].body_ids, [[0, 1], [1, 3], [2, 3]])
     np.testing.assert_array_equal(req.batches[1].body_ids, [[2, 4], [0, 3]])
     np.testing.assert_array_equal(req.batches[0].offset, [0.1, -0.3, 0.0])
     np.testing.assert_array_equal(req.batches[1].offset, [0.02, -0.5])
+    # the scene exercises the engine's zero: measured from q_ref, x would differ (670; 669 with apart anchors)
+    for rows, got, moved in zip(joints, ev.batches, (True, local)):
+        from_q_ref = reference(scene, rows, committed=False, origin="q_ref").x
+        assert (np.max(np.abs(got.x - from_q_ref)) > 1e-2) == moved
 
 
 def test_a_given_q_prev_and_q(request):

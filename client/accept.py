@@ -46,7 +46,9 @@ def _from_wire(req: EvaluateRequest) -> Request:
         JointBatch(
             constitution_uid=j.constitution_uid,
             body_ids=np.asarray(j.body_ids, dtype=np.int64).reshape(len(j.body_ids), 2),
-            edges=f64(j.edges, 2, 3),
+            edges=None if j.edges is None else f64(j.edges, 2, 3),
+            local_edges=None if j.local_edges is None else f64(j.local_edges, 2, 2, 3),
+            origin=j.origin,
             lower=f64(j.lower),
             upper=f64(j.upper),
             strength=np.full(len(j.body_ids), STRENGTH_DEFAULT) if j.strength is None else f64(j.strength),

@@ -13,8 +13,8 @@ from schemas import binary as wire
 
 JSON = "application/json"
 BINARY = wire.MEDIA_TYPE
-_PER_JOINT = ("edges", "lower", "upper", "strength")
-_OPTIONAL = ("offset", "prev_coordinate")  # v1.1, sent only when given
+_PER_JOINT = ("lower", "upper", "strength")
+_OPTIONAL = ("edges", "local_edges", "offset", "prev_coordinate")  # one of the edges; v1.1's, sent only when given
 _SHAPES = {1: (-1,), 2: (-1, 24), 3: (-1, 24, 24)}  # x / energy / index, gradient, hessian
 
 
@@ -40,6 +40,7 @@ def _document(request: Request, f64: Any, i64: Any) -> dict[str, Any]:
                 "body_ids": i64(b.body_ids),
                 **{k: f64(getattr(b, k)) for k in _PER_JOINT},
                 **{k: f64(a) for k in _OPTIONAL if (a := getattr(b, k, None)) is not None},
+                **({"origin": b.origin} if b.origin != "q_ref" else {}),  # the default stays off the wire
             }
             for b in request.batches
         ],

@@ -19,11 +19,13 @@ BASE_UID = {REVOLUTE_LIMIT: 18, PRISMATIC_LIMIT: 20}
 class JointBatch:
     """N joints of one constitution. `body_ids` (N, 2), `edges` (N, 2, 3) world space at q_ref,
     `lower`, `upper`, `strength` (N,); v1.1, optional: `offset` (N,) (coordinate = x + offset; the
-    limits bound the coordinate) and, for 670, `prev_coordinate` (N,) (the committed coordinate at q_prev)."""
+    limits bound the coordinate) and, for 670, `prev_coordinate` (N,) (the committed coordinate at q_prev);
+    v1.2: `local_edges` (N, 2, 2, 3) instead of `edges` (`[[l0, l1], [r0, r1]]` in bodies i's and j's
+    own coordinates, the reference engine's local variant) and `origin` ("q_ref" or "absolute")."""
 
     constitution_uid: int
     body_ids: NDArray[np.int64]
-    edges: Array
+    edges: Array | None
     lower: Array
     upper: Array
     strength: Array
@@ -31,6 +33,9 @@ class JointBatch:
     """Defaults to the constitution's base joint (18 for 670, 20 for 669)."""
     offset: Array | None = None
     prev_coordinate: Array | None = None
+    local_edges: Array | None = None
+    origin: str = "q_ref"
+    """"q_ref": x = 0 at q_ref (the specs); "absolute": the reference engine's zero (CONTRACT.md v1.2)."""
 
     def __post_init__(self) -> None:
         if self.base_uid is None:
@@ -41,26 +46,33 @@ class JointBatch:
         cls,
         constitution_uid: int,
         body_ids: ArrayLike,
-        edges: ArrayLike,
+        edges: ArrayLike | None,
         lower: ArrayLike,
         upper: ArrayLike,
         strength: ArrayLike = 1.0,
         *,
         offset: ArrayLike | None = None,
         prev_coordinate: ArrayLike | None = None,
+        local_edges: ArrayLike | None = None,
+        origin: str = "q_ref",
     ) -> JointBatch:
         """From array-likes; scalar `lower`, `upper`, `strength`, `offset`, `prev_coordinate` apply to every joint.
 
+        Give the joints' geometry as world `edges` (N, 2, 3) at q_ref, or as body-local `local_edges`
+        (N, 2, 2, 3) with `edges=None` (a libuipc scene's local variant; `origin="absolute"` for its zero).
         A solver that keeps its own state commits a time step by passing the `coordinate` it got at
         the accepted `q` as the next step's `prev_coordinate` (with `q_prev` := that `q`).
         """
         ids = np.asarray(body_ids, dtype=np.int64).reshape(-1, 2)
         n = ids.shape[0]
         per_joint = lambda v: np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy()  # noqa: E731
+        shaped = lambda v, *tail: None if v is None else np.asarray(v, dtype=np.float64).reshape(n, *tail)  # noqa: E731
         return cls(
             constitution_uid=constitution_uid,
             body_ids=ids,
-            edges=np.asarray(edges, dtype=np.float64).reshape(n, 2, 3),
+            edges=shaped(edges, 2, 3),
+            local_edges=shaped(local_edges, 2, 2, 3),
+            origin=origin,
             lower=per_joint(lower),
             upper=per_joint(upper),
             strength=per_joint(strength),
@@ -94,22 +106,27 @@ class Request:
 class Joint(int):
     """A joint's handle, as `Scene.add_revolute_limit` / `add_prismatic_limit` return it.
 
-    It is the joint's row in its constitution's batch (an `int`: `result.batch(670).energy[j]`
-    indexes rows) and knows its `constitution_uid`, so `result.joint(j)` finds it whatever the batch.
+    It is the joint's row in its batch (an `int`: `result.batch(670).energy[j]` indexes rows) and
+    knows its `constitution_uid` and its batch's position in the request, so `result.joint(j)` finds
+    it whatever the batch (a scene with world and body-local edges, or both origins, has several
+    batches of one constitution).
     """
 
     constitution_uid: int
+    batch: int | None
 
-    def __new__(cls, row: int, constitution_uid: int) -> Joint:
+    def __new__(cls, row: int, constitution_uid: int, batch: int | None = None) -> Joint:
         self = super().__new__(cls, row)
         self.constitution_uid = constitution_uid
+        self.batch = batch
         return self
 
-    def __getnewargs__(self) -> tuple[int, int]:  # pickle and copy keep the constitution
-        return int(self), self.constitution_uid
+    def __getnewargs__(self) -> tuple[int, int, int | None]:  # pickle and copy keep the constitution
+        return int(self), self.constitution_uid, self.batch
 
     def __repr__(self) -> str:
-        return f"Joint({int(self)}, constitution_uid={self.constitution_uid})"
+        at = "" if self.batch is None else f", batch={self.batch}"
+        return f"Joint({int(self)}, constitution_uid={self.constitution_uid}{at})"
 
 
 @dataclass(frozen=True)
@@ -218,6 +235,8 @@ class Evaluation:
         A plain `int` is a row of the only batch; with several batches use `batch(uid).joint(row)`.
         """
         if isinstance(j, Joint):
+            if j.batch is not None:
+                return self.batches[j.batch].joint(j)
             return self.batch(j.constitution_uid).joint(j)
         if len(self.batches) != 1:
             raise TypeError(

@@ -41,13 +41,18 @@ class Scene:
     >>> j = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5, strength=100)
     >>> result = client.evaluate(scene.request())
     >>> result.joint(j).hessian                           # (24, 24) in the DOFs [q_a, q_b]
+
+    A joint given in the bodies' own coordinates, as a libuipc scene holds it (CONTRACT.md v1.2):
+
+    >>> k = scene.add_revolute_limit(a, b, lower=-0.5, upper=0.5, local_edge=[[l0, l1], [r0, r1]], origin="absolute")
     """
 
     def __init__(self) -> None:
         self._q: list[np.ndarray] = []
         self._q_prev: list[np.ndarray] = []
         self._q_ref: list[np.ndarray] = []
-        self._joints: dict[int, list[tuple]] = {}
+        # One batch per (constitution, "edges" or "local_edges", origin), in the order first used.
+        self._joints: dict[tuple[int, str, str], list[tuple]] = {}
 
     def add_body(self, pose: Pose, *, prev: Pose | None = None, ref: Pose | None = None) -> int:
         """A body at `pose` now; `prev` (last time step) defaults to `ref`, `ref` (when the joints
@@ -63,50 +68,71 @@ class Scene:
         self,
         i: int,
         j: int,
-        p0: ArrayLike,
-        p1: ArrayLike,
-        lower: float,
-        upper: float,
+        p0: ArrayLike | None = None,
+        p1: ArrayLike | None = None,
+        lower: float | None = None,
+        upper: float | None = None,
         strength: float = STRENGTH_DEFAULT,
         *,
         offset: float = 0.0,
+        local_edge: ArrayLike | None = None,
+        origin: str = "q_ref",
     ) -> Joint:
         """#670 on the revolute joint of bodies `i`, `j` about the edge `p0 -> p1` (world, at ref); angles in rad.
+        Or, instead of `p0`, `p1`, `local_edge` `[[l0, l1], [r0, r1]]`: the edge in body i's and body j's own
+        coordinates (v1.2). `origin` "absolute" measures x from the reference engine's zero (v1.2).
         `offset` is the spec's `init_angle`: the reported coordinate is x + offset, which `lower` and
-        `upper` bound. Returns the joint's handle: its row in the 670 batch, for `result.joint(handle)`."""
-        return self._add(REVOLUTE_LIMIT, i, j, p0, p1, lower, upper, strength, offset)
+        `upper` bound. Returns the joint's handle: its row in its batch, for `result.joint(handle)`."""
+        return self._add(REVOLUTE_LIMIT, i, j, p0, p1, local_edge, origin, lower, upper, strength, offset)
 
     def add_prismatic_limit(
         self,
         i: int,
         j: int,
-        p0: ArrayLike,
-        p1: ArrayLike,
-        lower: float,
-        upper: float,
+        p0: ArrayLike | None = None,
+        p1: ArrayLike | None = None,
+        lower: float | None = None,
+        upper: float | None = None,
         strength: float = STRENGTH_DEFAULT,
         *,
         offset: float = 0.0,
+        local_edge: ArrayLike | None = None,
+        origin: str = "q_ref",
     ) -> Joint:
-        """#669 on the prismatic joint of bodies `i`, `j` sliding along `p0 -> p1`; `offset` is the spec's
-        `init_distance` (as for `add_revolute_limit`). Returns its handle (row in the 669 batch)."""
-        return self._add(PRISMATIC_LIMIT, i, j, p0, p1, lower, upper, strength, offset)
+        """#669 on the prismatic joint of bodies `i`, `j` sliding along `p0 -> p1`, or along `local_edge`
+        (anchors `l0` on body i, `r0` on body j); `offset` is the spec's `init_distance` (as for
+        `add_revolute_limit`). Returns its handle (its row in its batch)."""
+        return self._add(PRISMATIC_LIMIT, i, j, p0, p1, local_edge, origin, lower, upper, strength, offset)
 
-    def _add(self, uid: int, i: int, j: int, p0: ArrayLike, p1: ArrayLike, *limits: float) -> Joint:
-        rows = self._joints.setdefault(uid, [])
-        rows.append(((int(i), int(j)), (np.asarray(p0, float).reshape(3), np.asarray(p1, float).reshape(3)), *limits))
-        return Joint(len(rows) - 1, uid)
+    def _add(
+        self, uid: int, i: int, j: int, p0: ArrayLike | None, p1: ArrayLike | None, local_edge: ArrayLike | None,
+        origin: str, lower: float | None, upper: float | None, *rest: float,
+    ) -> Joint:
+        if lower is None or upper is None:
+            raise TypeError("a joint limit needs lower and upper")
+        if (local_edge is None) == (p0 is None or p1 is None):
+            raise TypeError("give the joint's edge either as p0, p1 (world, at ref) or as local_edge, not both")
+        if local_edge is None:
+            kind, edge = "edges", np.stack([np.asarray(p, float).reshape(3) for p in (p0, p1)])
+        else:
+            kind, edge = "local_edges", np.asarray(local_edge, float).reshape(2, 2, 3)
+        key = (uid, kind, origin)
+        rows = self._joints.setdefault(key, [])
+        rows.append(((int(i), int(j)), edge, lower, upper, *rest))
+        return Joint(len(rows) - 1, uid, list(self._joints).index(key))
 
     def request(
         self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False
     ) -> Request:
         """The request: one batch per constitution, in the order first used; bodies in the order added."""
         batches = []
-        for uid, rows in self._joints.items():
+        for (uid, kind, origin), rows in self._joints.items():
             ids, edges, lower, upper, strength, offset = zip(*rows)
             # v1.1's offsets only where one is set: a scene without them makes a v1 request.
             off = offset if any(o != 0.0 for o in offset) else None
-            batches.append(JointBatch.of(uid, ids, [np.stack(e) for e in edges], lower, upper, strength, offset=off))
+            geometry = {kind: np.stack(edges)}
+            batches.append(JointBatch.of(uid, ids, geometry.pop("edges", None), lower, upper, strength, offset=off,
+                                         origin=origin, **geometry))
         stack = lambda rows: np.array(rows, dtype=np.float64).reshape(-1, 12)  # noqa: E731
         return Request(
             q=stack(self._q),

@@ -71,7 +71,8 @@ def _rows(b: JointBatch, start: int, stop: int) -> JointBatch:
     return replace(
         b,
         body_ids=np.asarray(b.body_ids)[start:stop],
-        edges=np.asarray(b.edges)[start:stop],
+        edges=optional(b.edges),
+        local_edges=optional(b.local_edges),
         lower=np.asarray(b.lower)[start:stop],
         upper=np.asarray(b.upper)[start:stop],
         strength=np.asarray(b.strength)[start:stop],

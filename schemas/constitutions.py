@@ -24,6 +24,8 @@ class ConstitutionInfo(BaseModel):
     base_name: str
     coordinate: str
     """What the joint coordinate `x` measures, and its unit."""
+    origin: str = ""
+    """v1.2: where `x = 0` for each value of a batch's `origin` ("q_ref", "absolute": the reference engine's)."""
     attributes: list[Attribute]
 
 
@@ -67,7 +69,9 @@ def describe(uid: int, name: str, base_uid: int) -> ConstitutionInfo:
         base_uid=base_uid,
         base_name=_BASE_NAMES.get(base_uid, ""),
         coordinate=f"{meaning} [{unit}]" if unit else meaning,
+        origin=_ORIGINS.get(uid, ""),
         attributes=[
+            *_geometry_attributes(),
             Attribute(
                 name="limit/lower",
                 field="lower",
@@ -89,6 +93,36 @@ def describe(uid: int, name: str, base_uid: int) -> ConstitutionInfo:
             *_state_attributes(uid, unit),
         ],
     )
+
+
+_ORIGINS = {
+    670: 'batch field origin: "q_ref" (default): x = 0 at q_ref; "absolute" (the engine): x = atan2(sin, cos) of the '
+    "frames at q_ref plus the turn since (not 0 where the bodies' A_ref stretch differently) (v1.2)",
+    669: 'batch field origin: "q_ref" (default): x = 0 at q_ref; "absolute" (the engine): x = theta(q), the signed '
+    "distance between the anchors along the axis (not 0 at q_ref where the anchors do not meet) (v1.2)",
+}
+
+
+def _geometry_attributes() -> list[Attribute]:
+    """The joint's edge, in either of the engine's two variants (exactly one per batch, v1.2)."""
+    return [
+        Attribute(
+            name="position (the edge's two vertices)",
+            field="edges",
+            unit="length unit of the DOFs",
+            default=None,
+            description="(N, 2, 3) the edge p0 -> p1 in world space at q_ref (the engine's world create_geometry); "
+            "or local_edges",
+        ),
+        Attribute(
+            name="l_position0, l_position1, r_position0, r_position1",
+            field="local_edges",
+            unit="length unit of the DOFs",
+            default=None,
+            description="(N, 2, 2, 3) [[l0, l1], [r0, r1]]: the edge in body i's and body j's own coordinates (the "
+            "engine's local create_geometry); or edges (v1.2)",
+        ),
+    ]
 
 
 def _state_attributes(uid: int, unit: str) -> list[Attribute]:

@@ -1,4 +1,4 @@
-"""Pydantic models of `POST /v1/evaluate` (CONTRACT.md, wire contract v1 and v1.1).
+"""Pydantic models of `POST /v1/evaluate` (CONTRACT.md, wire contract v1, v1.1 and v1.2).
 
 Shapes are checked here (row lengths, pairs, triples); everything that needs
 arithmetic (finiteness, ranges, singular frames) is checked by the core so that
@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, FailFast, Field, WithJsonSchema
 Output = Literal["energy", "gradient", "hessian"]
 HessianMode = Literal["exact", "psd"]
 Layout = Literal["joints", "bodies"]
+Origin = Literal["q_ref", "absolute"]
 OUTPUTS: tuple[Output, ...] = ("energy", "gradient", "hessian")
 
 # Non-finite numbers (NaN, Infinity, 1e400, and `null`, which is what most JSON writers make of a
@@ -27,6 +28,7 @@ Real = Annotated[float | None, Field(strict=True, allow_inf_nan=True), WithJsonS
 Dof = Annotated[list[Real], Field(min_length=12, max_length=12), FailFast()]
 Vec3 = Annotated[list[Real], Field(min_length=3, max_length=3), FailFast()]
 Edge = Annotated[list[Vec3], Field(min_length=2, max_length=2), FailFast()]
+LocalEdge = Annotated[list[Edge], Field(min_length=2, max_length=2), FailFast()]  # [[l0, l1], [r0, r1]]
 # Integers are JSON integers (no 1.0, no "1", no true) that fit int64, as the binary encoding carries them.
 Int64 = Annotated[int, Field(strict=True, ge=-(2**63), le=2**63 - 1)]
 BodyPair = Annotated[list[Int64], Field(min_length=2, max_length=2), FailFast()]
@@ -56,7 +58,12 @@ class JointBatch(_Wire):
     # Optional on the wire (absent, never null): the core fills them in (service/http/convert.py: defaults).
     base_uid: Int64 = Field(None, json_schema_extra=_no_default)
     body_ids: Annotated[list[BodyPair], FailFast()]
-    edges: Annotated[list[Edge], FailFast()]
+    # Exactly one of `edges` and `local_edges` (the core names the batch otherwise, on every path).
+    edges: Annotated[list[Edge], FailFast()] = Field(None, json_schema_extra=_no_default)
+    local_edges: Annotated[list[LocalEdge], FailFast()] = Field(None, json_schema_extra=_no_default)
+    """v1.2: per joint [[l0, l1], [r0, r1]], the edge in body i's and body j's own coordinates."""
+    origin: Origin = "q_ref"
+    """v1.2: "q_ref" (x = 0 at q_ref, the specs) or "absolute" (the reference engine's zero)."""
     lower: Annotated[list[Real], FailFast()]
     upper: Annotated[list[Real], FailFast()]
     strength: Annotated[list[Real], FailFast()] = Field(None, json_schema_extra=_no_default)

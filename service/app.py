@@ -35,7 +35,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="Joint-limit constitution service",
         version="1.0.0",
         description="Energy, gradient and Hessian of #670 AffineBodyRevoluteJointLimit "
-        "and #669 AffineBodyPrismaticJointLimit (wire contract v1).",
+        "and #669 AffineBodyPrismaticJointLimit (wire contract v1.2).",
     )
     app.state.settings = settings
     app.include_router(sessions.router)  # /v1/sessions (WebSocket)

@@ -104,7 +104,7 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     given = [k for k in EDGE_SHAPES if getattr(joints, k) is not None]
     if len(given) != 1:
         said = "both" if given else "neither"
-        return [Fault(at(), f"give exactly one of edges (world, (N, 2, 3)) and local_edges (body-local, (N, 2, 2, 3)); got {said}")]
+        return [Fault(at(), f"give exactly one of edges and local_edges (world edges (N, 2, 3) at q_ref, or body-local (N, 2, 2, 3)); got {said}")]
     if joints.origin not in ORIGINS:
         return [Fault(at("origin"), "Input should be 'q_ref' or 'absolute'", "literal_error")]
     geometry = given[0]

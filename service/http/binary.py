@@ -18,6 +18,7 @@ from schemas import binary as wire
 from schemas import evaluate as models
 from service.core import Bodies, Evaluation, Fault, InputError, Joints
 from service.core.errors import MAX_FAULTS, Loc
+from service.core.validate import ORIGINS
 from service.http import limits
 from service.http.errors import HttpError
 from service.http.convert import base_uid_of, strength_of
@@ -28,7 +29,7 @@ MEDIA_TYPE = wire.MEDIA_TYPE
 _REQUEST_KEYS, _BODY_KEYS, _BATCH_KEYS = (
     {k: f.is_required() for k, f in model.model_fields.items()} for model in (models.EvaluateRequest, models.Bodies, models.JointBatch)
 )
-_JOINT_ARRAYS = {"body_ids": (wire.INT64, 2), "edges": (wire.FLOAT64, 3)} | {
+_JOINT_ARRAYS = {"body_ids": (wire.INT64, 2), "edges": (wire.FLOAT64, 3), "local_edges": (wire.FLOAT64, 4)} | {
     k: (wire.FLOAT64, 1) for k in ("lower", "upper", "strength", "offset", "prev_coordinate")
 }
 _INT64_RANGE = range(-(2**63), 2**63)
@@ -254,7 +255,9 @@ def _batch(r: _Reader, b: int, raw: Any) -> Joints:
         constitution_uid=uid,
         base_uid=r.int64(fields["base_uid"], (*loc, "base_uid")) if "base_uid" in fields else base_uid_of(uid),
         body_ids=ids,
-        edges=arrays.get("edges", np.zeros((0, 2, 3))),
+        edges=arrays.get("edges"),
+        local_edges=arrays.get("local_edges"),
+        origin=_literal(r, fields.get("origin", "q_ref"), (*loc, "origin"), ORIGINS),
         lower=arrays.get("lower", np.zeros(0)),
         upper=arrays.get("upper", np.zeros(0)),
         strength=arrays["strength"] if "strength" in fields else strength_of(None, ids.shape[0]),
@@ -280,11 +283,15 @@ def _options(r: _Reader, top: dict[str, Any]) -> tuple[list[str], str, bool]:
 
 
 def _layout(r: _Reader, top: dict[str, Any]) -> str:
-    layout = top.get("layout", "joints")
-    if layout not in ("joints", "bodies"):
-        r.fault(("layout",), "Input should be 'joints' or 'bodies'", "literal_error")
-        return "joints"
-    return layout
+    return _literal(r, top.get("layout", "joints"), ("layout",), ("joints", "bodies"))
+
+
+def _literal(r: _Reader, value: Any, loc: Loc, allowed: tuple[str, ...]) -> str:
+    """`value` if it is one of `allowed`, else a fault in pydantic's words and `allowed[0]` (the default)."""
+    if isinstance(value, str) and value in allowed:
+        return value
+    r.fault(loc, "Input should be " + " or ".join(repr(a) for a in allowed), "literal_error")
+    return allowed[0]
 
 
 def encode(ev: Evaluation) -> bytes:

@@ -45,7 +45,14 @@ FIELDS: dict[str, dict[str, str]] = {
         "body_ids": f"(N, 2) body rows [i, j] of each joint, i != j, 0 <= i, j < B. {ROWS}",
         "edges": "(N, 2, 3) each joint's edge [p0, p1] in world space at q_ref: the axis t = (p1 - p0) / "
         "|p1 - p0| is the revolute axis (670) or the sliding direction (669), p0 the prismatic anchor. "
-        f"{ROWS}",
+        f"Exactly one of edges and local_edges per batch. {ROWS}",
+        "local_edges": "(N, 2, 2, 3) v1.2, instead of edges: each joint's edge [[l0, l1], [r0, r1]] in body i's and "
+        "body j's own coordinates (a body-local point X sits at p + A X; the reference engine's l_position0/1, "
+        "r_position0/1). The axis is l1 - l0 carried to the world by body i at q_ref (its rotation R_i for 670, "
+        f"A_ref_i for 669); the prismatic anchors are l0 and r0; r1 is unused but must be finite. {ROWS}",
+        "origin": "v1.2, optional: where x = 0. 'q_ref' (default, the specs): at q_ref. 'absolute' (the reference "
+        "engine): x is the frames' own coordinate, atan2(sin, cos) at q_ref plus the turn since (670), or the "
+        "signed distance between the anchors along the axis (669). A constant in q: derivatives are unchanged.",
         "lower": "(N,) lower bound of the coordinate x + offset: radians for 670, the DOFs' length unit for "
         f"669; lower <= upper. The penalty's l is lower - offset (lower itself without offset). {ROWS}",
         "upper": f"(N,) upper bound of the coordinate x + offset, same units as lower (u = upper - offset). {ROWS}",

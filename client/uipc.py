@@ -254,8 +254,9 @@ def request_from_scene(
     measures from `q_ref`); None: yes once the engine has published it (the body geometries carry
     `backend_abd_body_offset`, which `world.init()` of a simulating backend writes).
 
-    One batch per constitution and edge variant (world edges, local edges), 670 first; rows in
-    slot order, then edge order. Raises `SceneError` for a scene the engine would refuse or that
+    One batch per constitution and edge variant (world edges, local edges): 670's first, each
+    constitution's variants in the order their first geometry comes; rows in slot order, then edge
+    order. Raises `SceneError` for a scene the engine would refuse or that
     cannot be read, and ImportError without pyuipc.
     """
     _uipc()

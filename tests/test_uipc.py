@@ -373,28 +373,87 @@ def test_write_back_checks_everything_before_writing():
         write_back(scene, ev, joints)
 
 
-def test_the_same_request_serves_the_http_clients(live):
+def test_the_same_request_serves_the_http_clients_and_sessions(live):
+    """Client, AsyncClient and a live session (binary and JSON) give LocalClient's numbers bit for bit."""
+    import asyncio
+
     from client import AsyncClient, Client
 
     scene, _, _ = hinge_and_slider_scene(local=True)
-    req, _ = request_from_scene(scene)
+    req, joints = request_from_scene(scene)
     want = LocalClient().evaluate(req)
-    with Client(live) as c:
-        got = c.evaluate(req)
+    with LocalClient().session(req) as s:
+        want_commit = s.commit(req.q)
 
     async def run():
         async with AsyncClient(live) as c:
             return await c.evaluate(req)
 
-    import asyncio
-
-    for ev in (got, asyncio.run(run())):
+    evs = [asyncio.run(run())]
+    for binary in (True, False):
+        with Client(live, binary=binary) as c:
+            evs.append(c.evaluate(req))
+            with c.session(req) as s:
+                evs.append(s.evaluate(req.q))
+                got_commit = s.commit(req.q)
+        for g, w in zip(got_commit, want_commit):
+            np.testing.assert_array_equal(g, w)
+    for ev in evs:
         for g, w in zip(ev.batches, want.batches):
             for f in FIELDS:
                 np.testing.assert_array_equal(getattr(g, f), getattr(w, f))
+    write_back(scene, got_commit, joints)
 
 
 from tests.test_contract_live import live  # noqa: E402,F401 (fixture)
+
+
+def random_affine(rng: np.random.Generator, stretch: float) -> np.ndarray:
+    """A rotation times a positive-determinant stretch-and-shear (up to `stretch` off the identity)."""
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    M = np.eye(3) + stretch * rng.uniform(-1, 1, size=(3, 3))
+    return q @ (M if np.linalg.det(M) > 0.2 else np.eye(3))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_random_scenes_mixing_every_kind_of_joint(seed):
+    """Body geometries of both affine-body constitutions with several instances, and world and local
+    hinges and sliders between random bodies in one scene (4 batches); a committed multi-turn
+    `angle` on every hinge; random current transforms."""
+    rng = np.random.default_rng(seed)
+    scene = Scene(Scene.default_config())
+    obj = scene.objects().create("random")
+    slots = []
+    for g in range(3):
+        n = int(rng.integers(1, 4))
+        slots.append(body(obj, [transform(random_affine(rng, 0.3), rng.normal(size=3)) for _ in range(n)], arap=bool(rng.integers(0, 2))))
+    bodies = [(s, i) for s in slots for i in range(s.geometry().instances().size())]
+    rj, pj = AffineBodyRevoluteJoint(), AffineBodyPrismaticJoint()
+    made = []
+    for joint, limit, local in ((rj, AffineBodyRevoluteJointLimit(), False), (pj, AffineBodyPrismaticJointLimit(), True),
+                                (rj, AffineBodyRevoluteJointLimit(), True), (pj, AffineBodyPrismaticJointLimit(), False)):
+        n = int(rng.integers(1, 4))
+        pick = [rng.choice(len(bodies), size=2, replace=False) for _ in range(n)]
+        ls, li = [bodies[p[0]][0] for p in pick], np.array([bodies[p[0]][1] for p in pick], np.int32)
+        rs, ri = [bodies[p[1]][0] for p in pick], np.array([bodies[p[1]][1] for p in pick], np.int32)
+        pts = [rng.normal(size=(n, 3)) for _ in range(4)]
+        geo = (joint.create_geometry(*pts, ls, li, rs, ri, np.ones(n)) if local
+               else joint.create_geometry(pts[0], pts[1], ls, li, rs, ri, np.ones(n)))
+        lo = rng.uniform(-0.3, 0.0, n)
+        limit.apply_to(geo, lo, lo + rng.choice([0.0, 0.2], n), rng.uniform(1, 100, n))
+        edge_values(geo, "init_angle" if joint is rj else "init_distance", rng.uniform(-1, 1, n))
+        made.append(obj.geometries().create(geo)[0])
+    for s in (made[0], made[2]):  # committed angles, up to 3 turns away
+        n = s.geometry().edges().size()
+        init = np.asarray(s.geometry().edges().find("init_angle").view())
+        edge_values(s.geometry(), "angle", init + rng.uniform(-1, 1, n) + 2 * np.pi * rng.integers(-3, 4, n))
+    for s, i in bodies:
+        T = np.asarray(s.geometry().transforms().view())[i]
+        set_transform(s, i, transform(random_affine(rng, 0.02) @ T[:3, :3], T[:3, 3] + 0.2 * rng.normal(size=3)))
+    req, joints, _ = check_scene(scene, committed=True, min_active=2)
+    assert [(b.constitution_uid, b.local_edges is not None) for b in req.batches] == [(670, False), (670, True), (669, True), (669, False)]
+    assert [{g for g, _ in rows} for rows in joints] == [{made[0].id()}, {made[2].id()}, {made[1].id()}, {made[3].id()}]
 
 
 # ----------------------------------------------------------------------------------------- errors

@@ -208,28 +208,29 @@ def _body_ids(bodies: _Bodies, gid: int, geo_ids: NDArray[Any], inst_ids: NDArra
 def _read_joints(gid: int, geo: Any, uid: int, bodies: _Bodies, use_angle: bool) -> tuple[bool, dict[str, Any]]:
     """One limited joint geometry's edges, as arrays (E rows), with the engine's checks."""
     E = int(geo.edges().size())
+    floats = lambda name, *shape: np.asarray(_edge_attr(geo, name, gid), dtype=np.float64).reshape(E, *shape)  # noqa: E731
+    ints = lambda name: np.asarray(_edge_attr(geo, name, gid)).astype(np.int64).reshape(E)  # noqa: E731
     local = all(geo.edges().find(n) is not None for n in LOCAL_ATTRS)  # the engine's `use_local`
-    ints = {n: _edge_attr(geo, n, gid).astype(np.int64).ravel() for n in ("l_geo_id", "l_inst_id", "r_geo_id", "r_inst_id")}
-    ids = np.stack([_body_ids(bodies, gid, ints["l_geo_id"], ints["l_inst_id"], "l"),
-                    _body_ids(bodies, gid, ints["r_geo_id"], ints["r_inst_id"], "r")], axis=1)
-    lim = {n: np.asarray(_edge_attr(geo, f"limit/{n}", gid), dtype=np.float64).reshape(E) for n in ("lower", "upper", "strength")}
+    ids = np.stack([_body_ids(bodies, gid, ints("l_geo_id"), ints("l_inst_id"), "l"),
+                    _body_ids(bodies, gid, ints("r_geo_id"), ints("r_inst_id"), "r")], axis=1)
+    lim = {n: floats(f"limit/{n}") for n in ("lower", "upper", "strength")}
     if local:
-        le = np.stack([np.asarray(_edge_attr(geo, n, gid), dtype=np.float64).reshape(E, 3) for n in LOCAL_ATTRS], axis=1)
-        edges = le.reshape(E, 2, 2, 3)  # [[l0, l1], [r0, r1]]
+        edges = np.stack([floats(n, 3) for n in LOCAL_ATTRS], axis=1).reshape(E, 2, 2, 3)  # [[l0, l1], [r0, r1]]
         axis = edges[:, 0, 1] - edges[:, 0, 0]
     else:
         P = np.asarray(geo.positions().view(), dtype=np.float64).reshape(-1, 3)
-        topo = np.asarray(geo.edges().topo().view()).reshape(E, 2)
-        edges = P[topo]  # (E, 2, 3): world positions at q_ref
+        edges = P[np.asarray(geo.edges().topo().view()).reshape(E, 2)]  # (E, 2, 3): world positions at q_ref
         axis = edges[:, 1] - edges[:, 0]
-    # The engine refuses a zero axis at world.init() (revolute: |t|^2 <= 1e-24, prismatic: P0 == P1).
+    # The engine refuses a zero axis at world.init() (revolute: |t|^2 <= 1e-24, prismatic: P0 == P1);
+    # a local axis turns by R_i (670) or A_ref_i (669), both invertible, so l1 - l0 decides.
     short = ~(np.einsum("ek,ek->e", axis, axis) > (1e-24 if uid == REVOLUTE_LIMIT else 0.0))
     if np.any(short):
-        raise SceneError("the joint's axis has zero length (the engine refuses it at world.init())", gid, int(np.argmax(short)))
+        raise SceneError("the joint's axis has zero length (the engine refuses it at world.init())",
+                         gid, int(np.argmax(short)))
     offset = _edge_attr(geo, OFFSET_ATTR[uid], gid, required=False)
     prev = None
     if uid == REVOLUTE_LIMIT and use_angle:
-        prev = np.asarray(_edge_attr(geo, "angle", gid), dtype=np.float64).reshape(E)
+        prev = floats("angle")
     return local, dict(
         refs=[(gid, e) for e in range(E)], body_ids=ids, edges=edges, prev=prev,
         offset=np.zeros(E) if offset is None else np.asarray(offset, dtype=np.float64).reshape(E), **lim,

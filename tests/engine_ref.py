@@ -30,7 +30,10 @@ answers are checked against. Transcribed from libuipc (spiriMirror/libuipc, the 
 
 The generated (SymEigen) expressions are transcribed as the closed forms they expand: `dx/dF` and
 `d2x/dF2` of `atan2(s, c)` with `c, s` bilinear in F (identical functions; the engine writes them
-through `atan2(s c_t - c s_t, c c_t + s s_t)`, whose F-derivatives are the same). Everything is
+through `atan2(s c_t - c s_t, c c_t + s s_t)`, whose F-derivatives are the same). Checked once
+against the generated code itself, evaluated literally (its C++ turned into Python by regex): over
+200 random frames `DeltaTheta`, `dDeltaTheta_dF`, `ddDeltaTheta_ddF`, `dDeltaTheta_dQ` agree to 5e-15,
+and `F01_q`, `J01T_G01`, `J01T_H01_J01` of the prismatic joint to 4e-16 (normwise). Everything is
 vectorised over N joints. Shapes: `q*` (N, 12) per side; results `x`, `energy` (N,),
 `gradient` (N, 24), `hessian` (N, 24, 24) in the DOFs `[q_i, q_j]`.
 

@@ -231,9 +231,11 @@ def hinge_and_slider_scene(local: bool):
     q0 = np.array([[2.0, 0.5, 0.0], [0.0, 0.5, 0.0]])
     q1 = q0 + np.array([[0.2, 0.1, 1.0], [1.0, 0.0, 0.0]])
     if local:
-        l0, l1 = np.array([[0.1, 0.2, 0.0], [0.0, 0.3, 0.1], [0.2, 0.2, 0.2]]), np.array([[0.1, 0.2, 1.0], [0.4, 0.3, 0.9], [1.2, 0.1, 0.2]])
+        l0 = np.array([[0.1, 0.2, 0.0], [0.0, 0.3, 0.1], [0.2, 0.2, 0.2]])
+        l1 = np.array([[0.1, 0.2, 1.0], [0.4, 0.3, 0.9], [1.2, 0.1, 0.2]])
         r0, r1 = l0 * 0.5 + 0.1, l1 * 0.5 + 0.1
-        hinges = rj.create_geometry(l0, l1, r0, r1, l[0], np.array(l[1], np.int32), l[2], np.array(l[3], np.int32), np.full(3, 100.0))
+        hinges = rj.create_geometry(l0, l1, r0, r1, l[0], np.array(l[1], np.int32), l[2], np.array(l[3], np.int32),
+                                    np.full(3, 100.0))
         # slider anchors apart: theta(q_ref) != 0 (the engine's absolute zero)
         sliders = pj.create_geometry(np.array([[0.0, 0.1, 0.0], [0.2, 0.0, 0.1]]), np.array([[0.3, 0.1, 1.0], [1.0, 0.2, 0.1]]),
                                      np.array([[0.3, 0.0, 0.2], [-0.1, 0.4, 0.0]]), np.array([[0.3, 0.0, 1.2], [0.9, 0.4, 0.0]]),
@@ -241,7 +243,8 @@ def hinge_and_slider_scene(local: bool):
     else:
         hinges = rj.create_geometry(p0, p1, l[0], np.array(l[1], np.int32), l[2], np.array(l[3], np.int32), np.full(3, 100.0))
         sliders = pj.create_geometry(q0, q1, s[0], np.array(s[1], np.int32), s[2], np.array(s[3], np.int32), np.full(2, 100.0))
-    AffineBodyRevoluteJointLimit().apply_to(hinges, np.array([-0.2, -0.1, 0.0]), np.array([0.2, 0.3, 0.0]), np.array([100.0, 5.0, 7.0]))
+    AffineBodyRevoluteJointLimit().apply_to(hinges, np.array([-0.2, -0.1, 0.0]), np.array([0.2, 0.3, 0.0]),
+                                            np.array([100.0, 5.0, 7.0]))
     AffineBodyPrismaticJointLimit().apply_to(sliders, np.array([-0.05, 0.0]), np.array([0.05, 0.1]), np.array([50.0, 3.0]))
     edge_values(hinges, "init_angle", [0.1, -0.3, 0.0])
     edge_values(sliders, "init_distance", [0.02, -0.5])
@@ -427,7 +430,8 @@ def test_random_scenes_mixing_every_kind_of_joint(seed):
     slots = []
     for g in range(3):
         n = int(rng.integers(1, 4))
-        slots.append(body(obj, [transform(random_affine(rng, 0.3), rng.normal(size=3)) for _ in range(n)], arap=bool(rng.integers(0, 2))))
+        T = [transform(random_affine(rng, 0.3), rng.normal(size=3)) for _ in range(n)]
+        slots.append(body(obj, T, arap=bool(rng.integers(0, 2))))
     bodies = [(s, i) for s in slots for i in range(s.geometry().instances().size())]
     rj, pj = AffineBodyRevoluteJoint(), AffineBodyPrismaticJoint()
     made = []
@@ -452,7 +456,8 @@ def test_random_scenes_mixing_every_kind_of_joint(seed):
         T = np.asarray(s.geometry().transforms().view())[i]
         set_transform(s, i, transform(random_affine(rng, 0.02) @ T[:3, :3], T[:3, 3] + 0.2 * rng.normal(size=3)))
     req, joints, _ = check_scene(scene, committed=True, min_active=2)
-    assert [(b.constitution_uid, b.local_edges is not None) for b in req.batches] == [(670, False), (670, True), (669, True), (669, False)]
+    kinds = [(b.constitution_uid, b.local_edges is not None) for b in req.batches]
+    assert kinds == [(670, False), (670, True), (669, True), (669, False)]
     assert [{g for g, _ in rows} for rows in joints] == [{made[0].id()}, {made[2].id()}, {made[1].id()}, {made[3].id()}]
 
 

@@ -153,10 +153,12 @@ def q_of(scene, gid: int, inst: int, rest: bool = False) -> np.ndarray:
     return ref.transform_to_q(T)[0]
 
 
-def reference(scene, joints_of_batch, *, committed: bool, q_prev_of=None, origin: str = "absolute") -> ref.Result:
+def reference(scene, joints_of_batch, *, committed: bool, q_prev_of=None, q_ref_of=None,
+              origin: str = "absolute") -> ref.Result:
     """The engine's numbers for the rows `[(geometry id, edge), ...]` of one batch, read straight
     from the scene's attributes: each side's body is its geometry's instance transform (current for
-    `q`, rest for `q_ref`; `q_prev_of(gid, inst)` or `q_ref` for `q_prev`)."""
+    `q`, rest for `q_ref`, unless `q_ref_of(gid, inst)` says; `q_prev_of(gid, inst)` or `q_ref` for `q_prev`)."""
+    rest = q_ref_of or (lambda g, i: q_of(scene, g, i, rest=True))
     rows = {k: [] for k in ("qi", "qj", "pi", "pj", "ri", "rj", "lo", "up", "s", "off", "angle", "e", "le")}
     uid = None
     for gid, e in joints_of_batch:
@@ -167,10 +169,10 @@ def reference(scene, joints_of_batch, *, committed: bool, q_prev_of=None, origin
         li, lj = (int(a("l_geo_id")), int(a("l_inst_id"))), (int(a("r_geo_id")), int(a("r_inst_id")))
         rows["qi"].append(q_of(scene, *li))
         rows["qj"].append(q_of(scene, *lj))
-        rows["ri"].append(q_of(scene, *li, rest=True))
-        rows["rj"].append(q_of(scene, *lj, rest=True))
-        rows["pi"].append(q_prev_of(*li) if q_prev_of else q_of(scene, *li, rest=True))
-        rows["pj"].append(q_prev_of(*lj) if q_prev_of else q_of(scene, *lj, rest=True))
+        rows["ri"].append(rest(*li))
+        rows["rj"].append(rest(*lj))
+        rows["pi"].append(q_prev_of(*li) if q_prev_of else rest(*li))
+        rows["pj"].append(q_prev_of(*lj) if q_prev_of else rest(*lj))
         rows["lo"].append(a("limit/lower"))
         rows["up"].append(a("limit/upper"))
         rows["s"].append(a("limit/strength"))
@@ -191,14 +193,14 @@ def reference(scene, joints_of_batch, *, committed: bool, q_prev_of=None, origin
     return ref.prismatic(*args, **kw)
 
 
-def check_scene(scene, *, committed: bool = False, q_prev_of=None, min_active: int = 1, **kw):
+def check_scene(scene, *, committed: bool = False, q_prev_of=None, q_ref_of=None, min_active: int = 1, **kw):
     """request_from_scene -> LocalClient against the reference, every batch and field; returns (req, joints, ev)."""
     req, joints = request_from_scene(scene, committed=committed, **kw)
     assert req.hessian_mode == "psd" and all(b.origin == "absolute" for b in req.batches)
     ev = LocalClient().evaluate(req)
     active = 0
     for k, (got, rows) in enumerate(zip(ev.batches, joints)):
-        want = reference(scene, rows, committed=committed, q_prev_of=q_prev_of)
+        want = reference(scene, rows, committed=committed, q_prev_of=q_prev_of, q_ref_of=q_ref_of)
         for f in FIELDS:
             err = relerr(getattr(got, f), getattr(want, f))
             assert err <= TOL, f"batch {k} ({got.constitution_uid}), {f}: {err:.2e}"
@@ -277,13 +279,18 @@ def test_world_and_local_scenes_match_the_engine(local):
         assert (np.max(np.abs(got.x - from_q_ref)) > 1e-2) == moved
 
 
-def test_a_given_q_prev_and_q(request):
-    """`q_prev` and `q` passed in (B, 12), in the engine's numbering, override the transforms."""
+def test_a_given_q_prev_and_q_ref():
+    """`q_prev` and `q_ref` passed in (B, 12), in the engine's numbering, override the transforms
+    (`q_prev` defaults to the given `q_ref`)."""
     scene, (a, b), _ = hinge_and_slider_scene(local=True)
     req0, _ = request_from_scene(scene)
-    q_prev = req0.q_ref + 0.5 * (req0.q - req0.q_ref)  # halfway: the previous step
     pos = {(a.id(), i): i for i in range(3)} | {(b.id(), i): 3 + i for i in range(2)}
+    q_prev = req0.q_ref + 0.5 * (req0.q - req0.q_ref)  # halfway: the previous step
     check_scene(scene, q_prev=q_prev, q_prev_of=lambda g, i: q_prev[pos[(g, i)]])
+    q_ref = req0.q_ref.copy()
+    q_ref[:, 3:] = (req0.q_ref[:, 3:].reshape(-1, 3, 3) @ rot([0.2, 1.0, 0.3], 0.1)).reshape(-1, 9)  # at init, elsewhere
+    req, _, _ = check_scene(scene, q_ref=q_ref, q_ref_of=lambda g, i: q_ref[pos[(g, i)]])
+    np.testing.assert_array_equal(req.q_prev, q_ref)
 
 
 def test_arap_body_next_to_an_orthotropic_one_is_numbered_as_the_engine_numbers_it():

@@ -70,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="core threads, each measured (default 1 2)")
     ap.add_argument("--pairs", type=int, default=21, help="alternated pairs per thread count (default 21)")
     ap.add_argument("--outputs", default="energy,gradient,hessian", help="comma-separated outputs (default all)")
+    ap.add_argument("--hessian-mode", default="exact", choices=("exact", "psd"), help="the Hessian's mode (default exact)")
+    ap.add_argument("--uids", type=int, nargs="+", default=[670, 669], help="the constitutions' batches kept (default both)")
     args = ap.parse_args(argv)
 
     from service.core import evaluate
@@ -79,12 +81,16 @@ def main(argv: list[str] | None = None) -> int:
     outputs = tuple(args.outputs.split(","))
     with tempfile.TemporaryDirectory() as tmp:
         old_evaluate = import_revision(args.rev, Path(tmp))
-        scene = make_scene(args.joints, args.outside, seed=args.joints % 89)
-        print(f"{args.joints} joints, {args.outside:.0%} outside, outputs {','.join(outputs)}: this tree against {args.rev}")
+        bodies, batches = make_scene(args.joints, args.outside, seed=args.joints % 89)
+        scene = (bodies, [b for b in batches if b.constitution_uid in args.uids])
+        kw = dict(outputs=outputs, hessian_mode=args.hessian_mode)
+        n = sum(b.body_ids.shape[0] for b in scene[1])
+        print(f"{n} joints ({', '.join(map(str, args.uids))}), {args.outside:.0%} outside, outputs {','.join(outputs)}, "
+              f"{args.hessian_mode}: this tree against {args.rev}")
         for threads in args.threads:
             t_new, t_old = pairs(
-                lambda: evaluate(*scene, outputs=outputs, threads=threads),  # noqa: B023
-                lambda: old_evaluate(*scene, outputs=outputs, threads=threads),  # noqa: B023
+                lambda: evaluate(*scene, **kw, threads=threads),  # noqa: B023
+                lambda: old_evaluate(*scene, **kw, threads=threads),  # noqa: B023
                 args.pairs,
             )
             a, b = sorted(t_new)[len(t_new) // 2], sorted(t_old)[len(t_old) // 2]

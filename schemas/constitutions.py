@@ -107,7 +107,7 @@ def _geometry_attributes() -> list[Attribute]:
     """The joint's edge, in either of the engine's two variants (exactly one per batch, v1.2)."""
     return [
         Attribute(
-            name="position (the edge's two vertices)",
+            name="position",
             field="edges",
             unit="length unit of the DOFs",
             default=None,

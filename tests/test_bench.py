@@ -275,7 +275,7 @@ def test_ab_compares_this_tree_with_a_revision_in_one_process(tmp_path: Path):
                          cwd=root, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     lines = run.stdout.strip().split("\n")
-    assert lines[0] == "60 joints, 100% outside, outputs energy,gradient,hessian: this tree against HEAD"
+    assert lines[0] == "60 joints (670, 669), 100% outside, outputs energy,gradient,hessian, exact: this tree against HEAD"
     for threads, line in zip((1, 2), lines[1:], strict=True):
         assert re.fullmatch(rf"threads {threads}: this tree \d+\.\d ms, HEAD \d+\.\d ms, ratio \d\.\d{{3}}, "
                             r"this tree faster in [0-3] of 3 pairs", line), line

@@ -117,7 +117,10 @@ def test_discovery_lists_both_constitutions_with_spec_names(live):
     state = {670: {"init_angle": "offset", "angle": "prev_coordinate"}, 669: {"init_distance": "offset"}}  # v1.1
     for uid, c in by_uid.items():
         names = {a["name"]: a for a in c["attributes"]}
-        assert set(names) == {"limit/lower", "limit/upper", "limit/strength", *state[uid]}
+        geometry = {"position": "edges", "l_position0, l_position1, r_position0, r_position1": "local_edges"}  # v1.2
+        assert set(names) == {"limit/lower", "limit/upper", "limit/strength", *state[uid], *geometry}
+        assert {n: names[n]["field"] for n in geometry} == geometry
+        assert "absolute" in c["origin"]
         assert names["limit/strength"]["default"] == 1.0 and names["limit/lower"]["default"] is None
         assert {n: names[n]["field"] for n in state[uid]} == state[uid]
         assert names[next(iter(state[uid]))]["default"] == 0.0  # the offset

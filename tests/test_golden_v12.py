@@ -158,3 +158,18 @@ def test_core_refuses_an_unknown_origin_in_process():
     with pytest.raises(InputError) as e:
         evaluate(**kw)
     assert e.value.faults[0].loc == ("batches", 0, "origin")
+
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+
+
+@pytest.mark.skipif(not SHARED.is_dir(), reason="no ../shared beside the clone (a user's clone has none; CI has it)")
+def test_the_project_holds_the_shared_golden_files_and_contract_as_they_are():
+    """tests/ keeps ../shared/golden's three files byte for byte, and schemas/CONTRACT.md opens with
+    ../shared/CONTRACT.md whole (the project's extensions follow it)."""
+    here = Path(__file__).parent
+    for ours, theirs in (("golden_cases.json", "cases.json"), ("golden_state_cases.json", "state_cases.json"),
+                         ("golden_v12_cases.json", "v12_cases.json")):
+        assert (here / ours).read_bytes() == (SHARED / "golden" / theirs).read_bytes(), ours
+    contract = (here.parent / "schemas" / "CONTRACT.md").read_text()
+    assert contract.startswith((SHARED / "CONTRACT.md").read_text())

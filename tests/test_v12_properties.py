@@ -191,3 +191,26 @@ def test_session_commits_from_the_absolute_origin() -> None:
         committed = s.commit(q)[0]
         assert relerr(committed, want(q)) <= 1e-14
         assert relerr(s.evaluate(q).batches[0].coordinate, committed) <= 1e-14
+
+
+@pytest.mark.parametrize("e", [-300, -60, 60, 300])
+def test_local_edges_and_absolute_origin_keep_every_digit_at_extreme_scales(e: int) -> None:
+    """The revolute angle reads directions only: every body's A scaled by 2^e in every state (exact) gives
+    the same x and energy, and a gradient in A scaled by 2^-e, with local edges and the absolute origin
+    too (the scaled frames of v1 serve both)."""
+    q, q_prev, q_ref, ids = _scene(11)
+    L = _local_edges(np.random.default_rng(11), ids.shape[0], apart=True)
+
+    def scaled(a: np.ndarray) -> np.ndarray:
+        out = a.copy()
+        out[:, 3:] = np.ldexp(a[:, 3:], e)
+        return out
+
+    batch = JointBatch.of(670, ids, None, -0.05, 0.05, 3.0, local_edges=L, origin="absolute")
+    a, b = (LocalClient().evaluate(request_from_arrays(f(q), [batch], q_prev=f(q_prev), q_ref=f(q_ref))).batches[0]
+            for f in (lambda v: v, scaled))
+    assert np.count_nonzero(a.energy) > ids.shape[0] // 4
+    assert relerr(b.x, a.x) <= 1e-15 and relerr(b.energy, a.energy) <= 1e-14
+    g = a.gradient.reshape(-1, 2, 12)
+    assert not g[..., :3].any()  # no translation in an angle
+    assert relerr(np.ldexp(b.gradient.reshape(-1, 2, 12)[..., 3:], e), g[..., 3:]) <= 1e-14

@@ -68,7 +68,8 @@ def test_given_they_are_still_validated(live, binary):
 
 def test_openapi_marks_them_optional(live):
     schema = httpx.get(live + "/openapi.json").json()["components"]["schemas"]["JointBatch"]
-    assert set(schema["required"]) == {"constitution_uid", "body_ids", "edges", "lower", "upper"}
-    for name in ("base_uid", "strength"):
+    # v1.2: exactly one of edges and local_edges, so neither is required by the schema (the core names the batch).
+    assert set(schema["required"]) == {"constitution_uid", "body_ids", "lower", "upper"}
+    for name in ("base_uid", "strength", "edges", "local_edges"):
         assert "default" not in schema["properties"][name]
         assert '"type": "null"' not in json.dumps(schema["properties"][name])  # absent, never null

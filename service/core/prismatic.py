@@ -92,7 +92,7 @@ class Prismatic:
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
         """The engine's projection (contract v1.2, 9 quantities): `(|E'| / sqrt 2) f f^T` per joint (see `_F01_POS`)."""
-        f = np.where((dE >= 0)[:, None], _F01_POS, _F01_NEG).astype(dE.dtype)  # (N, 4)
+        f = np.where((dE >= 0)[:, None], _F01_POS, _F01_NEG).astype(dE.dtype, copy=False)  # (N, 4)
         w = np.abs(dE) * np.sqrt(0.5)
         n = dE.shape[0]
         return Curvature(kron=w[:, None, None] * (f[:, :, None] * f[:, None, :]), basis=curvature.basis,

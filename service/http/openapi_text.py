@@ -105,7 +105,8 @@ FIELDS: dict[str, dict[str, str]] = {
         "base_uid": "The base joint's UID it pairs with (the wire's base_uid).",
         "base_name": "The base joint's name.",
         "coordinate": "What the joint coordinate x measures, and its unit.",
-        "attributes": "Its per-joint inputs, by their spec names.",
+        "origin": "v1.2: where x = 0 for each value of a batch's origin ('q_ref', 'absolute': the reference engine's zero).",
+        "attributes": "Its per-joint inputs, by their spec names (the edges by the reference engine's attribute names).",
     },
     "Attribute": {
         "name": "The spec's attribute name (limit/lower, limit/upper, limit/strength).",

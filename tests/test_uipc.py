@@ -346,6 +346,24 @@ def test_multi_turn_angle_is_the_committed_prev_coordinate():
     assert request_from_scene(scene, committed=False)[0].batches[0].prev_coordinate is None
 
 
+def test_after_world_init_on_the_cpu_backend_nothing_is_published(tmp_path):
+    """pyuipc's CPU backend ("none") runs `world.init()` (its checks, no simulation) but publishes
+    nothing: no `backend_abd_body_offset`, `angle` stays as built, so committed=None does not read it.
+    (The CUDA backend, which publishes them, needs a GPU.)"""
+    from uipc import Engine, World
+
+    scene, (a, b), _ = hinge_and_slider_scene(local=False)
+    before, _ = request_from_scene(scene)
+    engine = Engine("none", str(tmp_path))  # the World holds it weakly: keep it alive
+    world = World(engine)
+    world.init(scene)
+    assert all(s.geometry().meta().find(builtin.backend_abd_body_offset) is None for s in (a, b))
+    req, joints, _ = check_scene(scene)
+    assert req.batches[0].prev_coordinate is None
+    for f in ("q", "q_prev", "q_ref"):
+        np.testing.assert_array_equal(getattr(req, f), getattr(before, f))
+
+
 def test_write_back_commits_coordinates_and_the_next_request_reads_them():
     scene, _, (hs, ss) = hinge_and_slider_scene(local=False)
     req, joints = request_from_scene(scene)

@@ -104,7 +104,12 @@ def _extra_uids(geo: Any) -> set[int]:
     values = geo.meta().to_json()["extra_constitution_uids"]["attribute"]["values"]
     if isinstance(values, str):  # defensive: some builds serialise nested JSON as a string
         values = json.loads(values)
-    return {int(u) for u in np.asarray(values, dtype=np.float64).ravel()}
+    flat: list[Any] = [values]
+    uids: set[int] = set()
+    while flat:  # nested lists (one row, a column vector): collect the integers as they are (no float detour)
+        v = flat.pop()
+        flat.extend(v) if isinstance(v, list) else uids.add(int(v))
+    return uids
 
 
 def _is_affine_body(uid: int | None) -> bool:

@@ -30,14 +30,19 @@ def axis_and_anchors(
     d = edge_vector(local_edges[:, 0])  # l1 - l0, in body i's coordinates
     # Both factors scaled by powers of two (exact; the direction is all that counts): `M d` then
     # neither overflows nor underflows for any finite, nonzero `d` and a nonsingular `A_ref`.
-    _, e = np.frexp(np.abs(d).max(axis=1))
-    M = R_ref[:, 0] if c.axis_by_rotation else np.ldexp(A_ref[:, 0], -np.frexp(np.abs(A_ref[:, 0]).max(axis=(1, 2)))[1][:, None, None])
-    t = axis(from_local(M, np.ldexp(d, -e[:, None])))
+    M = R_ref[:, 0] if c.axis_by_rotation else _unit_scaled(A_ref[:, 0])
+    t = axis(from_local(M, _unit_scaled(d)))
     if not points:
         return t, None
     anchors = component_major(t.shape[0], (2, 3), t.dtype)
     anchors[...] = local_edges[:, :, 0]  # l0 on body i, r0 on body j
     return t, anchors
+
+
+def _unit_scaled(a: Array) -> Array:
+    """Each row of `a` (N, ...) times the power of two that puts its largest magnitude in [0.5, 1) (exact)."""
+    _, e = np.frexp(np.abs(a).reshape(a.shape[0], -1).max(axis=1))
+    return np.ldexp(a, -e.reshape(-1, *(1,) * (a.ndim - 1)))
 
 
 def _world_anchors(edges: Array, p_ref: Array, A_ref: Array) -> Array:

@@ -81,8 +81,8 @@ class _Batch:
     rows: tuple[int, ...]  # the body table's increment rows of those steps and the last one
     prev_careful: CarefulFrames | None  # the fixed steps' careful frames (kinematics.state_frames)
     row: int  # the body table's increment row of the last step (to q): STEP or TOTAL_STEP
-    origin: int  # the state it starts from (0: q_ref, 1: q_prev)
-    r_origin: Array | None  # (N, 3) body j from body i in that state (points only)
+    start: int  # the state the last step starts from (0: q_ref, 1: q_prev)
+    r_start: Array | None  # (N, 3) body j from body i in that state (points only)
     lower: Array  # the request's bounds on the coordinate, float64 (`update` writes them: copies in `prepare`)
     upper: Array
     strength: Array
@@ -224,11 +224,11 @@ class PreparedScene:
                 F[idx] = careful.unscaled(k)
         return states, careful, jb.c.coordinate(states[:-1], [*fixed, dF], careful)
 
-    def _step(self, jb: _Batch, row: int, r_origin: Array | None) -> Array:
+    def _step(self, jb: _Batch, row: int, r_start: Array | None) -> Array:
         """The frames' increment (N, 4, 3) over the table's increment `row` to `q` (loaded), from the
-        state where body j sits at `r_origin` (N, 3) from body i (points only)."""
+        state where body j sits at `r_start` (N, 3) from body i (points only)."""
         t = self._table
-        r = None if r_origin is None else relative_position(t.positions_of(jb.pairs, 2)) - r_origin
+        r = None if r_start is None else relative_position(t.positions_of(jb.pairs, 2)) - r_start
         return frame_quantities(r, t.linear_of(jb.pairs, row), jb.c.alpha, jb.v)
 
     def _x(self, jb: _Batch, dF: Array) -> tuple[Array, Array, CarefulFrames | None]:
@@ -255,7 +255,7 @@ class PreparedScene:
         compact: bool = False,
     ) -> dict:
         check_deadline(deadline)
-        x, F, careful = self._x(jb, self._step(jb, jb.row, jb.r_origin))
+        x, F, careful = self._x(jb, self._step(jb, jb.row, jb.r_start))
         raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful))[:MAX_FAULTS])
         r = differentiate(
             b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact
@@ -287,7 +287,7 @@ class PreparedScene:
             log.raise_if_any()
             for jb, (F_q, x) in zip(self._batches, new):
                 if not jb.c.telescopes:
-                    jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (origin 1)
+                    jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (state 1)
             self._table.load(1, self._table.dofs[2].T)
             return [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
 
@@ -296,12 +296,12 @@ class PreparedScene:
         step (DeltaTheta(q, q_ref), or the slide), and the careful frames at `q`."""
         r_ref = None
         if jb.c.alpha.any():
-            r_ref = jb.r_origin if jb.origin == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
+            r_ref = jb.r_start if jb.start == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
         states, careful, x = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), self._step(jb, TOTAL_STEP, r_ref))
         return states[-1], _from_origin(x, jb), _last_state(careful)
 
     def _angle(self, jb: _Batch) -> Array:
-        """The committed angle at q_prev: `theta`, or DeltaTheta(q_prev, q_ref) before any commit."""
+        """The committed angle at q_prev: `theta`, or DeltaTheta(q_prev, q_ref) (from the batch's origin) before any commit."""
         if jb.theta is not None:
             return jb.theta
         return _from_origin(jb.c.coordinate(jb.starts[:1], jb.fixed[:1], jb.prev_careful), jb)
@@ -430,8 +430,8 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool) -> _Batc
     points = bool(c.alpha.any())
     rows = _increments(c)
     A_ref = table.linear_of(pairs, REF)
-    origin = STEPS[rows[-1]][0]
-    states = {0, origin} | {s for row in rows[:-1] for s in STEPS[row]}
+    start = STEPS[rows[-1]][0]
+    states = {0, start} | {s for row in rows[:-1] for s in STEPS[row]}
     p = {s: table.positions_of(pairs, s) for s in states} if points else {}
     r = {s: relative_position(ps) for s, ps in p.items()}
     cast = lambda a: None if a is None else a.astype(dtype, copy=False)  # noqa: E731
@@ -465,8 +465,8 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool) -> _Batc
         rows=rows,
         prev_careful=prev_careful,
         row=rows[-1],
-        origin=origin,
-        r_origin=r.get(origin),
+        start=start,
+        r_start=r.get(start),
         lower=lower,
         upper=upper,
         strength=strength,

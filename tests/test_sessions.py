@@ -237,7 +237,7 @@ def test_too_many_sessions_on_a_worker():
         Json(first).send(BODY)
         with c.websocket_connect(PATH) as second:
             msg = closed(second)
-            assert msg["code"] == proto.TOO_MANY_SESSIONS and "maximum of 1 sessions" in msg["reason"]
+            assert msg["code"] == proto.TOO_MANY_SESSIONS and "maximum of 1 session;" in msg["reason"]
         assert Json(first).send({"kind": "evaluate", "q": Q})["kind"] == "evaluation"
     with c.websocket_connect(PATH) as third:  # the first one's place is free again
         assert Json(third).send(BODY)["kind"] == "opened"

@@ -129,7 +129,7 @@ class Joint(int):
         return f"Joint({int(self)}, constitution_uid={self.constitution_uid}{at})"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class JointResult:
     """One joint's answer: `energy` (float), `gradient` (24,), `hessian` (24, 24) in the DOFs `[q_i, q_j]`.
 
@@ -147,6 +147,13 @@ class JointResult:
     hessian: Array | None
     coordinate: float | None = None
     """v1.1: x + offset (None where `x` is, or from a v1 server)."""
+
+    def __repr__(self) -> str:
+        # A summary: the Hessian alone is 24 x 24 numbers.
+        shapes = ", ".join(f"{k}={'None' if v is None else 'array' + str(v.shape)}"
+                           for k, v in (("gradient", self.gradient), ("hessian", self.hessian)))
+        return (f"JointResult(constitution_uid={self.constitution_uid}, row={self.row}, x={self.x!r}, "
+                f"coordinate={self.coordinate!r}, energy={self.energy!r}, {shapes})")
 
 
 @dataclass(repr=False)
@@ -175,8 +182,10 @@ class BatchResult:
 
     def __repr__(self) -> str:
         # A summary: the arrays themselves are ~250 lines per joint with Hessians.
+        n = len(self.index) if self.size is None else self.size
         of = f" of {self.size}" if self.size is not None else ""
-        return (f"BatchResult(constitution_uid={self.constitution_uid}, rows={len(self.index)}{of} joints, "
+        return (f"BatchResult(constitution_uid={self.constitution_uid}, rows={len(self.index)}{of} "
+                f"joint{'' if n == 1 else 's'}, "
                 f"energy sum={float(np.sum(self.energy))!r}, outputs={', '.join(self.outputs())})")
 
     def joint(self, k: int) -> JointResult:
@@ -186,7 +195,7 @@ class BatchResult:
         """
         k = int(k)
         if k < 0 or (self.size is not None and k >= self.size):
-            raise IndexError(f"joint {k} out of range: the batch has {self.size} joints")
+            raise IndexError(f"joint {k} out of range: the batch has {self.size} joint{'' if self.size == 1 else 's'}")
         index = np.asarray(self.index)
         at = int(np.searchsorted(index, k))  # index is ascending (rows in request order)
         if at < index.size and index[at] == k:

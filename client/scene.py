@@ -122,9 +122,12 @@ class Scene:
         return Joint(len(rows) - 1, uid, list(self._joints).index(key))
 
     def request(
-        self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False
+        self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False,
+        layout: str = "joints",
     ) -> Request:
-        """The request: one batch per constitution, in the order first used; bodies in the order added."""
+        """The request: one batch per constitution, in the order first used; bodies in the order added.
+
+        `layout="bodies"` asks for the gradient and Hessian summed per body (`Evaluation.assembled`)."""
         batches = []
         for (uid, kind, origin), rows in self._joints.items():
             ids, edges, lower, upper, strength, offset = zip(*rows)
@@ -142,6 +145,7 @@ class Scene:
             outputs=tuple(outputs),
             hessian_mode=hessian_mode,
             active_only=active_only,
+            layout=layout,
         )
 
 
@@ -154,10 +158,11 @@ def request_from_arrays(
     outputs: Sequence[str] = OUTPUTS,
     hessian_mode: str = "exact",
     active_only: bool = False,
+    layout: str = "joints",
 ) -> Request:
     """The vectorised builder: bodies' DOFs (B, 12) (`q_ref` defaults to `q`, `q_prev` to `q_ref`) and
-    batches made with `JointBatch.of(uid, body_ids, edges, lower, upper, strength)`."""
+    batches made with `JointBatch.of(uid, body_ids, edges, lower, upper, strength)`; `layout` as in `Scene.request`."""
     q = np.asarray(q, dtype=np.float64)
     q_ref = q if q_ref is None else np.asarray(q_ref, dtype=np.float64)
     q_prev = q_ref if q_prev is None else np.asarray(q_prev, dtype=np.float64)
-    return Request(q, q_prev, q_ref, list(joints), tuple(outputs), hessian_mode, active_only)
+    return Request(q, q_prev, q_ref, list(joints), tuple(outputs), hessian_mode, active_only, layout)

@@ -98,6 +98,7 @@ def test_matrix_is_the_symmetric_sparse_hessian():
     a = assemble(bodies.q.shape[0], batches, ev, False)
     M = a.matrix()
     assert sparse.issparse(M) and M.shape == (12 * bodies.q.shape[0],) * 2
+    assert isinstance(M, sparse.csr_array)  # the array API (`M @ v` a product), not the legacy csr_matrix
     _, H = dense(bodies, batches, ev)
     np.testing.assert_allclose(M.toarray(), H, rtol=0, atol=1e-14 * np.abs(H).max())
     assert (abs(M - M.T) > 0).nnz == 0

@@ -155,7 +155,7 @@ def test_an_app_that_does_not_import_fails_fast(tmp_path):
     assert out.returncode == 3 and "broken on purpose" in out.stderr
 
 
-def test_readme_serves_with_the_cli():
+def test_readme_serves_with_the_cli():  # the README's first command
     text = (ROOT / "README.md").read_text()
     first = text.split("```bash\n", 1)[1].split("```", 1)[0].splitlines()[0]
     assert "jointlimits serve" in first

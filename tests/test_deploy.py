@@ -98,13 +98,13 @@ def test_memory_limit_follows_from_the_request_limits(monkeypatch):
 
 
 def test_the_readmes_sizing_figures_are_the_rules(monkeypatch):
-    """README, "Sizing a pod": the figures per worker and per 2-worker pod at the defaults, and per worker in the manifest."""
+    """docs/deployment.md (moved from the README), "Sizing a pod": the figures per worker and per 2-worker pod at the defaults, and per worker in the manifest."""
     from service import sizing
     from service.settings import Settings
 
     for name in [n for n in os.environ if n.startswith("JOINTLIMITS_")]:
         monkeypatch.delenv(name)
-    readme = (ROOT / "README.md").read_text()
+    readme = (ROOT / "docs" / "deployment.md").read_text()
     defaults = Settings()
     assert f"a worker may reach {sizing.worker_bytes(defaults) / 2**30:.1f} GiB" in readme
     assert f"2 workers need a {sizing.pod_bytes(defaults, 2) / 2**30:.1f} GiB pod" in readme

@@ -1,4 +1,4 @@
-"""The README's Errors table shows real answers: each row's example is the first `detail` item the server sends.
+"""The Errors table (docs/http-api.md, moved from the README) shows real answers: each row's example is the first `detail` item the server sends.
 
 `python -m tests.test_readme_errors` rewrites the table's example column from a live server.
 """
@@ -24,7 +24,7 @@ from service.settings import Settings
 from tests.test_contract_live import serve
 from tests.test_errors_http import base_request, edit, edit_body, with_batch
 
-README_PATH = Path(__file__).resolve().parent.parent / "README.md"
+README_PATH = Path(__file__).resolve().parent.parent / "docs" / "http-api.md"
 # The limits the table's 413 rows quote: the default body, batch and JSON-value limits, a 400-joint
 # limit, a 1 MiB answer bound (the base request's answer is ~80 KB).
 SETTINGS = Settings(max_body_bytes=256 * 2**20, max_joints=400, max_answer_bytes=2**20, token=None, cors_origins=())

@@ -1,4 +1,5 @@
-"""The README's examples, run and compared as text: the curl example's printed answer is the server's."""
+"""The HTTP API page's example (docs/http-api.md, moved from the README), run and compared as text: the curl
+example's printed answer is the server's."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import httpx
 
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 
-README = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+README = (Path(__file__).resolve().parent.parent / "docs" / "http-api.md").read_text()
 
 
 def example_section() -> str:

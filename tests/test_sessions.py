@@ -237,7 +237,7 @@ def test_too_many_sessions_on_a_worker():
         Json(first).send(BODY)
         with c.websocket_connect(PATH) as second:
             msg = closed(second)
-            assert msg["code"] == proto.TOO_MANY_SESSIONS and "maximum of 1 sessions" in msg["reason"]
+            assert msg["code"] == proto.TOO_MANY_SESSIONS and "maximum of 1 session;" in msg["reason"]
         assert Json(first).send({"kind": "evaluate", "q": Q})["kind"] == "evaluation"
     with c.websocket_connect(PATH) as third:  # the first one's place is free again
         assert Json(third).send(BODY)["kind"] == "opened"
@@ -359,7 +359,7 @@ def test_the_readme_hex_example_is_what_the_service_sends():
 
     from service.http import session_codec
 
-    text = (Path(__file__).parent.parent / "README.md").read_text()
+    text = (Path(__file__).parent.parent / "docs" / "sessions.md").read_text()  # moved from the README
     block = text.split("For a scene of one revolute batch of one joint", 1)[1].split("```\n", 2)[1]
     dump = bytes.fromhex(" ".join(line.split("  ")[0] for line in block.splitlines()))
     reply = session_codec.encode({"kind": "committed", "coordinates": [np.array([0.7]), np.zeros(0)]}, True)

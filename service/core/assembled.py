@@ -47,7 +47,7 @@ class Assembled:
     blocks: Array | None = None
 
     def matrix(self) -> Any:
-        """The Hessian as a `scipy.sparse` CSR matrix (12B, 12B), symmetric (needs scipy)."""
+        """The Hessian as a `scipy.sparse.csr_array` (12B, 12B), symmetric (needs scipy)."""
         try:
             from scipy import sparse
         except ImportError:
@@ -64,7 +64,7 @@ class Assembled:
         ii = (12 * r[:, None, None] + a[None, :, None]).repeat(12, axis=2)
         jj = (12 * c[:, None, None] + a[None, None, :]).repeat(12, axis=1)
         n = 12 * self.n_bodies
-        return sparse.coo_matrix((data.ravel(), (ii.ravel(), jj.ravel())), shape=(n, n)).tocsr()
+        return sparse.coo_array((data.ravel(), (ii.ravel(), jj.ravel())), shape=(n, n)).tocsr()
 
 
 def active_rows(joints: Joints, result: BatchResult, active_only: bool) -> NDArray[np.intp]:

@@ -76,7 +76,7 @@ def check_bodies(bodies: Bodies, names: Sequence[str] = ("q", "q_prev", "q_ref")
 def check_dofs(name: str, a: np.ndarray, n: int) -> list[Fault]:
     """One state `a` of the bodies: (n, 12) finite numbers (`loc` ("bodies", name, row))."""
     if a.ndim != 2 or a.shape[1] != 12 or a.shape[0] != n:
-        return [Fault(("bodies", name), f"must be {n} rows of 12 numbers, got shape {a.shape}")]
+        return [Fault(("bodies", name), f"must be {n} row{'' if n == 1 else 's'} of 12 numbers, got shape {a.shape}")]
     return nonfinite_faults(a, "bodies", name)
 
 
@@ -138,7 +138,7 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     ids = joints.body_ids
     outside = (ids < 0) | (ids >= n_bodies)
     faults += [
-        Fault(at("body_ids", j), f"body index {ids[j].tolist()} out of range [0, {n_bodies}) (there are {n_bodies} bodies)")
+        Fault(at("body_ids", j), f"body index {ids[j].tolist()} out of range [0, {n_bodies}) ({'there is 1 body' if n_bodies == 1 else f'there are {n_bodies} bodies'})")
         for j in (_where(outside.any(axis=1)) if outside.any() else [])  # a flat test first: a per-row reduction is 10x slower
     ]
     faults += [
@@ -185,7 +185,7 @@ def check_update_index(b: int, n_batches: int, n_joints: int, index: np.ndarray)
     """The joints `index` of an update of batch `b`: distinct, in range (the batch has `n_joints`)."""
     at = lambda *loc: ("batches", b, *loc)  # noqa: E731
     if not 0 <= b < n_batches:
-        return [Fault(("batches", b), f"no batch {b}: the scene has {n_batches} batches")]
+        return [Fault(("batches", b), f"no batch {b}: the scene has {n_batches} batch{'' if n_batches == 1 else 'es'}")]
     if index.ndim != 1 or not np.issubdtype(index.dtype, np.integer):
         return [Fault(at("index"), f"must be a 1-d array of joint indices, got {index.dtype} of shape {index.shape}")]
     faults = [

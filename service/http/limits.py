@@ -64,7 +64,7 @@ def check_joints(n_joints: int, max_joints: int) -> None:
     if n_joints > max_joints:
         raise _too_large(
             ("body", "batches"),
-            f"request has {n_joints} joints; this service accepts at most {max_joints} per request "
+            f"request has {n_joints} joint{'' if n_joints == 1 else 's'}; this service accepts at most {max_joints} per request "
             "(split the batch; the Python SDK does it for you)",
         )
 

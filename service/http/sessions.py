@@ -86,7 +86,7 @@ async def sessions(websocket: WebSocket) -> None:
     if open_now >= settings.max_sessions:
         metrics.sessions.labels("too_many_sessions").inc()
         await websocket.close(
-            proto.TOO_MANY_SESSIONS, f"this worker holds its maximum of {settings.max_sessions} sessions; retry later"
+            proto.TOO_MANY_SESSIONS, f"this worker holds its maximum of {settings.max_sessions} session{'' if settings.max_sessions == 1 else 's'}; retry later"
         )
         return
     state.open_sessions = open_now + 1
@@ -230,7 +230,7 @@ def _reserve(state: Any, held: _Held, joints: int, most: int) -> None:
         others = getattr(state, "session_joints", 0) - held.joints
         if others + joints > most:
             msg = (
-                f"this scene's {joints} joints would bring the sessions of this worker to {others + joints}; it holds "
+                f"this scene's {joints} joint{'' if joints == 1 else 's'} would bring the sessions of this worker to {others + joints}; it holds "
                 f"at most {most} (JOINTLIMITS_MAX_SESSION_JOINTS): retry later, or use POST /v1/evaluate"
             )
             raise HttpError(413, [Fault(("body", "batches"), msg, "too_large")])

@@ -249,7 +249,9 @@ async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held)
         except BaseException:
             _reserve(state, held, 0, settings.max_session_joints)  # a refused scene holds nothing
             raise
-        defaults = {k: kwargs[k] for k in ("outputs", "hessian_mode", "active_only")}
+        # Every evaluate option of the opening document is the session's default; `layout` too, which a later
+        # message cannot change (schemas/session.py has no such field): a solver opens with the layout it needs.
+        defaults = {k: kwargs[k] for k in ("outputs", "hessian_mode", "active_only", "layout")}
         opened = {
             "kind": proto.OPENED,
             "bodies": scene.n_bodies,

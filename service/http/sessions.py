@@ -29,6 +29,7 @@ from service.http import budget, limits
 from service.http import session_codec as codec
 from service.http.budget import Reservation
 from service.http.errors import HttpError
+from service.http.timeouts import DRAIN, Drain
 from service.observability import ACCESS_LOGGER, Metrics
 from service.settings import Settings
 
@@ -141,7 +142,12 @@ async def _messages(
     websocket: WebSocket, settings: Settings, metrics: Metrics, held: _Held, reservations: list[Reservation]
 ) -> None:
     session: Session | None = None
+    drain: Drain | None = websocket.scope.get("extensions", {}).get(DRAIN)
     while True:
+        if drain is not None:
+            # One reply in the write buffer at most: the next message is read once the last reply has left (or the
+            # connection is dropped after JOINTLIMITS_WRITE_TIMEOUT), so a session that does not read holds one.
+            await drain.wait()
         frame = await _receive(websocket, settings)
         t0 = time.perf_counter()
         binary_frame = isinstance(frame, bytes)
@@ -171,7 +177,8 @@ async def _messages(
                 metrics.session_messages.labels(kind, outcome).inc()
                 raise Closing(proto.SCENE_TOO_LARGE, "the scene is over this service's joint limit", "scene_too_large")
         await _send(websocket, reply, settings)
-        _release(reservations)  # the reply has been sent: its bytes are free
+        # Sent is not gone: the reply's bytes stay counted until the write buffer drains (its arrays are free now).
+        budget.hold_until_drained(websocket.scope, reservations, len(reply))
         metrics.session_messages.labels(kind, outcome).inc()
         metrics.session_latency.labels(kind).observe(time.perf_counter() - t0)
 

@@ -758,10 +758,10 @@ def scenario_slowloris(
     }
 
 
-def connections_closed_counted(port: int) -> dict[str, float]:
-    """`jointlimits_connections_closed_total` by reason (silent, slow_head), summed over the workers."""
-    text = metrics_text(port)  # one scrape for both
-    reasons = ("silent", "slow_head")
+def connections_closed_counted(port: int, reasons: Sequence[str] = ("silent", "slow_head")) -> dict[str, float]:
+    """`jointlimits_connections_closed_total` by reason (silent, slow_head; slow_read, slow_message: the write
+    timeout and a session message's deadline), summed over the workers."""
+    text = metrics_text(port)  # one scrape for all
     if text is None:
         return {r: float("nan") for r in reasons}
     return {r: metric_total(text, "jointlimits_connections_closed_total", reason=r) for r in reasons}
@@ -976,6 +976,238 @@ def scenario_answer(
         "workers_after": server.worker_pids(),
         "healthz_after": get(server.port, "/healthz")[0],
     }
+
+
+# --------------------------------------------------------------------------- clients that stop reading (issue 19)
+
+WRITE_REASONS = ("slow_read", "slow_message")
+
+
+def stalled_socket(port: int, rcvbuf: int = 4096) -> socket.socket:
+    """A loopback connection with a small receive buffer (set before connecting: the window is negotiated then),
+    which the drills never read: what the server sends piles up on its side."""
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+    s.settimeout(30)
+    s.connect((LOOPBACK, port))
+    return s
+
+
+def post_bytes(body: bytes, content_type: str, accept: str) -> bytes:
+    head = (
+        f"POST /v1/evaluate HTTP/1.1\r\nHost: {LOOPBACK}\r\nContent-Type: {content_type}\r\nAccept: {accept}\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n"
+    )
+    return head.encode() + body
+
+
+def dropped(s: socket.socket) -> bool:
+    """Whether the server reset the connection (it aborts a stalled writer: RST), read without reading data."""
+    return s.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR) != 0
+
+
+def watch_dropped(socks: Sequence[socket.socket], t0: float, give_up: float) -> list[float | None]:
+    """Seconds from `t0` until each socket saw the server drop it (None: still open after `give_up` seconds)."""
+    out: list[float | None] = [None] * len(socks)
+    while time.monotonic() - t0 < give_up and any(t is None for t in out):
+        for i, s in enumerate(socks):
+            if out[i] is None and dropped(s):
+                out[i] = round(time.monotonic() - t0, 2)
+        time.sleep(0.05)
+    return out
+
+
+def ws_upgrade(port: int, rcvbuf: int | None = None, headers: dict[str, str] | None = None) -> tuple[socket.socket, bytes]:
+    """A raw connection upgraded to a session (or refused): the socket and the server's response head."""
+    import base64
+
+    s = stalled_socket(port, rcvbuf) if rcvbuf else socket.create_connection((LOOPBACK, port), timeout=30)
+    extra = "".join(f"{k}: {v}\r\n" for k, v in (headers or {}).items())
+    key = base64.b64encode(os.urandom(16)).decode()
+    s.sendall(
+        f"GET /v1/sessions HTTP/1.1\r\nHost: {LOOPBACK}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n{extra}\r\n".encode()
+    )
+    head = b""
+    while b"\r\n\r\n" not in head:
+        chunk = s.recv(1)
+        if not chunk:
+            break
+        head += chunk
+    return s, head
+
+
+def ws_frame(opcode: int, payload: bytes, fin: bool = True, rsv: int = 0) -> bytes:
+    """A client frame, masked with the key 0 (valid, and the payload goes out as it is: no CPU for masking)."""
+    n = len(payload)
+    head = bytes([(0x80 if fin else 0) | rsv << 4 | opcode])
+    if n < 126:
+        head += bytes([0x80 | n])
+    elif n < 2**16:
+        head += bytes([0x80 | 126]) + n.to_bytes(2, "big")
+    else:
+        head += bytes([0x80 | 127]) + n.to_bytes(8, "big")
+    return head + b"\0\0\0\0" + payload
+
+
+def scenario_stalled(copies: int, env: dict[str, str] | None = None, extra_args: Sequence[str] = (),
+                     give_up: float = 120.0) -> dict[str, Any]:
+    """`copies` clients each send the costliest answer this environment's limits admit (`answer_bound_msgpack`)
+    from a socket with a 4 KiB receive buffer and read nothing, on a fresh 1-worker server: when each was dropped
+    (JOINTLIMITS_WRITE_TIMEOUT), the worker's peak RSS against the sizing rule, what /metrics counted, and a
+    request alone afterwards."""
+    from service import sizing
+    from service.settings import Settings
+
+    rule_mib = round(sizing.worker_bytes(Settings(**_settings_env(env))) / 2**20)
+    body, content_type, accept, joints = _with_env(env, lambda: peak_cases()["answer_bound_msgpack"]())
+    with Server(workers=1, env=env, extra_args=extra_args) as server:
+        pid = server.worker_pids()[0]
+        rss_before = rss_kib(pid)
+        socks = [stalled_socket(server.port) for _ in range(copies)]
+        t0 = time.monotonic()
+        for s in socks:
+            s.sendall(post_bytes(body, content_type, accept))
+        closed = watch_dropped(socks, t0, give_up)
+        peak = peak_kib(pid)
+        for s in socks:
+            s.close()
+        counted = connections_closed_counted(server.port, WRITE_REASONS)
+        held = scraped(server.port, "jointlimits_inflight_budget_bytes")
+        after = _one(server.port, body, content_type, accept)[0]
+    return {
+        "joints": joints, "body_bytes": len(body), "copies": copies, "closed_after_s": closed,
+        "rss_before_mib": round((rss_before or 0) / 1024), "peak_rss_mib": round((peak or 0) / 1024),
+        "rule_mib": rule_mib, "metrics_closed": counted, "budget_held_after": held, "alone_after": after,
+    }  # fmt: skip
+
+
+def _settings_env(env: dict[str, str] | None) -> dict[str, Any]:
+    """`Settings` fields from `JOINTLIMITS_*` variables in `env` (the spawned server's), as the server reads them."""
+    from dataclasses import fields
+
+    from service.settings import Settings
+
+    saved = {k: os.environ.get(k) for k in (env or {})}
+    try:
+        os.environ.update(env or {})
+        s = Settings()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return {f.name: getattr(s, f.name) for f in fields(s)}
+
+
+def _with_env(env: dict[str, str] | None, fn: Callable[[], Any]) -> Any:
+    saved = {k: os.environ.get(k) for k in (env or {})}
+    try:
+        os.environ.update(env or {})
+        return fn()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def stalled_session(port: int, opening: bytes, evaluate: bytes, messages: int = 2) -> socket.socket:
+    """A session opened with `opening` (msgpack), then `messages` evaluates sent, nothing read."""
+    s, head = ws_upgrade(port, rcvbuf=4096)
+    if not head.startswith(b"HTTP/1.1 101"):
+        raise RuntimeError(f"no session: {head!r}")
+    s.sendall(ws_frame(0x2, opening) + ws_frame(0x2, evaluate) * messages)
+    return s
+
+
+def session_frames(joints: int) -> tuple[bytes, bytes]:
+    """A msgpack opening of `joints` active revolute joints (E+G+H) and an evaluate at its `q`."""
+    from client import codec
+    from schemas import binary as wire
+
+    req = array_scene(joints, pairs=joints)
+    opening = codec.encode(req, binary=True)[0]
+    import numpy as np
+
+    q = wire.pack_array(np.asarray(req.q, dtype=np.float64), wire.FLOAT64)
+    return opening, wire.dumps({"kind": "evaluate", "q": q})
+
+
+def scenario_stalled_sessions(
+    sessions: int = 4, joints: int = 4000, http_joints: int = 1000, requests: int = 20,
+    env: dict[str, str] | None = None, extra_args: Sequence[str] = (), give_up: float = 120.0,
+) -> dict[str, Any]:
+    """HTTP beside stalled sessions, on a fresh 1-worker server: `requests` HTTP evaluates of `http_joints`
+    (E+G+H, msgpack) alone, then while `sessions` sessions of `joints` joints have each sent two evaluates and
+    read nothing: statuses and p50/p99 both times, the budget the sessions hold, when they were dropped."""
+    opening, evaluate = session_frames(joints)
+    from client import codec
+
+    body = codec.encode(array_scene(http_joints, pairs=http_joints), binary=True)[0]
+    B = "application/msgpack"
+
+    def timed() -> dict[str, Any]:
+        runs = [_one(server.port, body, B, B, timeout=60.0) for _ in range(requests)]
+        secs = sorted(r[1] for r in runs)
+        return {"statuses": dict(Counter(str(r[0]) for r in runs)), "p50_s": _pct(secs, 50), "p99_s": _pct(secs, 99)}
+
+    with Server(workers=1, env=env, extra_args=extra_args) as server:
+        pid = server.worker_pids()[0]
+        alone = timed()
+        rss_before = rss_kib(pid)
+        t0 = time.monotonic()
+        socks = [stalled_session(server.port, opening, evaluate) for _ in range(sessions)]
+        time.sleep(1.0)  # each has opened and answered what it will before its write buffer fills
+        held = scraped(server.port, "jointlimits_inflight_budget_bytes")
+        beside = timed()
+        beside["seconds_after_stall"] = round(time.monotonic() - t0, 2)
+        rss_stalled = rss_kib(pid)
+        closed = watch_dropped(socks, t0, give_up)
+        for s in socks:
+            s.close()
+        held_after = scraped(server.port, "jointlimits_inflight_budget_bytes")
+        counted = connections_closed_counted(server.port, WRITE_REASONS)
+    return {
+        "sessions": sessions, "session_joints": joints, "http_joints": http_joints, "http_alone": alone,
+        "http_beside_stalled": beside, "budget_held_by_stalled_bytes": held, "budget_held_after": held_after,
+        "rss_before_mib": round((rss_before or 0) / 1024), "rss_stalled_mib": round((rss_stalled or 0) / 1024),
+        "closed_after_s": closed, "metrics_closed": counted,
+    }  # fmt: skip
+
+
+def scenario_pingflood(seconds: float = 5.0, env: dict[str, str] | None = None, extra_args: Sequence[str] = ()) -> dict[str, Any]:
+    """125-byte pings sent for up to `seconds` on one upgraded connection that reads nothing, on a fresh
+    1-worker server: the bytes sent, the worker's RSS before and after, when the server dropped it."""
+    ping = ws_frame(0x9, b"p" * 125) * 512  # 67 KB per send
+    with Server(workers=1, env=env, extra_args=extra_args) as server:
+        pid = server.worker_pids()[0]
+        before = rss_kib(pid)
+        s, head = ws_upgrade(server.port, rcvbuf=4096)
+        if not head.startswith(b"HTTP/1.1 101"):
+            raise RuntimeError(f"no session: {head!r}")
+        s.settimeout(0.5)
+        sent, t0, closed = 0, time.monotonic(), None
+        while time.monotonic() - t0 < seconds:
+            try:
+                sent += s.send(ping)
+            except TimeoutError:
+                continue
+            except OSError:
+                closed = round(time.monotonic() - t0, 2)
+                break
+        if closed is None and dropped(s):
+            closed = round(time.monotonic() - t0, 2)
+        time.sleep(0.5)
+        after, peak = rss_kib(pid), peak_kib(pid)
+        s.close()
+        counted = connections_closed_counted(server.port, WRITE_REASONS)
+    return {
+        "seconds": seconds, "ping_bytes_sent": sent, "dropped_after_s": closed, "rss_before_mib": round((before or 0) / 1024),
+        "rss_after_mib": round((after or 0) / 1024), "peak_rss_mib": round((peak or 0) / 1024), "metrics_closed": counted,
+    }  # fmt: skip
 
 
 # --------------------------------------------------------------------------- command line

@@ -4,7 +4,6 @@ that misbehave on purpose."""
 
 from __future__ import annotations
 
-import base64
 import os
 import socket
 import struct
@@ -13,13 +12,13 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Any
 
-import numpy as np
 import uvicorn
 
-from schemas import session as proto
 from service.app import create_app
 from service.http import timeouts
+from service.loadtest import ws_frame, ws_upgrade
 from service.settings import Settings
 
 
@@ -27,6 +26,16 @@ from service.settings import Settings
 class Live:
     port: int
     server: uvicorn.Server
+    app: Any
+
+    def held(self) -> int:
+        """Bytes of the worker's in-flight budget held right now."""
+        return int(self.app.state.in_flight.held)
+
+    def buffered(self) -> list[int]:
+        """Bytes waiting in each open connection's write buffer (in the process, not yet taken by the kernel)."""
+        return [c.transport.get_write_buffer_size() for c in list(self.server.server_state.connections)
+                if getattr(c, "transport", None) is not None and not c.transport.is_closing()]
 
     def connections(self) -> int:
         """Open connections of the server (HTTP and WebSocket) right now."""
@@ -39,8 +48,9 @@ def serve(settings: Settings, header_timeout: float = 5.0, write_timeout: float 
     """uvicorn in a thread; `log_config=None` leaves logging to the test (caplog sees uvicorn's records)."""
     sock = socket.socket()
     sock.bind(("127.0.0.1", 0))
+    app = create_app(settings)
     config = uvicorn.Config(
-        create_app(settings), log_config=None, log_level="info", lifespan="on",
+        app, log_config=None, log_level="info", lifespan="on",
         http=timeouts.http_protocol(header_timeout, write_timeout),
         ws=timeouts.ws_protocol(write_timeout, message_timeout if message_timeout is not None else settings.body_timeout),
         ws_max_size=settings.max_frame_bytes, ws_per_message_deflate=False,
@@ -53,7 +63,7 @@ def serve(settings: Settings, header_timeout: float = 5.0, write_timeout: float 
         assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
         time.sleep(0.01)
     try:
-        yield Live(sock.getsockname()[1], server)
+        yield Live(sock.getsockname()[1], server, app)
     finally:
         server.should_exit = True
         thread.join(timeout=10)
@@ -62,39 +72,12 @@ def serve(settings: Settings, header_timeout: float = 5.0, write_timeout: float 
 
 def upgrade(port: int, headers: dict[str, str] | None = None, rcvbuf: int | None = None) -> tuple[socket.socket, bytes]:
     """A raw socket upgraded to a session (or refused): the socket and the server's response head."""
-    s = socket.socket()
-    if rcvbuf is not None:  # before connecting: the window is negotiated then
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-    s.settimeout(10)
-    s.connect(("127.0.0.1", port))
-    key = base64.b64encode(os.urandom(16)).decode()
-    extra = "".join(f"{k}: {v}\r\n" for k, v in (headers or {}).items())
-    s.sendall(
-        f"GET {proto.PATH} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n{extra}\r\n".encode()
-    )
-    head = b""
-    while b"\r\n\r\n" not in head:
-        chunk = s.recv(1)
-        if not chunk:
-            break
-        head += chunk
-    return s, head
+    return ws_upgrade(port, rcvbuf=rcvbuf, headers=headers)
 
 
 def frame(opcode: int, payload: bytes, fin: bool = True, rsv: int = 0) -> bytes:
-    """A masked client frame."""
-    mask = os.urandom(4)
-    n = len(payload)
-    head = bytes([(0x80 if fin else 0) | rsv << 4 | opcode])
-    if n < 126:
-        head += bytes([0x80 | n])
-    elif n < 2**16:
-        head += bytes([0x80 | 126]) + struct.pack("!H", n)
-    else:
-        head += bytes([0x80 | 127]) + struct.pack("!Q", n)
-    keys = np.resize(np.frombuffer(mask, np.uint8), n)
-    return head + mask + (np.frombuffer(payload, np.uint8) ^ keys).tobytes()
+    """A client frame (masked with the key 0)."""
+    return ws_frame(opcode, payload, fin, rsv)
 
 
 def read_close(s: socket.socket, give_up: float = 10.0) -> int | None:
@@ -121,3 +104,25 @@ def read_close(s: socket.socket, give_up: float = 10.0) -> int | None:
                     return struct.unpack("!H", payload[:2])[0] if len(payload) >= 2 else 1005
     except (TimeoutError, ConnectionResetError):
         return None
+
+
+def read_frame(s: socket.socket, give_up: float = 5.0) -> tuple[int, bytes]:
+    """The next server frame (opcode, payload); small frames only."""
+    s.settimeout(give_up)
+    head = _exactly(s, 2)
+    n = head[1] & 0x7F
+    if n == 126:
+        n = struct.unpack("!H", _exactly(s, 2))[0]
+    elif n == 127:
+        n = struct.unpack("!Q", _exactly(s, 8))[0]
+    return head[0] & 0x0F, _exactly(s, n)
+
+
+def _exactly(s: socket.socket, n: int) -> bytes:
+    out = b""
+    while len(out) < n:
+        chunk = s.recv(n - len(out))
+        if not chunk:
+            raise ConnectionError("closed")
+        out += chunk
+    return out

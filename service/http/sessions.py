@@ -38,7 +38,8 @@ log = logging.getLogger(ACCESS_LOGGER)
 T = TypeVar("T")
 
 CLOSE_SECONDS = 5.0
-"""How long a close frame may wait to be sent (behind replies the client does not read) before the connection is dropped."""
+"""How long the session waits for its close frame to be sent (behind replies the client does not read) before it
+ends; the connection itself is dropped by the protocol's write timeout (JOINTLIMITS_WRITE_TIMEOUT)."""
 
 INLINE_JOINTS = 256
 """Scenes up to this many joints (a millisecond or so of work) are evaluated on the event loop: the hop to a
@@ -210,7 +211,7 @@ async def _receive(websocket: WebSocket, settings: Settings) -> codec.Frame:
 
 async def _close(websocket: WebSocket, code: int, reason: str) -> None:
     """Close with `code`; a client already gone, or not reading, has nothing left to tell (the close frame
-    waits behind unread data at most CLOSE_SECONDS, then the connection is dropped). A reason holds 123 bytes."""
+    waits behind unread data at most CLOSE_SECONDS; the protocol drops the connection). A reason holds 123 bytes."""
     try:
         await asyncio.wait_for(websocket.close(code, reason.encode()[:123].decode(errors="ignore")), CLOSE_SECONDS)
     except (RuntimeError, OSError, WebSocketDisconnect, asyncio.TimeoutError):

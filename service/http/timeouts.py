@@ -25,8 +25,9 @@ not resumed within `write_timeout` seconds: answers, session replies, close fram
 alike are freed with it. The application sees the write side through `Drain`
 (`scope["extensions"][DRAIN]`): budget reservations are given back once what they paid for
 has left the process (`Drain.after`), and a session waits for its last reply to drain before
-it reads the next message (`Drain.wait`). While writes are paused, pongs are not queued
-(RFC 6455 5.5.3 lets an endpoint answer only the latest ping), so a ping flood queues nothing.
+it reads the next message (`Drain.wait`). Only the latest ping of what was read is answered,
+and only while writes are not paused (RFC 6455 5.5.3 lets an endpoint answer only the latest
+ping): a connection owes one pong at most, so a ping flood queues nothing.
 A session message still arriving is bounded by `body_timeout` from its first byte, as a
 request body is (close 1008).
 """
@@ -35,6 +36,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
+import struct
 from collections.abc import Callable
 from typing import Any
 
@@ -48,6 +51,7 @@ BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `
 DRAIN = "jointlimits.drain"
 """Key in a connection's ASGI scope `extensions` of its `Drain` (absent in-process: TestClient, no transport)."""
 MESSAGE_TOO_SLOW = 1008  # policy violation: a session message not received within body_timeout
+_PONG = b"\x8a"  # the first byte of a server's pong frame (FIN, opcode 0xA; no extensions are negotiated)
 _408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"
 log = logging.getLogger("jointlimits.timeouts")
 
@@ -172,7 +176,20 @@ class _WriteBound:
         metrics = self.app_state.get(LIFESPAN_METRICS)
         if metrics is not None:
             metrics.connections_closed.labels(reason="slow_read").inc()
-        self.transport.abort()  # close() would wait for the buffer to drain, which is what never happens
+        _reset(self.transport)
+
+
+def _reset(transport: asyncio.Transport) -> None:
+    """Drop the connection now, with what the process and the kernel hold for it: `close()` would wait for the
+    buffer to drain (what never happens), and a plain socket close leaves the kernel's send buffer queued
+    before its FIN. A zero linger makes the close a reset: the client sees it, the kernel frees its buffer."""
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        except OSError:  # already closed meanwhile
+            pass
+    transport.abort()
 
 
 def _peer(client: tuple[str, int] | None) -> str:
@@ -265,6 +282,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
         if self.message_timeout is None:
             self.message_timeout = body_timeout_from_env()
         self._message_timer: asyncio.TimerHandle | None = None
+        self._owed_pong = b""  # the answer to the latest ping, held while writes are paused (one at most)
         self._init_write_bound()
 
     def handle_connect(self, event: Any) -> None:
@@ -283,10 +301,25 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
         return message
 
     def handle_ping(self) -> None:
-        if self.drain.paused:
-            self.conn.data_to_send()  # drop the pong: the client is not reading, it would only pile up
-            return
-        super().handle_ping()
+        # websockets queues a pong for every ping of the bytes just read (up to 256 KiB of them: ~2000): the
+        # latest one alone is answered (RFC 6455 5.5.3 allows it), and only once the write buffer has room.
+        frames = self.conn.data_to_send()
+        pongs = [f for f in frames if f[:1] == _PONG]
+        others = b"".join(f for f in frames if f[:1] != _PONG)
+        if others:
+            self.transport.write(others)
+        if pongs:
+            self._owed_pong = pongs[-1]
+            self._pay_pong()
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        self._pay_pong()
+
+    def _pay_pong(self) -> None:
+        if self._owed_pong and not self.drain.paused and not self.transport.is_closing():
+            pong, self._owed_pong = self._owed_pong, b""
+            self.transport.write(pong)
 
     def handle_parser_exception(self) -> None:
         close = self.conn.close_sent
@@ -316,6 +349,14 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
     async def run_asgi(self) -> None:
         await super().run_asgi()
         self._linger()  # a close frame (or last reply) still buffered is bounded too
+
+    async def send(self, message: Any) -> None:
+        await super().send(message)
+        if message.get("type") == "websocket.close" and self.close_timer is not None:
+            # uvicorn waits 10 s for the client's answer to our close frame, then closes gracefully (the kernel
+            # keeps what the client did not read): the client gets the write timeout, then a reset.
+            self.close_timer.cancel()
+            self.close_timer = self.loop.call_later(self.write_timeout, _reset, self.transport)  # type: ignore[arg-type]
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._stop_message_timer()

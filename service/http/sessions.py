@@ -119,7 +119,8 @@ async def sessions(websocket: WebSocket) -> None:
 
 @dataclass
 class _Held:
-    """Joints of this connection's scene, counted in the worker's `session_joints` while it is open."""
+    """Weight of this connection's scene (joints, bodies at 4/3: `sizing.session_weight`), counted in the
+    worker's `session_joints` while it is open."""
 
     joints: int = 0
 
@@ -232,17 +233,21 @@ async def _send(websocket: WebSocket, reply: codec.Frame, settings: Settings) ->
 _RESERVING = threading.Lock()  # opens run in worker threads: the check and the count change together
 
 
-def _reserve(state: Any, held: _Held, joints: int, most: int) -> None:
-    """Count this connection's scene as `joints` in the worker's `session_joints` (413 past `most`)."""
+def _reserve(state: Any, held: _Held, joints: int, most: int, bodies: int = 0) -> None:
+    """Count this connection's scene, `joints` and `bodies` at their weight (`sizing.session_weight`), in the
+    worker's `session_joints` (413 past `most`)."""
+    weight = sizing.session_weight(joints, bodies)
     with _RESERVING:
         others = getattr(state, "session_joints", 0) - held.joints
-        if others + joints > most:
+        if others + weight > most:
+            what = f"{joints} joints" if not bodies else f"{joints} joints and {bodies} bodies (a body counts as 4/3 joint)"
             msg = (
-                f"this scene's {joints} joints would bring the sessions of this worker to {others + joints}; it holds "
+                f"this scene's {what} would bring the sessions of this worker to {others + weight} joints; it holds "
                 f"at most {most} (JOINTLIMITS_MAX_SESSION_JOINTS): retry later, or use POST /v1/evaluate"
             )
-            raise HttpError(413, [Fault(("body", "batches"), msg, "too_large")])
-        state.session_joints, held.joints = others + joints, joints
+            heavier = ("body", "bodies") if weight - joints > joints else ("body", "batches")  # what weighs most
+            raise HttpError(413, [Fault(heavier, msg, "too_large")])
+        state.session_joints, held.joints = others + weight, weight
 
 
 async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held) -> tuple[Session, codec.Frame]:
@@ -250,8 +255,8 @@ async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held)
         kwargs = codec.decode_open(frame, settings.max_joints)
         batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
         admit(settings, batch_joints, kwargs["outputs"], isinstance(frame, bytes))
-        joints = sum(batch_joints)
-        _reserve(state, held, joints, settings.max_session_joints)
+        joints, bodies = sum(batch_joints), int(kwargs["bodies"].q.shape[0])
+        _reserve(state, held, joints, settings.max_session_joints, bodies)  # everything the scene will hold
         try:
             scene = prepare(kwargs["bodies"], kwargs["batches"])
         except BaseException:

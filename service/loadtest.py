@@ -24,6 +24,13 @@ without it, `--url` names a service already running on 127.0.0.1. Scenarios:
   joints, body bytes, batches), each sent alone to a fresh 1-worker server: its time and the
   worker's peak RSS (`VmHWM`), the figures behind the README's sizing rule. Builds its bodies
   with NumPy and the SDK's codec (installed with the service).
+- `stalled`: `--clients` connections (at most 32) each send the costliest answer the limits admit
+  and read nothing (4 KiB receive buffers): when each was dropped (`--write-timeout` of the
+  spawned server), the worker's peak RSS against the sizing rule.
+- `stalled-sessions`: HTTP evaluates alone, then beside `--clients` sessions (4000 joints) that
+  sent two evaluates each and read nothing: statuses, p50/p99, the budget the sessions hold.
+- `pingflood`: 125-byte pings for `--duration` seconds (at most 30) on a connection that reads
+  nothing: the worker's RSS before and after, when it was dropped.
 - `answer`: while valid clients run, one request whose answer would exceed
   `JOINTLIMITS_MAX_ANSWER_BYTES` (413 before any work) and one at that bound (200): the valid
   clients keep getting 200s and no worker is restarted (its pids are compared). Needs a server
@@ -1006,13 +1013,21 @@ def dropped(s: socket.socket) -> bool:
     return s.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR) != 0
 
 
-def watch_dropped(socks: Sequence[socket.socket], t0: float, give_up: float) -> list[float | None]:
-    """Seconds from `t0` until each socket saw the server drop it (None: still open after `give_up` seconds)."""
+def watch_dropped(
+    socks: Sequence[socket.socket], t0: float, give_up: float, done: Callable[[int], bool] | None = None
+) -> list[float | None]:
+    """Seconds from `t0` until each socket saw the server drop it (None: still open after `give_up` seconds, or
+    once `done(number dropped)` says the rest were answered otherwise; asked every half second)."""
     out: list[float | None] = [None] * len(socks)
+    asked = time.monotonic()
     while time.monotonic() - t0 < give_up and any(t is None for t in out):
         for i, s in enumerate(socks):
             if out[i] is None and dropped(s):
                 out[i] = round(time.monotonic() - t0, 2)
+        if done is not None and time.monotonic() - asked > 0.5:
+            asked = time.monotonic()
+            if done(sum(t is not None for t in out)):
+                break
         time.sleep(0.05)
     return out
 
@@ -1065,21 +1080,39 @@ def scenario_stalled(copies: int, env: dict[str, str] | None = None, extra_args:
         pid = server.worker_pids()[0]
         rss_before = rss_kib(pid)
         socks = [stalled_socket(server.port) for _ in range(copies)]
+        busy_before = scraped(server.port, "jointlimits_http_requests_total", route="/v1/evaluate", status="503")
         t0 = time.monotonic()
         for s in socks:
             s.sendall(post_bytes(body, content_type, accept))
-        closed = watch_dropped(socks, t0, give_up)
+
+        def all_answered(n_dropped: int) -> bool:  # the rest were refused 503 busy (small: not stalled)
+            busy = scraped(server.port, "jointlimits_http_requests_total", route="/v1/evaluate", status="503")
+            return n_dropped + busy - busy_before >= copies
+
+        closed = watch_dropped(socks, t0, give_up, all_answered)
         peak = peak_kib(pid)
+        outcomes = Counter("reset" if t is not None else _status_line(s) for s, t in zip(socks, closed))
         for s in socks:
             s.close()
         counted = connections_closed_counted(server.port, WRITE_REASONS)
         held = scraped(server.port, "jointlimits_inflight_budget_bytes")
         after = _one(server.port, body, content_type, accept)[0]
     return {
-        "joints": joints, "body_bytes": len(body), "copies": copies, "closed_after_s": closed,
+        "joints": joints, "body_bytes": len(body), "copies": copies, "outcomes": dict(outcomes),
+        "closed_after_s": closed,
         "rss_before_mib": round((rss_before or 0) / 1024), "peak_rss_mib": round((peak or 0) / 1024),
         "rule_mib": rule_mib, "metrics_closed": counted, "budget_held_after": held, "alone_after": after,
     }  # fmt: skip
+
+
+def _status_line(s: socket.socket) -> str:
+    """The status of what the server answered on a connection it did not drop (read now), or why there is none."""
+    s.settimeout(2.0)
+    try:
+        head = s.recv(64)
+    except OSError as e:
+        return type(e).__name__
+    return head.split(b" ", 2)[1].decode() if head.startswith(b"HTTP/1.1 ") else "nothing"
 
 
 def _settings_env(env: dict[str, str] | None) -> dict[str, Any]:
@@ -1162,6 +1195,7 @@ def scenario_stalled_sessions(
         socks = [stalled_session(server.port, opening, evaluate) for _ in range(sessions)]
         time.sleep(1.0)  # each has opened and answered what it will before its write buffer fills
         held = scraped(server.port, "jointlimits_inflight_budget_bytes")
+        opened = scraped(server.port, "jointlimits_session_messages_total", kind="open", outcome="ok")
         beside = timed()
         beside["seconds_after_stall"] = round(time.monotonic() - t0, 2)
         rss_stalled = rss_kib(pid)
@@ -1171,7 +1205,8 @@ def scenario_stalled_sessions(
         held_after = scraped(server.port, "jointlimits_inflight_budget_bytes")
         counted = connections_closed_counted(server.port, WRITE_REASONS)
     return {
-        "sessions": sessions, "session_joints": joints, "http_joints": http_joints, "http_alone": alone,
+        "sessions": sessions, "sessions_opened": opened, "session_joints": joints, "http_joints": http_joints,
+        "http_alone": alone,
         "http_beside_stalled": beside, "budget_held_by_stalled_bytes": held, "budget_held_after": held_after,
         "rss_before_mib": round((rss_before or 0) / 1024), "rss_stalled_mib": round((rss_stalled or 0) / 1024),
         "closed_after_s": closed, "metrics_closed": counted,
@@ -1216,7 +1251,10 @@ def scenario_pingflood(seconds: float = 5.0, env: dict[str, str] | None = None, 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m service.loadtest", description=__doc__.split("\n\n")[0])
     p.add_argument(
-        "--scenario", choices=["mixed", "flood", "kill", "sigterm", "slowloris", "answer", "peak", "burst", "all"], default="mixed"
+        "--scenario",
+        choices=["mixed", "flood", "kill", "sigterm", "slowloris", "answer", "peak", "burst", "stalled", "stalled-sessions",
+                 "pingflood", "all"],
+        default="mixed",
     )
     p.add_argument("--spawn", action="store_true", help="start `jointlimits serve` on a free loopback port")
     p.add_argument("--port", type=int, default=8000, help="port of a running service on 127.0.0.1 (without --spawn)")
@@ -1229,8 +1267,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--slow", type=int, default=50, help="slowloris connections (slowloris)")
     p.add_argument("--header-timeout", type=float, default=3.0, help="the spawned server's header timeout (slowloris)")
     p.add_argument("--body-timeout", type=float, default=4.0, help="the spawned server's body timeout (slowloris)")
+    p.add_argument("--write-timeout", type=float, default=5.0,
+                   help="the spawned server's write timeout (stalled, stalled-sessions, pingflood)")
     a = p.parse_args(argv)
-    if a.duration > 600 or a.clients > 256 or a.slow > 512 or max(a.header_timeout, a.body_timeout) > 120:
+    if a.duration > 600 or a.clients > 256 or a.slow > 512 or max(a.header_timeout, a.body_timeout, a.write_timeout) > 120:
         p.error("bounded: --duration <= 600, --clients <= 256, --slow <= 512, timeouts <= 120")
     limits = ["--max-body-bytes", str(a.max_body_bytes), "--max-joints", str(a.max_joints)]
     limits += ["--header-timeout", str(a.header_timeout), "--body-timeout", str(a.body_timeout)]
@@ -1241,10 +1281,21 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     report: dict[str, Any] = {"workers": a.workers, "clients": a.clients, "duration_s": a.duration}
     scenarios = ["mixed", "flood", "kill", "sigterm", "slowloris", "answer"] if a.scenario == "all" else [a.scenario]
-    if a.scenario in ("peak", "burst"):  # each case on its own fresh server, at this environment's limits
+    if a.scenario in ("peak", "burst", "stalled", "stalled-sessions", "pingflood"):
+        # each on its own fresh 1-worker server, at this environment's limits
         if not a.spawn:
-            p.error(f"--scenario {a.scenario} needs --spawn (it reads the worker's peak memory)")
-        result = scenario_peak(env) if a.scenario == "peak" else scenario_burst(min(a.clients, 32), env)
+            p.error(f"--scenario {a.scenario} needs --spawn (it reads the worker's memory)")
+        write = ["--write-timeout", str(a.write_timeout)]
+        if a.scenario == "peak":
+            result = scenario_peak(env)
+        elif a.scenario == "burst":
+            result = scenario_burst(min(a.clients, 32), env)
+        elif a.scenario == "stalled":
+            result = scenario_stalled(min(a.clients, 32), env, write, give_up=min(a.duration, 120.0))
+        elif a.scenario == "stalled-sessions":
+            result = scenario_stalled_sessions(min(a.clients, 16), env=env, extra_args=write, give_up=min(a.duration, 120.0))
+        else:
+            result = scenario_pingflood(min(a.duration, 30.0), env, write)
         print(json.dumps({a.scenario: result}, indent=2))
         return 0
     for name in scenarios:

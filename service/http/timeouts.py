@@ -356,7 +356,18 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
             # uvicorn waits 10 s for the client's answer to our close frame, then closes gracefully (the kernel
             # keeps what the client did not read): the client gets the write timeout, then a reset.
             self.close_timer.cancel()
-            self.close_timer = self.loop.call_later(self.write_timeout, _reset, self.transport)  # type: ignore[arg-type]
+            self.close_timer = self.loop.call_later(self.write_timeout, self._close_unanswered)  # type: ignore[arg-type]
+
+    def _close_unanswered(self) -> None:
+        self.close_timer = None
+        if self.transport.is_closing() and self.transport.get_write_buffer_size() == 0:
+            return
+        log.info("client %s did not answer the close frame within %s s: connection reset", _peer(self.client),
+                 self.write_timeout)
+        metrics = self.app_state.get(LIFESPAN_METRICS)
+        if metrics is not None:
+            metrics.connections_closed.labels(reason="slow_read").inc()
+        _reset(self.transport)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._stop_message_timer()

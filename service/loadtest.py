@@ -1066,11 +1066,11 @@ def ws_frame(opcode: int, payload: bytes, fin: bool = True, rsv: int = 0) -> byt
 
 
 def scenario_stalled(copies: int, env: dict[str, str] | None = None, extra_args: Sequence[str] = (),
-                     give_up: float = 120.0) -> dict[str, Any]:
+                     give_up: float = 120.0, stagger: float = 0.0) -> dict[str, Any]:
     """`copies` clients each send the costliest answer this environment's limits admit (`answer_bound_msgpack`)
-    from a socket with a 4 KiB receive buffer and read nothing, on a fresh 1-worker server: when each was dropped
-    (JOINTLIMITS_WRITE_TIMEOUT), the worker's peak RSS against the sizing rule, what /metrics counted, and a
-    request alone afterwards."""
+    from a socket with a 4 KiB receive buffer and read nothing (one every `stagger` seconds), on a fresh 1-worker
+    server: how each ended (reset: dropped by JOINTLIMITS_WRITE_TIMEOUT; else the status it got) and when, the
+    worker's peak RSS against the sizing rule, what /metrics counted, and a request alone afterwards."""
     from service import sizing
     from service.settings import Settings
 
@@ -1079,17 +1079,34 @@ def scenario_stalled(copies: int, env: dict[str, str] | None = None, extra_args:
     with Server(workers=1, env=env, extra_args=extra_args) as server:
         pid = server.worker_pids()[0]
         rss_before = rss_kib(pid)
-        socks = [stalled_socket(server.port) for _ in range(copies)]
         busy_before = scraped(server.port, "jointlimits_http_requests_total", route="/v1/evaluate", status="503")
-        t0 = time.monotonic()
-        for s in socks:
-            s.sendall(post_bytes(body, content_type, accept))
+        socks: list[socket.socket] = []
+        sent_at: list[float] = []
 
-        def all_answered(n_dropped: int) -> bool:  # the rest were refused 503 busy (small: not stalled)
-            busy = scraped(server.port, "jointlimits_http_requests_total", route="/v1/evaluate", status="503")
-            return n_dropped + busy - busy_before >= copies
+        def send_all() -> None:
+            for i in range(copies):
+                time.sleep(stagger if i else 0.0)
+                s = stalled_socket(server.port)  # connected now: an idle one would meet the head timeout
+                s.sendall(post_bytes(body, content_type, accept))
+                socks.append(s)
+                sent_at.append(time.monotonic())
 
-        closed = watch_dropped(socks, t0, give_up, all_answered)
+        sender = threading.Thread(target=send_all, daemon=True)
+        sender.start()
+        # Seconds from each request to its reset (None: not reset; it was answered, see `outcomes`).
+        closed: list[float | None] = [None] * copies
+        t0, asked = time.monotonic(), 0.0
+        while time.monotonic() - t0 < give_up + copies * stagger:
+            for i, s in enumerate(list(socks)):
+                if closed[i] is None and dropped(s):
+                    closed[i] = round(time.monotonic() - sent_at[i], 2)
+            if len(socks) == copies and time.monotonic() - asked > 0.5:  # the rest refused 503 busy (not stalled)?
+                asked = time.monotonic()
+                busy = scraped(server.port, "jointlimits_http_requests_total", route="/v1/evaluate", status="503")
+                if sum(t is not None for t in closed) + busy - busy_before >= copies:
+                    break
+            time.sleep(0.05)
+        sender.join()
         peak = peak_kib(pid)
         outcomes = Counter("reset" if t is not None else _status_line(s) for s, t in zip(socks, closed))
         for s in socks:
@@ -1161,7 +1178,7 @@ def session_frames(joints: int) -> tuple[bytes, bytes]:
     from client import codec
     from schemas import binary as wire
 
-    req = array_scene(joints, pairs=joints)
+    req = array_scene(joints, pairs=max(1, joints // 4))  # a body per two joints
     opening = codec.encode(req, binary=True)[0]
     import numpy as np
 
@@ -1269,6 +1286,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--body-timeout", type=float, default=4.0, help="the spawned server's body timeout (slowloris)")
     p.add_argument("--write-timeout", type=float, default=5.0,
                    help="the spawned server's write timeout (stalled, stalled-sessions, pingflood)")
+    p.add_argument("--stagger", type=float, default=0.0, help="seconds between the stalled clients' requests (stalled)")
     a = p.parse_args(argv)
     if a.duration > 600 or a.clients > 256 or a.slow > 512 or max(a.header_timeout, a.body_timeout, a.write_timeout) > 120:
         p.error("bounded: --duration <= 600, --clients <= 256, --slow <= 512, timeouts <= 120")
@@ -1291,7 +1309,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif a.scenario == "burst":
             result = scenario_burst(min(a.clients, 32), env)
         elif a.scenario == "stalled":
-            result = scenario_stalled(min(a.clients, 32), env, write, give_up=min(a.duration, 120.0))
+            result = scenario_stalled(min(a.clients, 32), env, write, give_up=min(a.duration, 120.0), stagger=min(a.stagger, 10.0))
         elif a.scenario == "stalled-sessions":
             result = scenario_stalled_sessions(min(a.clients, 16), env=env, extra_args=write, give_up=min(a.duration, 120.0))
         else:

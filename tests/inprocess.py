@@ -4,7 +4,6 @@ that misbehave on purpose."""
 
 from __future__ import annotations
 
-import os
 import socket
 import struct
 import threading

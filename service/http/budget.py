@@ -10,7 +10,9 @@ for. Two budgets per worker (sizes from the limits, `service.sizing`):
   slowly holds only what it sent, and no upload can wait on another.
 - **in flight** (`sizing.inflight_bytes`): a received request's cost, first bounded from its body's
   size (`sizing.cost_before_body`), then cut to what it holds once parsed (`sizing.request_cost`,
-  before the core runs), released when its answer has been sent. Requests wait for it in arrival
+  before the core runs), then to its encoded answer's bytes, released when they have left the process
+  (`ReleaseMiddleware`: a client that does not read is dropped after JOINTLIMITS_WRITE_TIMEOUT, which
+  releases them). Requests wait for it in arrival
   order (a large one is not passed for ever by small ones); its size is the costliest request the
   limits admit, so every admitted request fits alone. One that has not started after
   `queue_timeout` seconds is a 503 `busy` with `Retry-After`: nothing was evaluated, a client may

@@ -63,6 +63,23 @@ def test_a_stalled_http_client_is_dropped_and_its_answer_counted_until_then(live
     assert counted(live, "slow_read") == before + 1
 
 
+def test_a_streamed_json_answer_stalled_is_dropped_without_a_traceback(live, caplog):
+    """JSON answers are written in pieces: the route waits in `send` while the buffer is full, holding its
+    reservation; the reset ends the wait (no exception, no ERROR) and releases it."""
+    import logging
+
+    caplog.set_level(logging.INFO)
+    s = lt.stalled_socket(live.port)
+    s.sendall(lt.post_bytes(BODY, B, "application/json"))
+    assert wait_for(lambda: sum(live.buffered()) > 1_000_000, 20) is not None
+    assert live.held() > sum(live.buffered())
+    assert wait_for(lambda: lt.dropped(s), WRITE_TIMEOUT + SLACK) is not None
+    s.close()
+    assert wait_for(lambda: live.held() == 0, 3) is not None
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR or r.exc_info]
+    assert [r.levelname for r in caplog.records if r.name == "jointlimits.timeouts"] == ["WARNING"]
+
+
 def test_a_client_that_reads_gets_the_whole_answer(live):
     r = httpx.post(f"http://127.0.0.1:{live.port}/v1/evaluate", content=BODY,
                    headers={"Content-Type": B, "Accept": B}, timeout=30)

@@ -170,7 +170,7 @@ class _WriteBound:
             return
         # One line, no traceback: a client that stops reading is expected, not a server fault.
         log.warning(
-            "client %s read nothing for %s s with %d bytes waiting: connection dropped (JOINTLIMITS_WRITE_TIMEOUT)",
+            "client %s left its write buffer full for %s s (%d bytes waiting): connection reset (JOINTLIMITS_WRITE_TIMEOUT)",
             _peer(self.client), self.write_timeout, buffered,
         )
         metrics = self.app_state.get(LIFESPAN_METRICS)

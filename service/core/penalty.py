@@ -64,7 +64,7 @@ def derivatives(
     sw = strength / w
     sww = sw / w
     if wide.size:  # w overflowed there: s / w = (s / 2) / (w / 2), s / w^2 = (s / w / 2) / (w / 2)
-        s = np.asarray(strength)[wide]
+        s = np.broadcast_to(strength, r.shape)[wide]
         sw[wide] = (s * 0.5) / half_w
         sww[wide] = (sw[wide] * 0.5) / half_w
     return strength * (r * r * r), side * 3.0 * sw * (r * r), 6.0 * sww * r
@@ -96,8 +96,8 @@ def _relative(
 
 def _overflowed(g: Array, w: Array, x: Array, lower: Array, upper: Array) -> NDArray[np.intp]:
     """Positions where `g` or `w` is infinite though `x`, `lower`, `upper` are finite (an overflowed difference)."""
-    inf = np.isinf(g) | np.isinf(w)
-    if not inf.any():  # the usual case: one pass, nothing else
-        return np.flatnonzero(inf)
+    # The usual case: two reductions, no temporaries (g >= 0 and w > 0 are never NaN: only +inf can be there).
+    if g.size == 0 or (g.max() < np.inf and w.max() < np.inf):
+        return np.zeros(0, dtype=np.intp)
     finite = np.isfinite(x) & np.isfinite(lower) & np.isfinite(upper)
-    return np.flatnonzero(inf & finite)
+    return np.flatnonzero((np.isinf(g) | np.isinf(w)) & finite)

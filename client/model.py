@@ -235,6 +235,8 @@ class Evaluation:
         """Itself, each batch told how many joints its request batch has (what `joint` needs under `active_only`)."""
         for r, b in zip(self.batches, request.batches):
             r.size = len(b)
+        if self.assembled is not None and self.assembled.n_bodies < 0:  # a session's reply does not say
+            self.assembled.n_bodies = int(np.shape(request.q)[0])
         return self
 
     def joint(self, j: Joint | int) -> JointResult:

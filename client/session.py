@@ -189,6 +189,7 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
         "outputs": tuple(request.outputs if outputs is None else outputs),
         "hessian_mode": request.hessian_mode if hessian_mode is None else hessian_mode,
         "active_only": request.active_only if active_only is None else bool(active_only),
+        "layout": request.layout,  # the opening's, as the server keeps it (a message cannot change it)
     }
 
 

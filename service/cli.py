@@ -234,6 +234,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=_positive_float(_env("BODY_TIMEOUT", "30")),
         help="seconds from a request's headers to the end of its body; then 408 and closed (JOINTLIMITS_BODY_TIMEOUT)",
     )
+    s.add_argument(
+        "--write-timeout",
+        type=_positive_float,
+        default=_positive_float(_env("WRITE_TIMEOUT", "30")),
+        help="seconds a connection's write buffer may stay full (the client not reading its answer, session "
+        "replies or pongs); then the connection is dropped and what it held freed (JOINTLIMITS_WRITE_TIMEOUT)",
+    )
     s.add_argument("--backlog", type=_positive_int, default=int(_env("BACKLOG", "2048")), help="listen backlog (JOINTLIMITS_BACKLOG)")
     s.add_argument(
         "--log-level",
@@ -282,6 +289,7 @@ def serve(args: argparse.Namespace) -> int:
     os.environ[ENV_PREFIX + "KEEP_HEAP"] = "true" if args.keep_heap else "false"
     os.environ[ENV_PREFIX + "HEADER_TIMEOUT"] = str(args.header_timeout)  # read by ReadTimeoutProtocol
     os.environ[ENV_PREFIX + "BODY_TIMEOUT"] = str(args.body_timeout)
+    os.environ[ENV_PREFIX + "WRITE_TIMEOUT"] = str(args.write_timeout)  # read by both protocols below
     if args.token_file:
         token = Path(args.token_file).read_text().strip()
         if not token:
@@ -335,7 +343,8 @@ def serve(args: argparse.Namespace) -> int:
             # The supervisor's ping is answered by a thread of the worker, which needs the GIL.
             timeout_worker_healthcheck=args.healthcheck_timeout,
             server_header=False,
-            http="service.http.timeouts:ReadTimeoutProtocol",  # uvicorn's httptools + a deadline on request heads
+            http="service.http.timeouts:ReadTimeoutProtocol",  # uvicorn's httptools + deadlines on heads and writes
+            ws="service.http.timeouts:WriteTimeoutWebSocketProtocol",  # uvicorn's websockets-sansio + the same on writes
         )
     finally:
         if own_metrics_dir:

@@ -24,6 +24,13 @@ without it, `--url` names a service already running on 127.0.0.1. Scenarios:
   joints, body bytes, batches), each sent alone to a fresh 1-worker server: its time and the
   worker's peak RSS (`VmHWM`), the figures behind the README's sizing rule. Builds its bodies
   with NumPy and the SDK's codec (installed with the service).
+- `stalled`: `--clients` connections (at most 32) each send the costliest answer the limits admit
+  and read nothing (4 KiB receive buffers): when each was dropped (`--write-timeout` of the
+  spawned server), the worker's peak RSS against the sizing rule.
+- `stalled-sessions`: HTTP evaluates alone, then beside `--clients` sessions (4000 joints) that
+  sent two evaluates each and read nothing: statuses, p50/p99, the budget the sessions hold.
+- `pingflood`: 125-byte pings for `--duration` seconds (at most 30) on a connection that reads
+  nothing: the worker's RSS before and after, when it was dropped.
 - `answer`: while valid clients run, one request whose answer would exceed
   `JOINTLIMITS_MAX_ANSWER_BYTES` (413 before any work) and one at that bound (200): the valid
   clients keep getting 200s and no worker is restarted (its pids are compared). Needs a server
@@ -758,10 +765,10 @@ def scenario_slowloris(
     }
 
 
-def connections_closed_counted(port: int) -> dict[str, float]:
-    """`jointlimits_connections_closed_total` by reason (silent, slow_head), summed over the workers."""
-    text = metrics_text(port)  # one scrape for both
-    reasons = ("silent", "slow_head")
+def connections_closed_counted(port: int, reasons: Sequence[str] = ("silent", "slow_head")) -> dict[str, float]:
+    """`jointlimits_connections_closed_total` by reason (silent, slow_head; slow_read, slow_message: the write
+    timeout and a session message's deadline), summed over the workers."""
+    text = metrics_text(port)  # one scrape for all
     if text is None:
         return {r: float("nan") for r in reasons}
     return {r: metric_total(text, "jointlimits_connections_closed_total", reason=r) for r in reasons}
@@ -978,13 +985,293 @@ def scenario_answer(
     }
 
 
+# --------------------------------------------------------------------------- clients that stop reading (issue 19)
+
+WRITE_REASONS = ("slow_read", "slow_message")
+
+
+def stalled_socket(port: int, rcvbuf: int = 4096) -> socket.socket:
+    """A loopback connection with a small receive buffer (set before connecting: the window is negotiated then),
+    which the drills never read: what the server sends piles up on its side."""
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+    s.settimeout(30)
+    s.connect((LOOPBACK, port))
+    return s
+
+
+def post_bytes(body: bytes, content_type: str, accept: str) -> bytes:
+    head = (
+        f"POST /v1/evaluate HTTP/1.1\r\nHost: {LOOPBACK}\r\nContent-Type: {content_type}\r\nAccept: {accept}\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n"
+    )
+    return head.encode() + body
+
+
+def dropped(s: socket.socket) -> bool:
+    """Whether the server reset the connection (it aborts a stalled writer: RST), read without reading data."""
+    return s.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR) != 0
+
+
+def watch_dropped(
+    socks: Sequence[socket.socket], t0: float, give_up: float, done: Callable[[int], bool] | None = None
+) -> list[float | None]:
+    """Seconds from `t0` until each socket saw the server drop it (None: still open after `give_up` seconds, or
+    once `done(number dropped)` says the rest were answered otherwise; asked every half second)."""
+    out: list[float | None] = [None] * len(socks)
+    asked = time.monotonic()
+    while time.monotonic() - t0 < give_up and any(t is None for t in out):
+        for i, s in enumerate(socks):
+            if out[i] is None and dropped(s):
+                out[i] = round(time.monotonic() - t0, 2)
+        if done is not None and time.monotonic() - asked > 0.5:
+            asked = time.monotonic()
+            if done(sum(t is not None for t in out)):
+                break
+        time.sleep(0.05)
+    return out
+
+
+def ws_upgrade(port: int, rcvbuf: int | None = None, headers: dict[str, str] | None = None) -> tuple[socket.socket, bytes]:
+    """A raw connection upgraded to a session (or refused): the socket and the server's response head."""
+    import base64
+
+    s = stalled_socket(port, rcvbuf) if rcvbuf else socket.create_connection((LOOPBACK, port), timeout=30)
+    extra = "".join(f"{k}: {v}\r\n" for k, v in (headers or {}).items())
+    key = base64.b64encode(os.urandom(16)).decode()
+    s.sendall(
+        f"GET /v1/sessions HTTP/1.1\r\nHost: {LOOPBACK}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n{extra}\r\n".encode()
+    )
+    head = b""
+    while b"\r\n\r\n" not in head:
+        chunk = s.recv(1)
+        if not chunk:
+            break
+        head += chunk
+    return s, head
+
+
+def ws_frame(opcode: int, payload: bytes, fin: bool = True, rsv: int = 0) -> bytes:
+    """A client frame, masked with the key 0 (valid, and the payload goes out as it is: no CPU for masking)."""
+    n = len(payload)
+    head = bytes([(0x80 if fin else 0) | rsv << 4 | opcode])
+    if n < 126:
+        head += bytes([0x80 | n])
+    elif n < 2**16:
+        head += bytes([0x80 | 126]) + n.to_bytes(2, "big")
+    else:
+        head += bytes([0x80 | 127]) + n.to_bytes(8, "big")
+    return head + b"\0\0\0\0" + payload
+
+
+def scenario_stalled(copies: int, env: dict[str, str] | None = None, extra_args: Sequence[str] = (),
+                     give_up: float = 120.0, stagger: float = 0.0) -> dict[str, Any]:
+    """`copies` clients each send the costliest answer this environment's limits admit (`answer_bound_msgpack`)
+    from a socket with a 4 KiB receive buffer and read nothing (one every `stagger` seconds), on a fresh 1-worker
+    server: how each ended (reset: dropped by JOINTLIMITS_WRITE_TIMEOUT; else the status it got) and when, the
+    worker's peak RSS against the sizing rule, what /metrics counted, and a request alone afterwards."""
+    from service import sizing
+    from service.settings import Settings
+
+    rule_mib = round(sizing.worker_bytes(Settings(**_settings_env(env))) / 2**20)
+    body, content_type, accept, joints = _with_env(env, lambda: peak_cases()["answer_bound_msgpack"]())
+    with Server(workers=1, env=env, extra_args=extra_args) as server:
+        pid = server.worker_pids()[0]
+        rss_before = rss_kib(pid)
+        busy_before = scraped(server.port, "jointlimits_http_requests_total", route="/v1/evaluate", status="503")
+        socks: list[socket.socket] = []
+        sent_at: list[float] = []
+
+        def send_all() -> None:
+            for i in range(copies):
+                time.sleep(stagger if i else 0.0)
+                s = stalled_socket(server.port)  # connected now: an idle one would meet the head timeout
+                s.sendall(post_bytes(body, content_type, accept))
+                socks.append(s)
+                sent_at.append(time.monotonic())
+
+        sender = threading.Thread(target=send_all, daemon=True)
+        sender.start()
+        # Seconds from each request to its reset (None: not reset; it was answered, see `outcomes`).
+        closed: list[float | None] = [None] * copies
+        t0, asked = time.monotonic(), 0.0
+        while time.monotonic() - t0 < give_up + copies * stagger:
+            for i, s in enumerate(list(socks)):
+                if closed[i] is None and dropped(s):
+                    closed[i] = round(time.monotonic() - sent_at[i], 2)
+            if len(socks) == copies and time.monotonic() - asked > 0.5:  # the rest refused 503 busy (not stalled)?
+                asked = time.monotonic()
+                busy = scraped(server.port, "jointlimits_http_requests_total", route="/v1/evaluate", status="503")
+                if sum(t is not None for t in closed) + busy - busy_before >= copies:
+                    break
+            time.sleep(0.05)
+        sender.join()
+        peak = peak_kib(pid)
+        outcomes = Counter("reset" if t is not None else _status_line(s) for s, t in zip(socks, closed))
+        for s in socks:
+            s.close()
+        counted = connections_closed_counted(server.port, WRITE_REASONS)
+        held = scraped(server.port, "jointlimits_inflight_budget_bytes")
+        after = _one(server.port, body, content_type, accept)[0]
+    return {
+        "joints": joints, "body_bytes": len(body), "copies": copies, "outcomes": dict(outcomes),
+        "closed_after_s": closed,
+        "rss_before_mib": round((rss_before or 0) / 1024), "peak_rss_mib": round((peak or 0) / 1024),
+        "rule_mib": rule_mib, "metrics_closed": counted, "budget_held_after": held, "alone_after": after,
+    }  # fmt: skip
+
+
+def _status_line(s: socket.socket) -> str:
+    """The status of what the server answered on a connection it did not drop (read now), or why there is none."""
+    s.settimeout(2.0)
+    try:
+        head = s.recv(64)
+    except OSError as e:
+        return type(e).__name__
+    return head.split(b" ", 2)[1].decode() if head.startswith(b"HTTP/1.1 ") else "nothing"
+
+
+def _settings_env(env: dict[str, str] | None) -> dict[str, Any]:
+    """`Settings` fields from `JOINTLIMITS_*` variables in `env` (the spawned server's), as the server reads them."""
+    from dataclasses import fields
+
+    from service.settings import Settings
+
+    saved = {k: os.environ.get(k) for k in (env or {})}
+    try:
+        os.environ.update(env or {})
+        s = Settings()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return {f.name: getattr(s, f.name) for f in fields(s)}
+
+
+def _with_env(env: dict[str, str] | None, fn: Callable[[], Any]) -> Any:
+    saved = {k: os.environ.get(k) for k in (env or {})}
+    try:
+        os.environ.update(env or {})
+        return fn()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def stalled_session(port: int, opening: bytes, evaluate: bytes, messages: int = 2) -> socket.socket:
+    """A session opened with `opening` (msgpack), then `messages` evaluates sent, nothing read."""
+    s, head = ws_upgrade(port, rcvbuf=4096)
+    if not head.startswith(b"HTTP/1.1 101"):
+        raise RuntimeError(f"no session: {head!r}")
+    s.sendall(ws_frame(0x2, opening) + ws_frame(0x2, evaluate) * messages)
+    return s
+
+
+def session_frames(joints: int) -> tuple[bytes, bytes]:
+    """A msgpack opening of `joints` active revolute joints (E+G+H) and an evaluate at its `q`."""
+    from client import codec
+    from schemas import binary as wire
+
+    req = array_scene(joints, pairs=max(1, joints // 4))  # a body per two joints
+    opening = codec.encode(req, binary=True)[0]
+    import numpy as np
+
+    q = wire.pack_array(np.asarray(req.q, dtype=np.float64), wire.FLOAT64)
+    return opening, wire.dumps({"kind": "evaluate", "q": q})
+
+
+def scenario_stalled_sessions(
+    sessions: int = 4, joints: int = 4000, http_joints: int = 1000, requests: int = 20,
+    env: dict[str, str] | None = None, extra_args: Sequence[str] = (), give_up: float = 120.0,
+) -> dict[str, Any]:
+    """HTTP beside stalled sessions, on a fresh 1-worker server: `requests` HTTP evaluates of `http_joints`
+    (E+G+H, msgpack) alone, then while `sessions` sessions of `joints` joints have each sent two evaluates and
+    read nothing: statuses and p50/p99 both times, the budget the sessions hold, when they were dropped."""
+    opening, evaluate = session_frames(joints)
+    from client import codec
+
+    body = codec.encode(array_scene(http_joints, pairs=http_joints), binary=True)[0]
+    B = "application/msgpack"
+
+    def timed() -> dict[str, Any]:
+        runs = [_one(server.port, body, B, B, timeout=60.0) for _ in range(requests)]
+        secs = sorted(r[1] for r in runs)
+        return {"statuses": dict(Counter(str(r[0]) for r in runs)), "p50_s": _pct(secs, 50), "p99_s": _pct(secs, 99)}
+
+    with Server(workers=1, env=env, extra_args=extra_args) as server:
+        pid = server.worker_pids()[0]
+        alone = timed()
+        rss_before = rss_kib(pid)
+        t0 = time.monotonic()
+        socks = [stalled_session(server.port, opening, evaluate) for _ in range(sessions)]
+        time.sleep(1.0)  # each has opened and answered what it will before its write buffer fills
+        held = scraped(server.port, "jointlimits_inflight_budget_bytes")
+        opened = scraped(server.port, "jointlimits_session_messages_total", kind="open", outcome="ok")
+        beside = timed()
+        beside["seconds_after_stall"] = round(time.monotonic() - t0, 2)
+        rss_stalled = rss_kib(pid)
+        closed = watch_dropped(socks, t0, give_up)
+        for s in socks:
+            s.close()
+        held_after = scraped(server.port, "jointlimits_inflight_budget_bytes")
+        counted = connections_closed_counted(server.port, WRITE_REASONS)
+    return {
+        "sessions": sessions, "sessions_opened": opened, "session_joints": joints, "http_joints": http_joints,
+        "http_alone": alone,
+        "http_beside_stalled": beside, "budget_held_by_stalled_bytes": held, "budget_held_after": held_after,
+        "rss_before_mib": round((rss_before or 0) / 1024), "rss_stalled_mib": round((rss_stalled or 0) / 1024),
+        "closed_after_s": closed, "metrics_closed": counted,
+    }  # fmt: skip
+
+
+def scenario_pingflood(seconds: float = 5.0, env: dict[str, str] | None = None, extra_args: Sequence[str] = ()) -> dict[str, Any]:
+    """125-byte pings sent for up to `seconds` on one upgraded connection that reads nothing, on a fresh
+    1-worker server: the bytes sent, the worker's RSS before and after, when the server dropped it."""
+    ping = ws_frame(0x9, b"p" * 125) * 512  # 67 KB per send
+    with Server(workers=1, env=env, extra_args=extra_args) as server:
+        pid = server.worker_pids()[0]
+        before = rss_kib(pid)
+        s, head = ws_upgrade(server.port, rcvbuf=4096)
+        if not head.startswith(b"HTTP/1.1 101"):
+            raise RuntimeError(f"no session: {head!r}")
+        s.settimeout(0.5)
+        sent, t0, closed = 0, time.monotonic(), None
+        while time.monotonic() - t0 < seconds:
+            try:
+                sent += s.send(ping)
+            except TimeoutError:
+                continue
+            except OSError:
+                closed = round(time.monotonic() - t0, 2)
+                break
+        if closed is None and dropped(s):
+            closed = round(time.monotonic() - t0, 2)
+        time.sleep(0.5)
+        after, peak = rss_kib(pid), peak_kib(pid)
+        s.close()
+        counted = connections_closed_counted(server.port, WRITE_REASONS)
+    return {
+        "seconds": seconds, "ping_bytes_sent": sent, "dropped_after_s": closed, "rss_before_mib": round((before or 0) / 1024),
+        "rss_after_mib": round((after or 0) / 1024), "peak_rss_mib": round((peak or 0) / 1024), "metrics_closed": counted,
+    }  # fmt: skip
+
+
 # --------------------------------------------------------------------------- command line
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m service.loadtest", description=__doc__.split("\n\n")[0])
     p.add_argument(
-        "--scenario", choices=["mixed", "flood", "kill", "sigterm", "slowloris", "answer", "peak", "burst", "all"], default="mixed"
+        "--scenario",
+        choices=["mixed", "flood", "kill", "sigterm", "slowloris", "answer", "peak", "burst", "stalled", "stalled-sessions",
+                 "pingflood", "all"],
+        default="mixed",
     )
     p.add_argument("--spawn", action="store_true", help="start `jointlimits serve` on a free loopback port")
     p.add_argument("--port", type=int, default=8000, help="port of a running service on 127.0.0.1 (without --spawn)")
@@ -997,8 +1284,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--slow", type=int, default=50, help="slowloris connections (slowloris)")
     p.add_argument("--header-timeout", type=float, default=3.0, help="the spawned server's header timeout (slowloris)")
     p.add_argument("--body-timeout", type=float, default=4.0, help="the spawned server's body timeout (slowloris)")
+    p.add_argument("--write-timeout", type=float, default=5.0,
+                   help="the spawned server's write timeout (stalled, stalled-sessions, pingflood)")
+    p.add_argument("--stagger", type=float, default=0.0, help="seconds between the stalled clients' requests (stalled)")
     a = p.parse_args(argv)
-    if a.duration > 600 or a.clients > 256 or a.slow > 512 or max(a.header_timeout, a.body_timeout) > 120:
+    if a.duration > 600 or a.clients > 256 or a.slow > 512 or max(a.header_timeout, a.body_timeout, a.write_timeout) > 120:
         p.error("bounded: --duration <= 600, --clients <= 256, --slow <= 512, timeouts <= 120")
     limits = ["--max-body-bytes", str(a.max_body_bytes), "--max-joints", str(a.max_joints)]
     limits += ["--header-timeout", str(a.header_timeout), "--body-timeout", str(a.body_timeout)]
@@ -1009,10 +1299,21 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     report: dict[str, Any] = {"workers": a.workers, "clients": a.clients, "duration_s": a.duration}
     scenarios = ["mixed", "flood", "kill", "sigterm", "slowloris", "answer"] if a.scenario == "all" else [a.scenario]
-    if a.scenario in ("peak", "burst"):  # each case on its own fresh server, at this environment's limits
+    if a.scenario in ("peak", "burst", "stalled", "stalled-sessions", "pingflood"):
+        # each on its own fresh 1-worker server, at this environment's limits
         if not a.spawn:
-            p.error(f"--scenario {a.scenario} needs --spawn (it reads the worker's peak memory)")
-        result = scenario_peak(env) if a.scenario == "peak" else scenario_burst(min(a.clients, 32), env)
+            p.error(f"--scenario {a.scenario} needs --spawn (it reads the worker's memory)")
+        write = ["--write-timeout", str(a.write_timeout)]
+        if a.scenario == "peak":
+            result = scenario_peak(env)
+        elif a.scenario == "burst":
+            result = scenario_burst(min(a.clients, 32), env)
+        elif a.scenario == "stalled":
+            result = scenario_stalled(min(a.clients, 32), env, write, give_up=min(a.duration, 120.0), stagger=min(a.stagger, 10.0))
+        elif a.scenario == "stalled-sessions":
+            result = scenario_stalled_sessions(min(a.clients, 16), env=env, extra_args=write, give_up=min(a.duration, 120.0))
+        else:
+            result = scenario_pingflood(min(a.duration, 30.0), env, write)
         print(json.dumps({a.scenario: result}, indent=2))
         return 0
     for name in scenarios:

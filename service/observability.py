@@ -166,8 +166,10 @@ class Metrics:
         # exists for them, so jointlimits_http_requests_total cannot count them.
         self.connections_closed = Counter(
             "jointlimits_connections_closed_total",
-            "Connections the server closed for want of a complete request head within JOINTLIMITS_HEADER_TIMEOUT, "
-            "by reason (silent: not a byte, closed without an answer; slow_head: part of a head, answered 408).",
+            "Connections the server closed, by reason: for want of a complete request head within "
+            "JOINTLIMITS_HEADER_TIMEOUT (silent: not a byte, closed without an answer; slow_head: part of a head, "
+            "answered 408); slow_read: a full write buffer for JOINTLIMITS_WRITE_TIMEOUT (dropped); slow_message: "
+            "a session message not received within JOINTLIMITS_BODY_TIMEOUT (close 1008).",
             ["reason"],
             registry=reg,
         )

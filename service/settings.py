@@ -39,7 +39,12 @@ class Settings:
     """Seconds a connection has to send a request's head (line and headers); then 408 and closed
     (enforced by `service.http.timeouts.ReadTimeoutProtocol`, which `jointlimits serve` runs)."""
     body_timeout: float = field(default_factory=lambda: float(_env("BODY_TIMEOUT", "30")))
-    """Seconds from a request's head to the end of its body; then 408 and the connection closed."""
+    """Seconds from a request's head to the end of its body; then 408 and the connection closed. Also the
+    bound on a WebSocket session message from its first byte to its last (then close 1008)."""
+    write_timeout: float = field(default_factory=lambda: float(_env("WRITE_TIMEOUT", "30")))
+    """Seconds a connection's write buffer may stay full (the client not reading what it was sent: an answer,
+    session replies, a close frame, pongs); then the connection is dropped and what it held freed
+    (`service.http.timeouts`)."""
     # Admission by cost (service/http/limits.py, README "Limits"): checked before any evaluation.
     max_batches: int = field(default_factory=lambda: int(_env("MAX_BATCHES", "4096")))
     """Most batches in one request (each costs ~0.5 ms of fixed work); more answers 413."""

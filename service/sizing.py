@@ -37,6 +37,19 @@ JSON_VALUES_PER_JOINT = 11
 SESSION_BYTES_PER_JOINT = 768
 """A joint of a WebSocket session's prepared scene, held for the connection's life (measured ~700 B:
 67 MB for the bench's 1e5-joint scene)."""
+SESSION_BYTES_PER_BODY = 1024
+"""A body of a session's prepared scene, held for the connection's life: its `q`, `q_prev`, `q_ref` rows (288 B)
+and what `prepare` adds per body (polar factors, frames: measured 609 B allocated per body for a 1-joint scene
+of 2e5 bodies). A body counts as `SESSION_BYTES_PER_BODY / SESSION_BYTES_PER_JOINT` joints (`session_weight`)."""
+
+
+def session_weight(joints: int, bodies: int) -> int:
+    """What a session's scene counts against JOINTLIMITS_MAX_SESSION_JOINTS: its joints, and its bodies at
+    their weight in joints (4/3 each, rounded up): the bound stays `SESSION_BYTES_PER_JOINT x MAX_SESSION_JOINTS`
+    bytes of prepared scenes, whatever their mix (a 1-joint scene of 2e5 bodies holds ~65 MB, not one joint's)."""
+    return joints + -(-bodies * SESSION_BYTES_PER_BODY // SESSION_BYTES_PER_JOINT)
+
+
 ANSWER_FACTOR = 2.5
 """Peak over the answer's bound: the answer's arrays and the encoded message (measured <= 2.0 in
 msgpack at the bound once the request's own cost is taken off; JSON answers reach their bound only

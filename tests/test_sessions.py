@@ -14,6 +14,7 @@ from starlette.testclient import WebSocketDenialResponse
 
 from schemas import binary as wire
 from schemas import session as proto
+from service import sizing
 from service.app import create_app
 from service.loadtest import scene
 from service.settings import Settings
@@ -291,7 +292,7 @@ def test_an_evaluate_over_the_answer_bound_is_a_413_fault_and_the_session_goes_o
 def test_the_sessions_of_a_worker_hold_at_most_max_session_joints():
     """A scene that would bring the worker's sessions past the bound is refused (413, close 4413); one that
     fits opens; closing a session gives its joints back, and a refused scene holds nothing."""
-    c = app(max_session_joints=sum(len(b["body_ids"]) for b in BODY["batches"]))
+    c = app(max_session_joints=sizing.session_weight(sum(len(b["body_ids"]) for b in BODY["batches"]), len(Q)))
     with c.websocket_connect(PATH) as first:
         assert Json(first).send(BODY)["kind"] == "opened"
         with c.websocket_connect(PATH) as second:

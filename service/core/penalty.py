@@ -3,6 +3,10 @@
     E(x) = s (g / w)^3,   g = x - u above the range, l - x below it, 0 inside,
     w = u - l, or 1 for a degenerate range (u == l: the fallback s |x - l|^3).
 
+`g / w` is finite wherever the true ratio is: where `u - l` or `x - u` overflows float64 (bounds near
++-1.8e308) both are computed from halves (`_relative`), never `5e307 / inf = 0`. An energy or derivative
+beyond float64 is inf, which the core reports as a 422 naming the joint.
+
 Boundary points are in range. All arrays are (N,).
 """
 
@@ -45,8 +49,8 @@ def width(lower: Array, upper: Array) -> Array:
 
 
 def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
-    g = _distance(x, lower, upper, x > upper, x < lower)  # the side is not needed
-    r = g / width(lower, upper)
+    above, below = x > upper, x < lower  # the side is not needed
+    r, _, _ = _relative(x, lower, upper, above, below)
     return strength * (r * r * r)
 
 
@@ -54,8 +58,46 @@ def derivatives(
     x: Array, lower: Array, upper: Array, strength: Array
 ) -> tuple[Array, Array, Array]:
     """`(E, dE/dx, d2E/dx2)`, each (N,)."""
-    g, side = gap(x, lower, upper)
-    w = width(lower, upper)
-    r = g / w
+    above, below = x > upper, x < lower
+    side = above.astype(np.float64) - below.astype(np.float64)
+    r, w, (wide, half_w) = _relative(x, lower, upper, above, below)
     sw = strength / w
-    return strength * (r * r * r), side * 3.0 * sw * (r * r), 6.0 * (sw / w) * r
+    sww = sw / w
+    if wide.size:  # w overflowed there: s / w = (s / 2) / (w / 2), s / w^2 = (s / w / 2) / (w / 2)
+        s = np.broadcast_to(strength, r.shape)[wide]
+        sw[wide] = (s * 0.5) / half_w
+        sww[wide] = (sw[wide] * 0.5) / half_w
+    return strength * (r * r * r), side * 3.0 * sw * (r * r), 6.0 * sww * r
+
+
+def _relative(
+    x: Array, lower: Array, upper: Array, above: NDArray[np.bool_], below: NDArray[np.bool_]
+) -> tuple[Array, Array, tuple[NDArray[np.intp], Array]]:
+    """`(g / w, w, (wide, w / 2 at wide))`: the relative gap, the width and the joints `wide` where `g` or `w`
+    overflowed from finite inputs (`u - l` or `x - u` beyond float64), there computed from halves.
+
+    Halving is exact for the magnitudes that overflow, so `(x/2 - u/2) / (u/2 - l/2)` is the ratio rounded
+    once more at most, finite wherever the true ratio is: 1.5e308 against [-1e308, 1e308] is 0.25, not
+    5e307 / inf = 0. Every other joint keeps the plain quotient's bits (the scaled one is only for these).
+    """
+    g = _distance(x, lower, upper, above, below)
+    w = width(lower, upper)
+    r = np.asarray(g / w)
+    wide = _overflowed(g, w, x, lower, upper)
+    if not wide.size:
+        return r, w, (wide, w[:0])
+    xs, ls, us = (np.asarray(a)[wide] * 0.5 for a in (x, lower, upper))
+    ab, be = np.asarray(above)[wide], np.asarray(below)[wide]
+    half_g = np.where(ab, xs - us, np.where(be, ls - xs, 0.0))
+    half_w = np.where(us > ls, us - ls, 0.5).astype(w.dtype, copy=False)
+    r[wide] = half_g / half_w  # a ratio beyond float64 stays inf: the core's overflow check names the joint
+    return r, w, (wide, half_w)
+
+
+def _overflowed(g: Array, w: Array, x: Array, lower: Array, upper: Array) -> NDArray[np.intp]:
+    """Positions where `g` or `w` is infinite though `x`, `lower`, `upper` are finite (an overflowed difference)."""
+    # The usual case: two reductions, no temporaries (g >= 0 and w > 0 are never NaN: only +inf can be there).
+    if g.size == 0 or (g.max() < np.inf and w.max() < np.inf):
+        return np.zeros(0, dtype=np.intp)
+    finite = np.isfinite(x) & np.isfinite(lower) & np.isfinite(upper)
+    return np.flatnonzero((np.isinf(g) | np.isinf(w)) & finite)

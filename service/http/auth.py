@@ -60,3 +60,37 @@ class BearerAuthMiddleware:
                 # so it leaks nothing about how much of the token matched.
                 return scheme.lower() == b"bearer" and hmac.compare_digest(credentials.strip(), self.expected)
         return False
+
+
+class SessionOriginMiddleware:
+    """Sessions honour the CORS allow-list: a WebSocket upgrade whose `Origin` is not in it is refused (403 with a
+    fault list) before auth, so a browser on a foreign site gets no session, token or not.
+
+    A browser always sends `Origin` on a WebSocket upgrade and does not apply CORS to it: without this check
+    any page could open a session (cross-site WebSocket hijacking). No `Origin` (a non-browser client: the
+    SDK, a solver) is allowed. Installed only when JOINTLIMITS_CORS_ORIGINS is set; `*` allows every origin."""
+
+    def __init__(self, app: ASGIApp, origins: tuple[str, ...]) -> None:
+        self.app = app
+        self.origins = {o.rstrip("/") for o in origins}
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        origin = self._origin(scope) if scope["type"] == "websocket" else None
+        if origin is None or "*" in self.origins or origin.rstrip("/") in self.origins:
+            await self.app(scope, receive, send)
+            return
+        msg = f"origin {origin[:200]!r} is not allowed (JOINTLIMITS_CORS_ORIGINS): no session from this site"
+        body = json.dumps({"detail": [{"loc": ["header", "origin"], "msg": msg, "type": "origin_not_allowed"}]}).encode()
+        if "websocket.http.response" not in (scope.get("extensions") or {}):
+            await send({"type": "websocket.close", "code": 1008, "reason": "origin not allowed"})  # 403 with no body
+            return
+        headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+        await send({"type": "websocket.http.response.start", "status": 403, "headers": headers})
+        await send({"type": "websocket.http.response.body", "body": body})
+
+    @staticmethod
+    def _origin(scope: Scope) -> str | None:
+        for name, value in scope.get("headers", ()):
+            if name == b"origin":
+                return value.decode("latin-1")
+        return None

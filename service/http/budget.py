@@ -10,7 +10,9 @@ for. Two budgets per worker (sizes from the limits, `service.sizing`):
   slowly holds only what it sent, and no upload can wait on another.
 - **in flight** (`sizing.inflight_bytes`): a received request's cost, first bounded from its body's
   size (`sizing.cost_before_body`), then cut to what it holds once parsed (`sizing.request_cost`,
-  before the core runs), released when its answer has been sent. Requests wait for it in arrival
+  before the core runs), then to its encoded answer's bytes, released when they have left the process
+  (`ReleaseMiddleware`: a client that does not read is dropped after JOINTLIMITS_WRITE_TIMEOUT, which
+  releases them). Requests wait for it in arrival
   order (a large one is not passed for ever by small ones); its size is the costliest request the
   limits admit, so every admitted request fits alone. One that has not started after
   `queue_timeout` seconds is a 503 `busy` with `Retry-After`: nothing was evaluated, a client may
@@ -31,12 +33,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from starlette.requests import Request
-from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import sizing
 from service.core import Fault
 from service.http import limits
 from service.http.errors import RETRY_AFTER_SECONDS, HttpError
+from service.http.timeouts import DRAIN
 from service.settings import Settings
 from service.sizing import UPLOAD_FACTOR
 
@@ -247,7 +250,12 @@ def settle(state: Any, cost: int) -> None:
 
 class ReleaseMiddleware:
     """Gives back every reservation a request took (`held(state)`: `receive` appends them) once its answer has
-    been sent, or it failed, or its client left: the answer's bytes are held until then."""
+    left the process, or it failed, or its client left.
+
+    Sending an answer only puts it in the connection's write buffer: a client that does not read leaves it
+    there. So once the application is done, the reservations are cut to the answer's bytes and released when
+    the buffer has drained (`timeouts.Drain`; the connection is dropped after JOINTLIMITS_WRITE_TIMEOUT if it
+    never does). Without a `Drain` (in-process, no transport) they are released at once."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
@@ -258,11 +266,36 @@ class ReleaseMiddleware:
             return
         reservations: list[Reservation] = []
         scope.setdefault("state", {})[RESERVATIONS] = reservations
+        sent = 0
+
+        async def counting_send(message: Message) -> None:
+            nonlocal sent
+            if message["type"] == "http.response.body":
+                sent += len(message.get("body", b""))
+            await send(message)
+
         try:
-            await self.app(scope, receive, send)
+            await self.app(scope, receive, counting_send)
         finally:
-            for r in reservations:
-                r.release()
+            hold_until_drained(scope, reservations, sent)
+
+
+def hold_until_drained(scope: Scope, reservations: list[Reservation], written: int) -> None:
+    """Keep `written` bytes of `reservations` (what was just written to the connection) until its write buffer
+    has drained, give back the rest now; all of them at once without a `Drain`."""
+    drain = scope.get("extensions", {}).get(DRAIN)
+    kept = list(reservations)
+    reservations.clear()
+    if drain is None or not drain.paused or not kept:
+        for r in kept:
+            r.release()
+        return
+    largest = max(kept, key=lambda r: r.size)  # the in-flight one (an upload reservation is given back by now)
+    for r in kept:
+        if r is not largest:
+            r.release()
+    largest.shrink(written)  # the encoded answer alone is held now (its arrays are gone)
+    drain.after(largest.release)
 
 
 def held(state: Any) -> list[Reservation]:

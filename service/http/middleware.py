@@ -2,7 +2,7 @@
 
 Order, outermost first: observability (sees every request, including 401s and CORS
 preflights, and serves `/metrics`), CORS (answers preflights before auth could refuse
-them), bearer auth (refuses before the body is read), the release of the memory budgets an
+them; a session's upgrade from a foreign `Origin` is refused), bearer auth (refuses before the body is read), the release of the memory budgets an
 evaluation took (after its answer is sent), the body's read timeout, then the routes.
 """
 
@@ -12,7 +12,7 @@ from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
 
 from service import sizing
-from service.http.auth import BearerAuthMiddleware
+from service.http.auth import BearerAuthMiddleware, SessionOriginMiddleware
 from service.http.budget import Budget, ReleaseMiddleware
 from service.http.timeouts import BodyTimeoutMiddleware
 from service.observability import Metrics, ObservabilityMiddleware
@@ -38,6 +38,8 @@ def install(app: FastAPI, settings: Settings) -> None:
     if settings.token:
         app.add_middleware(BearerAuthMiddleware, token=settings.token)
     if settings.cors_origins:
+        # Outside auth: a foreign Origin is refused its session whether or not it carries the token.
+        app.add_middleware(SessionOriginMiddleware, origins=settings.cors_origins)
         app.add_middleware(
             CORSMiddleware,
             allow_origins=list(settings.cors_origins),

@@ -29,6 +29,7 @@ from service.http import budget, limits
 from service.http import session_codec as codec
 from service.http.budget import Reservation
 from service.http.errors import HttpError
+from service.http.timeouts import DRAIN, Drain
 from service.observability import ACCESS_LOGGER, Metrics
 from service.settings import Settings
 
@@ -37,7 +38,8 @@ log = logging.getLogger(ACCESS_LOGGER)
 T = TypeVar("T")
 
 CLOSE_SECONDS = 5.0
-"""How long a close frame may wait to be sent (behind replies the client does not read) before the connection is dropped."""
+"""How long the session waits for its close frame to be sent (behind replies the client does not read) before it
+ends; the connection itself is dropped by the protocol's write timeout (JOINTLIMITS_WRITE_TIMEOUT)."""
 
 INLINE_JOINTS = 256
 """Scenes up to this many joints (a millisecond or so of work) are evaluated on the event loop: the hop to a
@@ -117,7 +119,8 @@ async def sessions(websocket: WebSocket) -> None:
 
 @dataclass
 class _Held:
-    """Joints of this connection's scene, counted in the worker's `session_joints` while it is open."""
+    """Weight of this connection's scene (joints, bodies at 4/3: `sizing.session_weight`), counted in the
+    worker's `session_joints` while it is open."""
 
     joints: int = 0
 
@@ -141,7 +144,12 @@ async def _messages(
     websocket: WebSocket, settings: Settings, metrics: Metrics, held: _Held, reservations: list[Reservation]
 ) -> None:
     session: Session | None = None
+    drain: Drain | None = websocket.scope.get("extensions", {}).get(DRAIN)
     while True:
+        if drain is not None:
+            # One reply in the write buffer at most: the next message is read once the last reply has left (or the
+            # connection is dropped after JOINTLIMITS_WRITE_TIMEOUT), so a session that does not read holds one.
+            await drain.wait()
         frame = await _receive(websocket, settings)
         t0 = time.perf_counter()
         binary_frame = isinstance(frame, bytes)
@@ -171,7 +179,8 @@ async def _messages(
                 metrics.session_messages.labels(kind, outcome).inc()
                 raise Closing(proto.SCENE_TOO_LARGE, "the scene is over this service's joint limit", "scene_too_large")
         await _send(websocket, reply, settings)
-        _release(reservations)  # the reply has been sent: its bytes are free
+        # Sent is not gone: the reply's bytes stay counted until the write buffer drains (its arrays are free now).
+        budget.hold_until_drained(websocket.scope, reservations, len(reply))
         metrics.session_messages.labels(kind, outcome).inc()
         metrics.session_latency.labels(kind).observe(time.perf_counter() - t0)
 
@@ -203,7 +212,7 @@ async def _receive(websocket: WebSocket, settings: Settings) -> codec.Frame:
 
 async def _close(websocket: WebSocket, code: int, reason: str) -> None:
     """Close with `code`; a client already gone, or not reading, has nothing left to tell (the close frame
-    waits behind unread data at most CLOSE_SECONDS, then the connection is dropped). A reason holds 123 bytes."""
+    waits behind unread data at most CLOSE_SECONDS; the protocol drops the connection). A reason holds 123 bytes."""
     try:
         await asyncio.wait_for(websocket.close(code, reason.encode()[:123].decode(errors="ignore")), CLOSE_SECONDS)
     except (RuntimeError, OSError, WebSocketDisconnect, asyncio.TimeoutError):
@@ -224,17 +233,23 @@ async def _send(websocket: WebSocket, reply: codec.Frame, settings: Settings) ->
 _RESERVING = threading.Lock()  # opens run in worker threads: the check and the count change together
 
 
-def _reserve(state: Any, held: _Held, joints: int, most: int) -> None:
-    """Count this connection's scene as `joints` in the worker's `session_joints` (413 past `most`)."""
+def _reserve(state: Any, held: _Held, joints: int, most: int, bodies: int = 0) -> None:
+    """Count this connection's scene, `joints` and `bodies` at their weight (`sizing.session_weight`), in the
+    worker's `session_joints` (413 past `most`)."""
+    weight = sizing.session_weight(joints, bodies)
     with _RESERVING:
         others = getattr(state, "session_joints", 0) - held.joints
-        if others + joints > most:
+        if others + weight > most:
+            what = f"{joints} joint{'' if joints == 1 else 's'}"
+            if bodies:
+                what += f" and {bodies} bod{'y' if bodies == 1 else 'ies'} (a body counts as 4/3 joint)"
             msg = (
-                f"this scene's {joints} joint{'' if joints == 1 else 's'} would bring the sessions of this worker to {others + joints}; it holds "
+                f"this scene's {what} would bring the sessions of this worker to {others + weight} joints; it holds "
                 f"at most {most} (JOINTLIMITS_MAX_SESSION_JOINTS): retry later, or use POST /v1/evaluate"
             )
-            raise HttpError(413, [Fault(("body", "batches"), msg, "too_large")])
-        state.session_joints, held.joints = others + joints, joints
+            heavier = ("body", "bodies") if weight - joints > joints else ("body", "batches")  # what weighs most
+            raise HttpError(413, [Fault(heavier, msg, "too_large")])
+        state.session_joints, held.joints = others + weight, weight
 
 
 async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held) -> tuple[Session, codec.Frame]:
@@ -242,14 +257,16 @@ async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held)
         kwargs = codec.decode_open(frame, settings.max_joints)
         batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
         admit(settings, batch_joints, kwargs["outputs"], isinstance(frame, bytes))
-        joints = sum(batch_joints)
-        _reserve(state, held, joints, settings.max_session_joints)
+        joints, bodies = sum(batch_joints), int(kwargs["bodies"].q.shape[0])
+        _reserve(state, held, joints, settings.max_session_joints, bodies)  # everything the scene will hold
         try:
             scene = prepare(kwargs["bodies"], kwargs["batches"])
         except BaseException:
             _reserve(state, held, 0, settings.max_session_joints)  # a refused scene holds nothing
             raise
-        defaults = {k: kwargs[k] for k in ("outputs", "hessian_mode", "active_only")}
+        # Every evaluate option of the opening document is the session's default; `layout` too, which a later
+        # message cannot change (schemas/session.py has no such field): a solver opens with the layout it needs.
+        defaults = {k: kwargs[k] for k in ("outputs", "hessian_mode", "active_only", "layout")}
         opened = {
             "kind": proto.OPENED,
             "bodies": scene.n_bodies,

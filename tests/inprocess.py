@@ -1,0 +1,127 @@
+"""An in-process uvicorn on 127.0.0.1 with the project's own protocol classes (HTTP and WebSocket), as
+`jointlimits serve` runs them, with bounds short enough for tests; and raw WebSocket frames for clients
+that misbehave on purpose."""
+
+from __future__ import annotations
+
+import socket
+import struct
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import uvicorn
+
+from service.app import create_app
+from service.http import timeouts
+from service.loadtest import ws_frame, ws_upgrade
+from service.settings import Settings
+
+
+@dataclass
+class Live:
+    port: int
+    server: uvicorn.Server
+    app: Any
+
+    def held(self) -> int:
+        """Bytes of the worker's in-flight budget held right now."""
+        return int(self.app.state.in_flight.held)
+
+    def buffered(self) -> list[int]:
+        """Bytes waiting in each open connection's write buffer (in the process, not yet taken by the kernel)."""
+        return [c.transport.get_write_buffer_size() for c in list(self.server.server_state.connections)
+                if getattr(c, "transport", None) is not None and not c.transport.is_closing()]
+
+    def connections(self) -> int:
+        """Open connections of the server (HTTP and WebSocket) right now."""
+        return len(self.server.server_state.connections)
+
+
+@contextmanager
+def serve(settings: Settings, header_timeout: float = 5.0, write_timeout: float = 1.0,
+          message_timeout: float | None = None) -> Iterator[Live]:
+    """uvicorn in a thread; `log_config=None` leaves logging to the test (caplog sees uvicorn's records)."""
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    app = create_app(settings)
+    config = uvicorn.Config(
+        app, log_config=None, log_level="info", lifespan="on",
+        http=timeouts.http_protocol(header_timeout, write_timeout),
+        ws=timeouts.ws_protocol(write_timeout, message_timeout if message_timeout is not None else settings.body_timeout),
+        ws_max_size=settings.max_frame_bytes, ws_per_message_deflate=False,
+    )  # fmt: skip
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
+        time.sleep(0.01)
+    try:
+        yield Live(sock.getsockname()[1], server, app)
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
+        sock.close()
+
+
+def upgrade(port: int, headers: dict[str, str] | None = None, rcvbuf: int | None = None) -> tuple[socket.socket, bytes]:
+    """A raw socket upgraded to a session (or refused): the socket and the server's response head."""
+    return ws_upgrade(port, rcvbuf=rcvbuf, headers=headers)
+
+
+def frame(opcode: int, payload: bytes, fin: bool = True, rsv: int = 0) -> bytes:
+    """A client frame (masked with the key 0)."""
+    return ws_frame(opcode, payload, fin, rsv)
+
+
+def read_close(s: socket.socket, give_up: float = 10.0) -> int | None:
+    """Read frames until a close frame (its code) or the end of the connection (None)."""
+    s.settimeout(give_up)
+    buf = b""
+    try:
+        while True:
+            chunk = s.recv(65536)
+            if not chunk:
+                return None
+            buf += chunk
+            while len(buf) >= 2:
+                op, n = buf[0] & 0x0F, buf[1] & 0x7F
+                at = 2
+                if n == 126:
+                    n, at = struct.unpack("!H", buf[2:4])[0], 4
+                elif n == 127:
+                    n, at = struct.unpack("!Q", buf[2:10])[0], 10
+                if len(buf) < at + n:
+                    break
+                payload, buf = buf[at : at + n], buf[at + n :]
+                if op == 0x8:
+                    return struct.unpack("!H", payload[:2])[0] if len(payload) >= 2 else 1005
+    except (TimeoutError, ConnectionResetError):
+        return None
+
+
+def read_frame(s: socket.socket, give_up: float = 5.0) -> tuple[int, bytes]:
+    """The next server frame (opcode, payload); small frames only."""
+    s.settimeout(give_up)
+    head = _exactly(s, 2)
+    n = head[1] & 0x7F
+    if n == 126:
+        n = struct.unpack("!H", _exactly(s, 2))[0]
+    elif n == 127:
+        n = struct.unpack("!Q", _exactly(s, 8))[0]
+    return head[0] & 0x0F, _exactly(s, n)
+
+
+def _exactly(s: socket.socket, n: int) -> bytes:
+    out = b""
+    while len(out) < n:
+        chunk = s.recv(n - len(out))
+        if not chunk:
+            raise ConnectionError("closed")
+        out += chunk
+    return out

@@ -168,13 +168,19 @@ def _gradient(dE: Array, Jdx: Array, out: Array) -> None:
 
 
 def collapsed_faults(
-    b: int, c: Constitution, names: tuple[str, ...], states: list[Array], careful: CarefulFrames | None = None
+    b: int,
+    c: Constitution,
+    names: tuple[str, ...],
+    states: list[Array],
+    careful: CarefulFrames | None = None,
+    known: list | None = None,
 ) -> list[Fault]:
     """Joints of batch `b` whose frame collapses in any state (`states` (N, 4, 3) named by `names`);
-    `careful` joints judged on their scaled frames (`careful.states`, in the same order)."""
+    `careful` joints judged on their scaled frames (`careful.states`, in the same order). `known`: per
+    state, what the coordinate already formed there (`Progress.known`), or None."""
     faults = []
     for s, (name, F) in enumerate(zip(names, states)):
-        bad = c.collapsed(F)
+        bad = c.collapsed(F, None if known is None else known[s])
         if careful is not None:
             bad[careful.idx] = c.collapsed(careful.states[s])
         faults += [

@@ -440,8 +440,9 @@ def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
     used = np.zeros(n_bodies, dtype=bool)
     for j in batches:
         ids = np.asarray(j.body_ids).ravel()
-        if ids.dtype.kind in "iu":
-            used[ids[(ids >= 0) & (ids < n_bodies)]] = True
+        if ids.dtype.kind in "iu" and ids.shape[0]:
+            # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
+            used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
     return used
 
 

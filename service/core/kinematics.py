@@ -172,6 +172,15 @@ class BodyTable:
         """`_plain_bodies` over the increment `rows` (the norms of states and rows that did not change since are kept)."""
         return _plain_bodies(self.states, self.linear, rows, self._norms)
 
+    def size_bound(self, pairs: NDArray[np.intp], state: int) -> Array:
+        """`4 |A_i|_F^2 |A_j|_F^2` (N,) of joints `pairs` (2, N) in `state` (`Constitution.collapsed`), from
+        the bodies' squared norms that `plain_over` took (or takes now)."""
+        key = ("state", state)
+        if key not in self._norms:
+            self._norms[key] = np.einsum("ij,ij->j", self.states[state], self.states[state])
+        n2 = np.take(self._norms[key], pairs, mode=GATHER)
+        return 4.0 * n2[0] * n2[1]
+
     def positions_of(self, pairs: NDArray[np.intp], state: int) -> Array:
         """`p` (N, 2, 3) of joints `pairs` in `state` (0: q_ref, 1: q_prev, 2: q).
 

@@ -44,8 +44,17 @@ def width(lower: Array, upper: Array) -> Array:
     return np.where(upper > lower, upper - lower, 1.0)
 
 
+def distance(x: Array, lower: Array, upper: Array) -> Array:
+    """`gap`'s g (N,) alone (the side is not needed): `x - upper` above, `lower - x` below, else +0."""
+    return _distance(x, lower, upper, x > upper, x < lower)
+
+
 def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
-    g = _distance(x, lower, upper, x > upper, x < lower)  # the side is not needed
+    return energy_of_gap(distance(x, lower, upper), lower, upper, strength)
+
+
+def energy_of_gap(g: Array, lower: Array, upper: Array, strength: Array) -> Array:
+    """`s (g / w)^3` (N,) of the gaps `g` (N,) (`distance`)."""
     r = g / width(lower, upper)
     return strength * (r * r * r)
 

@@ -265,7 +265,8 @@ class PreparedScene:
     ) -> dict:
         check_deadline(deadline)
         x, F, careful, known = self._x(jb, self._step(jb, jb.row, jb.r_origin))
-        raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful, [known]))[:MAX_FAULTS])
+        bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
+        raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound))[:MAX_FAULTS])
         r = differentiate(
             b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact
         )
@@ -288,7 +289,8 @@ class PreparedScene:
             log, new = FaultLog(), []
             for b, jb in enumerate(self._batches):
                 F_q, x, careful, known = self._from_ref(jb)
-                log.add(collapsed_faults(b, jb.c, ("q",), [F_q], careful, [known]))
+                bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
+                log.add(collapsed_faults(b, jb.c, ("q",), [F_q], careful, [known], bound))
                 if not jb.c.telescopes:
                     r = self._angle(jb)
                     x = r + rem(x - r)
@@ -473,7 +475,8 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool) -> _Batc
     progress: dict[str, Progress] = {}
     # The fixed steps' progress now: the collapse tests at q_ref and q_prev read what it formed there.
     known = _progress(c, progress, "whole", starts, fixed).known
-    faults = collapsed_faults(b, c, ("q_ref", "q_prev")[: len(starts)], starts, prev_careful, known)
+    bounds = [table.size_bound(pairs, s) for s in range(len(starts))] if c.unit_frames else None
+    faults = collapsed_faults(b, c, ("q_ref", "q_prev")[: len(starts)], starts, prev_careful, known, bounds)
     n = pairs.shape[1]
     offset = joints.offset if joints.offset is not None or not own else np.zeros(n)
     theta = None

@@ -45,6 +45,7 @@ class Prismatic:
     telescopes = True
 
     axis_by_rotation = False
+    unit_frames = False
 
     def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
         v = component_major(t.shape[0], (4, 3), t.dtype)
@@ -83,7 +84,7 @@ class Prismatic:
         F0, F1 = careful.unscaled(0), careful.unscaled(1)
         return 0.5 * (_theta2(F1) - _theta2(F0))
 
-    def collapsed(self, F: Array, known: object = None) -> np.ndarray:
+    def collapsed(self, F: Array, known: object = None, size_bound: Array | None = None) -> np.ndarray:
         return np.zeros(F.shape[0], dtype=bool)
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:

@@ -337,8 +337,8 @@ def plot(res: dict[str, Any], path: Path) -> None:
     if warp:  # no Hessian: its E+G throughput as a line, for scale
         g = (warp.get("err") or {}).get("G")
         ax.axhline(warp["eg_jps"], color="C2", lw=1, ls="-.",
-                   label=f"{WARP}, energy + gradient only (wp.Tape, 1 thread, all active; no Hessian"
-                         + (f"; gradient error {g:.2g})" if g is not None else ")"))
+                   label="Warp CPU, E+G only (wp.Tape, 1 thread, all active"
+                         + (f"; G error {g:.2g})" if g is not None else ")"))
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.margins(x=0.25)  # room for the labels of the rightmost points

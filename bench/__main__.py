@@ -2,10 +2,13 @@
 
 Everything is measured in one run on this machine, peers side by side; the report (Markdown,
 JSON, PNG) goes to bench/results/ (report.* for the full run, quick.* for --quick). The last
-line printed is `speedup_vs_autodiff_egh=<X> speedup_vs_autodiff_e=<Y> speedup_all_active_egh=<Z>`:
+line printed is `speedup_vs_autodiff_egh=<X> speedup_vs_autodiff_e=<Y> speedup_all_active_egh=<Z>
+speedup_vs_autodiff_e_all_active=<W> speedup_vs_warp_e=<U> speedup_vs_warp_eg=<V>`:
 core / JAX throughput at the largest size (1e5 by default), E+G+H exact and energy only on the
-typical scene, then E+G+H exact on the scene with every joint outside its range (nan without the
-JAX peer); the core on the faster of 1 thread and all cores, JAX on all cores (its default).
+typical scene, then E+G+H exact and energy on the scene with every joint outside its range (nan
+without the JAX peer); then core / Warp throughput on that scene, energy and energy + gradient
+(nan without the Warp peer). The core on the faster of 1 thread and all cores, JAX on all cores
+(its default), Warp on one thread (its CPU device has no thread pool).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from bench import report
 from bench import sessions as S
 from bench.scenes import make_scene, shifted
 from service.core.heap import keep_heap
+from service.core.prepared import prepare
 
 GOLDEN = Path(__file__).resolve().parent.parent / "tests" / "golden_cases.json"
 OUTSIDE = 0.1  # fraction of joints past a limit in the timing scenes
@@ -54,6 +58,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                          "energy alone at 10x the largest")
     ap.add_argument("--reps", type=int, default=5, help="timed repetitions per measurement (median; at least 5)")
     ap.add_argument("--no-jax", action="store_true", help="skip the JAX peer (also skipped when JAX is not installed)")
+    ap.add_argument("--no-warp", action="store_true", help="skip the Warp peer (also skipped when warp-lang is not installed)")
     ap.add_argument("--no-http", action="store_true", help="skip the HTTP measurements")
     ap.add_argument("--no-sessions", action="store_true", help="skip prepared scenes and sessions (bench/sessions.py)")
     ap.add_argument("--sessions-only", action="store_true",
@@ -67,7 +72,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def command(args: argparse.Namespace) -> str:
     """The command line of this run, less --out (where it writes does not change what it measured)."""
-    flags = [f for f in ("quick", "no_jax", "no_http", "no_plot", "no_sessions", "sessions_only") if getattr(args, f)]
+    flags = [f for f in ("quick", "no_jax", "no_warp", "no_http", "no_plot", "no_sessions", "sessions_only") if getattr(args, f)]
     words = ["python -m bench"] + ["--" + f.replace("_", "-") for f in flags]
     if sorted(set(args.sizes)) != SIZES:
         words.append("--sizes " + " ".join(str(n) for n in sorted(set(args.sizes))))
@@ -104,6 +109,21 @@ def load_jax(res: dict[str, Any], no_jax: bool) -> tuple[Any, list[tuple[str, bo
     return JaxPeer, FLAVOURS, ""
 
 
+def load_warp(res: dict[str, Any], no_warp: bool) -> Any:
+    """The Warp peer class (None if skipped or missing, which is noted)."""
+    if no_warp:
+        return None
+    try:
+        import warp
+
+        from bench.peer_warp import WarpPeer
+    except ImportError:
+        res["notes"].append("Warp peer: not installed (pip install -e '.[bench]'); its rows and targets are absent.")
+        return None
+    res["warp_version"] = warp.__version__
+    return WarpPeer
+
+
 def time_jax(JaxPeer: Any, flavours: list[tuple[str, bool]], scene: tuple, quick: bool, reps: int,
              res: dict[str, Any]) -> dict[tuple[str, str], float]:
     """Median seconds of each JAX flavour on `scene` per bench mode ("psd": the psd E+G+H)."""
@@ -132,12 +152,14 @@ def main(argv: list[str] | None = None) -> int:
     res: dict[str, Any] = {"command": command(args), "n_big": n_big,
                            "notes": [], "targets": [], "peers": [], "variants": []}
     JaxPeer, flavours, jax_missing = load_jax(res, args.no_jax)
+    WarpPeer = load_warp(res, args.no_warp)
     flavours = flavours[:1] if quick else flavours
     with_plot = not args.no_plot and importlib.util.find_spec("matplotlib") is not None
     if not args.no_plot and not with_plot:
         res["notes"].append("Plot: matplotlib not installed (pip install -e '.[bench]'); no PNG written.")
     res["machine"] = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python "
-                      f"{platform.python_version()}, NumPy {np.__version__}, JAX {res.get('jax_version', '-')}; "
+                      f"{platform.python_version()}, NumPy {np.__version__}, JAX {res.get('jax_version', '-')}, "
+                      f"Warp {res.get('warp_version', '-')}; "
                       f"medians of {reps} repetitions after one warm-up")
     res["scene"] = (f"half #670 half #669, {OUTSIDE:.0%} of joints outside their range (5% for active-only); "
                     f"beside it at the largest size, every joint outside ({ALL_ACTIVE:.0%}, 'all active')")
@@ -218,6 +240,11 @@ def main(argv: list[str] | None = None) -> int:
             results = JaxPeer(cs.bodies, cs.batches, same_work=same, psd=psd).results()
             variant(name + (" psd" if psd else ""), t_peer.get((name, key)), None if psd else t_peer.get((name, "e")),
                     results, "psd" if psd else "exact")
+    if WarpPeer is not None:
+        # Energy and gradient only (no Hessian: its error is n/a); its speed is the all-active scene's (below).
+        warp_results = WarpPeer(cs.bodies, cs.batches).results()
+        res["warp_error"] = {"err": cs.errors(warp_results, "exact", "well"),
+                             "err_hard": cs.errors(warp_results, "exact", "hard")}
     variant(report.FLOOR, t_peer[("floor", "egh")], t_peer[("floor", "e")], None)
 
     # ---------------------------------------------------------------- ratios and extras
@@ -239,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     t_best = {m: min(t_core[m], t_mt[m]) for m in ("egh", "e")}
     res["speedup"] = {m: (t_peer[(jname, m)] / t_best[m] if (jname, m) in t_peer else None) for m in ("egh", "e")}
 
-    res["all_active"] = _all_active(JaxPeer, n_big, quick, reps)
+    res["all_active"] = _all_active(JaxPeer, WarpPeer, n_big, quick, reps)
     _all_active_variants(res)
     if not quick:
         res["active"] = _active_only(n_big, reps)
@@ -251,6 +278,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.no_sessions:
             res["sessions"] = S.run(sizes, reps, with_wire=not args.no_http)
     res["targets"] = report.targets(res, jax_missing or "JAX peer not run")
+    res["targets"] += report.warp_targets(res["all_active"])
     if res.get("sessions"):
         res["targets"] += S.targets(res["sessions"])
     res["seconds"] = time.perf_counter() - t_start
@@ -258,40 +286,62 @@ def main(argv: list[str] | None = None) -> int:
     files = report.write(res, "quick" if quick else "report", args.out, with_plot)
     log("wrote " + ", ".join(str(f) for f in files))
     print(report.markdown(res))
-    print(speedup_line(res["speedup"], res["all_active"]["speedup"]))
+    print(speedup_line(res["speedup"], res["all_active"]["speedup"], res["all_active"].get("warp_speedup")))
     return 0
 
 
-def speedup_line(speedup: dict[str, float | None], all_active: dict[str, float | None] | None = None) -> str:
-    """The run's last line: core / JAX throughput at the largest size, nan where JAX did not run."""
+def speedup_line(speedup: dict[str, float | None], all_active: dict[str, float | None] | None = None,
+                 warp: dict[str, float | None] | None = None) -> str:
+    """The run's last line: core / JAX and core / Warp throughput at the largest size, nan where a peer did not run."""
     nan = float("nan")
     x, y = (nan if speedup.get(m) is None else speedup[m] for m in ("egh", "e"))
-    z = (all_active or {}).get("egh")
+    z, w = ((all_active or {}).get(m) for m in ("egh", "e"))
+    u, v = ((warp or {}).get(m) for m in ("e", "eg"))
+    f = lambda a: nan if a is None else a  # noqa: E731
     return (f"speedup_vs_autodiff_egh={x:.2f} speedup_vs_autodiff_e={y:.2f} "
-            f"speedup_all_active_egh={nan if z is None else z:.2f}")
+            f"speedup_all_active_egh={f(z):.2f} speedup_vs_autodiff_e_all_active={f(w):.2f} "
+            f"speedup_vs_warp_e={f(u):.2f} speedup_vs_warp_eg={f(v):.2f}")
 
 
-def _all_active(JaxPeer: Any, n: int, quick: bool, reps: int) -> dict[str, Any]:
-    """Every joint outside its range at `n` joints: the core (1 thread and all cores), JAX (its fair flavour)
-    and the memory-write floor, median seconds per mode; ratios of throughput, core at its faster thread count."""
+def _all_active(JaxPeer: Any, WarpPeer: Any, n: int, quick: bool, reps: int) -> dict[str, Any]:
+    """Every joint outside its range at `n` joints: the core (1 thread and all cores), JAX (its fair flavour),
+    Warp (1 thread), a prepared scene's energy (a session's evaluation) and the memory-write floor, median
+    seconds per mode; ratios of throughput, core at its faster thread count."""
     scene = make_scene(n, ALL_ACTIVE, seed=n % 89)
-    modes = ["e", "egh"] if quick else ["e", "egh", "psd"]
+    modes = ["e", "eg", "egh"] if quick else ["e", "eg", "egh", "psd"]
     core1 = {m: M.median_time(M.core_call(*scene, m), reps) for m in modes}
     coreT = {m: M.median_time(M.core_call(*scene, m, threads=THREADS), reps) for m in modes} if THREADS > 1 else core1
     core = {m: min(core1[m], coreT[m]) for m in modes}
     log(f"all active N={n}: core 1 thread {core1}, {THREADS} threads {coreT}")
+    # A session's energy: the scene prepared once (q_ref, q_prev work done), each call forms the step to q.
+    prepared = {}
+    for threads in sorted({1, THREADS}):
+        ps = prepare(scene[0], scene[1], threads=threads)
+        prepared[threads] = M.median_time(lambda ps=ps: ps.evaluate(scene[0].q, outputs=("energy",)), reps)
+        del ps
+    log(f"all active N={n}: prepared energy {prepared}")
     jax: dict[str, float] = {}
     if JaxPeer is not None:
         for psd in (False,) if quick else (False, True):
             peer = JaxPeer(*scene, same_work=True, psd=psd)
-            for m in ["egh"] if psd else ["e", "egh"]:
+            for m in ["egh"] if psd else ["e", "egh"] if quick else ["e", "eg", "egh"]:
                 jax["psd" if psd else m] = M.median_time(lambda p=peer, m=m: p(m), reps)
             del peer
         log(f"all active N={n}: JAX {jax}")
+    warp: dict[str, float] = {}
+    if WarpPeer is not None:
+        peer = WarpPeer(*scene)  # compiles (or loads from Warp's cache) and runs once: not timed
+        warp = {m: M.median_time(lambda m=m: peer(m), reps) for m in ("e", "eg")}
+        del peer
+        log(f"all active N={n}: Warp (1 thread) {warp}")
     floor = M.median_time(M.floor_call(n, "egh"), reps)
+    t_prep = min(prepared.values())
     return {"n": n, "fraction": ALL_ACTIVE, "core_1": core1, "core_threads": coreT, "core": core, "jax": jax,
-            "floor_egh": floor, "threads": THREADS,
+            "floor_egh": floor, "threads": THREADS, "warp": warp, "warp_threads": 1,
+            "prepared_e": {str(k): t for k, t in prepared.items()},
             "speedup": {m: (jax[m] / core[m] if m in jax else None) for m in modes},
+            "warp_speedup": {"e": warp["e"] / core["e"], "eg": warp["eg"] / core["eg"],
+                             "prepared_e": warp["e"] / t_prep} if warp else {},
             "floor_fraction_egh": floor / core["egh"],
             "psd_over_exact": core["psd"] / core["egh"] if "psd" in core else None}
 
@@ -303,6 +353,12 @@ def _all_active_variants(res: dict[str, Any]) -> None:
     by_name = {v["name"]: v for v in res["variants"]}
     pairs = [(report.CORE, a["core"], "egh", "e"), ("core float64 psd", a["core"], "psd", None),
              (report.JAX, a["jax"], "egh", "e"), (report.JAX + " psd", a["jax"], "psd", None)]
+    if a.get("warp") and res.get("warp_error"):  # energy and E+G only: no E+G+H column, no Hessian error
+        res["variants"].append({"name": report.WARP + report.ALL_ACTIVE, "egh_jps": None, "eg_jps": n / a["warp"]["eg"],
+                                "e_jps": n / a["warp"]["e"], **res["warp_error"]})
+        for m in ("e", "eg"):
+            res["peers"].append({"peer": report.WARP + " (1 thread)", "n": n,
+                                 "mode": "energy" if m == "e" else "E+G (wp.Tape)", "t": a["warp"][m]})
     for name, t, m, me in pairs:
         twin = by_name.get(name)
         if twin is None or m not in t:

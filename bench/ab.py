@@ -6,7 +6,8 @@ packages are imported side by side (REV's as `_ab_service`, from `git archive`) 
 `evaluate` calls alternate on the same scene and the same heap, so drift hits both alike. Each
 pair's order alternates too. Prints, per thread count, the medians, their ratio and in how many
 pairs this tree was faster. The packages REV's core imports besides `service` (`schemas`) come
-from this tree.
+from this tree. `--prepared`: each tree's scene prepared once (outside the timing), then its
+`PreparedScene.evaluate(q)` timed, as a session evaluates.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def import_revision(rev: str, into: Path) -> Any:
-    """REV's `service` package, written under `into` and imported as `_ab_service`; its `evaluate`."""
+    """REV's `service` package, written under `into` and imported as `_ab_service`; its `service.core`."""
     archive = subprocess.run(["git", "archive", rev, "service"], cwd=ROOT, capture_output=True, check=True).stdout
     with tarfile.open(fileobj=BytesIO(archive)) as tar:
         try:
@@ -45,7 +46,7 @@ def import_revision(rev: str, into: Path) -> Any:
         text = re.sub(r"\bimport service\.", f"import {ALIAS}.", text)
         path.write_text(text)
     sys.path.insert(0, str(into))
-    return importlib.import_module(f"{ALIAS}.core").evaluate
+    return importlib.import_module(f"{ALIAS}.core")
 
 
 def pairs(new: Callable[[], Any], old: Callable[[], Any], n: int) -> tuple[list[float], list[float]]:
@@ -72,27 +73,32 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--outputs", default="energy,gradient,hessian", help="comma-separated outputs (default all)")
     ap.add_argument("--hessian-mode", default="exact", choices=("exact", "psd"), help="the Hessian's mode (default exact)")
     ap.add_argument("--uids", type=int, nargs="+", default=[670, 669], help="the constitutions' batches kept (default both)")
+    ap.add_argument("--prepared", action="store_true",
+                    help="time PreparedScene.evaluate(q) of a scene prepared once per tree (a session's evaluation)")
     args = ap.parse_args(argv)
 
-    from service.core import evaluate
+    from service.core import evaluate, prepare
     from service.core.heap import keep_heap
 
     keep_heap()  # as the service and the bench run
     outputs = tuple(args.outputs.split(","))
     with tempfile.TemporaryDirectory() as tmp:
-        old_evaluate = import_revision(args.rev, Path(tmp))
+        old = import_revision(args.rev, Path(tmp))
         bodies, batches = make_scene(args.joints, args.outside, seed=args.joints % 89)
         scene = (bodies, [b for b in batches if b.constitution_uid in args.uids])
         kw = dict(outputs=outputs, hessian_mode=args.hessian_mode)
         n = sum(b.body_ids.shape[0] for b in scene[1])
         print(f"{n} joints ({', '.join(map(str, args.uids))}), {args.outside:.0%} outside, outputs {','.join(outputs)}, "
-              f"{args.hessian_mode}: this tree against {args.rev}")
+              f"{args.hessian_mode}{', prepared' if args.prepared else ''}: this tree against {args.rev}")
         for threads in args.threads:
-            t_new, t_old = pairs(
-                lambda: evaluate(*scene, **kw, threads=threads),  # noqa: B023
-                lambda: old_evaluate(*scene, **kw, threads=threads),  # noqa: B023
-                args.pairs,
-            )
+            if args.prepared:
+                new_scene, old_scene = prepare(*scene, threads=threads), old.prepare(*scene, threads=threads)
+                new_call = lambda s=new_scene: s.evaluate(scene[0].q, **kw)  # noqa: E731
+                old_call = lambda s=old_scene: s.evaluate(scene[0].q, **kw)  # noqa: E731
+            else:
+                new_call = lambda t=threads: evaluate(*scene, **kw, threads=t)  # noqa: E731
+                old_call = lambda t=threads: old.evaluate(*scene, **kw, threads=t)  # noqa: E731
+            t_new, t_old = pairs(new_call, old_call, args.pairs)
             a, b = sorted(t_new)[len(t_new) // 2], sorted(t_old)[len(t_old) // 2]
             wins = sum(x < y for x, y in zip(t_new, t_old))
             print(f"threads {threads}: this tree {a * 1e3:.1f} ms, {args.rev} {b * 1e3:.1f} ms, "

@@ -17,6 +17,7 @@ RESULTS = Path(__file__).parent / "results"
 EPS = 2.0**-52  # float64 machine epsilon: errors are also shown in its units
 CORE = "core float64 exact"  # the variant the targets are about
 JAX = "JAX jit(vmap), same inputs"  # the peer they are measured against
+WARP = "Warp CPU kernel, same inputs"  # bench/peer_warp.py: energy and energy + gradient (wp.Tape), 1 thread
 FLOOR = "memory-write floor"  # a speed bound that computes nothing: no error, not on the Pareto front
 ALL_ACTIVE = ", all active"  # suffix of a variant timed on the scene with every joint outside its range
 
@@ -193,19 +194,42 @@ def all_active_targets(a: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+def warp_targets(a: dict[str, Any]) -> list[dict[str, Any]]:
+    """Issue 22's targets on the all-active scene `a` (res["all_active"]): the core's energy and energy +
+    gradient (the faster of 1 and all threads) against the Warp kernel on one thread, and a prepared
+    scene's energy (a session's evaluation) against the stateless Warp call."""
+    n, sp, rows = count(a["n"]), a.get("warp_speedup") or {}, []
+    for key, want, what in (("e", 0.8, f"energy at {n}, every joint active: core"),
+                            ("eg", 1.0, f"energy + gradient at {n}, every joint active: core"),
+                            ("prepared_e", 1.5, f"energy at {n}, every joint active: prepared scene (a session's evaluate)")):
+        target = f"{what} vs {WARP} ({'wp.Tape, ' if key == 'eg' else ''}1 thread), throughput"
+        if sp.get(key) is None:
+            rows.append(_not_measured(6, target, f">= {want:g}x", "Warp peer not run"))
+        else:
+            rows.append(_at_least(6, target, sp[key], want, "{:.2f}x"))
+    return rows
+
+
 def _all_active_lines(a: dict[str, Any]) -> list[str]:
-    modes = [m for m in ("e", "egh", "psd") if m in a["core"]]
-    names = {"e": "energy", "egh": "E+G+H exact", "psd": "E+G+H psd"}
+    modes = [m for m in ("e", "eg", "egh", "psd") if m in a["core"]]
+    names = {"e": "energy", "eg": "E+G", "egh": "E+G+H exact", "psd": "E+G+H psd"}
+    warp, wsp = a.get("warp") or {}, a.get("warp_speedup") or {}
+    ratio = lambda r: _fmt(r, ".2f") + ("x" if r is not None else "")  # noqa: E731
     rows = [[names[m], f"{a['core_1'][m]:.3g}", f"{a['core_threads'][m]:.3g}", _fmt(a["jax"].get(m)),
-             _fmt(a["speedup"].get(m), ".2f") + ("x" if a["speedup"].get(m) is not None else "")] for m in modes]
+             ratio(a["speedup"].get(m)), _fmt(warp.get(m)), ratio(wsp.get(m))] for m in modes]
+    prepared = a.get("prepared_e") or {}
+    if prepared:
+        rows.append(["energy, prepared scene (a session)", _fmt(prepared.get("1")),
+                     _fmt(prepared.get(str(a["threads"]))), "", "", _fmt(warp.get("e")), ratio(wsp.get("prepared_e"))])
     rows.append(["memory-write floor (E+G+H output)", f"{a['floor_egh']:.3g}", "", "",
-                 f"core at {a['floor_fraction_egh']:.0%} of it"])
-    t = all_active_targets(a)
+                 f"core at {a['floor_fraction_egh']:.0%} of it", "", ""])
+    t = all_active_targets(a) + warp_targets(a)
     return [f"{count(a['n'])} joints, half #670 half #669, every one outside its range (each differentiated), "
-            "median seconds; ratio: JAX time / the core's faster of 1 and "
-            f"{a['threads']} threads.", "",
-            *_table(["mode", "core, 1 thread", f"core, {a['threads']} threads", "JAX jit(vmap), same inputs", "ratio"],
-                    rows), "",
+            "median seconds; ratio: the peer's time / the core's faster of 1 and "
+            f"{a['threads']} threads. JAX runs on all cores; Warp on 1 thread (its CPU device has no thread pool), "
+            "compile time not counted, energy + gradient by wp.Tape.", "",
+            *_table(["mode", "core, 1 thread", f"core, {a['threads']} threads", "JAX jit(vmap), same inputs", "ratio",
+                     "Warp CPU, 1 thread", "ratio"], rows), "",
             *_table(["target", "measured", "required", "status"],
                     [[r["target"], r["measured"], r["required"], r["status"]] for r in t])]
 
@@ -309,6 +333,12 @@ def plot(res: dict[str, Any], path: Path) -> None:
     floor = next((v for v in res["variants"] if v["name"] == FLOOR and v.get("egh_jps")), None)
     if floor:
         ax.axhline(floor["egh_jps"], color="0.4", lw=1, ls=":", label="memory-write floor (writing the outputs only)")
+    warp = next((v for v in res["variants"] if v["name"].startswith(WARP) and v.get("eg_jps")), None)
+    if warp:  # no Hessian: its E+G throughput as a line, for scale
+        g = (warp.get("err") or {}).get("G")
+        ax.axhline(warp["eg_jps"], color="C2", lw=1, ls="-.",
+                   label="Warp CPU, E+G only (wp.Tape, 1 thread, all active"
+                         + (f"; G error {g:.2g})" if g is not None else ")"))
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.margins(x=0.25)  # room for the labels of the rightmost points

@@ -1,6 +1,6 @@
 """The benchmark's own pieces (bench/): Pareto front, report, error measure, scenes, peers, and a tiny end-to-end run.
 
-Runs with only `.[test]` installed: no JAX (its test is skipped), no matplotlib (no plot is drawn).
+Runs with only `.[test]` installed: no JAX, no Warp (their tests are skipped), no matplotlib (no plot is drawn).
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ from service.core import evaluate
 
 FIELDS = ("energy", "gradient", "hessian")
 SPEEDUP_LINE = re.compile(r"speedup_vs_autodiff_egh=(nan|\d+\.\d\d) speedup_vs_autodiff_e=(nan|\d+\.\d\d) "
-                          r"speedup_all_active_egh=(nan|\d+\.\d\d)")
+                          r"speedup_all_active_egh=(nan|\d+\.\d\d) speedup_vs_autodiff_e_all_active=(nan|\d+\.\d\d) "
+                          r"speedup_vs_warp_e=(nan|\d+\.\d\d) speedup_vs_warp_eg=(nan|\d+\.\d\d)")
 
 
 def core_rows(bodies, batches, **kw) -> list[dict[str, np.ndarray]]:
@@ -231,6 +232,52 @@ def test_jax_peer_agrees_with_the_core():
     for got, want in zip(JaxPeer(bodies, batches).results(), core_rows(bodies, batches)):
         for f in FIELDS:
             assert M.relerr(got[f], want[f]) <= 1e-12, f
+
+
+def test_warp_peer_agrees_with_the_core():
+    """bench/peer_warp.py (the `bench` extra; skipped without warp-lang): energy and its Tape gradient, from
+    the same inputs, within 1e-13 of the core on a small scene of both constitutions."""
+    pytest.importorskip("warp")
+    from bench.peer_warp import WarpPeer
+
+    bodies, batches = make_scene(12, 0.5, seed=8)
+    peer = WarpPeer(bodies, batches)
+    core = core_rows(bodies, batches, outputs=("energy", "gradient"))
+    for got, want, energy in zip(peer.results(), core, peer("e")):
+        assert M.relerr(energy.numpy(), want["energy"]) <= 1e-13
+        for f in ("energy", "gradient"):
+            assert got[f].shape == want[f].shape
+            assert M.relerr(got[f], want[f]) <= 1e-13, f
+
+
+def test_the_test_extra_needs_no_warp():
+    """CI installs `.[test]` alone: warp-lang is in the `bench` extra only, and no test module imports it
+    at the top (test_warp_peer_agrees_with_the_core skips without it)."""
+    import tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    extras = tomllib.loads((root / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert any(d.startswith("warp-lang") for d in extras["bench"])
+    assert not any("warp" in d for d in extras["test"])
+    for path in (root / "tests").glob("*.py"):
+        assert not re.search(r"^(import warp|from warp|from bench\.peer_warp)", path.read_text(), re.M), path.name
+
+
+def test_speedup_line_names_every_target_and_nan_for_a_missing_peer():
+    from bench.__main__ import speedup_line
+
+    line = speedup_line({"egh": 5.0, "e": 2.5}, {"egh": 4.0, "e": 3.0}, {"e": 0.9, "eg": 1.2, "prepared_e": 2.0})
+    assert SPEEDUP_LINE.fullmatch(line), line
+    assert line.endswith("speedup_vs_autodiff_e_all_active=3.00 speedup_vs_warp_e=0.90 speedup_vs_warp_eg=1.20")
+    assert speedup_line({}, None, None).endswith("speedup_vs_warp_e=nan speedup_vs_warp_eg=nan")
+
+
+def test_warp_targets_are_issue_22s():
+    a = {**all_active_result(), "warp_speedup": {"e": 0.9, "eg": 0.7, "prepared_e": 2.0}}
+    rows = report.warp_targets(a)
+    assert [t["met"] for t in rows] == [True, False, True]  # 0.9 >= 0.8; 0.7 < 1; 2.0 >= 1.5
+    assert "missed** by 1.43x" in rows[1]["status"]
+    assert [t["met"] for t in report.warp_targets(all_active_result())] == [None] * 3  # no Warp: not measured
 
 
 # ------------------------------------------------------------------ end to end

@@ -63,5 +63,7 @@ def test_readme_quick_bench_runs_on_a_fresh_venv_with_the_bench_extra(tmp_path: 
     out = run(quick, 1200)
     assert out.returncode == 0, (out.stdout[-2000:], out.stderr[-4000:])
     last = out.stdout.strip().splitlines()[-1]
-    assert re.fullmatch(r"speedup_vs_autodiff_egh=\d+\.\d\d speedup_vs_autodiff_e=\d+\.\d\d speedup_all_active_egh=\d+\.\d\d", last), last
+    assert re.fullmatch(r"speedup_vs_autodiff_egh=\d+\.\d\d speedup_vs_autodiff_e=\d+\.\d\d speedup_all_active_egh=\d+\.\d\d "
+                        r"speedup_vs_autodiff_e_all_active=\d+\.\d\d speedup_vs_warp_e=\d+\.\d\d speedup_vs_warp_eg=\d+\.\d\d",
+                        last), last
     assert (clone / "bench" / "results" / "quick.md").exists()

@@ -51,6 +51,21 @@ class Curvature:
         return D
 
 
+@dataclass
+class Progress:
+    """A joint coordinate summed over its first steps, to be continued (`Constitution.advance`).
+
+    `x` (N,) so far, None before any step; `state` what the next step starts from (the constitution's
+    own: the revolute (cos, sin), the prismatic D and S); `known` per state passed, in order, what
+    `Constitution.collapsed` may take instead of forming it again (None: nothing). A prepared scene
+    keeps the progress over its fixed steps (q_ref -> q_prev): each evaluation then takes the last step only.
+    """
+
+    x: Array | None
+    state: tuple
+    known: list
+
+
 class Constitution(Protocol):
     uid: int
     base_uid: int
@@ -61,6 +76,9 @@ class Constitution(Protocol):
     """True when the incremental `x` telescopes to a function of `q` and `q_ref`: `q_prev` is not needed."""
 
     axis_by_rotation: bool
+    unit_frames: bool
+    """Every body-local vector `v_k` is a unit vector (directions only): then `|F_k| <= |A|_F` of its body,
+    and `collapsed` may take a bound on the frames' sizes from the bodies' norms (`size_bound`)."""
     """How a body-local edge (`local_edges`) gives the world axis: by body i's rotation `R_i` (True) or
     its `A_ref_i` (False), as the reference engine does for this constitution (`service.core.geometry`)."""
 
@@ -86,10 +104,26 @@ class Constitution(Protocol):
         """
         ...
 
-    def collapsed(self, F: Array) -> NDArray[np.bool_]:
+    def begin(self, F: Array) -> Progress:
+        """No step taken yet, from frames `F` (N, 4, 3)."""
+        ...
+
+    def advance(self, progress: Progress, F: Array, dF: Array) -> Progress:
+        """`progress` one step further: from the frames `F` by their increment `dF` (N, 4, 3). Over the
+        steps of `coordinate`, `begin` then `advance` give its `x` bit for bit (joints not `careful`)."""
+        ...
+
+    def careful_coordinate(self, careful: CarefulFrames) -> Array:
+        """x (M,) of the joints `careful.idx`, from the careful frames (see `coordinate`)."""
+        ...
+
+    def collapsed(self, F: Array, known: object = None, size_bound: Array | None = None) -> NDArray[np.bool_]:
         """(N,) True where `x` has no derivatives at this `F` (or is decided by rounding alone).
 
-        Must not depend on the scale of `F`'s frame vectors where `x` does not.
+        Must not depend on the scale of `F`'s frame vectors where `x` does not. `known`: what
+        `begin` / `advance` recorded for this state (`Progress.known`), or None. `size_bound` (N,)
+        (`unit_frames` only): `4 |A_i|_F^2 |A_j|_F^2`, an upper bound of the frames' sizes that the
+        test may use to pass most joints without forming them (the same answer).
         """
         ...
 

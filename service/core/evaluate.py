@@ -56,10 +56,17 @@ def differentiate(
     joint; `active` (A,) says which (`layout="bodies"` sums those rows alone).
     """
     dtype = F.dtype
-    energy = penalty.energy(x, lo, up, s)
-
-    active = np.flatnonzero((penalty.gap(x, lo, up)[0] > 0) & (s > 0))
+    g = penalty.distance(x, lo, up)  # one gap for the energy and the active joints
+    energy = penalty.energy_of_gap(g, x, lo, up, s)
     compact = compact or active_only  # derivative rows: the active joints only, or every joint
+    if not (want_g or want_h or compact):
+        # Energy alone, every row: which joints are active is not asked (`active` None).
+        _raise_overflow(b, nonfinite_rows(energy))
+        n = x.shape[0]
+        return dict(constitution_uid=c.uid, index=np.arange(n), x=x, energy=energy, gradient=None, hessian=None,
+                    all_energy=energy, active=None)
+
+    active = np.flatnonzero((g > 0) & (s > 0))
     n = active.shape[0] if compact else x.shape[0]
     # Inactive rows are exact zeros that were never differentiated (calloc: untouched pages stay free);
     # when every row is differentiated each is written once, with no zero-fill before.
@@ -107,15 +114,7 @@ def differentiate(
         _, dE, d2E = penalty.derivatives(*(take_joints(a, active) for a in (x, lo, up, s)))
         for bad in run_all([partial(chunk, start) for start in range(0, active.shape[0], size)], threads):
             overflow += bad
-    raise_if(
-        [
-            Fault(
-                ("batches", b, "strength", j),
-                "the energy or its derivatives overflow float64 at this configuration and strength",
-            )
-            for j in sorted(set(overflow))[:MAX_FAULTS]
-        ]
-    )
+    _raise_overflow(b, overflow)
     return dict(
         constitution_uid=c.uid,
         index=active if active_only else np.arange(x.shape[0]),
@@ -125,6 +124,19 @@ def differentiate(
         hessian=hessian,
         all_energy=energy,
         active=active,
+    )
+
+
+def _raise_overflow(b: int, overflow: list[int]) -> None:
+    """`InputError` naming the joints `overflow` of batch `b` (their energy or derivatives overflow), if any."""
+    raise_if(
+        [
+            Fault(
+                ("batches", b, "strength", j),
+                "the energy or its derivatives overflow float64 at this configuration and strength",
+            )
+            for j in sorted(set(overflow))[:MAX_FAULTS]
+        ]
     )
 
 
@@ -168,13 +180,21 @@ def _gradient(dE: Array, Jdx: Array, out: Array) -> None:
 
 
 def collapsed_faults(
-    b: int, c: Constitution, names: tuple[str, ...], states: list[Array], careful: CarefulFrames | None = None
+    b: int,
+    c: Constitution,
+    names: tuple[str, ...],
+    states: list[Array],
+    careful: CarefulFrames | None = None,
+    known: list | None = None,
+    size_bounds: list | None = None,
 ) -> list[Fault]:
     """Joints of batch `b` whose frame collapses in any state (`states` (N, 4, 3) named by `names`);
-    `careful` joints judged on their scaled frames (`careful.states`, in the same order)."""
+    `careful` joints judged on their scaled frames (`careful.states`, in the same order). `known`: per
+    state, what the coordinate already formed there (`Progress.known`), or None; `size_bounds` per
+    state (`Constitution.collapsed`), or None."""
     faults = []
     for s, (name, F) in enumerate(zip(names, states)):
-        bad = c.collapsed(F)
+        bad = c.collapsed(F, None if known is None else known[s], None if size_bounds is None else size_bounds[s])
         if careful is not None:
             bad[careful.idx] = c.collapsed(careful.states[s])
         faults += [

@@ -48,9 +48,19 @@ def width(lower: Array, upper: Array) -> Array:
     return np.where(upper > lower, upper - lower, 1.0)
 
 
+def distance(x: Array, lower: Array, upper: Array) -> Array:
+    """`gap`'s g (N,) alone (the side is not needed): `x - upper` above, `lower - x` below, else +0."""
+    return _distance(x, lower, upper, x > upper, x < lower)
+
+
 def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
-    above, below = x > upper, x < lower  # the side is not needed
-    r, _, _ = _relative(x, lower, upper, above, below)
+    return energy_of_gap(distance(x, lower, upper), x, lower, upper, strength)
+
+
+def energy_of_gap(g: Array, x: Array, lower: Array, upper: Array, strength: Array) -> Array:
+    """`s (g / w)^3` (N,) of the gaps `g` (N,) (`distance`) of `x` (N,): one gap serves the energy and
+    the choice of the active joints."""
+    r, _, _ = _relative(g, x, lower, upper)
     return strength * (r * r * r)
 
 
@@ -60,7 +70,7 @@ def derivatives(
     """`(E, dE/dx, d2E/dx2)`, each (N,)."""
     above, below = x > upper, x < lower
     side = above.astype(np.float64) - below.astype(np.float64)
-    r, w, (wide, half_w) = _relative(x, lower, upper, above, below)
+    r, w, (wide, half_w) = _relative(_distance(x, lower, upper, above, below), x, lower, upper)
     sw = strength / w
     sww = sw / w
     if wide.size:  # w overflowed there: s / w = (s / 2) / (w / 2), s / w^2 = (s / w / 2) / (w / 2)
@@ -70,24 +80,23 @@ def derivatives(
     return strength * (r * r * r), side * 3.0 * sw * (r * r), 6.0 * sww * r
 
 
-def _relative(
-    x: Array, lower: Array, upper: Array, above: NDArray[np.bool_], below: NDArray[np.bool_]
-) -> tuple[Array, Array, tuple[NDArray[np.intp], Array]]:
-    """`(g / w, w, (wide, w / 2 at wide))`: the relative gap, the width and the joints `wide` where `g` or `w`
-    overflowed from finite inputs (`u - l` or `x - u` beyond float64), there computed from halves.
+def _relative(g: Array, x: Array, lower: Array, upper: Array) -> tuple[Array, Array, tuple[NDArray[np.intp], Array]]:
+    """`(g / w, w, (wide, w / 2 at wide))` of the gaps `g` (`_distance`): the relative gap, the width and the
+    joints `wide` where `g` or `w` overflowed from finite inputs (`u - l` or `x - u` beyond float64), there
+    computed from halves.
 
     Halving is exact for the magnitudes that overflow, so `(x/2 - u/2) / (u/2 - l/2)` is the ratio rounded
     once more at most, finite wherever the true ratio is: 1.5e308 against [-1e308, 1e308] is 0.25, not
     5e307 / inf = 0. Every other joint keeps the plain quotient's bits (the scaled one is only for these).
     """
-    g = _distance(x, lower, upper, above, below)
     w = width(lower, upper)
     r = np.asarray(g / w)
     wide = _overflowed(g, w, x, lower, upper)
     if not wide.size:
         return r, w, (wide, w[:0])
-    xs, ls, us = (np.asarray(a)[wide] * 0.5 for a in (x, lower, upper))
-    ab, be = np.asarray(above)[wide], np.asarray(below)[wide]
+    x_w, l_w, u_w = (np.asarray(a)[wide] for a in (x, lower, upper))
+    xs, ls, us = x_w * 0.5, l_w * 0.5, u_w * 0.5
+    ab, be = x_w > u_w, x_w < l_w  # the sides from the inputs themselves
     half_g = np.where(ab, xs - us, np.where(be, ls - xs, 0.0))
     half_w = np.where(us > ls, us - ls, 0.5).astype(w.dtype, copy=False)
     r[wide] = half_g / half_w  # a ratio beyond float64 stays inf: the core's overflow check names the joint

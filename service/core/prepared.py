@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.core import assembled
-from service.core.constitution import Array, Constitution
+from service.core.constitution import Array, Constitution, Progress
 from service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
 from service.core.evaluate import _increments, collapsed_faults, differentiate
 from service.core.kinematics import (
@@ -93,6 +93,8 @@ class _Batch:
     theta: Array | None  # the committed angle at q_prev (coordinate - offset), None: summed over the steps
     x0: Array | None  # origin "absolute": x's value at q_ref from the constitution's own zero (None: 0, the specs' origin)
     faults: list[Fault]  # the stateless call's collapsed frames at q_ref, q_prev: reported with those at q
+    progress: dict[str, Progress]  # the coordinate's progress over the steps that do not depend on q ("whole":
+    # from starts[0] over `fixed`; "last": from starts[-1]; "ref": from F_ref), kept until `starts` change
 
 
 class PreparedScene:
@@ -206,13 +208,16 @@ class PreparedScene:
         return jb.rows if jb.theta is None else jb.rows[-1:]
 
     def _to_q(
-        self, jb: _Batch, starts: list[Array], fixed: list[Array], rows: tuple[int, ...], dF: Array
-    ) -> tuple[list[Array], CarefulFrames | None, Array]:
+        self, jb: _Batch, starts: list[Array], fixed: list[Array], rows: tuple[int, ...], dF: Array, path: str
+    ) -> tuple[list[Array], CarefulFrames | None, Array, object]:
         """Frames (N, 4, 3) in each state of the steps `rows` (the last one at `q`, loaded), their
-        careful frames, and x (N,) summed over the steps `fixed + [dF]` that start at `starts`.
+        careful frames, x (N,) summed over the steps `fixed + [dF]` that start at `starts`, and what
+        the coordinate formed at q for the collapse test (`Progress.known`).
 
         As `kinematics.state_frames`: each state is the previous one plus the step, except for
         joints of bodies the common path does not serve (`table.plain`), formed directly (scaled).
+        The steps `fixed` are taken once per scene (`_progress`, kept as `path`): bit for bit what
+        summing them again would give, for every joint that is not careful (whose x is its own).
         """
         states = [*starts, starts[-1] + dF]
         idx = np.flatnonzero(~self._table.plain_joints(jb.pairs))
@@ -222,7 +227,11 @@ class PreparedScene:
             states = [F.copy() for F in states[:-1]] + states[-1:]  # the cached starts stay as they are
             for k, F in enumerate(states):
                 F[idx] = careful.unscaled(k)
-        return states, careful, jb.c.coordinate(states[:-1], [*fixed, dF], careful)
+        p = jb.c.advance(_progress(jb.c, jb.progress, path, starts, fixed), states[-2], dF)
+        x = p.x
+        if careful is not None:
+            x[careful.idx] = jb.c.careful_coordinate(careful)
+        return states, careful, x, p.known[-1]
 
     def _step(self, jb: _Batch, row: int, r_start: Array | None) -> Array:
         """The frames' increment (N, 4, 3) over the table's increment `row` to `q` (loaded), from the
@@ -231,16 +240,16 @@ class PreparedScene:
         r = None if r_start is None else relative_position(t.positions_of(jb.pairs, 2)) - r_start
         return frame_quantities(r, t.linear_of(jb.pairs, row), jb.c.alpha, jb.v)
 
-    def _x(self, jb: _Batch, dF: Array) -> tuple[Array, Array, CarefulFrames | None]:
-        """The joint coordinate `x` (N,) and the frames (N, 4, 3) at `q` from the last step `dF`, and
-        the careful frames of the state at q (`_last_state`)."""
+    def _x(self, jb: _Batch, dF: Array) -> tuple[Array, Array, CarefulFrames | None, object]:
+        """The joint coordinate `x` (N,) and the frames (N, 4, 3) at `q` from the last step `dF`, the
+        careful frames of the state at q (`_last_state`) and what the coordinate formed there."""
         if jb.theta is None:
-            states, careful, x = self._to_q(jb, jb.starts, jb.fixed, jb.rows, dF)
+            states, careful, x, known = self._to_q(jb, jb.starts, jb.fixed, jb.rows, dF, "whole")
             x = _from_origin(x, jb)
         else:
-            states, careful, x = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF)
+            states, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF, "last")
             x = jb.theta + x
-        return x, states[-1], _last_state(careful)
+        return x, states[-1], _last_state(careful), known
 
     def _evaluate_batch(
         self,
@@ -255,8 +264,9 @@ class PreparedScene:
         compact: bool = False,
     ) -> dict:
         check_deadline(deadline)
-        x, F, careful = self._x(jb, self._step(jb, jb.row, jb.r_start))
-        raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful))[:MAX_FAULTS])
+        x, F, careful, known = self._x(jb, self._step(jb, jb.row, jb.r_start))
+        bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
+        raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound))[:MAX_FAULTS])
         r = differentiate(
             b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact
         )
@@ -278,8 +288,9 @@ class PreparedScene:
             self._load(q, (TOTAL_STEP,), (TOTAL_STEP,))
             log, new = FaultLog(), []
             for b, jb in enumerate(self._batches):
-                F_q, x, careful = self._from_ref(jb)
-                log.add(collapsed_faults(b, jb.c, ("q",), [F_q], careful))
+                F_q, x, careful, known = self._from_ref(jb)
+                bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
+                log.add(collapsed_faults(b, jb.c, ("q",), [F_q], careful, [known], bound))
                 if not jb.c.telescopes:
                     r = self._angle(jb)
                     x = r + rem(x - r)
@@ -288,17 +299,19 @@ class PreparedScene:
             for jb, (F_q, x) in zip(self._batches, new):
                 if not jb.c.telescopes:
                     jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (state 1)
+                    jb.progress = {"ref": jb.progress["ref"]} if "ref" in jb.progress else {}
             self._table.load(1, self._table.dofs[2].T)
             return [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
 
-    def _from_ref(self, jb: _Batch) -> tuple[Array, Array, CarefulFrames | None]:
+    def _from_ref(self, jb: _Batch) -> tuple[Array, Array, CarefulFrames | None, object]:
         """Frames (N, 4, 3) at `q` (loaded with `TOTAL_STEP`), the coordinate from `q_ref` in one
-        step (DeltaTheta(q, q_ref), or the slide), and the careful frames at `q`."""
+        step (DeltaTheta(q, q_ref), or the slide), the careful frames at `q` and what the coordinate
+        formed there."""
         r_ref = None
         if jb.c.alpha.any():
             r_ref = jb.r_start if jb.start == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
-        states, careful, x = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), self._step(jb, TOTAL_STEP, r_ref))
-        return states[-1], _from_origin(x, jb), _last_state(careful)
+        states, careful, x, known = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), self._step(jb, TOTAL_STEP, r_ref), "ref")
+        return states[-1], _from_origin(x, jb), _last_state(careful), known
 
     def _angle(self, jb: _Batch) -> Array:
         """The committed angle at q_prev: `theta`, or DeltaTheta(q_prev, q_ref) (from the batch's origin) before any commit."""
@@ -365,6 +378,18 @@ def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtyp
     return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype, own=True)
 
 
+def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: list[Array], fixed: list[Array]) -> Progress:
+    """The coordinate's progress from `starts[0]` over the steps `fixed` (from `starts`), kept in
+    `kept` as `path` (they do not depend on q)."""
+    p = kept.get(path)
+    if p is None:
+        p = c.begin(starts[0])
+        for F, dF in zip(starts, fixed):
+            p = c.advance(p, F, dF)
+        kept[path] = p
+    return p
+
+
 def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:
     """`careful` reduced to its last state (the frames at q), for the collapse test there."""
     if careful is None:
@@ -417,8 +442,9 @@ def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
     used = np.zeros(n_bodies, dtype=bool)
     for j in batches:
         ids = np.asarray(j.body_ids).ravel()
-        if ids.dtype.kind in "iu":
-            used[ids[(ids >= 0) & (ids < n_bodies)]] = True
+        if ids.dtype.kind in "iu" and ids.shape[0]:
+            # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
+            used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
     return used
 
 
@@ -446,7 +472,11 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool) -> _Batc
         s0, s1 = STEPS[row]
         fixed.append(frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.alpha, v))
     starts, prev_careful = state_frames(table, pairs, rows[:-1], c.alpha, v, F_ref, fixed) if fixed else ([F_ref], None)
-    faults = collapsed_faults(b, c, ("q_ref", "q_prev")[: len(starts)], starts, prev_careful)
+    progress: dict[str, Progress] = {}
+    # The fixed steps' progress now: the collapse tests at q_ref and q_prev read what it formed there.
+    known = _progress(c, progress, "whole", starts, fixed).known
+    bounds = [table.size_bound(pairs, s) for s in range(len(starts))] if c.unit_frames else None
+    faults = collapsed_faults(b, c, ("q_ref", "q_prev")[: len(starts)], starts, prev_careful, known, bounds)
     n = pairs.shape[1]
     offset = joints.offset if joints.offset is not None or not own else np.zeros(n)
     theta = None
@@ -477,6 +507,7 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool) -> _Batc
         theta=theta,
         x0=x0,
         faults=faults,
+        progress=progress,
     )
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.core.constitution import Array, Curvature
+from service.core.constitution import Array, Curvature, Progress
 from service.core.kinematics import CarefulFrames, component_major, dot, to_local
 
 # theta = D.S / 2 with D = C_j - C_i, S = T_i + T_j: coefficients of D and S per block.
@@ -45,6 +45,7 @@ class Prismatic:
     telescopes = True
 
     axis_by_rotation = False
+    unit_frames = False
 
     def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
         v = component_major(t.shape[0], (4, 3), t.dtype)
@@ -58,20 +59,32 @@ class Prismatic:
 
     def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:
         (F_ref,), (dF,) = starts, steps
-        D, S = F_ref[:, 2] - F_ref[:, 0], F_ref[:, 1] + F_ref[:, 3]
-        # D and S at q from their increments (A's increments times body-local vectors, small), not
-        # from A(q) itself; the difference of the two thetas then rounds no worse than a step form
-        # ((D + dD) . dS + dD . S) / 2 did on the bench's cases, and better for steps of 0.9 rad.
-        D2, S2 = D + (dF[:, 2] - dF[:, 0]), S + (dF[:, 1] + dF[:, 3])
-        x = 0.5 * (dot(D2, S2) - dot(D, S))
+        x = self.advance(self.begin(F_ref), F_ref, dF).x
         if careful is not None:
-            # A step as large as the frames (or frames at the edge of float64): D and S at q from
-            # A(q) itself, formed scaled and unscaled once (state_frames), and theta at q_ref likewise.
-            F0, F1 = careful.unscaled(0), careful.unscaled(1)
-            x[careful.idx] = 0.5 * (_theta2(F1) - _theta2(F0))
+            x[careful.idx] = self.careful_coordinate(careful)
         return x
 
-    def collapsed(self, F: Array) -> np.ndarray:
+    def begin(self, F: Array) -> Progress:
+        D, S = F[:, 2] - F[:, 0], F[:, 1] + F[:, 3]
+        return Progress(None, (D, S, dot(D, S)), [None])
+
+    def advance(self, progress: Progress, F: Array, dF: Array) -> Progress:
+        # The one step from q_ref (the slide telescopes): D and S at q from their increments (A's
+        # increments times body-local vectors, small), not from A(q) itself; the difference of the two
+        # thetas then rounds no worse than a step form ((D + dD) . dS + dD . S) / 2 did on the bench's
+        # cases, and better for steps of 0.9 rad.
+        D, S, DS = progress.state
+        D2, S2 = D + (dF[:, 2] - dF[:, 0]), S + (dF[:, 1] + dF[:, 3])
+        x = 0.5 * (dot(D2, S2) - DS)
+        return Progress(x if progress.x is None else progress.x + x, (), [*progress.known, None])
+
+    def careful_coordinate(self, careful: CarefulFrames) -> Array:
+        # A step as large as the frames (or frames at the edge of float64): D and S at q from
+        # A(q) itself, formed scaled and unscaled once (state_frames), and theta at q_ref likewise.
+        F0, F1 = careful.unscaled(0), careful.unscaled(1)
+        return 0.5 * (_theta2(F1) - _theta2(F0))
+
+    def collapsed(self, F: Array, known: object = None, size_bound: Array | None = None) -> np.ndarray:
         return np.zeros(F.shape[0], dtype=bool)
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:

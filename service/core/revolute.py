@@ -37,7 +37,7 @@ from contextlib import nullcontext
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core.constitution import Array, Curvature
+from service.core.constitution import Array, Curvature, Progress
 from service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot, to_local, unit
 
 # Constant second derivatives of the bilinear cos and sin in the (4 x 4) block
@@ -167,6 +167,7 @@ class Revolute:
     telescopes = False
 
     axis_by_rotation = True
+    unit_frames = True
 
     def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
         # n = t x test with test = e_y where |t . e_x| > 0.9, else e_x; written out, both cases at once.
@@ -186,23 +187,52 @@ class Revolute:
         return np.arctan2(*_cos_sin(F)[::-1])
 
     def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:
-        x, cs = 0.0, _cos_sin(starts[0])
+        p = self.begin(starts[0])
         for F, dF in zip(starts, steps):
-            turn, cs = _step(F, dF, cs)
-            x = x + turn
+            p = self.advance(p, F, dF)
+        x = p.x
         if careful is not None:
             x[careful.idx] = _careful_angle(careful)
         return x
 
-    def collapsed(self, F: Array) -> np.ndarray:
+    def begin(self, F: Array) -> Progress:
+        cs = _cos_sin(F)
+        return Progress(None, cs, [cs])
+
+    def advance(self, progress: Progress, F: Array, dF: Array) -> Progress:
+        # (cos, sin) at the end of the step in increment form: what `collapsed` reads there.
+        turn, cs = _step(F, dF, progress.state)
+        return Progress((0.0 if progress.x is None else progress.x) + turn, cs, [*progress.known, cs])
+
+    def careful_coordinate(self, careful: CarefulFrames) -> Array:
+        return _careful_angle(careful)
+
+    def collapsed(self, F: Array, known: tuple[Array, Array] | None = None, size_bound: Array | None = None) -> np.ndarray:
         # Squares of frames from A inside kinematics.plain_range (or scaled) stay normal numbers
         # unless the frame is far below its own rounding; then both sides are 0 and it collapses.
         # (Other frames may overflow here: the caller judges those joints on scaled frames.)
+        # `known`: (cos, sin) at F as the coordinate formed them (at the end of a step, in increment
+        # form: within rounding of the direct ones, far inside the collapse ratio's 1e-12).
         with np.errstate(over="ignore", invalid="ignore"):
-            c, s = _cos_sin(F)
+            c, s = _cos_sin(F) if known is None else known
+            r2 = c * c + s * s
+            ratio2 = 2.0 * COLLAPSE_RATIO * COLLAPSE_RATIO
+            rows = slice(None)
+            if size_bound is not None:
+                # size2 <= 2 |A_i|^2 |A_j|^2 (|b_k| = |n_k| = 1) <= size_bound / 2: a joint above the bound's
+                # threshold is above the test's own; only the others (none, commonly) form their sizes.
+                rows = np.flatnonzero(~(r2 > ratio2 * size_bound))
+                if rows.shape[0] == 0:
+                    return np.zeros(F.shape[0], dtype=bool)
+                F, r2 = F[rows], r2[rows]
             B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
             size2 = dot(B_i, B_i) * dot(B_j, B_j) + dot(N_i, N_i) * dot(N_j, N_j)
-            return c * c + s * s <= (2.0 * COLLAPSE_RATIO * COLLAPSE_RATIO) * size2
+            bad = r2 <= ratio2 * size2
+            if size_bound is None:
+                return bad
+            out = np.zeros(size_bound.shape[0], dtype=bool)
+            out[rows] = bad
+            return out
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
         # Rows whose r^4 would under- or overflow (frames beyond ~1e+-36): the same from each body's

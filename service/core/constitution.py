@@ -35,7 +35,8 @@ class Curvature:
     diagonal. The Hessian is assembled from such signed rank-1 factors in one product.
     """
 
-    kron: Array
+    kron: Array | None
+    """None where `kron_factors` are given and no path needs K itself (formed by `dense` if asked)."""
     basis: Array
     coef: Array
     dx_coef: Array | None = None
@@ -47,7 +48,11 @@ class Curvature:
         n, k = self.basis.shape[:2]
         U = self.basis.reshape(n, k, 12)
         D = np.einsum("nab,nai,nbj->nij", self.coef, U, U)
-        D.reshape(n, 4, 3, 4, 3)[...] += self.kron[:, :, None, :, None] * np.eye(3, dtype=D.dtype)[None, None, :, None, :]
+        K = self.kron
+        if K is None:
+            w, f = self.kron_factors
+            K = np.einsum("nm,nma,nmb->nab", w, np.broadcast_to(f, (n, *f.shape[1:])), np.broadcast_to(f, (n, *f.shape[1:])))
+        D.reshape(n, 4, 3, 4, 3)[...] += K[:, :, None, :, None] * np.eye(3, dtype=D.dtype)[None, None, :, None, :]
         return D
 
 

@@ -108,8 +108,9 @@ class Prismatic:
         f = np.where((dE >= 0)[:, None], _F01_POS, _F01_NEG).astype(dE.dtype, copy=False)  # (N, 4)
         w = np.abs(dE) * np.sqrt(0.5)
         n = dE.shape[0]
-        return Curvature(kron=w[:, None, None] * (f[:, :, None] * f[:, None, :]), basis=curvature.basis,
-                         coef=np.zeros((n, 1, 1), dE.dtype), dx_coef=curvature.dx_coef, kron_factors=(w[:, None], f[:, None]))
+        # K itself is not formed: the chain rule of frames with points takes the factors (assembly._hessian_points).
+        return Curvature(kron=None, basis=curvature.basis, coef=np.zeros((n, 1, 1), dE.dtype), dx_coef=curvature.dx_coef,
+                         kron_factors=(w[:, None], f[:, None]))
 
 
 PRISMATIC = Prismatic()

@@ -329,3 +329,21 @@ def test_ab_compares_this_tree_with_a_revision_in_one_process(tmp_path: Path):
     import importlib.util
 
     assert importlib.util.find_spec("_ab_service") is None  # nothing left importable here
+
+
+def test_psd_measurements_run_at_tiny_sizes():
+    """`python -m bench.psd_vs_exact` and `bench.psd_projection` (issue 18's psd figures) run and print every line."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    run = subprocess.run([sys.executable, "-m", "bench.psd_vs_exact", "--joints", "40", "--pairs", "2"],
+                         cwd=root, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.strip().split("\n")
+    assert len(lines) == 6 and all(re.search(r"psd/exact \d+\.\d{3}$", line) for line in lines), lines
+    run = subprocess.run([sys.executable, "-m", "bench.psd_projection", "--joints", "100", "--pairs", "3"],
+                         cwd=root, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert re.fullmatch(r"projection alone, 100 joints: v1\.2 \d+\.\d\d ms, v1 \d+\.\d\d ms, ratio \d+\.\d{3}, "
+                        r"v1\.2 faster in [0-3] of 3", run.stdout.strip()), run.stdout

@@ -14,7 +14,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 from fastapi import APIRouter, WebSocket
@@ -29,6 +29,7 @@ from service.http import budget, limits
 from service.http import session_codec as codec
 from service.http.budget import Reservation
 from service.http.errors import HttpError
+from service.http.ws_protocol import frame_limit
 from service.observability import ACCESS_LOGGER, Metrics
 from service.settings import Settings
 
@@ -58,6 +59,16 @@ def admit(settings: Settings, batch_joints: list[int], outputs: Sequence[str], b
     )
 
 
+DISCONNECT_REASONS = {
+    proto.NORMAL: "client",
+    proto.MESSAGE_TOO_BIG: "frame_too_large",  # the server's own limit (service/http/ws_protocol.py)
+    1007: "invalid_utf8",
+    1002: "protocol_error",
+    1012: "shutdown",
+}
+"""The metric's `reason` of a connection the server layer ended (any other code: "disconnect")."""
+
+
 class Closing(Exception):
     """End the session with this WebSocket close code (schemas/session.py) and reason."""
 
@@ -79,6 +90,9 @@ class Session:
 async def sessions(websocket: WebSocket) -> None:
     app = websocket.app
     settings: Settings = app.state.settings
+    limit = frame_limit(websocket, settings.max_frame_bytes)  # the server's own may be lower: report the one in force
+    if limit != settings.max_frame_bytes:
+        settings = replace(settings, max_frame_bytes=limit)
     metrics: Metrics = app.state.metrics
     await websocket.accept()
     state = app.state
@@ -100,7 +114,7 @@ async def sessions(websocket: WebSocket) -> None:
         reason, code = c.metric, c.code
         await _close(websocket, c.code, c.reason)
     except WebSocketDisconnect as d:
-        reason, code = ("client" if d.code == proto.NORMAL else "disconnect"), d.code
+        reason, code = DISCONNECT_REASONS.get(d.code, "disconnect"), d.code
     except asyncio.CancelledError:
         reason, code = "shutdown", proto.GOING_AWAY
         raise

@@ -50,16 +50,19 @@ def nonfinite_faults(a: np.ndarray, *loc: str | int) -> list[Fault]:
     ]
 
 
+def literal_msg(allowed: Sequence[str]) -> str:
+    """pydantic's words for a value outside a set of strings: "Input should be 'a', 'b' or 'c'"."""
+    quoted = [repr(a) for a in allowed]
+    return "Input should be " + (", ".join(quoted[:-1]) + " or " + quoted[-1] if len(quoted) > 1 else quoted[0])
+
+
 def check_options(outputs: Sequence[str], hessian_mode: str) -> list[Fault]:
-    faults = [
-        Fault(("outputs", i), f"unknown output {o!r}; expected one of {', '.join(OUTPUTS)}")
-        for i, o in enumerate(outputs)
-        if o not in OUTPUTS
-    ]
+    """The options, in the words JSON's parser (pydantic) uses for them: every path says the same."""
+    faults = [Fault(("outputs", i), literal_msg(OUTPUTS), "literal_error") for i, o in enumerate(outputs) if o not in OUTPUTS]
     if not outputs:
-        faults.append(Fault(("outputs",), "must name at least one of energy, gradient, hessian"))
+        faults.append(Fault(("outputs",), "List should have at least 1 item after validation, not 0", "too_short"))
     if hessian_mode not in HESSIAN_MODES:
-        faults.append(Fault(("hessian_mode",), f"unknown mode {hessian_mode!r}; expected 'exact' or 'psd'"))
+        faults.append(Fault(("hessian_mode",), literal_msg(HESSIAN_MODES), "literal_error"))
     return faults
 
 

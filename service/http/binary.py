@@ -18,7 +18,7 @@ from schemas import binary as wire
 from schemas import evaluate as models
 from service.core import Bodies, Evaluation, Fault, InputError, Joints
 from service.core.errors import MAX_FAULTS, Loc
-from service.core.validate import ORIGINS
+from service.core.validate import HESSIAN_MODES, ORIGINS, literal_msg
 from service.http import limits
 from service.http.errors import HttpError
 from service.http.convert import base_uid_of, strength_of
@@ -29,6 +29,7 @@ MEDIA_TYPE = wire.MEDIA_TYPE
 _REQUEST_KEYS, _BODY_KEYS, _BATCH_KEYS = (
     {k: f.is_required() for k, f in model.model_fields.items()} for model in (models.EvaluateRequest, models.Bodies, models.JointBatch)
 )
+_OPENING_KEYS = {**_REQUEST_KEYS, "id": False}  # a session's opening document may carry an `id`
 _JOINT_ARRAYS = {"body_ids": (wire.INT64, 2), "edges": (wire.FLOAT64, 3), "local_edges": (wire.FLOAT64, 4)} | {
     k: (wire.FLOAT64, 1) for k in ("lower", "upper", "strength", "offset", "prev_coordinate")
 }
@@ -207,14 +208,16 @@ def _unpack(body: bytes, r: _Reader, max_batches: int | None = None) -> Any:
     return doc
 
 
-def decode(body: bytes, max_joints: int, max_batches: int | None = None) -> dict[str, Any]:
+def decode(body: bytes, max_joints: int, max_batches: int | None = None, opening: bool = False) -> dict[str, Any]:
     """Keyword arguments of `service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`.
 
     More batches than `max_batches` is a 413 before any batch is read (each costs Python work here).
+    `opening`: a session's opening document, whose optional `id` is returned too, under "id".
     """
     r = _Reader()
     doc = _unpack(body, r, max_batches)
-    top = r.fields(doc, (), _REQUEST_KEYS)
+    top = r.fields(doc, (), _OPENING_KEYS if opening else _REQUEST_KEYS)
+    opening_id = message_id(r, top.get("id")) if opening else None
     # A missing or malformed `bodies` is one fault, not four.
     raw_bodies = r.fields(top["bodies"], ("bodies",), _BODY_KEYS) if "bodies" in top else {}
     f = {
@@ -231,7 +234,7 @@ def decode(body: bytes, max_joints: int, max_batches: int | None = None) -> dict
     if r.faults:
         raise InputError(r.faults)
     limits.check_joints(sum(j.body_ids.shape[0] for j in batches), max_joints)
-    return dict(
+    return ({"id": opening_id} if opening else {}) | dict(
         bodies=Bodies(q=f["q"], q_prev=f["q_prev"], q_ref=f["q_ref"]),
         batches=batches,
         outputs=outputs,
@@ -239,6 +242,13 @@ def decode(body: bytes, max_joints: int, max_batches: int | None = None) -> dict
         active_only=active_only,
         layout=layout,
     )
+
+
+def message_id(r: _Reader, v: Any) -> int | str | None:
+    """A session message's `id`: an int64 or a string of at most 128 characters (else a fault)."""
+    if v is None or (isinstance(v, str) and len(v) <= 128):
+        return v
+    return r.int64(v, ("id",))
 
 
 def _batch(r: _Reader, b: int, raw: Any) -> Joints:
@@ -267,13 +277,17 @@ def _batch(r: _Reader, b: int, raw: Any) -> Joints:
 
 
 def _options(r: _Reader, top: dict[str, Any]) -> tuple[list[str], str, bool]:
+    """The options' msgpack types; their values are the core's to check (`validate.check_options`), as for JSON."""
     outputs = top.get("outputs", list(OUTPUTS))
-    if not isinstance(outputs, list) or not all(isinstance(o, str) for o in outputs):
-        r.fault(("outputs",), "Input should be a list of strings", "list_type")
+    if not isinstance(outputs, list):
+        r.fault(("outputs",), "Input should be a valid list", "list_type")
         outputs = list(OUTPUTS)
+    for i, o in enumerate(outputs):
+        if not isinstance(o, str):
+            r.fault(("outputs", i), literal_msg(OUTPUTS), "literal_error")
     hessian_mode = top.get("hessian_mode", "exact")
     if not isinstance(hessian_mode, str):
-        r.fault(("hessian_mode",), "Input should be 'exact' or 'psd'", "literal_error")
+        r.fault(("hessian_mode",), literal_msg(HESSIAN_MODES), "literal_error")
         hessian_mode = "exact"
     active_only = top.get("active_only", False)
     if not isinstance(active_only, bool):

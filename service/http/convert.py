@@ -10,6 +10,7 @@ from pydantic import ValidationError
 
 from schemas import EvaluateRequest
 from schemas.constitutions import STRENGTH_DEFAULT
+from schemas.session import OpeningRequest
 from service.core import CONSTITUTIONS, Bodies, Evaluation, Fault, InputError, Joints
 from service.core.errors import MAX_FAULTS
 from service.http import jsonkeys, limits
@@ -18,18 +19,19 @@ from service.http.errors import from_validation
 MEDIA_TYPE = "application/json"
 
 
-def decode(body: bytes, max_joints: int) -> dict[str, Any]:
-    """Keyword arguments of `service.core.evaluate` for a JSON body.
+def decode(body: bytes, max_joints: int, opening: bool = False) -> dict[str, Any]:
+    """Keyword arguments of `service.core.evaluate` for a JSON body (`opening`: a session's opening
+    document, whose `id` is returned too, under "id").
 
     Raises `HttpError` (413) for too many joints, `InputError` (422) for a malformed body.
     """
     limits.check_joints(limits.json_joints_upper_bound(body), max_joints)
-    req = parse(body)
+    req = parse(body, opening)
     limits.check_joints(sum(len(j.body_ids) for j in req.batches), max_joints)
-    return to_core(req)
+    return to_core(req) | ({"id": req.id} if opening else {})  # type: ignore[attr-defined]
 
 
-def parse(body: bytes) -> EvaluateRequest:
+def parse(body: bytes, opening: bool = False) -> EvaluateRequest:
     """The request of a JSON body, or `InputError` with at most `MAX_FAULTS` faults, found cheaply.
 
     Keys first, on the bytes (`jsonkeys`): repeated ones, which pydantic would let through
@@ -37,7 +39,7 @@ def parse(body: bytes) -> EvaluateRequest:
     whose lists are `FailFast` (a list's first bad item ends its checks): its error list is
     bounded too, as long as unknown keys (the one error it lists without bound) are.
     """
-    keys = jsonkeys.scan(body)
+    keys = jsonkeys.scan(body, opening=opening)
     key_faults = keys.faults
     if len(key_faults) >= MAX_FAULTS:
         raise InputError(key_faults)
@@ -50,7 +52,7 @@ def parse(body: bytes) -> EvaluateRequest:
         raise InputError(key_faults)
     try:
         # Rust-side parse and validation straight from bytes; rejects NaN, Infinity and 1e400.
-        req = EvaluateRequest.model_validate_json(body)
+        req = (OpeningRequest if opening else EvaluateRequest).model_validate_json(body)
     except ValidationError as e:
         faults = from_validation(e).faults
         if any(f.type == "json_invalid" for f in faults):

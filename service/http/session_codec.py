@@ -17,6 +17,8 @@ from pydantic import ValidationError
 from schemas import binary as wire
 from schemas import session as proto
 from service.core import Evaluation, Fault, InputError
+from service.core.assembled import check_layout
+from service.core.validate import check_options, raise_if
 from service.http import binary, convert
 from service.http.errors import HttpError, from_validation
 
@@ -36,11 +38,28 @@ class Message:
     values: dict[str, np.ndarray] = field(default_factory=dict)  # update: (K,) per field given
 
 
+NOT_OPEN = (
+    "open a scene first: the first message of a session is the opening document (a POST /v1/evaluate body, "
+    "with an optional id), not a message with a kind"
+)
+
+
 def decode_open(frame: Frame, max_joints: int) -> dict[str, Any]:
-    """Keyword arguments of the core for the opening document; `InputError` (422) or `HttpError` (413)."""
-    if isinstance(frame, str):
-        return convert.decode(frame.encode(), max_joints)
-    return binary.decode(frame, max_joints)
+    """Keyword arguments of the core for the opening document, plus its `id` (under "id", None when absent);
+    `InputError` (422) or `HttpError` (413)."""
+    try:
+        if isinstance(frame, str):
+            kwargs = convert.decode(frame.encode(), max_joints, opening=True)
+        else:
+            kwargs = binary.decode(frame, max_joints, opening=True)
+        # The options become the session's defaults: checked now, on both encodings (JSON's parser already did).
+        raise_if(check_options(kwargs["outputs"], kwargs["hessian_mode"]) + check_layout(kwargs["layout"]))
+        return kwargs
+    except InputError as e:
+        # A later kind of message sent first: one fault that says so, not the opening document's five.
+        if any(f.loc == ("kind",) and f.type == "extra_forbidden" for f in e.faults):
+            raise InputError([Fault(("kind",), NOT_OPEN, "session_not_open")]) from None
+        raise
 
 
 def decode(frame: Frame) -> Message:
@@ -93,7 +112,7 @@ def _decode_binary(frame: bytes) -> Message:
         r.fault(("kind",), f"must be one of {', '.join(proto.KEYS)}", "union_tag_invalid")
         raise InputError(r.faults)
     fields = r.fields(doc, (), proto.KEYS[kind])
-    out = Message(kind=kind, id=_id(r, fields.get("id")))
+    out = Message(kind=kind, id=binary.message_id(r, fields.get("id")))
     if "q" in fields:
         out.q = r.array(fields["q"], ("q",), wire.FLOAT64, 2, np.zeros((0, 12)))
     if kind == proto.EVALUATE:
@@ -107,12 +126,6 @@ def _decode_binary(frame: bytes) -> Message:
     if r.faults:
         raise InputError(r.faults)
     return out
-
-
-def _id(r: binary._Reader, v: Any) -> int | str | None:
-    if v is None or (isinstance(v, str) and len(v) <= 128):
-        return v
-    return r.int64(v, ("id",))
 
 
 def message_id(frame: Frame) -> int | str | None:

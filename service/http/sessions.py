@@ -177,7 +177,7 @@ async def _messages(
                 reply = await _answer(session, message, binary_frame, settings, websocket.app.state, reservations)
         except (InputError, HttpError) as e:
             outcome = "fault"
-            if mid is None and session is not None:
+            if mid is None:  # the opening document's too
                 mid = codec.message_id(frame)
             reply = codec.encode(codec.error(e, mid), binary_frame)
             if kind == "open" and isinstance(e, HttpError) and e.status == 413:
@@ -254,6 +254,7 @@ def _reserve(state: Any, held: _Held, joints: int, most: int) -> None:
 async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held) -> tuple[Session, codec.Frame]:
     def work() -> tuple[Session, codec.Frame]:
         kwargs = codec.decode_open(frame, settings.max_joints)
+        opening_id = kwargs.pop("id")
         batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
         admit(settings, batch_joints, kwargs["outputs"], isinstance(frame, bytes))
         joints = sum(batch_joints)
@@ -271,6 +272,8 @@ async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held)
             "coordinates": scene.coordinates(),
             "limits": {"max_frame_bytes": settings.max_frame_bytes, "idle_seconds": settings.session_idle_seconds},
         }
+        if opening_id is not None:
+            opened["id"] = opening_id
         return Session(scene, defaults, sum(batch_joints)), codec.encode(opened, isinstance(frame, bytes))
 
     return await run_in_threadpool(work)

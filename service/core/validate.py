@@ -9,10 +9,12 @@ calls them in order and caps the faults of a request (`errors.FaultLog`).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core.errors import MAX_FAULTS, NONFINITE_MSG, NONFINITE_TYPE, Fault, InputError
+from service.core.errors import MAX_FAULTS, NONFINITE_MSG, NONFINITE_TYPE, Fault, InputError, Loc
 from service.core.kinematics import edge_vector, max_abs
 from service.core.polar import SINGULAR_RATIO
 from service.core.registry import CONSTITUTIONS
@@ -54,6 +56,76 @@ def literal_msg(allowed: Sequence[str]) -> str:
     """pydantic's words for a value outside a set of strings: "Input should be 'a', 'b' or 'c'"."""
     quoted = [repr(a) for a in allowed]
     return "Input should be " + (", ".join(quoted[:-1]) + " or " + quoted[-1] if len(quoted) > 1 else quoted[0])
+
+
+DUPLICATE_KEY_MSG = "Duplicate key: each key may appear once in an object (a msgpack map)"
+NOT_A_LIST = ("Input should be a valid list", "list_type")
+NOT_A_NUMBER = ("Input should be a valid number", "float_type")
+NOT_AN_INTEGER = ("Input should be a valid integer", "int_type")
+"""pydantic's words for these mistakes in JSON: every path (msgpack, sessions, the SDK) says the same."""
+
+
+def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | None, list[Fault]]:
+    """`value` (nested lists of numbers, or an array) as a float64 (int64) array of whatever shape it has,
+    else the faults that prevent it, each at its element: not a list, not a number, rows of different
+    lengths. The shape is then the validator's to judge (`check_dofs`, `check_joints`), on every path.
+
+    JSON's `null` is NaN (named as non-finite later), as a NaN-less JSON writer means it."""
+    if isinstance(value, np.ndarray) and value.ndim >= 1 and value.dtype.kind in ("iu" if integer else "fiu"):
+        return value.astype(np.int64 if integer else np.float64, copy=False), []
+    faults = _element_faults(value, loc, integer)
+    if faults:
+        return None, faults
+    try:
+        return np.array(value, dtype=np.int64 if integer else np.float64), []
+    except OverflowError:  # an integer outside int64
+        return None, [Fault(loc, "Input should be a valid integer in int64 range", "int_type")]
+
+
+def _element_faults(value: Any, loc: Loc, integer: bool) -> list[Fault]:
+    """The first element fault of each list of `value` (up to the cap), or the first mismatch of row shapes."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if not isinstance(value, (list, tuple)):
+        return [Fault(loc, *NOT_A_LIST)]
+    shape = _shape_of(value, loc, integer)
+    return shape if isinstance(shape, list) else []
+
+
+def _is_number(x: Any, integer: bool) -> bool:
+    if isinstance(x, bool):
+        return False
+    if integer:
+        return isinstance(x, (int, np.integer)) or (isinstance(x, (float, np.floating)) and float(x).is_integer())
+    return x is None or isinstance(x, (int, float, np.integer, np.floating))
+
+
+def _shape_of(value: list | tuple, loc: Loc, integer: bool) -> tuple[int, ...] | list[Fault]:
+    """The shape of nested lists `value`, or a fault: an item not a number (or list), or ragged rows."""
+    if not value:
+        return (0,)
+    nested = isinstance(value[0], (list, tuple, np.ndarray))
+    if not nested:
+        for i, x in enumerate(value):
+            if not _is_number(x, integer):
+                return [Fault((*loc, i), *(NOT_AN_INTEGER if integer else NOT_A_NUMBER))]
+            if integer and not -(2**63) <= x < 2**63:  # pydantic's words for JSON's int64 bounds
+                words = ("less_than_equal", "less than or equal to", 2**63 - 1) if x > 0 else ("greater_than_equal", "greater than or equal to", -(2**63))
+                return [Fault((*loc, i), f"Input should be {words[1]} {words[2]}", words[0])]
+        return (len(value),)
+    shapes = []
+    for i, row in enumerate(value):
+        if not isinstance(row, (list, tuple, np.ndarray)):
+            return [Fault((*loc, i), *NOT_A_LIST)]
+        got = _shape_of(list(row), (*loc, i), integer)
+        if isinstance(got, list):
+            return got
+        shapes.append(got)
+    usual = max(shapes, key=shapes.count)  # the odd row out is the one at fault (on a tie, not the first)
+    for i, got in enumerate(shapes):
+        if got != usual:
+            return [Fault((*loc, i), f"has shape {got} where the other rows have {usual}: the rows of an array are alike")]
+    return (len(value), *usual)
 
 
 def check_options(outputs: Sequence[str], hessian_mode: str) -> list[Fault]:

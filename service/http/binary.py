@@ -18,7 +18,7 @@ from schemas import binary as wire
 from schemas import evaluate as models
 from service.core import Bodies, Evaluation, Fault, InputError, Joints
 from service.core.errors import MAX_FAULTS, Loc
-from service.core.validate import HESSIAN_MODES, ORIGINS, literal_msg
+from service.core.validate import DUPLICATE_KEY_MSG, HESSIAN_MODES, NOT_A_LIST, ORIGINS, literal_msg
 from service.http import limits
 from service.http.errors import HttpError
 from service.http.convert import base_uid_of, strength_of
@@ -73,7 +73,7 @@ class _Reader:
     def keys(self, obj: dict, loc: Loc) -> None:
         """Faults for the keys `dict` hides: repeated ones and non-string ones (a msgpack `bin` key)."""
         for k in getattr(obj, "repeated", ()):
-            self.fault((*loc, k), "Duplicate key: each key may appear once in a map", "duplicate_key")
+            self.fault((*loc, k), DUPLICATE_KEY_MSG, "duplicate_key")
         for k in obj:
             if not isinstance(k, str):
                 self.fault((*loc, k), f"Map keys must be msgpack str, got {type(k).__name__}", "key_type")
@@ -100,10 +100,14 @@ class _Reader:
             if len(self.faults) > n:
                 return empty
         try:
-            return wire.unpack_array(obj, dtype, ndim)
+            a = wire.unpack_array(obj, dtype, None)  # of any shape: the core names a wrong one, as for JSON
         except ValueError as e:
             self.fault(loc, str(e))
             return empty
+        if a.ndim == 0:  # a number where an array belongs
+            self.fault(loc, *NOT_A_LIST)
+            return empty
+        return a
 
     def int64(self, obj: Any, loc: Loc) -> int:
         if isinstance(obj, bool) or not isinstance(obj, int) or obj not in _INT64_RANGE:

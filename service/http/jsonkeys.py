@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 from schemas.evaluate import Bodies, EvaluateRequest, JointBatch
 from service.core.errors import MAX_FAULTS, Fault, Loc
+from service.core.validate import DUPLICATE_KEY_MSG
 
 # A string; one never closed runs to the end of the body (else each of its escaped quotes
 # would start a new scan to the end: quadratic).
@@ -162,7 +163,7 @@ class _Scan:
         obj = self.stack[-1]
         k = _key(raw)
         if k in obj.keys:
-            self.fault((*obj.loc, k), "Duplicate key: each key may appear once in an object", "duplicate_key")
+            self.fault((*obj.loc, k), DUPLICATE_KEY_MSG, "duplicate_key")
         elif k not in obj.schema:
             self.fault((*obj.loc, k), "Extra inputs are not permitted", "extra_forbidden")
         obj.keys.add(k)

@@ -18,7 +18,7 @@ from schemas import binary as wire
 from schemas import session as proto
 from service.core import Evaluation, Fault, InputError
 from service.core.assembled import check_layout
-from service.core.validate import as_array, check_options, literal_msg, raise_if
+from service.core.validate import as_array, check_bodies, check_options, literal_msg, raise_if
 from service.http import binary, convert
 from service.http.errors import HttpError, from_validation
 
@@ -52,8 +52,10 @@ def decode_open(frame: Frame, max_joints: int) -> dict[str, Any]:
             kwargs = convert.decode(frame.encode(), max_joints, opening=True)
         else:
             kwargs = binary.decode(frame, max_joints, opening=True)
-        # The options become the session's defaults: checked now, on both encodings (JSON's parser already did).
-        raise_if(check_options(kwargs["outputs"], kwargs["hessian_mode"]) + check_layout(kwargs["layout"]))
+        # The options become the session's defaults: checked now, on both encodings (JSON's parser already did);
+        # `q` is part of the document, checked as POST /v1/evaluate checks it (the scene is prepared at q_prev).
+        raise_if(check_options(kwargs["outputs"], kwargs["hessian_mode"]) + check_layout(kwargs["layout"])
+                 + check_bodies(kwargs["bodies"]))
         return kwargs
     except InputError as e:
         # A later kind of message sent first: one fault that says so, not the opening document's five.

@@ -228,3 +228,47 @@ def test_the_table_example_is_what_every_path_says(app):
         first = answers(app, change)["json"][0]
         if first[0][1:3] == tuple(example["loc"][1:3]):
             assert first == (tuple(example["loc"]), example["msg"], example["type"]), name
+
+
+# The SDK's constructors raise the same faults, naming the field, before any request is made.
+
+
+def _raised(fn: Callable[[], Any]) -> list[Item]:
+    with pytest.raises(InvalidInput) as e:
+        fn()
+    assert isinstance(e.value, ValueError) and "invalid input (" in str(e.value)
+    return [(f.loc, f.msg, f.type) for f in e.value.faults]
+
+
+def test_joint_batch_of_names_the_field_in_the_services_words(app):
+    from client import JointBatch
+
+    edge = [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    assert _raised(lambda: JointBatch.of(669, [[0, 1], [1, 2]], np.zeros((2, 2, 2)), -1, 1)) == [
+        (("edges",), "must have shape (2, 2, 3) (one row per joint of body_ids), got (2, 2, 2)", "value_error")]
+    # ... the words the service uses for the same edges (here batch 1 of the base request, whose edges have points of 2)
+    wire_words = answers(app, MORE["edges with points of 2"])["json"][0][1]
+    assert wire_words == "must have shape (3, 2, 3) (one row per joint of body_ids), got (3, 2, 2)"
+    assert _raised(lambda: JointBatch.of(670, [[0, 1, 2]], [edge], -1, 1)) == [
+        (("body_ids",), "must have shape (N, 2), one [i, j] per joint, got (1, 3)", "value_error")]
+    assert _raised(lambda: JointBatch.of(670, [[0, 1], [1, 2]], [edge, edge], [0.0, 1.0, 2.0], 1)) == [
+        (("lower",), "must have shape (2,) (one row per joint of body_ids), got (3,)", "value_error")]
+    assert _raised(lambda: JointBatch.of(670, [[0, 1]], [edge], -1, [["x"]])) == [(("upper", 0, 0), "Input should be a valid number", "float_type")]
+    assert _raised(lambda: JointBatch.of(670, [[0, 1.5]], [edge], -1, 1)) == [(("body_ids", 0, 1), "Input should be a valid integer", "int_type")]
+
+
+def test_scene_and_dofs_name_the_pose_and_hint_at_4x4_poses():
+    from client.scene import Scene, dofs, request_from_arrays
+
+    assert _raised(lambda: dofs(np.zeros(5))) == [(("pose",), "a pose is a 4x4 transform, a (p, A) pair or 12 DOFs, got shape (5,)", "value_error")]
+    scene = Scene()
+    scene.add_body(np.eye(4))
+    assert _raised(lambda: scene.add_body(np.eye(4), ref=np.eye(3)))[0][0] == ("bodies", "q_ref", 1)
+    assert _raised(lambda: scene.add_revolute_limit(0, 0, [0, 0], [0, 0, 1], lower=-1, upper=1)) == [
+        (("p0",), "must be a point (3,), got shape (2,)", "value_error")]
+    poses = np.tile(np.eye(4), (2, 1, 1))  # 4x4 poses where DOFs belong
+    (loc, msg, _), = _raised(lambda: request_from_arrays(poses, []))
+    assert loc == ("bodies", "q") and "got shape (2, 4, 4)" in msg and "client.scene.dofs" in msg
+    # The service says the same of the same arrays (the hint is the core's, on every path).
+    with pytest.raises(InvalidInput, match="client.scene.dofs"):
+        LocalClient().evaluate(Request(poses, poses, poses, []))

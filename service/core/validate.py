@@ -151,8 +151,15 @@ def check_bodies(bodies: Bodies, names: Sequence[str] = ("q", "q_prev", "q_ref")
 def check_dofs(name: str, a: np.ndarray, n: int) -> list[Fault]:
     """One state `a` of the bodies: (n, 12) finite numbers (`loc` ("bodies", name, row))."""
     if a.ndim != 2 or a.shape[1] != 12 or a.shape[0] != n:
-        return [Fault(("bodies", name), f"must be {n} rows of 12 numbers, got shape {a.shape}")]
+        hint = POSE_HINT if a.shape[-2:] == (4, 4) else ""
+        return [Fault(("bodies", name), f"must be {n} rows of 12 numbers, got shape {a.shape}{hint}")]
     return nonfinite_faults(a, "bodies", name)
+
+
+POSE_HINT = (
+    ": 4x4 poses? A body's 12 DOFs are [p, A row 0, A row 1, A row 2] of its transform [[A, p], [0, 1]]; "
+    "the Python SDK's client.scene.dofs(pose) converts one"
+)
 
 
 def check_rotations(rotation_ratio: np.ndarray) -> list[Fault]:

@@ -103,3 +103,16 @@ def test_the_reported_limit_is_the_one_in_force_under_plain_uvicorn():
     finally:
         server.should_exit = True
         thread.join(10)
+
+
+def test_a_shutdown_closes_with_1012_and_a_reason():
+    from client import Client, SessionClosed
+    from tests.test_client_sdk import readme_scene
+
+    request = readme_scene().request()
+    with serve() as url:
+        s = Client(url).session(request)
+    # serve() has stopped the server: the session was closed by it, with its code and reason.
+    with pytest.raises(SessionClosed) as e:
+        s.evaluate(request.q)
+    assert e.value.code == 1012 and "shutting down" in e.value.reason

@@ -8,6 +8,7 @@ calls them in order and caps the faults of a request (`errors.FaultLog`).
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
 from typing import Any
 
@@ -71,6 +72,13 @@ def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | 
     lengths. The shape is then the validator's to judge (`check_dofs`, `check_joints`), on every path.
 
     JSON's `null` is NaN (named as non-finite later), as a NaN-less JSON writer means it."""
+    if isinstance(value, (list, tuple)):
+        try:  # numbers only, rectangular: NumPy builds it at C speed (the Python walk below names a fault)
+            fast = np.asarray(value)
+        except (ValueError, TypeError, OverflowError):
+            fast = None
+        if fast is not None and fast.dtype.kind in ("iu" if integer else "fiu"):
+            value = fast
     if isinstance(value, np.ndarray) and value.ndim >= 1 and value.dtype.kind in ("iu" if integer else "fiu"):
         return value.astype(np.int64 if integer else np.float64, copy=False), []
     faults = _element_faults(value, loc, integer)
@@ -121,7 +129,8 @@ def _shape_of(value: list | tuple, loc: Loc, integer: bool) -> tuple[int, ...] |
         if isinstance(got, list):
             return got
         shapes.append(got)
-    usual = max(shapes, key=shapes.count)  # the odd row out is the one at fault (on a tie, not the first)
+    counts = Counter(shapes)  # the odd row out is the one at fault (on a tie, not the first: dicts keep order)
+    usual = max(counts, key=counts.__getitem__)
     for i, got in enumerate(shapes):
         if got != usual:
             return [Fault((*loc, i), f"has shape {got} where the other rows have {usual}: the rows of an array are alike")]

@@ -6,13 +6,11 @@ from typing import Any
 
 import numpy as np
 import orjson
-from pydantic import ValidationError
 
 from client.errors import Fault, InvalidInput
 from client.model import JointBatch, Request
 from schemas import EvaluateRequest
 from schemas.constitutions import STRENGTH_DEFAULT
-from schemas.errors import validation_items
 
 ACCEPTED = "a client.Request (Scene().request(), request_from_arrays(...)), a dict in the wire JSON's shape, or a schemas.EvaluateRequest"
 
@@ -32,11 +30,14 @@ def as_request(request: Any) -> Request:
             body = orjson.dumps(request, option=orjson.OPT_SERIALIZE_NUMPY)
         except TypeError as e:
             raise TypeError(f"evaluate(): the dict is not wire JSON ({e})") from None
+        # The service's own JSON reader (imported here: HTTP alone never loads it): the same faults, in the same words.
+        from service.core import InputError
+        from service.http.convert import parse
+
         try:
-            return _from_wire(EvaluateRequest.model_validate_json(body))
-        except ValidationError as e:
-            faults = [Fault(("body", *loc), msg, type) for loc, msg, type in validation_items(e, 80)]
-            raise InvalidInput(422, faults, where="invalid input") from None
+            return _from_wire(parse(body))
+        except InputError as e:
+            raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults], where="invalid input") from None
     raise TypeError(f"evaluate() takes {ACCEPTED}; got {type(request).__module__}.{type(request).__qualname__}")
 
 

@@ -53,8 +53,10 @@ class ServiceError(Exception):
         return (kind or _BY_STATUS.get(status, cls))(status, faults)
 
 
-class InvalidInput(ServiceError):
-    """422: the request is malformed or physically meaningless; `loc` names the field and joint."""
+class InvalidInput(ServiceError, ValueError):
+    """422: the request is malformed or physically meaningless; `loc` names the field and joint. The SDK's
+    constructors (`JointBatch.of`, `Scene`, `dofs`, `request_from_arrays`) raise it too, in the same words
+    (a `ValueError` as well: the input is bad before any service sees it)."""
 
 
 class TooLarge(ServiceError):

@@ -7,10 +7,34 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from client.errors import Fault, InvalidInput
 from schemas import OUTPUTS
 from service.core.assembled import Assembled  # noqa: F401 (re-exported: Evaluation.assembled)
+from service.core.errors import MAX_FAULTS
+from service.core.errors import Fault as CoreFault
+from service.core.validate import as_array
 
 Array = NDArray[np.float64]
+
+
+def invalid(faults: list[CoreFault], where: str) -> InvalidInput:
+    """The validator's faults as the `InvalidInput` the service would answer (`where`: the constructor)."""
+    return InvalidInput(422, [Fault(f.loc, f.msg, f.type) for f in faults[:MAX_FAULTS]], where=f"invalid input ({where})")
+
+
+def _array(value: ArrayLike, name: str, faults: list[CoreFault], integer: bool = False) -> np.ndarray | None:
+    """`value` as an array, or None after adding the faults that prevent it (in the service's words)."""
+    scalar = not isinstance(value, (list, tuple, np.ndarray))  # one value for every joint
+    a, found = as_array([value] if scalar else value, (name,), integer)
+    if found:
+        faults += [CoreFault((name,), f.msg, f.type) for f in found] if scalar else found
+        return None
+    return a.reshape(()) if scalar else a
+
+
+def _wrong_shape(name: str, a: np.ndarray, want: tuple[int, ...], faults: list[CoreFault]) -> None:
+    faults.append(CoreFault((name,), f"must have shape {want} (one row per joint of body_ids), got {a.shape}"))
+    return None
 REVOLUTE_LIMIT, PRISMATIC_LIMIT = 670, 669
 BASE_UID = {REVOLUTE_LIMIT: 18, PRISMATIC_LIMIT: 20}
 
@@ -63,22 +87,42 @@ class JointBatch:
         A solver that keeps its own state commits a time step by passing the `coordinate` it got at
         the accepted `q` as the next step's `prev_coordinate` (with `q_prev` := that `q`).
         """
-        ids = np.asarray(body_ids, dtype=np.int64).reshape(-1, 2)
-        n = ids.shape[0]
-        per_joint = lambda v: np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy()  # noqa: E731
-        shaped = lambda v, *tail: None if v is None else np.asarray(v, dtype=np.float64).reshape(n, *tail)  # noqa: E731
-        return cls(
+        faults: list[CoreFault] = []
+        ids = _array(body_ids, "body_ids", faults, integer=True)
+        if ids is not None and ids.shape == (2,):
+            ids = ids.reshape(1, 2)  # one joint's pair
+        if ids is not None and (ids.ndim != 2 or ids.shape[1] != 2):
+            faults.append(CoreFault(("body_ids",), f"must have shape (N, 2), one [i, j] per joint, got {ids.shape}"))
+            ids = None
+        n = -1 if ids is None else ids.shape[0]
+
+        def shaped(name: str, v: ArrayLike | None, *tail: int) -> np.ndarray | None:
+            a = None if v is None else _array(v, name, faults)
+            if a is not None and a.shape == tail and n == 1:
+                a = a.reshape(1, *tail)  # one joint's edge
+            return a if a is None or n < 0 or a.shape == (n, *tail) else _wrong_shape(name, a, (n, *tail), faults)
+
+        def per_joint(name: str, v: ArrayLike | None) -> np.ndarray | None:
+            a = None if v is None else _array(v, name, faults)
+            if a is None or n < 0:
+                return a
+            return np.broadcast_to(a, (n,)).copy() if a.shape in ((), (1,), (n,)) else _wrong_shape(name, a, (n,), faults)
+
+        batch = cls(
             constitution_uid=constitution_uid,
-            body_ids=ids,
-            edges=shaped(edges, 2, 3),
-            local_edges=shaped(local_edges, 2, 2, 3),
+            body_ids=ids,  # type: ignore[arg-type]
+            edges=shaped("edges", edges, 2, 3),
+            local_edges=shaped("local_edges", local_edges, 2, 2, 3),
             origin=origin,
-            lower=per_joint(lower),
-            upper=per_joint(upper),
-            strength=per_joint(strength),
-            offset=None if offset is None else per_joint(offset),
-            prev_coordinate=None if prev_coordinate is None else per_joint(prev_coordinate),
+            lower=per_joint("lower", lower),  # type: ignore[arg-type]
+            upper=per_joint("upper", upper),  # type: ignore[arg-type]
+            strength=per_joint("strength", strength),  # type: ignore[arg-type]
+            offset=per_joint("offset", offset),
+            prev_coordinate=per_joint("prev_coordinate", prev_coordinate),
         )
+        if faults:
+            raise invalid(faults, "JointBatch.of")
+        return batch
 
     def __len__(self) -> int:
         return int(np.shape(self.body_ids)[0])

@@ -12,24 +12,34 @@ from typing import Union
 import numpy as np
 from numpy.typing import ArrayLike
 
-from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request
+from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request, _array, invalid
+from service.core.errors import Fault as CoreFault
+from service.core.scene import Bodies
+from service.core.validate import check_bodies
 from schemas import OUTPUTS
 from schemas.constitutions import STRENGTH_DEFAULT
 
 Pose = Union[ArrayLike, tuple[ArrayLike, ArrayLike]]
 
 
-def dofs(pose: Pose) -> np.ndarray:
-    """The 12 DOFs (12,) of one pose."""
+def dofs(pose: Pose, loc: tuple[str | int, ...] = ("pose",), where: str = "dofs") -> np.ndarray:
+    """The 12 DOFs (12,) of one pose; `InvalidInput` naming `loc` for anything else."""
+    faults: list[CoreFault] = []
     if isinstance(pose, tuple) and len(pose) == 2:
-        p, A = (np.asarray(v, dtype=np.float64) for v in pose)
-        return np.concatenate([p.reshape(3), A.reshape(9)])
-    a = np.asarray(pose, dtype=np.float64)
-    if a.shape == (4, 4):
-        return np.concatenate([a[:3, 3], a[:3, :3].reshape(9)])
-    if a.shape == (12,):
-        return a.copy()
-    raise ValueError(f"a pose is a 4x4 transform, a (p, A) pair or 12 DOFs, got shape {a.shape}")
+        p, A = (_array(v, "pose", faults) for v in pose)
+        if p is not None and A is not None and p.size == 3 and A.size == 9:
+            return np.concatenate([p.reshape(3), A.reshape(9)])
+        shapes = tuple(None if v is None else v.shape for v in (p, A))
+        msg = f"a (p, A) pose is p (3,) and A (3, 3), got shapes {shapes}"
+    else:
+        a = _array(pose, "pose", faults)
+        if a is not None and a.shape == (4, 4):
+            return np.concatenate([a[:3, 3], a[:3, :3].reshape(9)])
+        if a is not None and a.shape == (12,):
+            return a.astype(np.float64, copy=True)
+        msg = f"a pose is a 4x4 transform, a (p, A) pair or 12 DOFs, got shape {None if a is None else a.shape}"
+    faults = [CoreFault((*loc, *f.loc[1:]), f.msg, f.type) for f in faults] or [CoreFault(loc, msg)]
+    raise invalid(faults, where)
 
 
 class Scene:
@@ -57,11 +67,13 @@ class Scene:
     def add_body(self, pose: Pose, *, prev: Pose | None = None, ref: Pose | None = None) -> int:
         """A body at `pose` now; `prev` (last time step) defaults to `ref`, `ref` (when the joints
         were built) to `pose`. Returns its row, for joints to refer to."""
-        q = dofs(pose)
-        q_ref = dofs(ref) if ref is not None else q
+        row = len(self._q)
+        q = dofs(pose, ("bodies", "q", row), "Scene.add_body")
+        q_ref = dofs(ref, ("bodies", "q_ref", row), "Scene.add_body") if ref is not None else q
+        q_prev = dofs(prev, ("bodies", "q_prev", row), "Scene.add_body") if prev is not None else q_ref
         self._q.append(q)
         self._q_ref.append(q_ref)
-        self._q_prev.append(dofs(prev) if prev is not None else q_ref)
+        self._q_prev.append(q_prev)
         return len(self._q) - 1
 
     def add_revolute_limit(
@@ -112,14 +124,32 @@ class Scene:
             raise TypeError("a joint limit needs lower and upper")
         if (local_edge is None) == (p0 is None or p1 is None):
             raise TypeError("give the joint's edge either as p0, p1 (world, at ref) or as local_edge, not both")
-        if local_edge is None:
-            kind, edge = "edges", np.stack([np.asarray(p, float).reshape(3) for p in (p0, p1)])
-        else:
-            kind, edge = "local_edges", np.asarray(local_edge, float).reshape(2, 2, 3)
+        kind, edge = ("edges", self._edge(p0, p1)) if local_edge is None else ("local_edges", self._local_edge(local_edge))
         key = (uid, kind, origin)
         rows = self._joints.setdefault(key, [])
         rows.append(((int(i), int(j)), edge, lower, upper, *rest))
         return Joint(len(rows) - 1, uid, list(self._joints).index(key))
+
+    @staticmethod
+    def _edge(p0: ArrayLike, p1: ArrayLike) -> np.ndarray:
+        faults: list[CoreFault] = []
+        points = [_array(p, name, faults) for name, p in (("p0", p0), ("p1", p1))]
+        for name, p in zip(("p0", "p1"), points):
+            if p is not None and p.shape != (3,):
+                faults.append(CoreFault((name,), f"must be a point (3,), got shape {p.shape}"))
+        if faults:
+            raise invalid(faults, "Scene: a joint's edge")
+        return np.stack(points)  # type: ignore[arg-type]
+
+    @staticmethod
+    def _local_edge(local_edge: ArrayLike) -> np.ndarray:
+        faults: list[CoreFault] = []
+        edge = _array(local_edge, "local_edge", faults)
+        if edge is not None and edge.shape != (2, 2, 3):
+            faults.append(CoreFault(("local_edge",), f"must be [[l0, l1], [r0, r1]] (2, 2, 3), got shape {edge.shape}"))
+        if faults:
+            raise invalid(faults, "Scene: a joint's local edge")
+        return edge  # type: ignore[return-value]
 
     def request(
         self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False,
@@ -162,7 +192,18 @@ def request_from_arrays(
 ) -> Request:
     """The vectorised builder: bodies' DOFs (B, 12) (`q_ref` defaults to `q`, `q_prev` to `q_ref`) and
     batches made with `JointBatch.of(uid, body_ids, edges, lower, upper, strength)`; `layout` as in `Scene.request`."""
-    q = np.asarray(q, dtype=np.float64)
-    q_ref = q if q_ref is None else np.asarray(q_ref, dtype=np.float64)
-    q_prev = q_ref if q_prev is None else np.asarray(q_prev, dtype=np.float64)
-    return Request(q, q_prev, q_ref, list(joints), tuple(outputs), hessian_mode, active_only, layout)
+    faults: list[CoreFault] = []
+    given = {"q": q, "q_ref": q_ref, "q_prev": q_prev}
+    states = {name: None if v is None else _array(v, name, faults) for name, v in given.items()}
+    if faults:  # located as the wire locates them: bodies.q, ...
+        raise invalid([CoreFault(("bodies", *f.loc), f.msg, f.type) for f in faults], "request_from_arrays")
+    a = states["q"]
+    a_ref = a if states["q_ref"] is None else states["q_ref"]
+    a_prev = a_ref if states["q_prev"] is None else states["q_prev"]
+    # The validator's shape check (every row 12 DOFs; a 4x4 pose per body gets a hint), not its finiteness:
+    # a NaN is the service's to name, per element, on every path.
+    named = {"q"} | {name for name, v in given.items() if v is not None}  # a defaulted state repeats q's fault
+    shapes = [f for f in check_bodies(Bodies(a, a_prev, a_ref)) if f.type != "finite_number" and f.loc[1] in named]  # type: ignore[arg-type]
+    if shapes:
+        raise invalid(shapes, "request_from_arrays")
+    return Request(a, a_prev, a_ref, list(joints), tuple(outputs), hessian_mode, active_only, layout)  # type: ignore[arg-type]

@@ -131,6 +131,7 @@ class SessionState:
     def opened(self, frame: Frame) -> None:
         doc = self.read(frame, proto.OPENED)
         self.coordinates = [self._array(c) for c in doc["coordinates"]]
+        self.limits: dict[str, Any] = dict(doc.get("limits", {}))  # the server's bounds in force: max_frame_bytes, idle_seconds
 
     def evaluation(self, frame: Frame) -> Evaluation:
         # Every reply starts with its kind (fixmap header, "kind", then the kind; or '{"kind":"...'): a fault is

@@ -7,19 +7,47 @@ from types import TracebackType
 from typing import Any
 
 from numpy.typing import ArrayLike
-from websockets.exceptions import ConnectionClosed, InvalidStatus
+import orjson
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidMessage, InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 
 from client import codec
+from client.errors import Fault, Unreachable, WrongURL
 from client.model import Array, Evaluation, Request
 from client.session import Frame, SessionClosed, SessionState, StateView
+from schemas import session as proto
 
 
 def handshake_error(url: str, e: Exception) -> Exception:
-    """A refused upgrade (401, 404, ...) as the `ServiceError` HTTP would raise; anything else as `SessionClosed`."""
+    """Why a session did not open, as `evaluate` says it: `Unreachable` (nothing answered), `WrongURL` (a 404,
+    or a server that is not this service), else the service's refusal (401, ...) as the `ServiceError` HTTP raises."""
     if isinstance(e, InvalidStatus):
-        return codec.error(e.response.status_code, e.response.body or b"")
+        status, body = e.response.status_code, bytes(e.response.body or b"")
+        if status == 404 or not _is_fault_list(body):
+            return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade")
+        return codec.error(status, body)
+    if isinstance(e, (InvalidHandshake, InvalidMessage)):  # a server that speaks something else (HTTP/1.0, TLS, ...)
+        return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})")
+    if isinstance(e, (OSError, TimeoutError)):  # refused, unresolvable host, no answer within the open timeout
+        return Unreachable(url, 1, e)
     return SessionClosed(url, None, "", f"{type(e).__name__}: {e}")
+
+
+def _is_fault_list(body: bytes) -> bool:
+    try:
+        detail = orjson.loads(body).get("detail")
+    except (orjson.JSONDecodeError, AttributeError):
+        return False
+    return isinstance(detail, list)
+
+
+def wrong_url(url: str, what: str) -> WrongURL:
+    """Say that the client's base URL is not the service's root (the usual slip: a trailing `/v1`)."""
+    root = url.removesuffix(proto.PATH).replace("ws://", "http://", 1).replace("wss://", "https://", 1)
+    hint = " (drop the trailing /v1: the client adds it)" if root.rstrip("/").endswith("/v1") else ""
+    msg = (f"{url} {what}: no joint-limit service at base_url {root!r}{hint}; "
+           "base_url is the service's root, e.g. http://127.0.0.1:8000")
+    return WrongURL(404, [Fault((), msg, "wrong_url")])
 
 
 def closed_error(url: str, e: ConnectionClosed) -> SessionClosed:

@@ -29,10 +29,11 @@ def pack_array(a: np.ndarray, dtype: str) -> dict[str, Any]:
     return {"dtype": dtype, "shape": list(a.shape), "data": memoryview(a.reshape(-1)).cast("B")}
 
 
-def unpack_array(obj: Any, dtype: str, ndim: int) -> np.ndarray:
+def unpack_array(obj: Any, dtype: str, ndim: int | None) -> np.ndarray:
     """A read-only view of a wire array; `ValueError` with a readable reason when it is not one.
 
-    `dtype` and `ndim` are what the field requires; sizes are checked against the data,
+    `dtype` and `ndim` are what the field requires (`ndim` None: any number of dimensions, which the
+    service's validator then judges, in the words it uses for JSON); sizes are checked against the data,
     never trusted (a claimed shape of 2**62 rows gets an error, not an allocation).
     """
     if not isinstance(obj, dict) or set(obj) != ARRAY_KEYS:
@@ -40,8 +41,9 @@ def unpack_array(obj: Any, dtype: str, ndim: int) -> np.ndarray:
     if obj["dtype"] != dtype:
         raise ValueError(f"dtype must be {dtype!r} (little-endian), got {obj['dtype']!r}")
     shape, data = obj["shape"], obj["data"]
-    if not isinstance(shape, list) or len(shape) != ndim or not all(_is_count(d) for d in shape):
-        raise ValueError(f"shape must be a list of {ndim} non-negative integers, got {shape!r}")
+    if not isinstance(shape, list) or (ndim is not None and len(shape) != ndim) or not all(_is_count(d) for d in shape):
+        count = "" if ndim is None else f"{ndim} "
+        raise ValueError(f"shape must be a list of {count}non-negative integers, got {shape!r}")
     if not isinstance(data, bytes):
         raise ValueError("data must be msgpack bin")
     count = 1

@@ -10,7 +10,7 @@ later client message is a small map whose `kind` says what it asks:
 - `update`: `batch`, `index` (K,), any of `lower`, `upper`, `strength`, `offset` (K,) -> `updated`;
 - `close` -> the server closes the connection with code 1000.
 
-Any message may carry an `id` (an integer or a string); its reply repeats it. A fault is a
+Any message, the opening one too, may carry an `id` (an integer or a string); its reply repeats it. A fault is a
 reply `{"kind": "error", "status": 422 | 413, "detail": [...]}` in the format of HTTP's 4xx
 bodies and leaves the session as it was. Replies use the encoding of the message they
 answer: a text frame (JSON) is answered in JSON, a binary frame (msgpack) in msgpack, its
@@ -23,7 +23,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
-from schemas.evaluate import Dof, HessianMode, Int64, Output, Real
+from schemas.evaluate import Dof, EvaluateRequest, HessianMode, Int64, Output, Real
 
 PATH = "/v1/sessions"
 
@@ -48,6 +48,12 @@ Id = Union[Int64, Annotated[str, Field(max_length=128)]]
 
 class _Message(BaseModel):
     model_config = ConfigDict(extra="forbid")
+    id: Id | None = None
+
+
+class OpeningRequest(EvaluateRequest):
+    """The opening message: `POST /v1/evaluate`'s body, plus an optional `id` that the `opened` reply repeats."""
+
     id: Id | None = None
 
 
@@ -93,6 +99,7 @@ KEYS: dict[str, dict[str, bool]] = {
 __all__ = [
     "CLIENT_MESSAGE",
     "KEYS",
+    "OpeningRequest",
     "PATH",
     "ClientMessage",
     "CloseMessage",

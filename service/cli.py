@@ -279,6 +279,7 @@ def serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.observability import log_config
+    from service.http.ws_protocol import server_options
 
     # Hand the application settings to every worker through the environment Settings reads.
     os.environ[ENV_PREFIX + "MAX_BODY_BYTES"] = str(args.max_body_bytes)
@@ -334,8 +335,9 @@ def serve(args: argparse.Namespace) -> int:
             workers=args.workers,
             log_config=log_config(args.log_level, args.access_log),
             log_level=args.log_level,
-            ws_max_size=args.max_frame_bytes,  # uvicorn refuses a larger message itself (1009) before buffering it
-            ws_per_message_deflate=False,  # float64 arrays barely compress: deflate would only cost CPU
+            # uvicorn refuses a larger message itself (1009, drained: the client reads it) before buffering it;
+            # no permessage-deflate: float64 arrays barely compress, deflate would only cost CPU.
+            **server_options(args.max_frame_bytes),
             access_log=False,  # ours (JSON, with request id and joints) replaces uvicorn's
             timeout_graceful_shutdown=max(1, math.ceil(args.graceful_timeout)),
             timeout_keep_alive=max(1, math.ceil(args.keepalive_timeout)),
@@ -344,7 +346,6 @@ def serve(args: argparse.Namespace) -> int:
             timeout_worker_healthcheck=args.healthcheck_timeout,
             server_header=False,
             http="service.http.timeouts:ReadTimeoutProtocol",  # uvicorn's httptools + deadlines on heads and writes
-            ws="service.http.timeouts:WriteTimeoutWebSocketProtocol",  # uvicorn's websockets-sansio + the same on writes
         )
     finally:
         if own_metrics_dir:

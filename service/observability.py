@@ -182,7 +182,7 @@ class Metrics:
         )
         self.sessions = Counter(
             "jointlimits_sessions_total",
-            "WebSocket sessions ended, by reason (client, disconnect, idle, frame_too_large, scene_too_large, "
+            "WebSocket sessions ended, by reason (client, disconnect, idle, frame_too_large, invalid_utf8, protocol_error, scene_too_large, "
             "too_many_sessions, shutdown, error).",
             ["reason"],
             registry=reg,

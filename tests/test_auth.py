@@ -30,7 +30,7 @@ def test_evaluate_without_the_right_token_is_401(headers):
     r = client(token="s3cret").post("/v1/evaluate", json=BODY, headers=headers)
     assert r.status_code == 401
     assert r.headers["www-authenticate"].startswith("Bearer")
-    assert r.json() == {"detail": "missing or invalid bearer token"}
+    assert r.json() == {"detail": [{"loc": ["header", "authorization"], "msg": "missing or invalid bearer token", "type": "unauthorized"}]}
 
 
 def test_every_v1_route_is_protected():

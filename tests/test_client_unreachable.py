@@ -145,3 +145,37 @@ def test_an_unrelated_servers_404_page_says_wrong_url(unrelated):
 def test_an_unrelated_servers_200_page_says_wrong_url(unrelated):
     with pytest.raises(WrongURL, match="not this service's discovery document"):
         Client(unrelated + "/other").constitutions()
+
+
+# Sessions check the URL as `evaluate` does (issue 20): the same three mistakes, the same errors.
+
+
+def test_session_with_base_url_v1_says_wrong_url(live):
+    with pytest.raises(WrongURL) as err:
+        Client(live + "/v1").session(readme_scene().request())
+    assert err.value.status == 404 and "drop the trailing /v1" in str(err.value)
+
+
+def test_session_to_an_unrelated_server_says_wrong_url(unrelated):
+    with pytest.raises(WrongURL, match="no joint-limit service") as err:
+        Client(unrelated).session(readme_scene().request())
+    assert "<html>" not in str(err.value) and "reopen" not in str(err.value)
+
+
+def test_session_to_a_closed_port_is_unreachable():
+    url = f"http://127.0.0.1:{closed_port()}"
+    with pytest.raises(Unreachable) as err:
+        Client(url).session(readme_scene().request())
+    assert f"ws://127.0.0.1:{url.rsplit(':', 1)[1]}/v1/sessions" in str(err.value)
+    assert "reopen" not in str(err.value)
+
+
+def test_async_session_checks_the_url_too(live):
+    async def run(url: str) -> None:
+        async with AsyncClient(url) as c:
+            await c.session(readme_scene().request())
+
+    with pytest.raises(WrongURL, match="drop the trailing /v1"):
+        asyncio.run(run(live + "/v1"))
+    with pytest.raises(Unreachable):
+        asyncio.run(run(f"http://127.0.0.1:{closed_port()}"))

@@ -17,6 +17,7 @@ import uvicorn
 from fastapi import FastAPI
 
 from service.app import create_app
+from service.http.ws_protocol import server_options
 from service.settings import Settings
 
 # Small limits, so that 413s and the SDK's splitting are exercised with small requests.
@@ -30,7 +31,10 @@ def serve(settings: Settings = LIMITS, app: FastAPI | None = None) -> Iterator[s
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app or create_app(settings), log_level="warning", lifespan="off"))
+    app = app or create_app(settings)
+    # The WebSocket options `jointlimits serve` passes: its protocol, the message limit of the app's settings.
+    frame_bytes = getattr(getattr(app, "state", None), "settings", settings).max_frame_bytes
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off", **server_options(frame_bytes)))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     deadline = time.monotonic() + 10

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import yaml
@@ -112,3 +114,45 @@ def test_the_readmes_sizing_figures_are_the_rules(monkeypatch):
         if value is not None:
             monkeypatch.setenv(name, value)
     assert f"{sizing.worker_bytes(Settings()) / 2**20:.0f} MiB per worker" in readme
+
+
+PDB = load("pdb.yaml")
+
+
+def test_the_hpa_owns_the_replica_count():
+    """A `replicas` in the Deployment would reset the autoscaler's count on every `kubectl apply`."""
+    assert "replicas" not in DEPLOYMENT["spec"]
+    assert HPA["spec"]["minReplicas"] >= 2  # so that the disruption budget below can evict one
+
+
+def test_a_disruption_budget_keeps_a_pod_up():
+    assert PDB["kind"] == "PodDisruptionBudget"
+    labels = DEPLOYMENT["spec"]["template"]["metadata"]["labels"]
+    assert PDB["spec"]["selector"]["matchLabels"].items() <= labels.items()
+    assert PDB["spec"]["maxUnavailable"] < HPA["spec"]["minReplicas"]
+
+
+def test_memory_is_requested_as_limited():
+    """The sizing rule is what a pod may reach at any time: the scheduler reserves all of it."""
+    resources = CONTAINER["resources"]
+    assert _quantity(resources["requests"]["memory"]) == _quantity(resources["limits"]["memory"])
+
+
+def _kubernetes_validate(*paths: Path) -> subprocess.CompletedProcess:
+    exe = Path(sys.executable).with_name("kubernetes-validate")
+    return subprocess.run([str(exe), "--strict", *map(str, paths)], capture_output=True, text=True, timeout=120)
+
+
+def test_kubernetes_validate_strict_passes_on_deploy():
+    manifests = sorted((ROOT / "deploy").glob("*.yaml"))
+    assert len(manifests) == 4
+    done = _kubernetes_validate(*manifests)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.count("passed") == len(manifests), done.stdout
+
+
+def test_kubernetes_validate_strict_rejects_an_unknown_field(tmp_path):
+    """The check above can fail: a misspelt field is refused under --strict."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text((ROOT / "deploy" / "pdb.yaml").read_text().replace("maxUnavailable", "maxUnavailabel"))
+    assert _kubernetes_validate(bad).returncode != 0

@@ -82,3 +82,17 @@ def test_docs_load_without_any_external_url(live, page):
     if page == "/docs":
         assert '"validatorUrl": null' in html  # the validator badge would fetch from outside
         assert "url: '/openapi.json'" in html
+
+
+def test_the_document_is_valid_openapi(spec):
+    """openapi-spec-validator against the version the document declares (3.1): a Media Type Object with a
+    `description` key, as `application/msgpack` once had, fails it."""
+    from openapi_spec_validator import validate
+
+    assert spec["openapi"].startswith("3.1")
+    validate(spec)
+    media = spec["paths"]["/v1/evaluate"]["post"]["requestBody"]["content"]["application/msgpack"]
+    bad = orjson.loads(orjson.dumps(spec))
+    bad["paths"]["/v1/evaluate"]["post"]["requestBody"]["content"]["application/msgpack"] = {**media, "description": "x"}
+    with pytest.raises(Exception, match="description"):
+        validate(bad)

@@ -139,7 +139,7 @@ EMPTY_BATCH = {"constitution_uid": 670, "body_ids": [], "edges": [], "lower": []
 # The table's first column -> the request that shows it.
 CASES: dict[str, Callable[[str], httpx.Response]] = {
     "non-finite number (`NaN`, `Infinity`, `1e400`, `null`), in JSON, msgpack or local": _nan_json,
-    "wrong row length / not a number / misspelt or missing field": _doc(_set("bodies", "q", 1, value=list(range(1, 12)))),
+    "wrong row length / not a number / misspelt or missing field": _doc(_set("bodies", "q", value=[list(range(1, 12))] * 3)),
     "per-joint lists of different lengths, body rows that disagree": _sdk(lambda r: with_batch(r, 1, lower=r.batches[1].lower[:2])),
     "body index out of range or negative": _sdk(lambda r: edit(r, 1, "body_ids", 2, [0, 3])),
     "a joint on one body": _sdk(lambda r: edit(r, 1, "body_ids", 0, [2, 2])),
@@ -154,7 +154,8 @@ CASES: dict[str, Callable[[str], httpx.Response]] = {
     "energy or derivatives overflow": _sdk(lambda r: with_batch(
         r, 0, lower=np.array([0.0, -1.0]), upper=np.array([1e-300, 1.0]), strength=np.array([1e308, 1.0]))),
     "joint coordinate overflows": _sdk(lambda r: edit_body(edit_body(r, "q", 2, 1e308, slice(0, 3)), "q", 0, -1e308, slice(0, 3))),
-    "invalid JSON / msgpack": _raw(b'{"bodies": ', J),
+    "invalid JSON": _raw(b'{"bodies": ', J),
+    "invalid msgpack": _raw(b"\x81\xa6bodies", "application/msgpack"),
     "malformed binary array": _doc(_set("bodies", "q", "shape", value=[2, 12]), binary=True),
     "body over `JOINTLIMITS_MAX_BODY_BYTES` (by header or while streaming)": _declared_length(300_000_000),
     "more joints than `JOINTLIMITS_MAX_JOINTS` (counted before parsing)": _joints(401),

@@ -51,6 +51,7 @@ def open_binary(body: dict) -> bytes:
                      "body_ids": wire.pack_array(np.array(j["body_ids"], dtype=np.int64).reshape(-1, 2), wire.INT64),
                      "edges": f(j["edges"], (-1, 2, 3)), **{k: f(j[k], (-1,)) for k in ("lower", "upper", "strength")}}
                     for j in body["batches"]],
+        **{k: v for k, v in body.items() if k not in ("bodies", "batches")},  # options, id
     })  # fmt: skip
 
 
@@ -394,3 +395,31 @@ def test_pipelined_messages_are_answered_in_order():
             ws.send_text(json.dumps({**doc, "id": i}))
         replies = [json.loads(ws.receive_text()) for _ in range(3)]
     assert [(r["id"], r["kind"]) for r in replies] == [(0, "evaluation"), (1, "error"), (2, "committed")]
+
+
+@pytest.mark.parametrize("Side", [Json, Binary], ids=["json", "msgpack"])
+def test_the_opening_may_carry_an_id_that_its_reply_repeats(Side):
+    with app().websocket_connect(PATH) as ws:
+        s = Side(ws)
+        bad = s.send({**BODY, "id": "open-1", "hessian_mode": "fast"})  # a fault repeats it too
+        assert bad["kind"] == "error" and bad["id"] == "open-1"
+        assert [d["loc"] for d in bad["detail"]] == [["body", "hessian_mode"]]
+        too_long = s.send({**BODY, "id": "x" * 129})
+        assert too_long["kind"] == "error" and too_long["detail"][0]["loc"][:2] == ["body", "id"]
+        opened = s.send({**BODY, "id": 42})
+        assert opened["kind"] == "opened" and opened["id"] == 42
+        assert s.send({"kind": "evaluate", "q": Q, "id": 43})["id"] == 43
+
+
+@pytest.mark.parametrize("Side", [Json, Binary], ids=["json", "msgpack"])
+@pytest.mark.parametrize("kind", ["evaluate", "commit", "update", "close"])
+def test_a_message_before_the_opening_gets_one_clear_fault(Side, kind):
+    from service.http.session_codec import NOT_OPEN
+
+    doc = {"kind": kind, "id": 5} | ({"q": Q} if kind in ("evaluate", "commit") else {})
+    with app().websocket_connect(PATH) as ws:
+        s = Side(ws)
+        reply = s.send(doc)
+        assert reply == {"kind": "error", "status": 422, "id": 5,
+                         "detail": [{"loc": ["body", "kind"], "msg": NOT_OPEN, "type": "session_not_open"}]}
+        assert s.send(BODY)["kind"] == "opened"  # the session still waits for its opening

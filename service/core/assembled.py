@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from service.core import penalty
 from service.core.errors import MAX_FAULTS, Fault, InputError
 from service.core.scene import Array, BatchResult, Evaluation, Joints
-from service.core.validate import nonfinite_rows
+from service.core.validate import literal_msg, nonfinite_rows
 
 LAYOUTS = ("joints", "bodies")
 
@@ -212,7 +212,7 @@ def _raise_overflow(out: Assembled) -> None:
 
 
 def check_layout(layout: str) -> list[Fault]:
-    return [] if layout in LAYOUTS else [Fault(("layout",), f"unknown layout {layout!r}; expected 'joints' or 'bodies'", "literal_error")]
+    return [] if layout in LAYOUTS else [Fault(("layout",), literal_msg(LAYOUTS), "literal_error")]
 
 
 def strip(ev: Evaluation, out: Assembled) -> Evaluation:

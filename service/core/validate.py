@@ -8,11 +8,14 @@ calls them in order and caps the faults of a request (`errors.FaultLog`).
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core.errors import MAX_FAULTS, NONFINITE_MSG, NONFINITE_TYPE, Fault, InputError
+from service.core.errors import MAX_FAULTS, NONFINITE_MSG, NONFINITE_TYPE, Fault, InputError, Loc
 from service.core.kinematics import edge_vector, max_abs
 from service.core.polar import SINGULAR_RATIO
 from service.core.registry import CONSTITUTIONS
@@ -50,16 +53,97 @@ def nonfinite_faults(a: np.ndarray, *loc: str | int) -> list[Fault]:
     ]
 
 
+def literal_msg(allowed: Sequence[str]) -> str:
+    """pydantic's words for a value outside a set of strings: "Input should be 'a', 'b' or 'c'"."""
+    quoted = [repr(a) for a in allowed]
+    return "Input should be " + (", ".join(quoted[:-1]) + " or " + quoted[-1] if len(quoted) > 1 else quoted[0])
+
+
+DUPLICATE_KEY_MSG = "Duplicate key: each key may appear once in an object (a msgpack map)"
+NOT_A_LIST = ("Input should be a valid list", "list_type")
+NOT_A_NUMBER = ("Input should be a valid number", "float_type")
+NOT_AN_INTEGER = ("Input should be a valid integer", "int_type")
+"""pydantic's words for these mistakes in JSON: every path (msgpack, sessions, the SDK) says the same."""
+
+
+def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | None, list[Fault]]:
+    """`value` (nested lists of numbers, or an array) as a float64 (int64) array of whatever shape it has,
+    else the faults that prevent it, each at its element: not a list, not a number, rows of different
+    lengths. The shape is then the validator's to judge (`check_dofs`, `check_joints`), on every path.
+
+    JSON's `null` is NaN (named as non-finite later), as a NaN-less JSON writer means it."""
+    if isinstance(value, (list, tuple)):
+        try:  # numbers only, rectangular: NumPy builds it at C speed (the Python walk below names a fault)
+            fast = np.asarray(value)
+        except (ValueError, TypeError, OverflowError):
+            fast = None
+        if fast is not None and fast.dtype.kind in ("iu" if integer else "fiu"):
+            value = fast
+    if isinstance(value, np.ndarray) and value.ndim >= 1 and value.dtype.kind in ("iu" if integer else "fiu"):
+        return value.astype(np.int64 if integer else np.float64, copy=False), []
+    faults = _element_faults(value, loc, integer)
+    if faults:
+        return None, faults
+    try:
+        return np.array(value, dtype=np.int64 if integer else np.float64), []
+    except OverflowError:  # an integer outside int64
+        return None, [Fault(loc, "Input should be a valid integer in int64 range", "int_type")]
+
+
+def _element_faults(value: Any, loc: Loc, integer: bool) -> list[Fault]:
+    """The first element fault of each list of `value` (up to the cap), or the first mismatch of row shapes."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if not isinstance(value, (list, tuple)):
+        return [Fault(loc, *NOT_A_LIST)]
+    shape = _shape_of(value, loc, integer)
+    return shape if isinstance(shape, list) else []
+
+
+def _is_number(x: Any, integer: bool) -> bool:
+    if isinstance(x, bool):
+        return False
+    if integer:
+        return isinstance(x, (int, np.integer)) or (isinstance(x, (float, np.floating)) and float(x).is_integer())
+    return x is None or isinstance(x, (int, float, np.integer, np.floating))
+
+
+def _shape_of(value: list | tuple, loc: Loc, integer: bool) -> tuple[int, ...] | list[Fault]:
+    """The shape of nested lists `value`, or a fault: an item not a number (or list), or ragged rows."""
+    if not value:
+        return (0,)
+    nested = isinstance(value[0], (list, tuple, np.ndarray))
+    if not nested:
+        for i, x in enumerate(value):
+            if not _is_number(x, integer):
+                return [Fault((*loc, i), *(NOT_AN_INTEGER if integer else NOT_A_NUMBER))]
+            if integer and not -(2**63) <= x < 2**63:  # pydantic's words for JSON's int64 bounds
+                words = ("less_than_equal", "less than or equal to", 2**63 - 1) if x > 0 else ("greater_than_equal", "greater than or equal to", -(2**63))
+                return [Fault((*loc, i), f"Input should be {words[1]} {words[2]}", words[0])]
+        return (len(value),)
+    shapes = []
+    for i, row in enumerate(value):
+        if not isinstance(row, (list, tuple, np.ndarray)):
+            return [Fault((*loc, i), *NOT_A_LIST)]
+        got = _shape_of(list(row), (*loc, i), integer)
+        if isinstance(got, list):
+            return got
+        shapes.append(got)
+    counts = Counter(shapes)  # the odd row out is the one at fault (on a tie, not the first: dicts keep order)
+    usual = max(counts, key=counts.__getitem__)
+    for i, got in enumerate(shapes):
+        if got != usual:
+            return [Fault((*loc, i), f"has shape {got} where the other rows have {usual}: the rows of an array are alike")]
+    return (len(value), *usual)
+
+
 def check_options(outputs: Sequence[str], hessian_mode: str) -> list[Fault]:
-    faults = [
-        Fault(("outputs", i), f"unknown output {o!r}; expected one of {', '.join(OUTPUTS)}")
-        for i, o in enumerate(outputs)
-        if o not in OUTPUTS
-    ]
+    """The options, in the words JSON's parser (pydantic) uses for them: every path says the same."""
+    faults = [Fault(("outputs", i), literal_msg(OUTPUTS), "literal_error") for i, o in enumerate(outputs) if o not in OUTPUTS]
     if not outputs:
-        faults.append(Fault(("outputs",), "must name at least one of energy, gradient, hessian"))
+        faults.append(Fault(("outputs",), "List should have at least 1 item after validation, not 0", "too_short"))
     if hessian_mode not in HESSIAN_MODES:
-        faults.append(Fault(("hessian_mode",), f"unknown mode {hessian_mode!r}; expected 'exact' or 'psd'"))
+        faults.append(Fault(("hessian_mode",), literal_msg(HESSIAN_MODES), "literal_error"))
     return faults
 
 
@@ -76,8 +160,15 @@ def check_bodies(bodies: Bodies, names: Sequence[str] = ("q", "q_prev", "q_ref")
 def check_dofs(name: str, a: np.ndarray, n: int) -> list[Fault]:
     """One state `a` of the bodies: (n, 12) finite numbers (`loc` ("bodies", name, row))."""
     if a.ndim != 2 or a.shape[1] != 12 or a.shape[0] != n:
-        return [Fault(("bodies", name), f"must be {n} row{'' if n == 1 else 's'} of 12 numbers, got shape {a.shape}")]
+        hint = POSE_HINT if a.shape[-2:] == (4, 4) else ""
+        return [Fault(("bodies", name), f"must be {n} row{'' if n == 1 else 's'} of 12 numbers, got shape {a.shape}{hint}")]
     return nonfinite_faults(a, "bodies", name)
+
+
+POSE_HINT = (
+    ": 4x4 poses? A body's 12 DOFs are [p, A row 0, A row 1, A row 2] of its transform [[A, p], [0, 1]]; "
+    "the Python SDK's client.scene.dofs(pose) converts one"
+)
 
 
 def check_rotations(rotation_ratio: np.ndarray) -> list[Fault]:
@@ -89,86 +180,107 @@ def check_rotations(rotation_ratio: np.ndarray) -> list[Fault]:
 
 
 def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
+    """Every fault of batch `b`, of every class at once (structure, indices, ranges, geometry), up to the cap.
+
+    A field of the wrong shape is named once and its rows are not read; the rows of the others are still
+    checked, so a body index out of range does not hide `lower > upper` of another joint. Any fault
+    refuses the request before its evaluation starts (`prepared._prepare`).
+    """
+    faults = _check_kind(b, joints)
+    geometry = next((k for k in EDGE_SHAPES if getattr(joints, k) is not None), None)
+    if sum(getattr(joints, k) is not None for k in EDGE_SHAPES) != 1:
+        geometry = None  # named by _check_kind
+    shaped = _check_shapes(b, joints, geometry, faults)
+    faults += _check_rows(b, joints, n_bodies, geometry, shaped)
+    return faults[:MAX_FAULTS]
+
+
+def _check_kind(b: int, joints: Joints) -> list[Fault]:
+    """The batch's constitution, base, geometry kind, origin and state fields."""
     at = lambda *loc: ("batches", b, *loc)  # noqa: E731
+    faults: list[Fault] = []
     c = CONSTITUTIONS.get(joints.constitution_uid)
     if c is None:
         known = ", ".join(str(u) for u in CONSTITUTIONS)
-        return [Fault(at("constitution_uid"), f"unknown constitution {joints.constitution_uid}; supported: {known}")]
-    if joints.base_uid != c.base_uid:
-        return [
-            Fault(
-                at("base_uid"),
-                f"constitution {c.uid} ({c.name}) needs base_uid {c.base_uid}, got {joints.base_uid}",
-            )
-        ]
+        faults.append(Fault(at("constitution_uid"), f"unknown constitution {joints.constitution_uid}; supported: {known}"))
+    elif joints.base_uid != c.base_uid:
+        msg = f"constitution {c.uid} ({c.name}) needs base_uid {c.base_uid}, got {joints.base_uid}"
+        faults.append(Fault(at("base_uid"), msg))
     given = [k for k in EDGE_SHAPES if getattr(joints, k) is not None]
     if len(given) != 1:
         said = "both" if given else "neither"
-        return [Fault(at(), f"give exactly one of edges and local_edges (world edges (N, 2, 3) at q_ref, or body-local (N, 2, 2, 3)); got {said}")]
+        faults.append(Fault(at(), f"give exactly one of edges and local_edges (world edges (N, 2, 3) at q_ref, or body-local (N, 2, 2, 3)); got {said}"))
     if joints.origin not in ORIGINS:
-        return [Fault(at("origin"), "Input should be 'q_ref' or 'absolute'", "literal_error")]
-    geometry = given[0]
+        faults.append(Fault(at("origin"), "Input should be 'q_ref' or 'absolute'", "literal_error"))
+    if joints.prev_coordinate is not None and c is not None and c.uid != REVOLUTE_UID:
+        msg = f"applies to revolute joints ({REVOLUTE_UID}) only: the {c.name} coordinate is absolute and has no state"
+        faults.append(Fault(at("prev_coordinate"), msg))
+    return faults
+
+
+def _check_shapes(b: int, joints: Joints, geometry: str | None, faults: list[Fault]) -> set[str]:
+    """Appends a fault per per-joint field whose shape is not one row per joint of `body_ids`; returns
+    the fields of the right shape (their rows are checked next)."""
     n = joints.body_ids.shape[0] if joints.body_ids.ndim == 2 else -1
-    shapes = {
-        "body_ids": (joints.body_ids, (n, 2)),
-        geometry: (getattr(joints, geometry), (n, *EDGE_SHAPES[geometry])),
-        "lower": (joints.lower, (n,)),
-        "upper": (joints.upper, (n,)),
-        "strength": (joints.strength, (n,)),
-    }
-    # v1.1's optional per-joint lists.
-    state = {k: a for k in ("offset", "prev_coordinate") if (a := getattr(joints, k)) is not None}
-    shapes |= {k: (a, (n,)) for k, a in state.items()}
-    if "prev_coordinate" in state and c.uid != REVOLUTE_UID:
-        return [
-            Fault(
-                at("prev_coordinate"),
-                f"applies to revolute joints ({REVOLUTE_UID}) only: the {c.name} coordinate is absolute and has no state",
-            )
+    want = {"body_ids": (n, 2), "lower": (n,), "upper": (n,), "strength": (n,)}
+    if geometry is not None:
+        want[geometry] = (n, *EDGE_SHAPES[geometry])
+    want |= {k: (n,) for k in ("offset", "prev_coordinate") if getattr(joints, k) is not None}  # v1.1's optional lists
+    shaped = set()
+    for name, shape in want.items():
+        a = getattr(joints, name)
+        if a.shape == shape:
+            shaped.add(name)
+        else:
+            faults.append(Fault(("batches", b, name), f"must have shape {shape} (one row per joint of body_ids), got {a.shape}"))
+    return shaped
+
+
+def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, shaped: set[str]) -> list[Fault]:
+    """Per-joint faults of the fields in `shaped`: non-finite numbers, indices, ranges, edges."""
+    at = lambda *loc: ("batches", b, *loc)  # noqa: E731
+    faults: list[Fault] = []
+    for name in (geometry, "lower", "upper", "strength", "offset", "prev_coordinate"):
+        if name in shaped:
+            faults += nonfinite_faults(getattr(joints, name), *at(name))
+    if "body_ids" in shaped:
+        ids = joints.body_ids
+        outside = (ids < 0) | (ids >= n_bodies)
+        faults += [
+            Fault(at("body_ids", j), f"body index {ids[j].tolist()} out of range [0, {n_bodies}) ({'there is 1 body' if n_bodies == 1 else f'there are {n_bodies} bodies'})")
+            for j in (_where(outside.any(axis=1)) if outside.any() else [])  # a flat test first: a per-row reduction is 10x slower
         ]
-    faults = [
-        Fault(at(name), f"must have shape {want} (one row per joint of body_ids), got {a.shape}")
-        for name, (a, want) in shapes.items()
-        if a.shape != want
-    ]
-    if faults:
-        return faults
-    for name in (geometry, "lower", "upper", "strength", *state):
-        faults += nonfinite_faults(getattr(joints, name), *at(name))
-    ids = joints.body_ids
-    outside = (ids < 0) | (ids >= n_bodies)
-    faults += [
-        Fault(at("body_ids", j), f"body index {ids[j].tolist()} out of range [0, {n_bodies}) ({'there is 1 body' if n_bodies == 1 else f'there are {n_bodies} bodies'})")
-        for j in (_where(outside.any(axis=1)) if outside.any() else [])  # a flat test first: a per-row reduction is 10x slower
-    ]
-    faults += [
-        Fault(at("body_ids", j), f"joint couples body {ids[j, 0]} to itself")
-        for j in _where(ids[:, 0] == ids[:, 1])
-    ]
-    if faults:
-        return faults
+        faults += [Fault(at("body_ids", j), f"joint couples body {ids[j, 0]} to itself") for j in _where(ids[:, 0] == ids[:, 1])]
+    # The range checks read finite rows only: a row with a NaN or an infinity is named above, once.
     lo, up, s = joints.lower, joints.upper, joints.strength
-    faults += [
-        Fault(at("lower", j), f"lower {float(lo[j])!r} > upper {float(up[j])!r}: the range is empty")
-        for j in _where(lo > up)
-    ]
-    faults += [Fault(at("strength", j), f"strength {float(s[j])!r} < 0: must be >= 0") for j in _where(s < 0)]
-    if "offset" in state:
-        faults += check_offset(b, lo, up, state["offset"], np.arange(n))
-    # Exactly the edges `kinematics.edge_axis` (and `geometry.axis_and_anchors`) cannot normalise: they
-    # scale the edge vector by a power of two first, so any nonzero, finite difference (even 5e-324)
-    # has an axis; a body-local one is then carried by a nonsingular A_ref (check_rotations).
+    if {"lower", "upper"} <= shaped:
+        both = np.isfinite(lo) & np.isfinite(up)
+        faults += [
+            Fault(at("lower", j), f"lower {float(lo[j])!r} > upper {float(up[j])!r}: the range is empty")
+            for j in _where(both & (lo > up))
+        ]
+        if "offset" in shaped:
+            rows = np.flatnonzero(both & np.isfinite(joints.offset))
+            faults += check_offset(b, lo[rows], up[rows], joints.offset[rows], rows)
+    if "strength" in shaped:
+        faults += [Fault(at("strength", j), f"strength {float(s[j])!r} < 0: must be >= 0") for j in _where(np.isfinite(s) & (s < 0))]
+    if geometry in shaped:
+        faults += _check_edges(b, joints, geometry)
+    return faults
+
+
+def _check_edges(b: int, joints: Joints, geometry: str) -> list[Fault]:
+    """Exactly the edges `kinematics.edge_axis` (and `geometry.axis_and_anchors`) cannot normalise: they
+    scale the edge vector by a power of two first, so any nonzero, finite difference (even 5e-324)
+    has an axis; a body-local one is then carried by a nonsingular A_ref (check_rotations)."""
     edge = joints.edges if geometry == "edges" else joints.local_edges[:, 0]  # p0 -> p1, or l0 -> l1 on body i
     p0, p1 = ("p0", "p1") if geometry == "edges" else ("l0", "l1")
     with np.errstate(over="ignore", invalid="ignore"):
         size = max_abs(edge_vector(edge))
-    faults += [
-        Fault(at(geometry, j), f"zero-length edge: {p0} == {p1} gives no joint axis") for j in _where(size == 0)
-    ]
-    faults += [
-        Fault(at(geometry, j), f"edge too long: {p1} - {p0} overflows float64") for j in _where(~np.isfinite(size))
-    ]
-    return faults
+    size[~np.isfinite(edge).all(axis=(1, 2))] = 1.0  # a non-finite edge is named as such, not as too long
+    at = ("batches", b, geometry)
+    faults = [Fault((*at, j), f"zero-length edge: {p0} == {p1} gives no joint axis") for j in _where(size == 0)]
+    return faults + [Fault((*at, j), f"edge too long: {p1} - {p0} overflows float64") for j in _where(~np.isfinite(size))]
 
 
 def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarray, index: NDArray[np.int64]) -> list[Fault]:

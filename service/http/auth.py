@@ -30,7 +30,8 @@ class BearerAuthMiddleware:
         if scope["type"] not in ("http", "websocket") or not scope["path"].startswith(self.prefix) or self._authorized(scope):
             await self.app(scope, receive, send)
             return
-        body = json.dumps({"detail": "missing or invalid bearer token"}).encode()
+        fault = {"loc": ["header", "authorization"], "msg": "missing or invalid bearer token", "type": "unauthorized"}
+        body = json.dumps({"detail": [fault]}).encode()
         prefix = "http"
         if scope["type"] == "websocket":
             # A session is refused on its upgrade request, before it is accepted: the same 401 where the

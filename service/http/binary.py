@@ -18,7 +18,7 @@ from schemas import binary as wire
 from schemas import evaluate as models
 from service.core import Bodies, Evaluation, Fault, InputError, Joints
 from service.core.errors import MAX_FAULTS, Loc
-from service.core.validate import ORIGINS
+from service.core.validate import DUPLICATE_KEY_MSG, HESSIAN_MODES, NOT_A_LIST, ORIGINS, literal_msg
 from service.http import limits
 from service.http.errors import HttpError
 from service.http.convert import base_uid_of, strength_of
@@ -29,6 +29,7 @@ MEDIA_TYPE = wire.MEDIA_TYPE
 _REQUEST_KEYS, _BODY_KEYS, _BATCH_KEYS = (
     {k: f.is_required() for k, f in model.model_fields.items()} for model in (models.EvaluateRequest, models.Bodies, models.JointBatch)
 )
+_OPENING_KEYS = {**_REQUEST_KEYS, "id": False}  # a session's opening document may carry an `id`
 _JOINT_ARRAYS = {"body_ids": (wire.INT64, 2), "edges": (wire.FLOAT64, 3), "local_edges": (wire.FLOAT64, 4)} | {
     k: (wire.FLOAT64, 1) for k in ("lower", "upper", "strength", "offset", "prev_coordinate")
 }
@@ -72,7 +73,7 @@ class _Reader:
     def keys(self, obj: dict, loc: Loc) -> None:
         """Faults for the keys `dict` hides: repeated ones and non-string ones (a msgpack `bin` key)."""
         for k in getattr(obj, "repeated", ()):
-            self.fault((*loc, k), "Duplicate key: each key may appear once in a map", "duplicate_key")
+            self.fault((*loc, k), DUPLICATE_KEY_MSG, "duplicate_key")
         for k in obj:
             if not isinstance(k, str):
                 self.fault((*loc, k), f"Map keys must be msgpack str, got {type(k).__name__}", "key_type")
@@ -99,10 +100,14 @@ class _Reader:
             if len(self.faults) > n:
                 return empty
         try:
-            return wire.unpack_array(obj, dtype, ndim)
+            a = wire.unpack_array(obj, dtype, None)  # of any shape: the core names a wrong one, as for JSON
         except ValueError as e:
             self.fault(loc, str(e))
             return empty
+        if a.ndim == 0:  # a number where an array belongs
+            self.fault(loc, *NOT_A_LIST)
+            return empty
+        return a
 
     def int64(self, obj: Any, loc: Loc) -> int:
         if isinstance(obj, bool) or not isinstance(obj, int) or obj not in _INT64_RANGE:
@@ -207,14 +212,16 @@ def _unpack(body: bytes, r: _Reader, max_batches: int | None = None) -> Any:
     return doc
 
 
-def decode(body: bytes, max_joints: int, max_batches: int | None = None) -> dict[str, Any]:
+def decode(body: bytes, max_joints: int, max_batches: int | None = None, opening: bool = False) -> dict[str, Any]:
     """Keyword arguments of `service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`.
 
     More batches than `max_batches` is a 413 before any batch is read (each costs Python work here).
+    `opening`: a session's opening document, whose optional `id` is returned too, under "id".
     """
     r = _Reader()
     doc = _unpack(body, r, max_batches)
-    top = r.fields(doc, (), _REQUEST_KEYS)
+    top = r.fields(doc, (), _OPENING_KEYS if opening else _REQUEST_KEYS)
+    opening_id = message_id(r, top.get("id")) if opening else None
     # A missing or malformed `bodies` is one fault, not four.
     raw_bodies = r.fields(top["bodies"], ("bodies",), _BODY_KEYS) if "bodies" in top else {}
     f = {
@@ -231,7 +238,7 @@ def decode(body: bytes, max_joints: int, max_batches: int | None = None) -> dict
     if r.faults:
         raise InputError(r.faults)
     limits.check_joints(sum(j.body_ids.shape[0] for j in batches), max_joints)
-    return dict(
+    return ({"id": opening_id} if opening else {}) | dict(
         bodies=Bodies(q=f["q"], q_prev=f["q_prev"], q_ref=f["q_ref"]),
         batches=batches,
         outputs=outputs,
@@ -239,6 +246,13 @@ def decode(body: bytes, max_joints: int, max_batches: int | None = None) -> dict
         active_only=active_only,
         layout=layout,
     )
+
+
+def message_id(r: _Reader, v: Any) -> int | str | None:
+    """A session message's `id`: an int64 or a string of at most 128 characters (else a fault)."""
+    if v is None or (isinstance(v, str) and len(v) <= 128):
+        return v
+    return r.int64(v, ("id",))
 
 
 def _batch(r: _Reader, b: int, raw: Any) -> Joints:
@@ -267,13 +281,17 @@ def _batch(r: _Reader, b: int, raw: Any) -> Joints:
 
 
 def _options(r: _Reader, top: dict[str, Any]) -> tuple[list[str], str, bool]:
+    """The options' msgpack types; their values are the core's to check (`validate.check_options`), as for JSON."""
     outputs = top.get("outputs", list(OUTPUTS))
-    if not isinstance(outputs, list) or not all(isinstance(o, str) for o in outputs):
-        r.fault(("outputs",), "Input should be a list of strings", "list_type")
+    if not isinstance(outputs, list):
+        r.fault(("outputs",), "Input should be a valid list", "list_type")
         outputs = list(OUTPUTS)
+    for i, o in enumerate(outputs):
+        if not isinstance(o, str):
+            r.fault(("outputs", i), literal_msg(OUTPUTS), "literal_error")
     hessian_mode = top.get("hessian_mode", "exact")
     if not isinstance(hessian_mode, str):
-        r.fault(("hessian_mode",), "Input should be 'exact' or 'psd'", "literal_error")
+        r.fault(("hessian_mode",), literal_msg(HESSIAN_MODES), "literal_error")
         hessian_mode = "exact"
     active_only = top.get("active_only", False)
     if not isinstance(active_only, bool):

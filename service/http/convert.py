@@ -2,34 +2,39 @@
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import numpy as np
 import orjson
 from pydantic import ValidationError
 
-from schemas import EvaluateRequest
+from schemas import OUTPUTS, EvaluateRequest
 from schemas.constitutions import STRENGTH_DEFAULT
+from schemas.session import OpeningRequest
 from service.core import CONSTITUTIONS, Bodies, Evaluation, Fault, InputError, Joints
 from service.core.errors import MAX_FAULTS
+from service.core.prepared import input_faults
+from service.core.validate import as_array
 from service.http import jsonkeys, limits
 from service.http.errors import from_validation
 
 MEDIA_TYPE = "application/json"
 
 
-def decode(body: bytes, max_joints: int) -> dict[str, Any]:
-    """Keyword arguments of `service.core.evaluate` for a JSON body.
+def decode(body: bytes, max_joints: int, opening: bool = False) -> dict[str, Any]:
+    """Keyword arguments of `service.core.evaluate` for a JSON body (`opening`: a session's opening
+    document, whose `id` is returned too, under "id").
 
     Raises `HttpError` (413) for too many joints, `InputError` (422) for a malformed body.
     """
     limits.check_joints(limits.json_joints_upper_bound(body), max_joints)
-    req = parse(body)
+    req = parse(body, opening)
     limits.check_joints(sum(len(j.body_ids) for j in req.batches), max_joints)
-    return to_core(req)
+    return to_core(req) | ({"id": req.id} if opening else {})  # type: ignore[attr-defined]
 
 
-def parse(body: bytes) -> EvaluateRequest:
+def parse(body: bytes, opening: bool = False) -> EvaluateRequest:
     """The request of a JSON body, or `InputError` with at most `MAX_FAULTS` faults, found cheaply.
 
     Keys first, on the bytes (`jsonkeys`): repeated ones, which pydantic would let through
@@ -37,7 +42,7 @@ def parse(body: bytes) -> EvaluateRequest:
     whose lists are `FailFast` (a list's first bad item ends its checks): its error list is
     bounded too, as long as unknown keys (the one error it lists without bound) are.
     """
-    keys = jsonkeys.scan(body)
+    keys = jsonkeys.scan(body, opening=opening)
     key_faults = keys.faults
     if len(key_faults) >= MAX_FAULTS:
         raise InputError(key_faults)
@@ -50,17 +55,92 @@ def parse(body: bytes) -> EvaluateRequest:
         raise InputError(key_faults)
     try:
         # Rust-side parse and validation straight from bytes; rejects NaN, Infinity and 1e400.
-        req = EvaluateRequest.model_validate_json(body)
+        req = (OpeningRequest if opening else EvaluateRequest).model_validate_json(body)
     except ValidationError as e:
         faults = from_validation(e).faults
         if any(f.type == "json_invalid" for f in faults):
             raise InputError(faults) from None  # the scan's findings mean nothing in a broken document
+        if any(in_array(f) for f in faults):
+            faults = in_core_words(body, faults)
         seen = {(f.loc, f.type) for f in key_faults}
         raise InputError([*key_faults, *(f for f in faults if (f.loc, f.type) not in seen)]) from None
     repeated = [f for f in key_faults if f.type == "duplicate_key"]
     if repeated:
         raise InputError(repeated)  # pydantic let them through (the last one wins)
     return req
+
+
+BODY_ARRAYS = ("q", "q_prev", "q_ref")
+BATCH_ARRAYS = {"body_ids": True, "edges": False, "local_edges": False, "lower": False, "upper": False,
+                "strength": False, "offset": False, "prev_coordinate": False}
+"""The numeric arrays of a request (True: of integers), whose faults the core names on every path."""
+
+
+def in_array(f: Fault) -> bool:
+    """`f` lies inside one of the request's numeric arrays (pydantic names the element, e.g. a 13th number);
+    a missing array is pydantic's fault to name ("Field required")."""
+    loc = f.loc
+    if f.type == "missing":
+        return False
+    if loc[:1] == ("bodies",):
+        return len(loc) >= 2 and loc[1] in BODY_ARRAYS
+    return len(loc) >= 3 and loc[0] == "batches" and loc[2] in BATCH_ARRAYS
+
+
+def in_core_words(body: bytes, faults: list[Fault]) -> list[Fault]:
+    """pydantic's faults inside numeric arrays (a row of 11 numbers, a list where a number belongs) replaced
+    by what the core says of the same arrays, as msgpack and the SDK get them: the document is read again
+    leniently, each array built whatever its shape (`validate.as_array`), then the one validator runs."""
+    try:
+        doc = json.loads(body)  # as lenient as pydantic: NaN, Infinity, 1e400 (inf)
+    except ValueError:
+        return faults
+    others = [f for f in faults if not in_array(f)]
+    arrays: list[Fault] = []
+    bodies = doc.get("bodies") if isinstance(doc, dict) else None
+    built: dict[str, Any] = {}
+    for name in BODY_ARRAYS:
+        if isinstance(bodies, dict) and name in bodies:
+            built[name], found = as_array(bodies[name], ("bodies", name))
+            arrays += found
+    batches = doc.get("batches") if isinstance(doc, dict) else None
+    joints = []
+    for b, raw in enumerate(batches if isinstance(batches, list) else []):
+        fields = {}
+        for name, integer in BATCH_ARRAYS.items():
+            if isinstance(raw, dict) and raw.get(name) is not None:
+                fields[name], found = as_array(raw[name], ("batches", b, name), integer)
+                arrays += found
+        joints.append((raw, fields))
+    if arrays or others or any(built.get(n) is None for n in BODY_ARRAYS):
+        return (others + arrays)[:MAX_FAULTS] or faults
+    try:
+        kwargs = dict(
+            bodies=Bodies(built["q"], built["q_prev"], built["q_ref"]),
+            batches=[_joints(raw, fields) for raw, fields in joints],
+            outputs=doc.get("outputs", list(OUTPUTS)), hessian_mode=doc.get("hessian_mode", "exact"),
+            layout=doc.get("layout", "joints"),
+        )
+    except (KeyError, TypeError, ValueError):  # a field pydantic accepted but this reading cannot use
+        return faults
+    return input_faults(**kwargs) or faults
+
+
+def _joints(raw: dict[str, Any], fields: dict[str, np.ndarray]) -> Joints:
+    uid = raw["constitution_uid"]
+    return Joints(
+        constitution_uid=uid,
+        base_uid=base_uid_of(uid) if raw.get("base_uid") is None else raw["base_uid"],
+        body_ids=fields["body_ids"],
+        edges=fields.get("edges"),
+        local_edges=fields.get("local_edges"),
+        origin=raw.get("origin", "q_ref"),
+        lower=fields["lower"],
+        upper=fields["upper"],
+        strength=fields["strength"] if "strength" in fields else strength_of(None, len(fields["body_ids"])),
+        offset=fields.get("offset"),
+        prev_coordinate=fields.get("prev_coordinate"),
+    )
 
 
 def base_uid_of(constitution_uid: int) -> int:

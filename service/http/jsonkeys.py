@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 from schemas.evaluate import Bodies, EvaluateRequest, JointBatch
 from service.core.errors import MAX_FAULTS, Fault, Loc
+from service.core.validate import DUPLICATE_KEY_MSG
 
 # A string; one never closed runs to the end of the body (else each of its escaped quotes
 # would start a new scan to the end: quadratic).
@@ -45,7 +46,8 @@ _OBJECT_FIRST = re.compile(rb"\s*\{")
 _TOP, _BODIES, _BATCH = (
     {k: f.is_required() for k, f in model.model_fields.items()} for model in (EvaluateRequest, Bodies, JointBatch)
 )
-_CHILD = {(id(_TOP), "bodies", b"{"): _BODIES, (id(_TOP), "batches", b"["): _BATCH}
+_OPENING = {**_TOP, "id": False}  # a session's opening document: the request, and an optional `id`
+_CHILD = {(id(top), key, starts): child for top in (_TOP, _OPENING) for key, starts, child in (("bodies", b"{", _BODIES), ("batches", b"[", _BATCH))}
 
 
 @dataclass
@@ -78,12 +80,13 @@ class KeyScan:
     holding it, and whether that field is one of the request's (else it is already a fault)."""
 
 
-def scan(body: bytes, cap: int = MAX_FAULTS) -> KeyScan:
+def scan(body: bytes, cap: int = MAX_FAULTS, opening: bool = False) -> KeyScan:
     """The key faults of `body`; it stops at the `cap`-th fault, or at anything a valid body
-    cannot hold (an object outside the request's own objects, a second document)."""
+    cannot hold (an object outside the request's own objects, a second document).
+    `opening`: a session's opening document, which may also carry an `id`."""
     if not _OBJECT_FIRST.match(body):
         return KeyScan([], True)  # not an object: pydantic names that, in one error
-    s = _Scan(body, cap)
+    s = _Scan(body, cap, _OPENING if opening else _TOP)
     try:
         pos = 0
         for m in _STRINGS.finditer(body):
@@ -114,8 +117,8 @@ class _Stop(Exception):
 
 
 class _Scan:
-    def __init__(self, body: bytes, cap: int) -> None:
-        self.cap = cap
+    def __init__(self, body: bytes, cap: int, top: dict[str, bool]) -> None:
+        self.cap, self.top = cap, top
         self.faults: list[Fault] = []
         self.stack: list[_Object] = []
         self.closed = False  # the document's top object has closed
@@ -132,7 +135,7 @@ class _Scan:
             raise _Stop  # more after the document
         if b == b"{":
             if not stack:
-                stack.append(_Object((), _TOP))
+                stack.append(_Object((), self.top))
                 return
             parent = stack[-1]
             schema = _CHILD.get((id(parent.schema), parent.key, parent.starts))
@@ -160,7 +163,7 @@ class _Scan:
         obj = self.stack[-1]
         k = _key(raw)
         if k in obj.keys:
-            self.fault((*obj.loc, k), "Duplicate key: each key may appear once in an object", "duplicate_key")
+            self.fault((*obj.loc, k), DUPLICATE_KEY_MSG, "duplicate_key")
         elif k not in obj.schema:
             self.fault((*obj.loc, k), "Extra inputs are not permitted", "extra_forbidden")
         obj.keys.add(k)

@@ -1,8 +1,9 @@
 """Operational wiring of the application: auth, CORS, request ids, access log, metrics.
 
 Order, outermost first: observability (sees every request, including 401s and CORS
-preflights, and serves `/metrics`), CORS (answers preflights before auth could refuse
-them; a session's upgrade from a foreign `Origin` is refused), bearer auth (refuses before the body is read), the release of the memory budgets an
+preflights, and serves `/metrics`), the fault-list shape of every refusal, CORS (answers preflights before
+auth could refuse them; a session's upgrade from a foreign `Origin` is refused), bearer auth (refuses before the
+body is read), the release of the memory budgets an
 evaluation took (after its answer is sent), the body's read timeout, then the routes.
 """
 
@@ -14,6 +15,7 @@ from starlette.middleware.cors import CORSMiddleware
 from service import sizing
 from service.http.auth import BearerAuthMiddleware, SessionOriginMiddleware
 from service.http.budget import Budget, ReleaseMiddleware
+from service.http.refusals import FaultListMiddleware
 from service.http.timeouts import BodyTimeoutMiddleware
 from service.observability import Metrics, ObservabilityMiddleware
 from service.settings import Settings
@@ -48,6 +50,7 @@ def install(app: FastAPI, settings: Settings) -> None:
             expose_headers=["X-Request-ID"],
             max_age=600,
         )
+    app.add_middleware(FaultListMiddleware)  # every refusal in the fault-list shape, whoever refused
     app.add_middleware(
         ObservabilityMiddleware,
         metrics=metrics,

@@ -22,9 +22,13 @@ def request_body() -> dict[str, Any]:
                 "schema": {"$ref": _REF.format(model="EvaluateRequest")},
                 "example": text.EXAMPLE_REQUEST,
             },
+            # A Media Type Object has no `description` (OpenAPI 3.1 forbids unknown keys there): it goes in the schema.
             "application/msgpack": {
-                "schema": {"type": "string", "format": "binary"},
-                "description": "EvaluateRequest in the binary encoding (README, Binary transport)",
+                "schema": {
+                    "type": "string",
+                    "format": "binary",
+                    "description": "EvaluateRequest in the binary encoding (README, Binary transport)",
+                },
             },
         },
     }

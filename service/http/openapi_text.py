@@ -185,8 +185,10 @@ UNAUTHORIZED = {
     "description": "A token is configured (JOINTLIMITS_TOKEN) and the request has no valid "
     "`Authorization: Bearer <token>`; answered before the body is read.",
     "headers": {"WWW-Authenticate": {"description": 'Bearer realm="jointlimits"', "schema": {"type": "string"}}},
-    "content": {"application/json": {"schema": {"type": "object", "properties": {"detail": {"type": "string"}}},
-                                     "example": {"detail": "missing or invalid bearer token"}}},
+    "content": {"application/json": {
+        "schema": {"$ref": "#/components/schemas/ErrorResponse"},  # the fault list, as every refusal
+        "example": {"detail": [{"loc": ["header", "authorization"], "msg": "missing or invalid bearer token", "type": "unauthorized"}]},
+    }},
 }
 BEARER = {
     "type": "http",

@@ -17,6 +17,8 @@ from pydantic import ValidationError
 from schemas import binary as wire
 from schemas import session as proto
 from service.core import Evaluation, Fault, InputError
+from service.core.assembled import check_layout
+from service.core.validate import as_array, check_bodies, check_options, literal_msg, raise_if
 from service.http import binary, convert
 from service.http.errors import HttpError, from_validation
 
@@ -36,16 +38,42 @@ class Message:
     values: dict[str, np.ndarray] = field(default_factory=dict)  # update: (K,) per field given
 
 
+NOT_OPEN = (
+    "open a scene first: the first message of a session is the opening document (a POST /v1/evaluate body, "
+    "with an optional id), not a message with a kind"
+)
+
+
 def decode_open(frame: Frame, max_joints: int) -> dict[str, Any]:
-    """Keyword arguments of the core for the opening document; `InputError` (422) or `HttpError` (413)."""
-    if isinstance(frame, str):
-        return convert.decode(frame.encode(), max_joints)
-    return binary.decode(frame, max_joints)
+    """Keyword arguments of the core for the opening document, plus its `id` (under "id", None when absent);
+    `InputError` (422) or `HttpError` (413)."""
+    try:
+        if isinstance(frame, str):
+            kwargs = convert.decode(frame.encode(), max_joints, opening=True)
+        else:
+            kwargs = binary.decode(frame, max_joints, opening=True)
+        # The options become the session's defaults: checked now, on both encodings (JSON's parser already did);
+        # `q` is part of the document, checked as POST /v1/evaluate checks it (the scene is prepared at q_prev).
+        raise_if(check_options(kwargs["outputs"], kwargs["hessian_mode"]) + check_layout(kwargs["layout"])
+                 + check_bodies(kwargs["bodies"]))
+        return kwargs
+    except InputError as e:
+        # A later kind of message sent first: one fault that says so, not the opening document's five.
+        if any(f.loc == ("kind",) and f.type == "extra_forbidden" for f in e.faults):
+            raise InputError([Fault(("kind",), NOT_OPEN, "session_not_open")]) from None
+        raise
 
 
 def decode(frame: Frame) -> Message:
     """A later message; `InputError` naming the key at fault."""
     return _decode_json(frame) if isinstance(frame, str) else _decode_binary(frame)
+
+
+MESSAGE_ARRAYS = {"q": False, "index": True, **{k: False for k in proto.UPDATABLE}}
+"""A message's numeric arrays (True: of integers): their shapes are the core's to name, on both encodings."""
+NOT_A_MAP = ("Input should be an object", "dict_type")
+MISSING = ("Field required", "missing")
+BAD_KIND = (literal_msg(tuple(proto.KEYS)), "union_tag_invalid")
 
 
 def _decode_json(frame: str) -> Message:
@@ -55,7 +83,10 @@ def _decode_json(frame: str) -> Message:
         err = from_validation(e)
         # The discriminated union puts the kind in front of each loc: ("evaluate", "q", 3) -> ("q", 3).
         tag = _json_kind(frame)
-        raise InputError([_untagged(f, tag) for f in err.faults]) from None
+        faults = [_untagged(f, tag) for f in err.faults]
+        if not any(_in_array(f) for f in faults):
+            raise InputError(faults) from None
+        return _arrays_in_core_words(frame, tag, faults)
     out = Message(kind=m.kind, id=m.id)
     if m.kind in (proto.EVALUATE, proto.COMMIT):
         out.q = np.asarray(m.q, dtype=np.float64).reshape(len(m.q), 12)
@@ -67,6 +98,36 @@ def _decode_json(frame: str) -> Message:
     return out
 
 
+def _arrays_in_core_words(frame: str, kind: str | None, faults: list[Fault]) -> Message:
+    """A JSON message whose only faults are inside its arrays (a row of 11 numbers): its arrays as they are,
+    whatever their shape, for the core to name as it names msgpack's; a non-number is named here, in the
+    same words (`validate.as_array`). Any other fault is raised with them."""
+    doc = orjson.loads(frame)
+    others = [f for f in faults if not _in_array(f)]
+    arrays: dict[str, np.ndarray] = {}
+    found: list[Fault] = []
+    for name, integer in MESSAGE_ARRAYS.items():
+        if doc.get(name) is not None:
+            a, bad = as_array(doc[name], (name,), integer)
+            found += bad
+            if a is not None:
+                arrays[name] = a
+    if others or found or kind is None:
+        raise InputError(others + found or faults)
+    out = Message(kind=kind, id=doc.get("id"), q=arrays.get("q"))
+    if kind == proto.EVALUATE:
+        out.options = {k: doc[k] for k in ("outputs", "hessian_mode", "active_only") if doc.get(k) is not None}
+    if kind == proto.UPDATE:
+        out.batch, out.index = doc["batch"], arrays["index"]
+        out.values = {k: arrays[k] for k in proto.UPDATABLE if k in arrays}
+    return out
+
+
+def _in_array(f: Fault) -> bool:
+    """A fault inside one of the message's arrays (not its absence: that is pydantic's "Field required")."""
+    return bool(f.loc[:1]) and f.loc[0] in MESSAGE_ARRAYS and f.type != "missing"
+
+
 def _json_kind(frame: str) -> str | None:
     try:
         doc = orjson.loads(frame)
@@ -76,9 +137,12 @@ def _json_kind(frame: str) -> str | None:
 
 
 def _untagged(f: Fault, tag: str | None) -> Fault:
-    if f.type in ("union_tag_invalid", "union_tag_not_found"):
-        kinds = ", ".join(proto.KEYS)
-        return Fault(("kind",), f"must be one of {kinds}" if f.type == "union_tag_invalid" else "Field required", f.type)
+    if f.type == "union_tag_invalid":
+        return Fault(("kind",), *BAD_KIND)
+    if f.type == "union_tag_not_found":
+        return Fault(("kind",), *MISSING)
+    if f.type == "dict_type" and f.loc == ():
+        return Fault((), *NOT_A_MAP)
     return Fault(f.loc[1:], f.msg, f.type) if tag is not None and f.loc[:1] == (tag,) else f
 
 
@@ -88,12 +152,14 @@ def _decode_binary(frame: bytes) -> Message:
     except ValueError as e:
         raise InputError([Fault((), str(e).replace("body is", "message is"), "msgpack_invalid")]) from None
     r = binary._Reader()  # the binary transport's own reader: same checks, same messages
-    kind = doc.get("kind") if isinstance(doc, dict) else None
-    if not isinstance(kind, str) or kind not in proto.KEYS:
-        r.fault(("kind",), f"must be one of {', '.join(proto.KEYS)}", "union_tag_invalid")
-        raise InputError(r.faults)
+    # The words of JSON's parser for a message that is not a map, has no kind, or an unknown one.
+    if not isinstance(doc, dict):
+        raise InputError([Fault((), *NOT_A_MAP)])
+    kind = doc.get("kind")
+    if kind is None or not isinstance(kind, str) or kind not in proto.KEYS:
+        raise InputError([Fault(("kind",), *(MISSING if kind is None else BAD_KIND))])
     fields = r.fields(doc, (), proto.KEYS[kind])
-    out = Message(kind=kind, id=_id(r, fields.get("id")))
+    out = Message(kind=kind, id=binary.message_id(r, fields.get("id")))
     if "q" in fields:
         out.q = r.array(fields["q"], ("q",), wire.FLOAT64, 2, np.zeros((0, 12)))
     if kind == proto.EVALUATE:
@@ -107,12 +173,6 @@ def _decode_binary(frame: bytes) -> Message:
     if r.faults:
         raise InputError(r.faults)
     return out
-
-
-def _id(r: binary._Reader, v: Any) -> int | str | None:
-    if v is None or (isinstance(v, str) and len(v) <= 128):
-        return v
-    return r.int64(v, ("id",))
 
 
 def message_id(frame: Frame) -> int | str | None:

@@ -14,7 +14,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 from fastapi import APIRouter, WebSocket
@@ -30,6 +30,7 @@ from service.http import session_codec as codec
 from service.http.budget import Reservation
 from service.http.errors import HttpError
 from service.http.timeouts import DRAIN, Drain
+from service.http.ws_protocol import frame_limit
 from service.observability import ACCESS_LOGGER, Metrics
 from service.settings import Settings
 
@@ -60,6 +61,17 @@ def admit(settings: Settings, batch_joints: list[int], outputs: Sequence[str], b
     )
 
 
+DISCONNECT_REASONS = {
+    proto.NORMAL: "client",
+    proto.MESSAGE_TOO_BIG: "frame_too_large",  # the server's own limit (service/http/ws_protocol.py)
+    1007: "invalid_utf8",
+    1002: "protocol_error",
+    1012: "shutdown",
+    1008: "slow_message",  # a message not all received within JOINTLIMITS_BODY_TIMEOUT (service/http/timeouts.py)
+}
+"""The metric's `reason` of a connection the server layer ended (any other code: "disconnect")."""
+
+
 class Closing(Exception):
     """End the session with this WebSocket close code (schemas/session.py) and reason."""
 
@@ -81,6 +93,9 @@ class Session:
 async def sessions(websocket: WebSocket) -> None:
     app = websocket.app
     settings: Settings = app.state.settings
+    limit = frame_limit(websocket, settings.max_frame_bytes)  # the server's own may be lower: report the one in force
+    if limit != settings.max_frame_bytes:
+        settings = replace(settings, max_frame_bytes=limit)
     metrics: Metrics = app.state.metrics
     await websocket.accept()
     state = app.state
@@ -102,7 +117,7 @@ async def sessions(websocket: WebSocket) -> None:
         reason, code = c.metric, c.code
         await _close(websocket, c.code, c.reason)
     except WebSocketDisconnect as d:
-        reason, code = ("client" if d.code == proto.NORMAL else "disconnect"), d.code
+        reason, code = DISCONNECT_REASONS.get(d.code, "disconnect"), d.code
     except asyncio.CancelledError:
         reason, code = "shutdown", proto.GOING_AWAY
         raise
@@ -171,7 +186,7 @@ async def _messages(
                 reply = await _answer(session, message, binary_frame, settings, websocket.app.state, reservations)
         except (InputError, HttpError) as e:
             outcome = "fault"
-            if mid is None and session is not None:
+            if mid is None:  # the opening document's too
                 mid = codec.message_id(frame)
             reply = codec.encode(codec.error(e, mid), binary_frame)
             if kind == "open" and isinstance(e, HttpError) and e.status == 413:
@@ -255,6 +270,7 @@ def _reserve(state: Any, held: _Held, joints: int, most: int, bodies: int = 0) -
 async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held) -> tuple[Session, codec.Frame]:
     def work() -> tuple[Session, codec.Frame]:
         kwargs = codec.decode_open(frame, settings.max_joints)
+        opening_id = kwargs.pop("id")
         batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
         admit(settings, batch_joints, kwargs["outputs"], isinstance(frame, bytes))
         joints, bodies = sum(batch_joints), int(kwargs["bodies"].q.shape[0])
@@ -274,6 +290,8 @@ async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held)
             "coordinates": scene.coordinates(),
             "limits": {"max_frame_bytes": settings.max_frame_bytes, "idle_seconds": settings.session_idle_seconds},
         }
+        if opening_id is not None:
+            opened["id"] = opening_id
         return Session(scene, defaults, sum(batch_joints)), codec.encode(opened, isinstance(frame, bytes))
 
     return await run_in_threadpool(work)

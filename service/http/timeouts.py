@@ -45,6 +45,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
+from service.http.ws_protocol import SessionProtocol, not_utf8
 from service.observability import LIFESPAN_METRICS
 
 BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `client_gone`
@@ -265,8 +266,9 @@ def http_protocol(header_timeout: float, write_timeout: float | None = None) -> 
     return type("ReadTimeoutProtocol", (ReadTimeoutProtocol,), {"header_timeout": header_timeout, "write_timeout": write_timeout})
 
 
-class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
-    """uvicorn's websockets (sans-I/O) protocol, bounded on the write side like `ReadTimeoutProtocol`, with:
+class WriteTimeoutWebSocketProtocol(_WriteBound, SessionProtocol):
+    """uvicorn's websockets (sans-I/O) protocol with a close the client always reads (`ws_protocol.SessionProtocol`:
+    1009 / 1007 drained, reasons), bounded on the write side like `ReadTimeoutProtocol`, with:
 
     - no pong queued while writes are paused (a ping flood then costs nothing but CPU);
     - a deadline of `message_timeout` seconds (JOINTLIMITS_BODY_TIMEOUT) on a message still arriving,
@@ -338,8 +340,9 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
         try:
             text = data.decode()
         except UnicodeDecodeError:
-            self.conn.send_close(1007, "invalid UTF-8 in a text frame")
-            self.handle_parser_exception()  # logs one line, tells the application, closes
+            code, reason = not_utf8()
+            log.warning("client %s broke the WebSocket protocol: closing with %s (%s)", _peer(self.client), code, reason)
+            self._close_and_drain(code, reason)  # tells the application, sends the close, drains the rest
             return
         self.queue.put_nowait({"type": "websocket.receive", "text": text})
         if not self.read_paused:

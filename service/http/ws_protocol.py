@@ -1,0 +1,111 @@
+"""uvicorn's WebSocket protocol (websockets, sans-I/O) with a close the client always reads, and a reason.
+
+`jointlimits serve` runs it as the base of `timeouts.WriteTimeoutWebSocketProtocol` (the write-side bounds on
+top: `server_options`). Three changes:
+
+- A message over the limit (`ws_max_size`, set to `JOINTLIMITS_MAX_FRAME_BYTES`) or a text message that is
+  not UTF-8: uvicorn wrote the close frame and closed the socket at once; with the client's message still
+  arriving, the kernel answered it with a reset, and the client saw 1006 instead of 1009 (issue 20: 1009
+  in 0-2 of 6 tries at 64 MiB). Here the close frame (1009 / 1007, with a reason) and a FIN go out, then
+  the rest of what the client sends is read and dropped until it closes, at most `DRAIN_SECONDS`.
+- The application hears the same code and reason (`websocket.disconnect`), so the session's log line and
+  `jointlimits_sessions_total{reason}` name the cause.
+- A shutdown closes sessions with 1012 and a reason (uvicorn sends none).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from starlette.websockets import WebSocket
+from websockets.exceptions import PayloadTooBig
+from websockets.frames import Close, Frame, Opcode
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
+
+DRAIN_SECONDS = 30.0
+"""Longest time the rest of a refused message is read and dropped before the socket is closed anyway."""
+
+SHUTDOWN_REASON = "the server is shutting down: reopen the session (another worker or pod answers)"
+
+
+class SessionProtocol(WebSocketsSansIOProtocol):
+    draining = False
+
+    def data_received(self, data: bytes) -> None:
+        if self.draining:
+            return  # the rest of a refused message: dropped unread
+        super().data_received(data)
+
+    def eof_received(self) -> bool | None:
+        return None  # the client closed its side: the transport closes (nothing is left unread)
+
+    def handle_parser_exception(self) -> None:
+        """Send the close frame and a FIN, keep reading (dropping) until the client closes."""
+        exc = self.conn.parser_exc
+        if not isinstance(exc, (PayloadTooBig, UnicodeDecodeError)):
+            super().handle_parser_exception()
+            return
+        self.conn.data_to_send()  # websockets' own close frame and EOF: replaced by ours
+        code, reason = (1009, _too_big(exc, self.config.ws_max_size)) if isinstance(exc, PayloadTooBig) else not_utf8()
+        self._close_and_drain(code, reason)
+
+    def send_receive_event_to_app(self) -> None:
+        """As uvicorn's, with a reason and a drained close for a text message that is not UTF-8."""
+        if self.curr_msg_data_type == "text" and not self.close_sent:
+            data = self.frames[0] if len(self.frames) == 1 else b"".join(self.frames)
+            try:
+                data.decode()
+            except UnicodeDecodeError:
+                self.frames = []
+                self._close_and_drain(*not_utf8())
+                return
+        super().send_receive_event_to_app()
+
+    def _close_and_drain(self, code: int, reason: str) -> None:
+        self.queue.put_nowait({"type": "websocket.disconnect", "code": code, "reason": reason})
+        self.transport.write(Frame(Opcode.CLOSE, Close(code, reason).serialize()).serialize(mask=False))
+        if self.transport.can_write_eof():
+            self.transport.write_eof()  # the client reads the close frame, then EOF: no reset
+        self.close_sent = self.draining = True
+        if self.read_paused:
+            self.read_paused = False
+            self.transport.resume_reading()
+        self.close_timer = self.loop.call_later(DRAIN_SECONDS, self.transport.close)
+
+    def shutdown(self) -> None:
+        if self.handshake_complete and not self.close_sent:
+            self.stop_keepalive()
+            self.queue.put_nowait({"type": "websocket.disconnect", "code": 1012, "reason": SHUTDOWN_REASON})
+            self.conn.send_close(1012, SHUTDOWN_REASON)
+            self.transport.write(b"".join(self.conn.data_to_send()))
+            self.transport.close()
+            return
+        super().shutdown()
+
+
+def _too_big(exc: PayloadTooBig, limit: int | None) -> str:
+    size = getattr(exc, "size", None)  # the frame's size; None for a message of several frames
+    what = f"message of {size + (exc.current_size or 0)} bytes" if size is not None else "message"
+    return f"{what} over the limit; this service accepts at most {limit} (JOINTLIMITS_MAX_FRAME_BYTES)"
+
+
+def not_utf8() -> tuple[int, str]:
+    return 1007, "a text message must be valid UTF-8 (send msgpack as a binary message)"
+
+
+def server_options(max_frame_bytes: int) -> dict[str, Any]:
+    """uvicorn's WebSocket options for the service: this protocol, the message limit it enforces (the
+    application's, so the two agree), no permessage-deflate (README, "The protocol, byte by byte")."""
+    return {"ws": "service.http.timeouts:WriteTimeoutWebSocketProtocol", "ws_max_size": max_frame_bytes,
+            "ws_per_message_deflate": False}
+
+
+def frame_limit(websocket: WebSocket, configured: int) -> int:
+    """The message limit in force on this connection: `configured` (JOINTLIMITS_MAX_FRAME_BYTES), or the server's
+    own limit where it is lower (plain `uvicorn service.app:app` keeps uvicorn's 16 MiB `ws_max_size`).
+
+    uvicorn's `receive` is a method of its protocol, whose config holds the limit; under another server
+    (or Starlette's TestClient) it is not known, and the configured one is reported and enforced."""
+    config = getattr(getattr(websocket._receive, "__self__", None), "config", None)
+    server = getattr(config, "ws_max_size", None)
+    return min(configured, server) if isinstance(server, int) and server > 0 else configured

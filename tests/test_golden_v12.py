@@ -173,3 +173,16 @@ def test_the_project_holds_the_shared_golden_files_and_contract_as_they_are():
         assert (here / ours).read_bytes() == (SHARED / "golden" / theirs).read_bytes(), ours
     contract = (here.parent / "schemas" / "CONTRACT.md").read_text()
     assert contract.startswith((SHARED / "CONTRACT.md").read_text())
+
+
+@pytest.mark.parametrize("uid", [670, 669])
+@pytest.mark.parametrize("origin", ["q_ref", "absolute"])
+def test_an_empty_batch_of_local_edges_is_answered(uid, origin):
+    """A batch of no joints given by `local_edges` (N = 0) answers an empty batch, as an empty `edges` batch does
+    (schemathesis once found a 500 here: the local axis' scaling took the largest entry of zero rows)."""
+    doc = _request({"constitution_uid": uid, "body_ids": [], "local_edges": [], "lower": [], "upper": [], "origin": origin})
+    with TestClient(app) as client:
+        r = client.post("/v1/evaluate", json=doc)
+    assert r.status_code == 200, r.text
+    assert r.json()["batches"][0]["x"] == [] and r.json()["total_energy"] == 0.0
+    assert LocalClient().evaluate(as_request(doc)).batches[0].x.shape == (0,)

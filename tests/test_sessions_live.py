@@ -241,17 +241,19 @@ def test_async_session_reopens_after_a_drop(live):
         assert coords[0].tobytes() == ref.commit(q)[0].tobytes()
 
 
-def test_a_client_that_stops_reading_is_closed_by_the_idle_timer():
-    """Replies pile up unread (the server's send waits on a full buffer): after the idle time the session ends
-    and its place is free again, whatever the client does."""
+def test_a_client_that_stops_reading_is_dropped_and_frees_its_place(monkeypatch):
+    """Replies pile up unread (the server's send waits on a full buffer): JOINTLIMITS_WRITE_TIMEOUT after they
+    stopped leaving, the connection is dropped (issue 19: the write side is bounded, at the depth of the
+    protocol that `jointlimits serve` runs) and the worker's only place is free again, whatever the client does."""
     import httpx
     from websockets.sync.client import connect
 
     from client.codec import encode
 
+    monkeypatch.setenv("JOINTLIMITS_WRITE_TIMEOUT", "2")  # read by the WebSocket protocol per connection
     req, _ = chain(2000)  # E+G+H of 2000 joints, all outside: ~9 MB per answer
     settings = Settings(max_body_bytes=2_000_000, max_joints=4000, token=None, cors_origins=(), max_sessions=1,
-                        session_idle_seconds=1.0)
+                        session_idle_seconds=300.0)
     with serve(settings) as url:
         ws_url = url.replace("http", "ws") + proto.PATH
         # max_queue=1: the client library stops reading from the socket after one unread message.
@@ -260,8 +262,8 @@ def test_a_client_that_stops_reading_is_closed_by_the_idle_timer():
             frame = {"kind": "evaluate", "q": wire.pack_array(req.q, wire.FLOAT64)}
             for _ in range(6):
                 ws.send(wire.dumps(frame))
-            deadline = time.monotonic() + 60
-            while 'jointlimits_sessions_total{reason="idle"} 1.0' not in (m := httpx.get(url + "/metrics").text):
+            deadline = time.monotonic() + 30  # the write timeout (2 s) once the buffer is full, not the idle time (300 s)
+            while 'jointlimits_sessions_total{reason="disconnect"} 1.0' not in (m := httpx.get(url + "/metrics").text):
                 assert time.monotonic() < deadline, m
                 time.sleep(0.2)
             assert "jointlimits_sessions_open 0.0" in m

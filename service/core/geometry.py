@@ -41,7 +41,7 @@ def axis_and_anchors(
 
 def _unit_scaled(a: Array) -> Array:
     """Each row of `a` (N, ...) times the power of two that puts its largest magnitude in [0.5, 1) (exact)."""
-    _, e = np.frexp(np.abs(a).reshape(a.shape[0], -1).max(axis=1))
+    _, e = np.frexp(np.abs(a).reshape(a.shape[0], int(np.prod(a.shape[1:]))).max(axis=1, initial=0.0))  # N may be 0
     return np.ldexp(a, -e.reshape(-1, *(1,) * (a.ndim - 1)))
 
 

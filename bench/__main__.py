@@ -29,8 +29,8 @@ from bench import measure as M
 from bench import report
 from bench import sessions as S
 from bench.scenes import make_scene, shifted
-from service.core.heap import keep_heap
-from service.core.prepared import prepare
+from jointlimits.service.core.heap import keep_heap
+from jointlimits.service.core.prepared import prepare
 
 GOLDEN = Path(__file__).resolve().parent.parent / "tests" / "golden_cases.json"
 OUTSIDE = 0.1  # fraction of joints past a limit in the timing scenes

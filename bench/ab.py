@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def import_revision(rev: str, into: Path) -> Any:
-    """REV's `service` package, written under `into` and imported as `_ab_service`; its `service.core`."""
+    """REV's `service` package, written under `into` and imported as `_ab_service`; its `core` package."""
     archive = subprocess.run(["git", "archive", rev, "service"], cwd=ROOT, capture_output=True, check=True).stdout
     with tarfile.open(fileobj=BytesIO(archive)) as tar:
         try:
@@ -42,8 +42,9 @@ def import_revision(rev: str, into: Path) -> Any:
     (into / "service").rename(into / ALIAS)
     for path in (into / ALIAS).rglob("*.py"):
         text = path.read_text()
-        text = re.sub(r"\bfrom service(\.| import)", rf"from {ALIAS}\1", text)
-        text = re.sub(r"\bimport service\.", f"import {ALIAS}.", text)
+        # REV's own imports of its service package: `jointlimits.service` (since the one namespace) or `service`.
+        text = re.sub(r"\bfrom (?:jointlimits\.)?service(\.| import)", rf"from {ALIAS}\1", text)
+        text = re.sub(r"\bimport (?:jointlimits\.)?service\.", f"import {ALIAS}.", text)
         path.write_text(text)
     sys.path.insert(0, str(into))
     return importlib.import_module(f"{ALIAS}.core")
@@ -77,8 +78,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="time PreparedScene.evaluate(q) of a scene prepared once per tree (a session's evaluation)")
     args = ap.parse_args(argv)
 
-    from service.core import evaluate, prepare
-    from service.core.heap import keep_heap
+    from jointlimits.service.core import evaluate, prepare
+    from jointlimits.service.core.heap import keep_heap
 
     keep_heap()  # as the service and the bench run
     outputs = tuple(args.outputs.split(","))

@@ -13,10 +13,10 @@ import numpy as np
 import orjson
 
 from bench.measure import document
-from service.core import Bodies, Joints
+from jointlimits.service.core import Bodies, Joints
 
 try:  # the binary transport (msgpack, raw little-endian arrays) is being written concurrently
-    from schemas import binary as wire
+    from jointlimits.schemas import binary as wire
 except ImportError:  # pragma: no cover - older trees
     wire = None
 
@@ -37,7 +37,7 @@ class Server:
 
     def __enter__(self) -> Server:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1", "--port", str(self.port),
+            [sys.executable, "-m", "uvicorn", "jointlimits.service.app:app", "--host", "127.0.0.1", "--port", str(self.port),
              "--log-level", "warning"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         )

@@ -14,8 +14,8 @@ import sys
 
 from bench.measure import median_time, peak_memory
 from bench.scenes import make_scene
-from service.core import evaluate
-from service.core.heap import keep_heap
+from jointlimits.service.core import evaluate
+from jointlimits.service.core.heap import keep_heap
 
 
 def main(argv: list[str]) -> None:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from service.core import Bodies, Joints, evaluate
+from jointlimits.service.core import Bodies, Joints, evaluate
 
 # Bench mode -> the core's outputs; "psd" is E+G+H with hessian_mode="psd".
 OUTPUTS = {

@@ -28,7 +28,7 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_platforms", "cpu")
 import jax.numpy as jnp  # noqa: E402
 
-from service.core import Bodies, Joints  # noqa: E402
+from jointlimits.service.core import Bodies, Joints  # noqa: E402
 
 # (name in the report, same_work): the fair peer first, the strongest second.
 FLAVOURS = [("JAX jit(vmap), same inputs", True), ("JAX jit(vmap), frames precomputed", False)]

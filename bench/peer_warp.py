@@ -22,7 +22,7 @@ import numpy as np
 
 import warp as wp
 
-from service.core import Bodies, Joints
+from jointlimits.service.core import Bodies, Joints
 
 wp.config.log_level = 30  # logging.WARNING: no banner or module-load lines on stdout (the bench's last line is its own)
 wp.init()

@@ -8,9 +8,9 @@ import time
 
 import numpy as np
 
-from service.core.constitution import Curvature
-from service.core.heap import keep_heap
-from service.core.prismatic import _D, _S, PRISMATIC
+from jointlimits.service.core.constitution import Curvature
+from jointlimits.service.core.heap import keep_heap
+from jointlimits.service.core.prismatic import _D, _S, PRISMATIC
 
 _U_PLUS, _U_MINUS = 0.5 * (_D + _S), 0.5 * (_D - _S)
 

@@ -7,8 +7,8 @@ import argparse
 
 from bench.ab import pairs
 from bench.scenes import make_scene
-from service.core import evaluate
-from service.core.heap import keep_heap
+from jointlimits.service.core import evaluate
+from jointlimits.service.core.heap import keep_heap
 
 
 def main(argv: list[str] | None = None) -> int:

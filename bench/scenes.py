@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.core import Bodies, Joints, evaluate
+from jointlimits.service.core import Bodies, Joints, evaluate
 
 # (constitution uid, base uid): #670 revolute, #669 prismatic.
 CONSTITUTIONS = ((670, 18), (669, 20))

@@ -1,7 +1,7 @@
 """Per-iteration cost of a prepared scene against the stateless call (issue 10 item 5).
 
 In-process: `prepare(...)` once, then `scene.evaluate(q)` per iteration, against the stateless
-`service.core.evaluate` (which prepares and evaluates once) on the same scene, energy and E+G+H.
+`jointlimits.service.core.evaluate` (which prepares and evaluates once) on the same scene, energy and E+G+H.
 Over the wire (a uvicorn subprocess on loopback, as bench/http_bench.py): a session's `evaluate`
 against the stateless `Client.evaluate` of the same scene, msgpack and JSON, 10 / 1e3 / 1e4 joints;
 per iteration p50, p99 and the bytes both ways. A solver's iteration: E+G+H exact, `active_only`.
@@ -21,8 +21,8 @@ import numpy as np
 from bench import measure as M
 from bench import report
 from bench.scenes import make_scene
-from service.core import Bodies, Joints, evaluate
-from service.core.prepared import prepare
+from jointlimits.service.core import Bodies, Joints, evaluate
+from jointlimits.service.core.prepared import prepare
 
 WIRE_SIZES = (10, 1_000, 10_000)
 ITERATIONS = {10: 300, 1_000: 60, 10_000: 15}  # per measurement: small calls are cheap and noisy, so more of them
@@ -56,7 +56,7 @@ def inprocess(sizes: list[int], reps: int) -> list[dict[str, Any]]:
 
 
 def sdk_request(bodies: Bodies, batches: list[Joints]) -> Any:
-    from client.model import JointBatch, Request
+    from jointlimits.client.model import JointBatch, Request
 
     return Request(
         q=bodies.q, q_prev=bodies.q_prev, q_ref=bodies.q_ref,
@@ -80,7 +80,7 @@ def _http_bytes(url: str, request: Any, binary: bool) -> int:
     """Bytes of one stateless iteration both ways: the request body and the answer body."""
     import httpx
 
-    from client import codec
+    from jointlimits.client import codec
 
     content, content_type = codec.encode(request, binary)
     r = httpx.post(url + "/v1/evaluate", content=content, timeout=300,
@@ -92,7 +92,7 @@ def _http_bytes(url: str, request: Any, binary: bool) -> int:
 def wire(iterations: dict[int, int] | None = None) -> list[dict[str, Any]]:
     """Session `evaluate` and stateless `Client.evaluate` per iteration at WIRE_SIZES, msgpack and JSON."""
     from bench.http_bench import Server
-    from client import Client
+    from jointlimits.client import Client
 
     iterations = iterations or ITERATIONS
     rows = []
@@ -191,7 +191,7 @@ def only(command: str, sizes: list[int], reps: int, out: Path, with_wire: bool) 
     import os
     import platform
 
-    from service.core.heap import keep_heap
+    from jointlimits.service.core.heap import keep_heap
 
     keep_heap()  # as the service runs
     res: dict[str, Any] = {"command": command, "machine": f"{platform.processor() or platform.machine()}, "

@@ -1,6 +1,6 @@
 """Python SDK of the joint-limit constitution service.
 
-    from client import Client, LocalClient, Scene
+    from jointlimits.client import Client, LocalClient, Scene
     scene = Scene(); ...; result = Client("http://127.0.0.1:8000").evaluate(scene.request())
 
 `Client` (sync) and `AsyncClient` speak HTTP (binary by default); `LocalClient` calls the
@@ -11,10 +11,10 @@ or in-process) for a solver loop: `evaluate(q)`, `commit(q)`, `update(...)`; a l
 raises `SessionClosed` and `reopen()` continues from the last commit.
 """
 
-from client.aio import AsyncClient
-from client.errors import Busy, Fault, InvalidInput, ServiceError, TooLarge, Unreachable, WrongURL
-from client.local import LocalClient
-from client.model import (
+from jointlimits.client.aio import AsyncClient
+from jointlimits.client.errors import Busy, Fault, InvalidInput, ServiceError, TooLarge, Unreachable, WrongURL
+from jointlimits.client.local import LocalClient
+from jointlimits.client.model import (
     PRISMATIC_LIMIT,
     REVOLUTE_LIMIT,
     BatchResult,
@@ -24,9 +24,9 @@ from client.model import (
     JointResult,
     Request,
 )
-from client.scene import Scene, dofs, request_from_arrays
-from client.session import SessionClosed
-from client.sync import Client
+from jointlimits.client.scene import Scene, dofs, request_from_arrays
+from jointlimits.client.session import SessionClosed
+from jointlimits.client.sync import Client
 
 __all__ = [
     "PRISMATIC_LIMIT",

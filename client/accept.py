@@ -7,10 +7,10 @@ from typing import Any
 import numpy as np
 import orjson
 
-from client.errors import Fault, InvalidInput
-from client.model import JointBatch, Request
-from schemas import EvaluateRequest
-from schemas.constitutions import STRENGTH_DEFAULT
+from jointlimits.client.errors import Fault, InvalidInput
+from jointlimits.client.model import JointBatch, Request
+from jointlimits.schemas import EvaluateRequest
+from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
 
 ACCEPTED = "a client.Request (Scene().request(), request_from_arrays(...)), a dict in the wire JSON's shape, or a schemas.EvaluateRequest"
 
@@ -31,8 +31,8 @@ def as_request(request: Any) -> Request:
         except TypeError as e:
             raise TypeError(f"evaluate(): the dict is not wire JSON ({e})") from None
         # The service's own JSON reader (imported here: HTTP alone never loads it): the same faults, in the same words.
-        from service.core import InputError
-        from service.http.convert import parse
+        from jointlimits.service.core import InputError
+        from jointlimits.service.http.convert import parse
 
         try:
             return _from_wire(parse(body))

@@ -8,16 +8,16 @@ from typing import TYPE_CHECKING
 
 import httpx
 
-from client import split, transport
-from client.accept import as_request
-from client.base import DEFAULT_URL, BaseClient
-from client.model import Evaluation, Request
-from client.progress import ProgressCallback
-from schemas import ConstitutionsResponse, EvaluateRequest
+from jointlimits.client import split, transport
+from jointlimits.client.accept import as_request
+from jointlimits.client.base import DEFAULT_URL, BaseClient
+from jointlimits.client.model import Evaluation, Request
+from jointlimits.client.progress import ProgressCallback
+from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest
 
 
 if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
-    from client.session_aio import AsyncSession
+    from jointlimits.client.session_aio import AsyncSession
 
 
 class AsyncClient(BaseClient):
@@ -81,8 +81,8 @@ class AsyncClient(BaseClient):
 
     def session(self, request: Request) -> AsyncSession:
         """`async with client.session(r) as s:` (or `s = await client.session(r)`): `Client.session`, awaitable."""
-        from client.session import connection_options  # imported here: HTTP alone never loads websockets
-        from client.session_aio import AsyncSession
+        from jointlimits.client.session import connection_options  # imported here: HTTP alone never loads websockets
+        from jointlimits.client.session_aio import AsyncSession
 
         o = connection_options(dict(self._http_options))
         return AsyncSession(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"])

@@ -11,11 +11,11 @@ from typing import TypedDict
 
 import httpx
 
-from client import codec, split, transport
-from client.errors import ServiceError
-from client.model import Evaluation, Request
-from client.progress import ProgressCallback, resolve_progress
-from schemas import ConstitutionsResponse
+from jointlimits.client import codec, split, transport
+from jointlimits.client.errors import ServiceError
+from jointlimits.client.model import Evaluation, Request
+from jointlimits.client.progress import ProgressCallback, resolve_progress
+from jointlimits.schemas import ConstitutionsResponse
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 

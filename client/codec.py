@@ -7,9 +7,9 @@ from typing import Any
 import numpy as np
 import orjson
 
-from client.errors import ServiceError
-from client.model import Assembled, BatchResult, Evaluation, Request
-from schemas import binary as wire
+from jointlimits.client.errors import ServiceError
+from jointlimits.client.model import Assembled, BatchResult, Evaluation, Request
+from jointlimits.schemas import binary as wire
 
 JSON = "application/json"
 BINARY = wire.MEDIA_TYPE

@@ -7,13 +7,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from client.accept import as_request
-from client.errors import Fault, InvalidInput
-from client.model import BatchResult, Evaluation, Request
-from client.progress import ProgressCallback
-from schemas import ConstitutionsResponse, EvaluateRequest, Limits
-from schemas.constitutions import describe
-from service import core
+from jointlimits.client.accept import as_request
+from jointlimits.client.errors import Fault, InvalidInput
+from jointlimits.client.model import BatchResult, Evaluation, Request
+from jointlimits.client.progress import ProgressCallback
+from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
+from jointlimits.schemas.constitutions import describe
+from jointlimits.service import core
 
 
 HTTP_OPTIONS = frozenset(
@@ -59,7 +59,7 @@ def result(ev: core.Evaluation) -> Evaluation:
 
 
 if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
-    from client.session_local import LocalSession
+    from jointlimits.client.session_local import LocalSession
 
 
 class LocalClient:
@@ -113,7 +113,7 @@ class LocalClient:
 
     def session(self, request: Request) -> LocalSession:
         """`Client.session`'s API in-process, on the core's prepared scene (bitwise the same numbers)."""
-        from client.session_local import LocalSession
+        from jointlimits.client.session_local import LocalSession
 
         return LocalSession(request, threads=self.threads)
 

@@ -7,12 +7,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from client.errors import Fault, InvalidInput
-from schemas import OUTPUTS
-from service.core.assembled import Assembled  # noqa: F401 (re-exported: Evaluation.assembled)
-from service.core.errors import MAX_FAULTS
-from service.core.errors import Fault as CoreFault
-from service.core.validate import as_array
+from jointlimits.client.errors import Fault, InvalidInput
+from jointlimits.schemas import OUTPUTS
+from jointlimits.service.core.assembled import Assembled  # noqa: F401 (re-exported: Evaluation.assembled)
+from jointlimits.service.core.errors import MAX_FAULTS
+from jointlimits.service.core.errors import Fault as CoreFault
+from jointlimits.service.core.validate import as_array
 
 Array = NDArray[np.float64]
 

@@ -12,12 +12,12 @@ from typing import Union
 import numpy as np
 from numpy.typing import ArrayLike
 
-from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request, _array, invalid
-from service.core.errors import Fault as CoreFault
-from service.core.scene import Bodies
-from service.core.validate import check_bodies
-from schemas import OUTPUTS
-from schemas.constitutions import STRENGTH_DEFAULT
+from jointlimits.client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request, _array, invalid
+from jointlimits.service.core.errors import Fault as CoreFault
+from jointlimits.service.core.scene import Bodies
+from jointlimits.service.core.validate import check_bodies
+from jointlimits.schemas import OUTPUTS
+from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
 
 Pose = Union[ArrayLike, tuple[ArrayLike, ArrayLike]]
 

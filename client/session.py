@@ -16,12 +16,12 @@ import numpy as np
 import orjson
 from numpy.typing import ArrayLike
 
-from client import codec
-from client.accept import as_request
-from client.errors import Fault, ServiceError
-from client.model import REVOLUTE_LIMIT, Array, Evaluation, Request
-from schemas import binary as wire
-from schemas import session as proto
+from jointlimits.client import codec
+from jointlimits.client.accept import as_request
+from jointlimits.client.errors import Fault, ServiceError
+from jointlimits.client.model import REVOLUTE_LIMIT, Array, Evaluation, Request
+from jointlimits.schemas import binary as wire
+from jointlimits.schemas import session as proto
 
 Frame = bytes | str
 _BINARY_ERROR = b"\xa4kind\xa5error"

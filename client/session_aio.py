@@ -15,13 +15,13 @@ from numpy.typing import ArrayLike
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
-from client.model import Array, Evaluation, Request
-from client.session import Frame, SessionClosed, SessionState, StateView
-from client.session_sync import CONNECT_OPTIONS, closed_error, handshake_error
+from jointlimits.client.model import Array, Evaluation, Request
+from jointlimits.client.session import Frame, SessionClosed, SessionState, StateView
+from jointlimits.client.session_sync import CONNECT_OPTIONS, closed_error, handshake_error
 
 
 class AsyncSession(StateView):
-    """The asyncio twin of `client.session_sync.Session` (same arguments, results and errors)."""
+    """The asyncio twin of `jointlimits.client.session_sync.Session` (same arguments, results and errors)."""
 
     def __init__(self, url: str, request: Request, *, binary: bool = True, timeout: float | None = 60.0,
                  headers: dict[str, str] | None = None) -> None:

@@ -9,12 +9,12 @@ from typing import Any, TypeVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from client.errors import Fault, InvalidInput
-from client.model import Array, Evaluation, Request
-from client.local import core_batches, result
-from client.session import SessionClosed, SessionState, StateView, options
-from service import core
-from service.core.prepared import prepare
+from jointlimits.client.errors import Fault, InvalidInput
+from jointlimits.client.model import Array, Evaluation, Request
+from jointlimits.client.local import core_batches, result
+from jointlimits.client.session import SessionClosed, SessionState, StateView, options
+from jointlimits.service import core
+from jointlimits.service.core.prepared import prepare
 
 T = TypeVar("T")
 URL = "local://in-process"
@@ -32,7 +32,7 @@ def _call(fn: Callable[[], T]) -> T:
 
 
 class LocalSession(StateView):
-    """`client.session_sync.Session`'s API on a `PreparedScene` in this process: bitwise the same numbers."""
+    """`jointlimits.client.session_sync.Session`'s API on a `PreparedScene` in this process: bitwise the same numbers."""
 
     def __init__(self, request: Request, *, threads: int = 1) -> None:
         self.state = SessionState(request, URL, binary=True)

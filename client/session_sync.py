@@ -11,11 +11,11 @@ import orjson
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidMessage, InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 
-from client import codec
-from client.errors import Fault, Unreachable, WrongURL
-from client.model import Array, Evaluation, Request
-from client.session import Frame, SessionClosed, SessionState, StateView
-from schemas import session as proto
+from jointlimits.client import codec
+from jointlimits.client.errors import Fault, Unreachable, WrongURL
+from jointlimits.client.model import Array, Evaluation, Request
+from jointlimits.client.session import Frame, SessionClosed, SessionState, StateView
+from jointlimits.schemas import session as proto
 
 
 def handshake_error(url: str, e: Exception) -> Exception:
@@ -62,7 +62,7 @@ CONNECT_OPTIONS: dict[str, Any] = dict(
 
 
 class Session(StateView):
-    """A prepared scene on the server, held by one WebSocket connection (see `client.session`).
+    """A prepared scene on the server, held by one WebSocket connection (see `jointlimits.client.session`).
 
     `evaluate(q, ...)` answers as `Client.evaluate` does; `commit(q)` ends a time step and
     returns the committed coordinates (one (N,) array per batch); `update(batch, index, lower=...)`

@@ -11,9 +11,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from client.errors import Fault, ServiceError
-from client.model import Assembled, BatchResult, Evaluation, JointBatch, Request
-from service.core.assembled import reduce_pairs
+from jointlimits.client.errors import Fault, ServiceError
+from jointlimits.client.model import Assembled, BatchResult, Evaluation, JointBatch, Request
+from jointlimits.service.core.assembled import reduce_pairs
 
 
 @dataclass(frozen=True)

@@ -8,16 +8,16 @@ from typing import TYPE_CHECKING
 
 import httpx
 
-from client import transport
-from client.accept import as_request
-from client.base import DEFAULT_URL, BaseClient
-from client.model import Evaluation, Request
-from client.progress import ProgressCallback
-from schemas import ConstitutionsResponse, EvaluateRequest
+from jointlimits.client import transport
+from jointlimits.client.accept import as_request
+from jointlimits.client.base import DEFAULT_URL, BaseClient
+from jointlimits.client.model import Evaluation, Request
+from jointlimits.client.progress import ProgressCallback
+from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest
 
 
 if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
-    from client.session_sync import Session
+    from jointlimits.client.session_sync import Session
 
 
 class Client(BaseClient):
@@ -110,8 +110,8 @@ class Client(BaseClient):
 
     def session(self, request: Request) -> Session:
         """A session on the server's prepared scene of `request` (README "Sessions"): `with client.session(r) as s:`."""
-        from client.session import connection_options  # imported here: HTTP alone never loads websockets
-        from client.session_sync import Session
+        from jointlimits.client.session import connection_options  # imported here: HTTP alone never loads websockets
+        from jointlimits.client.session_sync import Session
 
         o = connection_options(dict(self._http_options))
         return Session(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"])

@@ -7,10 +7,10 @@ from collections.abc import Sequence
 
 import httpx
 
-from client import codec
-from client.errors import Busy, Fault, Unreachable, WrongURL
-from client.model import Evaluation
-from schemas import OUTPUTS, ConstitutionsResponse, answer
+from jointlimits.client import codec
+from jointlimits.client.errors import Busy, Fault, Unreachable, WrongURL
+from jointlimits.client.model import Evaluation
+from jointlimits.schemas import OUTPUTS, ConstitutionsResponse, answer
 
 RETRYABLE = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError)
 """Connection failures: the request never reached the server or the connection dropped before

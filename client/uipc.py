@@ -1,7 +1,7 @@
 """Read a libuipc scene (`uipc.core.Scene`, the `pyuipc` package) into a request, and write committed angles back.
 
-    from client import LocalClient
-    from client.uipc import request_from_scene, write_back
+    from jointlimits.client import LocalClient
+    from jointlimits.client.uipc import request_from_scene, write_back
 
     req, joints = request_from_scene(scene)             # every #670 / #669 joint edge of the scene
     ev = LocalClient().evaluate(req)                     # or Client / AsyncClient / .session(req)
@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Array, BatchResult, Evaluation, JointBatch, Request
+from jointlimits.client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Array, BatchResult, Evaluation, JointBatch, Request
 
 REVOLUTE_JOINT, PRISMATIC_JOINT = 18, 20
 LIMIT_OF = {REVOLUTE_JOINT: REVOLUTE_LIMIT, PRISMATIC_JOINT: PRISMATIC_LIMIT}
@@ -68,7 +68,7 @@ def _uipc() -> Any:
         import uipc
     except ImportError as e:
         raise ImportError(
-            "client.uipc reads libuipc scenes and needs the pyuipc package: pip install 'jointlimits[uipc]'"
+            "jointlimits.client.uipc reads libuipc scenes and needs the pyuipc package: pip install 'jointlimits[uipc]'"
         ) from e
     return uipc
 

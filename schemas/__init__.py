@@ -1,8 +1,8 @@
 """Wire schemas of contract v1: shared by the service and the client, no numerics."""
 
-from schemas.constitutions import Attribute, ConstitutionInfo, ConstitutionsResponse, Limits
-from schemas.errors import ErrorItem, ErrorResponse
-from schemas.evaluate import (
+from jointlimits.schemas.constitutions import Attribute, ConstitutionInfo, ConstitutionsResponse, Limits
+from jointlimits.schemas.errors import ErrorItem, ErrorResponse
+from jointlimits.schemas.evaluate import (
     OUTPUTS,
     BatchResult,
     Bodies,

@@ -37,7 +37,7 @@ class Limits(BaseModel):
     # Admission by cost (README, "Limits"); None from a server that predates them.
     max_batches: int | None = None
     max_answer_bytes: int | None = None
-    """Bound of the answer from joints x outputs x encoding (`schemas.answer.answer_bytes`)."""
+    """Bound of the answer from joints x outputs x encoding (`jointlimits.schemas.answer.answer_bytes`)."""
     max_json_values: int | None = None
     """Values (commas + 1) of a JSON body."""
 

@@ -23,7 +23,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
-from schemas.evaluate import Dof, EvaluateRequest, HessianMode, Int64, Output, Real
+from jointlimits.schemas.evaluate import Dof, EvaluateRequest, HessianMode, Int64, Output, Real
 
 PATH = "/v1/sessions"
 

@@ -1,1 +1,1 @@
-"""The joint-limit constitution service: numerical core (`service.core`) and its HTTP shell."""
+"""The joint-limit constitution service: numerical core (`jointlimits.service.core`) and its HTTP shell."""

@@ -1,4 +1,4 @@
-"""The ASGI application `service.app:app`."""
+"""The ASGI application `jointlimits.service.app:app`."""
 
 from __future__ import annotations
 
@@ -9,17 +9,17 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
-from service.core.heap import keep_heap
-from service.http import sessions
-from service.http.routes import install
-from service.http import middleware as ops
-from service.observability import LIFESPAN_METRICS
-from service.settings import Settings
+from jointlimits.service.core.heap import keep_heap
+from jointlimits.service.http import sessions
+from jointlimits.service.http.routes import install
+from jointlimits.service.http import middleware as ops
+from jointlimits.service.observability import LIFESPAN_METRICS
+from jointlimits.service.settings import Settings
 
 
 @asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[dict[str, Any]]:
-    """The lifespan state: the metrics, for the connection layer (`service.http.timeouts`)."""
+    """The lifespan state: the metrics, for the connection layer (`jointlimits.service.http.timeouts`)."""
     yield {LIFESPAN_METRICS: app.state.metrics}
 
 

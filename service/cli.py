@@ -3,7 +3,7 @@
 Every option can also come from the environment (`JOINTLIMITS_<OPTION>`); a command-line
 flag wins over the environment, which wins over the default. The request limits and CORS
 are handed to the application through the same `JOINTLIMITS_*` variables that
-`service.settings.Settings` reads, so each worker process sees them. The bearer token is
+`jointlimits.service.settings.Settings` reads, so each worker process sees them. The bearer token is
 read from `JOINTLIMITS_TOKEN` or `--token-file` only, never from a flag (flags show in `ps`).
 
 Several workers (`--workers N`, N > 1, or `auto`) run under uvicorn's supervisor, which
@@ -278,8 +278,8 @@ def _version() -> str:
 def serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from service.observability import log_config
-    from service.http.ws_protocol import server_options
+    from jointlimits.service.observability import log_config
+    from jointlimits.service.http.ws_protocol import server_options
 
     # Hand the application settings to every worker through the environment Settings reads.
     os.environ[ENV_PREFIX + "MAX_BODY_BYTES"] = str(args.max_body_bytes)
@@ -301,13 +301,13 @@ def serve(args: argparse.Namespace) -> int:
     for name in ("max_sessions", "max_session_joints", "max_frame_bytes", "session_idle_seconds"):  # WebSocket sessions
         os.environ[ENV_PREFIX + name.upper()] = str(getattr(args, name))
 
-    from service.settings import Settings
+    from jointlimits.service.settings import Settings
 
     Settings()  # fail here, once, on a malformed variable rather than in every worker
     if args.workers > 1:
         # uvicorn's supervisor would respawn workers that cannot import the app, forever: fail fast
         # instead, in a throw-away process (the supervisor itself stays small: it never imports it).
-        check = subprocess.run([sys.executable, "-c", "import service.app"], capture_output=True, text=True)
+        check = subprocess.run([sys.executable, "-c", "import jointlimits.service.app"], capture_output=True, text=True)
         if check.returncode != 0:
             print(f"jointlimits: the application does not import:\n{check.stderr}", file=sys.stderr)
             return 3
@@ -329,7 +329,7 @@ def serve(args: argparse.Namespace) -> int:
         signal.signal(sig, _exit_cleanly)
     try:
         uvicorn.run(
-            "service.app:app",
+            "jointlimits.service.app:app",
             host=args.host,
             port=args.port,
             workers=args.workers,
@@ -345,7 +345,7 @@ def serve(args: argparse.Namespace) -> int:
             # The supervisor's ping is answered by a thread of the worker, which needs the GIL.
             timeout_worker_healthcheck=args.healthcheck_timeout,
             server_header=False,
-            http="service.http.timeouts:ReadTimeoutProtocol",  # uvicorn's httptools + deadlines on heads and writes
+            http="jointlimits.service.http.timeouts:ReadTimeoutProtocol",  # uvicorn's httptools + deadlines on heads and writes
         )
     finally:
         if own_metrics_dir:

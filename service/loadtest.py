@@ -1,6 +1,6 @@
 """Load and fault drills against a running service (loopback only, bounded in time and count).
 
-    python -m service.loadtest --spawn --workers 2 --clients 16 --duration 30 --scenario all
+    python -m jointlimits.service.loadtest --spawn --workers 2 --clients 16 --duration 30 --scenario all
 
 `--spawn` starts `jointlimits serve` on a free loopback port for the run (and stops it);
 without it, `--url` names a service already running on 127.0.0.1. Scenarios:
@@ -421,7 +421,7 @@ class Server:
         workers: int = 2,
         extra_args: Sequence[str] = (),
         env: dict[str, str] | None = None,
-        command: Sequence[str] = (sys.executable, "-m", "service.cli"),
+        command: Sequence[str] = (sys.executable, "-m", "jointlimits.service.cli"),
     ) -> None:
         self.port = free_port()
         self.workers = workers
@@ -785,7 +785,7 @@ def array_scene(n: int, batches: int = 1, outputs: Sequence[str] = EGH, active_o
     """
     import numpy as np
 
-    from client import JointBatch, request_from_arrays
+    from jointlimits.client import JointBatch, request_from_arrays
 
     eye = np.eye(3).reshape(9)
     q_ref = np.zeros((2 * pairs, 12))
@@ -842,9 +842,9 @@ def _one(port: int, body: bytes, content_type: str, accept: str, timeout: float 
 
 def peak_cases() -> dict[str, Callable[[], tuple[bytes, str, str, int]]]:
     """The largest request each limit of this environment's settings admits: (body, type, accept, joints)."""
-    from client import codec
-    from schemas.answer import joints_within
-    from service.settings import Settings
+    from jointlimits.client import codec
+    from jointlimits.schemas.answer import joints_within
+    from jointlimits.service.settings import Settings
 
     s = Settings()
     J, B = "application/json", "application/msgpack"
@@ -907,8 +907,8 @@ def scenario_burst(
     limits), each on its own connection, on a fresh 1-worker server: the answers (status, or the name of the
     error of a connection that broke), the worker's peak RSS against the sizing rule (`sizing.worker_bytes`),
     whether the worker survived, and a request alone afterwards."""
-    from service import sizing
-    from service.settings import Settings
+    from jointlimits.service import sizing
+    from jointlimits.service.settings import Settings
 
     rule_mib = round(sizing.worker_bytes(Settings()) / 2**20)
     out: dict[str, Any] = {}
@@ -945,7 +945,7 @@ def scenario_burst(
 
 def answer_joints(max_answer_bytes: int = 256 * 2**20) -> tuple[int, int]:
     """Joints of a `scene` with E+G+H whose JSON answer bound is just within / just over `max_answer_bytes`."""
-    from service.http.limits import answer_bytes
+    from jointlimits.service.http.limits import answer_bytes
 
     outputs = ("energy", "gradient", "hessian")
     bound = lambda n: answer_bytes([(n + 1) // 2, n // 2], outputs, binary_answer=False)  # noqa: E731 (scene's two batches)
@@ -1071,8 +1071,8 @@ def scenario_stalled(copies: int, env: dict[str, str] | None = None, extra_args:
     from a socket with a 4 KiB receive buffer and read nothing (one every `stagger` seconds), on a fresh 1-worker
     server: how each ended (reset: dropped by JOINTLIMITS_WRITE_TIMEOUT; else the status it got) and when, the
     worker's peak RSS against the sizing rule, what /metrics counted, and a request alone afterwards."""
-    from service import sizing
-    from service.settings import Settings
+    from jointlimits.service import sizing
+    from jointlimits.service.settings import Settings
 
     rule_mib = round(sizing.worker_bytes(Settings(**_settings_env(env))) / 2**20)
     body, content_type, accept, joints = _with_env(env, lambda: peak_cases()["answer_bound_msgpack"]())
@@ -1136,7 +1136,7 @@ def _settings_env(env: dict[str, str] | None) -> dict[str, Any]:
     """`Settings` fields from `JOINTLIMITS_*` variables in `env` (the spawned server's), as the server reads them."""
     from dataclasses import fields
 
-    from service.settings import Settings
+    from jointlimits.service.settings import Settings
 
     saved = {k: os.environ.get(k) for k in (env or {})}
     try:
@@ -1175,8 +1175,8 @@ def stalled_session(port: int, opening: bytes, evaluate: bytes, messages: int = 
 
 def session_frames(joints: int) -> tuple[bytes, bytes]:
     """A msgpack opening of `joints` active revolute joints (E+G+H) and an evaluate at its `q`."""
-    from client import codec
-    from schemas import binary as wire
+    from jointlimits.client import codec
+    from jointlimits.schemas import binary as wire
 
     req = array_scene(joints, pairs=max(1, joints // 4))  # a body per two joints
     opening = codec.encode(req, binary=True)[0]
@@ -1194,7 +1194,7 @@ def scenario_stalled_sessions(
     (E+G+H, msgpack) alone, then while `sessions` sessions of `joints` joints have each sent two evaluates and
     read nothing: statuses and p50/p99 both times, the budget the sessions hold, when they were dropped."""
     opening, evaluate = session_frames(joints)
-    from client import codec
+    from jointlimits.client import codec
 
     body = codec.encode(array_scene(http_joints, pairs=http_joints), binary=True)[0]
     B = "application/msgpack"
@@ -1266,7 +1266,7 @@ def scenario_pingflood(seconds: float = 5.0, env: dict[str, str] | None = None, 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m service.loadtest", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m jointlimits.service.loadtest", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--scenario",
         choices=["mixed", "flood", "kill", "sigterm", "slowloris", "answer", "peak", "burst", "stalled", "stalled-sessions",

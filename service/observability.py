@@ -82,7 +82,7 @@ def log_config(level: str = "info", access_log: bool = True) -> dict[str, Any]:
     return {
         "version": 1,
         "disable_existing_loggers": False,
-        "formatters": {"json": {"()": "service.observability.JsonFormatter"}},
+        "formatters": {"json": {"()": "jointlimits.service.observability.JsonFormatter"}},
         "handlers": {"stdout": handler},
         "loggers": {
             "uvicorn": {"handlers": ["stdout"], "level": level, "propagate": False},

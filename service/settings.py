@@ -33,18 +33,18 @@ class Settings:
     )
     """Origins allowed by CORS; CORS is off when empty."""
     keep_heap: bool = field(default_factory=lambda: _env("KEEP_HEAP", "true").strip().lower() not in ("0", "false", "no", "off"))
-    """Keep freed memory in the worker's heap (`service.core.heap`): no page faults per request, at the
+    """Keep freed memory in the worker's heap (`jointlimits.service.core.heap`): no page faults per request, at the
     price of holding the largest request's memory."""
     header_timeout: float = field(default_factory=lambda: float(_env("HEADER_TIMEOUT", "10")))
     """Seconds a connection has to send a request's head (line and headers); then 408 and closed
-    (enforced by `service.http.timeouts.ReadTimeoutProtocol`, which `jointlimits serve` runs)."""
+    (enforced by `jointlimits.service.http.timeouts.ReadTimeoutProtocol`, which `jointlimits serve` runs)."""
     body_timeout: float = field(default_factory=lambda: float(_env("BODY_TIMEOUT", "30")))
     """Seconds from a request's head to the end of its body; then 408 and the connection closed. Also the
     bound on a WebSocket session message from its first byte to its last (then close 1008)."""
     write_timeout: float = field(default_factory=lambda: float(_env("WRITE_TIMEOUT", "30")))
     """Seconds a connection's write buffer may stay full (the client not reading what it was sent: an answer,
     session replies, a close frame, pongs); then the connection is dropped and what it held freed
-    (`service.http.timeouts`)."""
+    (`jointlimits.service.http.timeouts`)."""
     # Admission by cost (service/http/limits.py, README "Limits"): checked before any evaluation.
     max_batches: int = field(default_factory=lambda: int(_env("MAX_BATCHES", "4096")))
     """Most batches in one request (each costs ~0.5 ms of fixed work); more answers 413."""

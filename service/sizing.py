@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from schemas import OUTPUTS
-from schemas.answer import answer_bytes
-from service.settings import Settings
+from jointlimits.schemas import OUTPUTS
+from jointlimits.schemas.answer import answer_bytes
+from jointlimits.service.settings import Settings
 
 MiB = 2**20
 

@@ -15,10 +15,10 @@ from typing import Any
 
 import uvicorn
 
-from service.app import create_app
-from service.http import timeouts
-from service.loadtest import ws_frame, ws_upgrade
-from service.settings import Settings
+from jointlimits.service.app import create_app
+from jointlimits.service.http import timeouts
+from jointlimits.service.loadtest import ws_frame, ws_upgrade
+from jointlimits.service.settings import Settings
 
 
 @dataclass

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from service.core import Bodies, Joints, evaluate
+from jointlimits.service.core import Bodies, Joints, evaluate
 
 BASE_UID = {670: 18, 669: 20}
 E_X = np.array([1.0, 0.0, 0.0])
@@ -132,7 +132,7 @@ class Scene:
         )
 
     def core_args(self, **options: Any) -> dict[str, Any]:
-        """Keyword arguments of `service.core.evaluate`."""
+        """Keyword arguments of `jointlimits.service.core.evaluate`."""
         return dict(bodies=self.bodies(), batches=[b.joints() for b in self.batches], **options)
 
     def moved(self, R: np.ndarray, d: np.ndarray) -> Scene:

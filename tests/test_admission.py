@@ -15,16 +15,16 @@ import orjson
 import pytest
 from fastapi.testclient import TestClient
 
-from client import JointBatch, codec, request_from_arrays
-from service import loadtest as lt
-from schemas import binary as wire
-from service.app import create_app
-from service.core import BatchResult, Evaluation, evaluate
-from service.core.errors import DeadlineExceeded
-from service.core.evaluate import CHUNK
-from service.core import evaluate as checked_evaluate
-from service.http import binary, convert, limits, routes
-from service.settings import Settings
+from jointlimits.client import JointBatch, codec, request_from_arrays
+from jointlimits.service import loadtest as lt
+from jointlimits.schemas import binary as wire
+from jointlimits.service.app import create_app
+from jointlimits.service.core import BatchResult, Evaluation, evaluate
+from jointlimits.service.core.errors import DeadlineExceeded
+from jointlimits.service.core.evaluate import CHUNK
+from jointlimits.service.core import evaluate as checked_evaluate
+from jointlimits.service.http import binary, convert, limits, routes
+from jointlimits.service.settings import Settings
 
 EGH = ("energy", "gradient", "hessian")
 J, B = "application/json", "application/msgpack"
@@ -219,7 +219,7 @@ def test_issue_9s_hessian_requests_are_refused_at_the_defaults(n, no_work):
 
 def test_core_checks_the_deadline_between_batches_and_chunks(monkeypatch):
     """A clock that ticks once per look: the k-th check past the deadline stops the evaluation there."""
-    from service.core import errors
+    from jointlimits.service.core import errors
 
     req = scene(2 * CHUNK + 10, batches=2)
     args = _core_args(req)
@@ -286,7 +286,7 @@ def test_a_real_evaluation_past_a_short_deadline_is_stopped():
 
 
 def test_flags_default_to_the_settings_defaults_and_read_the_environment(monkeypatch):
-    from service import cli
+    from jointlimits.service import cli
 
     names = ("max_batches", "max_answer_bytes", "max_json_values", "request_timeout")
     for name in names:
@@ -310,7 +310,7 @@ def test_flags_default_to_the_settings_defaults_and_read_the_environment(monkeyp
 @pytest.mark.parametrize("binary_client", [False, True])
 def test_sdk_splits_by_the_answer_bound_and_json_values(binary_client):
     """The server tells its bounds; the SDK's parts all fit them, and the merged answer is the whole one."""
-    from client import Client, LocalClient
+    from jointlimits.client import Client, LocalClient
     from tests.test_contract_live import serve
 
     req = scene(600, batches=2, pairs=3)
@@ -379,7 +379,7 @@ def test_batches_are_counted_before_they_are_read(no_work, monkeypatch):
 
 
 def test_a_bad_variable_is_refused_like_a_bad_flag(monkeypatch):
-    from service import cli
+    from jointlimits.service import cli
 
     monkeypatch.setenv("JOINTLIMITS_REQUEST_TIMEOUT", "0")
     with pytest.raises(SystemExit):

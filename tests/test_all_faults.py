@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client import InvalidInput, LocalClient
-from service.core import InputError, evaluate
-from service.core.errors import MAX_FAULTS
-from service.core.scene import Bodies, Joints
+from jointlimits.client import InvalidInput, LocalClient
+from jointlimits.service.core import InputError, evaluate
+from jointlimits.service.core.errors import MAX_FAULTS
+from jointlimits.service.core.scene import Bodies, Joints
 from tests.test_errors_http import base_request, edit, with_batch
 
 

@@ -11,10 +11,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service.core import InputError, evaluate
-from service.core import assembled as core_assembled
-from service.core.assembled import Assembled, apply, assemble, assemble_active, reduce_pairs
-from service.core.prepared import prepare
+from jointlimits.service.core import InputError, evaluate
+from jointlimits.service.core import assembled as core_assembled
+from jointlimits.service.core.assembled import Assembled, apply, assemble, assemble_active, reduce_pairs
+from jointlimits.service.core.prepared import prepare
 from tests import scenes
 from tests.scenes import random_scene
 

@@ -1,4 +1,4 @@
-"""The chain rule from F to DOFs (`service.core.assembly`) against a dense, independent one.
+"""The chain rule from F to DOFs (`jointlimits.service.core.assembly`) against a dense, independent one.
 
 `J` (12 x 24 per joint) is formed explicitly here and `J^T M J` taken with einsum, `M` the dense
 12 x 12 `E'' dx dx^T + E' d2x/dF2`; the core never forms either. Checked: the signed-factor
@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.core import assembly
-from service.core.prismatic import PRISMATIC
-from service.core.revolute import REVOLUTE
+from jointlimits.service.core import assembly
+from jointlimits.service.core.prismatic import PRISMATIC
+from jointlimits.service.core.revolute import REVOLUTE
 
 TOL = 1e-13  # a few roundings per entry, relative to the largest entry of the joint's Hessian
 
@@ -124,7 +124,7 @@ def test_finite_flag_of_the_revolute_route():
 @pytest.mark.parametrize("c", [REVOLUTE, PRISMATIC], ids=["revolute", "prismatic"])
 def test_component_major_inputs_give_the_same_bits(c):
     """The core hands the assembly component-major chunks, the tests C-order arrays: same numbers."""
-    from service.core.kinematics import component_major
+    from jointlimits.service.core.kinematics import component_major
 
     n = 300
     v, dx, curvature, dE, d2E = inputs(c, n, 8)
@@ -147,7 +147,7 @@ def test_derivatives_carry_no_negative_zero(mode: str, outputs: tuple[str, ...])
     """A negative E' times a zero entry (a revolute joint's translation) would answer -0.0; the answers
     (JSON text included) show +0.0 there, whatever the sign of E'."""
     from bench.scenes import make_scene
-    from service.core import evaluate
+    from jointlimits.service.core import evaluate
 
     ev = evaluate(*make_scene(600, 1.0, seed=5), outputs=outputs, hessian_mode=mode)
     for b in ev.batches:

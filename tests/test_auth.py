@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import create_app
-from service.loadtest import scene
-from service.settings import Settings
+from jointlimits.service.app import create_app
+from jointlimits.service.loadtest import scene
+from jointlimits.service.settings import Settings
 
 BODY = scene(2, seed=1)
 

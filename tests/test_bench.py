@@ -15,7 +15,7 @@ from bench import measure as M
 from bench import report
 from bench.__main__ import main as bench_main
 from bench.scenes import make_scene, shifted
-from service.core import evaluate
+from jointlimits.service.core import evaluate
 
 FIELDS = ("energy", "gradient", "hessian")
 SPEEDUP_LINE = re.compile(r"speedup_vs_autodiff_egh=(nan|\d+\.\d\d) speedup_vs_autodiff_e=(nan|\d+\.\d\d) "

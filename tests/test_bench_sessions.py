@@ -9,8 +9,8 @@ import numpy as np
 from bench import sessions as S
 from bench.__main__ import main as bench_main
 from bench.scenes import make_scene
-from service.core import evaluate
-from service.core.prepared import prepare
+from jointlimits.service.core import evaluate
+from jointlimits.service.core.prepared import prepare
 
 
 def test_the_prepared_scene_timed_is_the_stateless_answer():

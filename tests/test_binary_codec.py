@@ -6,8 +6,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from client import LocalClient, codec
-from schemas import binary as wire
+from jointlimits.client import LocalClient, codec
+from jointlimits.schemas import binary as wire
 from tests.test_errors_http import base_request
 
 
@@ -65,7 +65,7 @@ def test_sdk_request_document_has_the_json_structure():
 
 
 def test_response_decoding_matches_local_bits():
-    from service.http import binary
+    from jointlimits.service.http import binary
 
     request = base_request()
     local = LocalClient().evaluate(request)

@@ -19,12 +19,12 @@ import httpx
 import pytest
 from fastapi.testclient import TestClient
 
-from client import codec
-from service import loadtest as lt
-from service import sizing
-from service.app import create_app
-from service.http.budget import Budget, Busy
-from service.settings import Settings
+from jointlimits.client import codec
+from jointlimits.service import loadtest as lt
+from jointlimits.service import sizing
+from jointlimits.service.app import create_app
+from jointlimits.service.http.budget import Budget, Busy
+from jointlimits.service.settings import Settings
 
 J, B = "application/json", "application/msgpack"
 DEPLOY = {  # deploy/deployment.yaml's limits (tests/test_deploy.py keeps the manifest to the sizing rule)
@@ -201,12 +201,12 @@ def test_a_request_is_charged_within_the_budget_and_its_parsed_cost_within_its_f
     binary_request, binary_answer = content_type == B, accept == B
     first = sizing.cost_before_body(len(body), binary_request, binary_answer, s)
     if binary_request:
-        from service.http import binary
+        from jointlimits.service.http import binary
 
         kwargs = binary.decode(body, s.max_joints, max_batches=s.max_batches)
         values = None
     else:
-        from service.http import convert, limits
+        from jointlimits.service.http import convert, limits
 
         values = limits.check_json_values(body, s.max_json_values)
         kwargs = convert.decode(body, s.max_joints)
@@ -357,8 +357,8 @@ def test_a_session_evaluate_takes_its_share_and_waits_its_turn():
 def test_the_sdk_waits_out_a_busy_worker_and_gets_the_same_answer(monkeypatch):
     """End to end: a real server whose in-flight budget is held answers 503 busy; the SDK sleeps the
     server's Retry-After (recorded here instead of slept; the budget comes free meanwhile) and retries."""
-    import client.sync as sdk_sync
-    from client import Client, LocalClient
+    import jointlimits.client.sync as sdk_sync
+    from jointlimits.client import Client, LocalClient
     from tests.test_contract_live import serve
 
     app = create_app(Settings(token=None, cors_origins=(), queue_timeout=0.1))

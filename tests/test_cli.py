@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from service import cli
-from service.loadtest import LOOPBACK, Server, get, scene
+from jointlimits.service import cli
+from jointlimits.service.loadtest import LOOPBACK, Server, get, scene
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -47,7 +47,7 @@ def test_pyproject_declares_the_console_script():
     import tomllib
 
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
-    assert scripts["jointlimits"] == "service.cli:main"
+    assert scripts["jointlimits"] == "jointlimits.service.cli:main"
 
 
 def parse(argv: list[str]):
@@ -149,7 +149,7 @@ def test_an_app_that_does_not_import_fails_fast(tmp_path):
     (tmp_path / "numpy.py").write_text("raise ImportError('broken on purpose')\n")
     env = {**os.environ, "PYTHONPATH": str(tmp_path)}
     out = subprocess.run(
-        [sys.executable, "-m", "service.cli", "serve", "--workers", "2", "--port", "0"],
+        [sys.executable, "-m", "jointlimits.service.cli", "serve", "--workers", "2", "--port", "0"],
         capture_output=True, text=True, env=env, timeout=60, cwd=tmp_path,
     )  # fmt: skip
     assert out.returncode == 3 and "broken on purpose" in out.stderr

@@ -11,8 +11,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from client import AsyncClient, Client, InvalidInput, LocalClient, Scene, codec
-from schemas import EvaluateRequest
+from jointlimits.client import AsyncClient, Client, InvalidInput, LocalClient, Scene, codec
+from jointlimits.schemas import EvaluateRequest
 from tests.test_client_sdk import chain, readme_scene
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 from tests.test_errors_http import base_request

@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from client import AsyncClient, Busy, Client, Evaluation, LocalClient, Request, ServiceError, Unreachable
-from client import split, transport
-from client.errors import Fault
-from service.app import create_app
-from service.settings import Settings
+from jointlimits.client import AsyncClient, Busy, Client, Evaluation, LocalClient, Request, ServiceError, Unreachable
+from jointlimits.client import split, transport
+from jointlimits.client.errors import Fault
+from jointlimits.service.app import create_app
+from jointlimits.service.settings import Settings
 from tests.test_client_sdk import chain, readme_scene
 
 BUSY_MSG = "the server has no room for this request now (JOINTLIMITS_QUEUE_TIMEOUT); nothing was computed"

@@ -7,7 +7,7 @@ import pickle
 import numpy as np
 import pytest
 
-from client import Client, Joint, LocalClient, Scene
+from jointlimits.client import Client, Joint, LocalClient, Scene
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 
 

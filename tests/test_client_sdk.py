@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from client import (
+from jointlimits.client import (
     AsyncClient,
     Client,
     InvalidInput,

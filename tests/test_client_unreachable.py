@@ -17,7 +17,7 @@ from http.server import BaseHTTPRequestHandler, HTTPServer
 import httpx
 import pytest
 
-from client import AsyncClient, Client, ServiceError, Unreachable, WrongURL
+from jointlimits.client import AsyncClient, Client, ServiceError, Unreachable, WrongURL
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 from tests.test_client_sdk import readme_scene
 

@@ -11,8 +11,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from client import AsyncClient, Client, LocalClient
-from schemas import binary as wire
+from jointlimits.client import AsyncClient, Client, LocalClient
+from jointlimits.schemas import binary as wire
 from tests.conftest import GOLDEN, relerr
 from tests.test_contract_live import LIMITS, live, sdk_request  # noqa: F401 (fixture)
 
@@ -96,7 +96,7 @@ def test_raw_json_and_raw_binary_carry_the_same_bits(live):
     ],
 )
 def test_content_negotiation(live, content_type, accept, answer):
-    from client import codec
+    from jointlimits.client import codec
 
     request = sdk_request(GOLDEN[0]["request"])
     body, _ = codec.encode(request, binary="msgpack" in content_type)

@@ -16,9 +16,9 @@ import pytest
 import uvicorn
 from fastapi import FastAPI
 
-from service.app import create_app
-from service.http.ws_protocol import server_options
-from service.settings import Settings
+from jointlimits.service.app import create_app
+from jointlimits.service.http.ws_protocol import server_options
+from jointlimits.service.settings import Settings
 
 # Small limits, so that 413s and the SDK's splitting are exercised with small requests.
 LIMITS = Settings(max_body_bytes=2_000_000, max_joints=400, token=None, cors_origins=())
@@ -69,7 +69,7 @@ def sdk_request(wire_request: dict):
     """The SDK's `Request` of a JSON request body (the golden cases' format)."""
     import numpy as np
 
-    from client import JointBatch, request_from_arrays
+    from jointlimits.client import JointBatch, request_from_arrays
 
     b = wire_request["bodies"]
     batches = [

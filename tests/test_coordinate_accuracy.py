@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.core import Bodies, Joints, evaluate
+from jointlimits.service.core import Bodies, Joints, evaluate
 from bench.reference import reference_request
 from tests.scenes import rotation_about
 

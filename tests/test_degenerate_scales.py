@@ -17,9 +17,9 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
-from service.core import Bodies, Joints, evaluate  # checked itself (one code path)
-from service.core.errors import InputError
-from service.core.kinematics import BodyTable
+from jointlimits.service.core import Bodies, Joints, evaluate  # checked itself (one code path)
+from jointlimits.service.core.errors import InputError
+from jointlimits.service.core.kinematics import BodyTable
 from tests.conftest import relerr
 from bench.reference import JointRef
 from tests.scenes import pack, random_rotation, random_unit, rotation_about
@@ -351,7 +351,7 @@ def test_nearly_flipped_frame_is_as_exact_as_its_conditioning_or_refused(eps: fl
 
 def test_issue_probes_over_http(live) -> None:  # noqa: F811
     """The issue's scaled frame answers 200 with x = 0.7; A = 0 a 422 whose loc names the joint, in both encodings."""
-    from client import Client, InvalidInput, Scene
+    from jointlimits.client import Client, InvalidInput, Scene
 
     def request(A_q: np.ndarray):
         scene = Scene()
@@ -378,7 +378,7 @@ def test_issue_probes_over_http(live) -> None:  # noqa: F811
 @pytest.mark.parametrize("k", [1e-300, 1e-160, 1e-100, 1.0, 1e100, 1e160, 1e300])
 def test_solve3_at_every_scale(k: float) -> None:
     """`A^-1 b` by cofactors with det ~ k^3 (under- or overflowing for |k| beyond 1e+-103): scaled, to ~1e-15."""
-    from service.core.kinematics import solve3
+    from jointlimits.service.core.kinematics import solve3
 
     rng = np.random.default_rng(9)
     A = k * np.array([random_rotation(rng) @ np.diag(rng.uniform(0.5, 2.0, 3)) for _ in range(8)])
@@ -432,7 +432,7 @@ def test_frames_prepared_on_threads_name_the_same_collapsed_joints_in_batch_orde
     names both in batch order, the stateless call the first batch's (it stops at the first batch)."""
     import dataclasses
 
-    from service.core import prepare
+    from jointlimits.service.core import prepare
 
     bodies = _revolute_probe({"q_prev": np.zeros((3, 3))})
     fine = Bodies(bodies.q, bodies.q_ref, bodies.q_ref)  # the same joint without the collapse

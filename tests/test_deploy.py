@@ -80,9 +80,9 @@ def _quantity(q: str) -> int:
 
 
 def test_memory_limit_follows_from_the_request_limits(monkeypatch):
-    """The pod's memory limit holds every worker at the peak its limits admit (service.sizing), and not far more."""
-    from service import sizing
-    from service.settings import Settings
+    """The pod's memory limit holds every worker at the peak its limits admit (jointlimits.service.sizing), and not far more."""
+    from jointlimits.service import sizing
+    from jointlimits.service.settings import Settings
 
     for name in [n for n in os.environ if n.startswith("JOINTLIMITS_")]:
         monkeypatch.delenv(name)
@@ -101,8 +101,8 @@ def test_memory_limit_follows_from_the_request_limits(monkeypatch):
 
 def test_the_readmes_sizing_figures_are_the_rules(monkeypatch):
     """docs/deployment.md (moved from the README), "Sizing a pod": the figures per worker and per 2-worker pod at the defaults, and per worker in the manifest."""
-    from service import sizing
-    from service.settings import Settings
+    from jointlimits.service import sizing
+    from jointlimits.service.settings import Settings
 
     for name in [n for n in os.environ if n.startswith("JOINTLIMITS_")]:
         monkeypatch.delenv(name)

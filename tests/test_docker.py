@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from service.loadtest import LOOPBACK, free_port, get
+from jointlimits.service.loadtest import LOOPBACK, free_port, get
 
 ROOT = Path(__file__).resolve().parent.parent
 VENV_IN_IMAGE = "/opt/venv"
@@ -205,7 +205,8 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> Built:
                     s = context / src
                     assert s.exists(), f"COPY {src}: not in the build context (.dockerignore?)"
                     if s.is_dir():
-                        shutil.copytree(s, target if not dst.endswith("/") else target / s.name, dirs_exist_ok=True)
+                        # As Docker does: a link inside a copied folder stays a link (jointlimits/ -> ../service).
+                        shutil.copytree(s, target if not dst.endswith("/") else target / s.name, dirs_exist_ok=True, symlinks=True)
                     else:
                         target.mkdir(parents=True, exist_ok=True) if dst.endswith("/") else None
                         shutil.copy2(s, target / s.name if dst.endswith("/") else target)

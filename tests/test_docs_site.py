@@ -24,9 +24,9 @@ def test_mkdocs_build_strict(tmp_path):
     site = tmp_path / "site"
     # The API reference was generated from the docstrings, and the committed bench run is in the site.
     api = (site / "api" / "index.html").read_text()
-    for name in ("client.sync.Client", "client.aio.AsyncClient", "client.local.LocalClient", "client.scene.Scene",
-                 "client.model.Evaluation", "client.errors.ServiceError", "client.session.SessionClosed",
-                 "client.session_sync.Session"):
+    for name in ("jointlimits.client.sync.Client", "jointlimits.client.aio.AsyncClient", "jointlimits.client.local.LocalClient", "jointlimits.client.scene.Scene",
+                 "jointlimits.client.model.Evaluation", "jointlimits.client.errors.ServiceError", "jointlimits.client.session.SessionClosed",
+                 "jointlimits.client.session_sync.Session"):
         assert f'id="{name}"' in api, name
     assert (site / "bench" / "report.png").read_bytes() == (ROOT / "bench" / "results" / "report.png").read_bytes()
     assert "20.74x" in (site / "bench-report" / "index.html").read_text()

@@ -15,8 +15,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from client import AsyncClient, Client, InvalidInput, LocalClient, Request, Scene, codec
-from schemas import binary as wire
+from jointlimits.client import AsyncClient, Client, InvalidInput, LocalClient, Request, Scene, codec
+from jointlimits.schemas import binary as wire
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 
 TURN = 0.7  # body 1 is turned by this about +z relative to body 0

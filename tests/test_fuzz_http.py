@@ -14,8 +14,8 @@ import schemathesis
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from client import codec
-from service.app import create_app
+from jointlimits.client import codec
+from jointlimits.service.app import create_app
 from tests.test_contract_live import LIMITS, live  # noqa: F401 (fixture)
 from tests.test_errors_http import base_request
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 from fastapi.testclient import TestClient
 
-from schemas import EvaluateRequest
-from service.app import app
-from service.core import evaluate
-from service.http.convert import to_core
+from jointlimits.schemas import EvaluateRequest
+from jointlimits.service.app import app
+from jointlimits.service.core import evaluate
+from jointlimits.service.http.convert import to_core
 from tests.conftest import relerr
 
 TOL = 1e-12  # every golden case is in the well-conditioned family

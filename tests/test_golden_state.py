@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from client import codec
-from client.model import JointBatch, Request
-from schemas import EvaluateRequest
-from schemas import binary as wire
-from service.app import app
-from service.core import evaluate
-from service.http.convert import to_core
+from jointlimits.client import codec
+from jointlimits.client.model import JointBatch, Request
+from jointlimits.schemas import EvaluateRequest
+from jointlimits.schemas import binary as wire
+from jointlimits.service.app import app
+from jointlimits.service.core import evaluate
+from jointlimits.service.http.convert import to_core
 from tests.conftest import relerr
 
 CASES = json.loads((Path(__file__).parent / "golden_state_cases.json").read_text())["cases"]

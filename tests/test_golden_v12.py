@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from client import Client, InvalidInput, LocalClient
-from client import codec
-from client.accept import as_request
-from schemas import EvaluateRequest
-from schemas import binary as wire
-from service.app import app
-from service.core import InputError, evaluate
-from service.http.convert import to_core
+from jointlimits.client import Client, InvalidInput, LocalClient
+from jointlimits.client import codec
+from jointlimits.client.accept import as_request
+from jointlimits.schemas import EvaluateRequest
+from jointlimits.schemas import binary as wire
+from jointlimits.service.app import app
+from jointlimits.service.core import InputError, evaluate
+from jointlimits.service.http.convert import to_core
 from tests.conftest import relerr
 from tests.test_contract_live import serve
 

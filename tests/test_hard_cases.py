@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service.core import evaluate
+from jointlimits.service.core import evaluate
 from tests.conftest import relerr
 from bench.reference import reference_request
 from tests.scenes import E_X, Scene, axis_pair_scene, place_limits, random_unit

@@ -1,4 +1,4 @@
-"""`service.core.heap.keep_heap`: freed arrays stay in the heap, so a repeated evaluation page-faults nothing."""
+"""`jointlimits.service.core.heap.keep_heap`: freed arrays stay in the heap, so a repeated evaluation page-faults nothing."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ SCRIPT = """
 import resource, sys
 import numpy as np
 sys.path.insert(0, {root!r})
-from service.core import Bodies, Joints, evaluate
-from service.core.heap import keep_heap
+from jointlimits.service.core import Bodies, Joints, evaluate
+from jointlimits.service.core.heap import keep_heap
 applied = keep_heap() if sys.argv[1] == "keep" else None
 rng = np.random.default_rng(0)
 n, b = 20000, 10002

@@ -16,11 +16,11 @@ import httpx
 import msgpack
 import pytest
 
-from service.core import InputError
-from service.core.errors import MAX_FAULTS
-from service.http import binary, convert, jsonkeys
-from service.http.errors import MAX_KEY_CHARS, render
-from service.settings import Settings
+from jointlimits.service.core import InputError
+from jointlimits.service.core.errors import MAX_FAULTS
+from jointlimits.service.http import binary, convert, jsonkeys
+from jointlimits.service.http.errors import MAX_KEY_CHARS, render
+from jointlimits.service.settings import Settings
 from tests.test_contract_live import serve
 from tests.test_errors_http import _bin, _json
 
@@ -73,7 +73,7 @@ def _bin_with(mutate) -> bytes:
 
 
 def test_render_makes_any_loc_json_safe_and_short():
-    from service.core import Fault
+    from jointlimits.service.core import Fault
 
     import numpy as np
 

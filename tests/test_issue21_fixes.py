@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client import JointBatch, LocalClient, Scene, request_from_arrays
-from service.core import InputError, Bodies, prepare
-from service.core.validate import check_dofs
+from jointlimits.client import JointBatch, LocalClient, Scene, request_from_arrays
+from jointlimits.service.core import InputError, Bodies, prepare
+from jointlimits.service.core.validate import check_dofs
 
 
 def _scene() -> Scene:
@@ -55,8 +55,8 @@ def test_repr_of_a_joint_result_is_a_summary():
 def test_one_body_is_singular(n, words):
     q = np.tile(np.r_[0, 0, 0, np.eye(3).ravel()], (n, 1))
     batch = JointBatch.of(670, [[0, 5]], [[[0, 0, 0], [0, 0, 1]]], -1, 1)
-    from client.local import core_batches
-    from client import Request
+    from jointlimits.client.local import core_batches
+    from jointlimits.client import Request
 
     with pytest.raises(InputError) as e:
         prepare(Bodies(q, q, q), core_batches(Request(q, q, q, [batch]), copy=True))
@@ -69,6 +69,6 @@ def test_one_row_is_singular():
 
 
 def test_openapi_names_the_contract_version():
-    from service.app import create_app
+    from jointlimits.service.app import create_app
 
     assert "contract v1.2" in create_app().openapi()["info"]["description"]

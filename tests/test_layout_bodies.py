@@ -16,10 +16,10 @@ import pytest
 
 from bench import measure as M
 from bench.scenes import make_scene
-from client import AsyncClient, Client, JointBatch, LocalClient, Request
-from schemas import binary as wire
-from service.core import evaluate
-from service.core.assembled import assemble
+from jointlimits.client import AsyncClient, Client, JointBatch, LocalClient, Request
+from jointlimits.schemas import binary as wire
+from jointlimits.service.core import evaluate
+from jointlimits.service.core.assembled import assemble
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 
 
@@ -37,7 +37,7 @@ def expected(req: Request, mode: str = "exact"):
 
 
 def make_scene_of(req: Request):
-    from service.core import Bodies, Joints
+    from jointlimits.service.core import Bodies, Joints
 
     return Bodies(req.q, req.q_prev, req.q_ref), [
         Joints(b.constitution_uid, b.base_uid, b.body_ids, b.edges, b.lower, b.upper, b.strength) for b in req.batches]

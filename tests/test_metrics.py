@@ -8,10 +8,10 @@ import logging
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import create_app
-from service.loadtest import metric_total, scene
-from service.observability import ACCESS_LOGGER, JsonFormatter, log_config
-from service.settings import Settings
+from jointlimits.service.app import create_app
+from jointlimits.service.loadtest import metric_total, scene
+from jointlimits.service.observability import ACCESS_LOGGER, JsonFormatter, log_config
+from jointlimits.service.settings import Settings
 
 
 @pytest.fixture

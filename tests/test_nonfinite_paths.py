@@ -13,8 +13,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from client import Client, InvalidInput, LocalClient, codec
-from schemas import binary as wire
+from jointlimits.client import Client, InvalidInput, LocalClient, codec
+from jointlimits.schemas import binary as wire
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 from tests.test_errors_http import base_request, edit, edit_body, with_batch
 

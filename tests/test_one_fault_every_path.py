@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from client import InvalidInput, LocalClient, codec
-from client.model import JointBatch, Request
-from schemas import binary as wire
-from service.app import create_app
-from service.settings import Settings
+from jointlimits.client import InvalidInput, LocalClient, codec
+from jointlimits.client.model import JointBatch, Request
+from jointlimits.schemas import binary as wire
+from jointlimits.service.app import create_app
+from jointlimits.service.settings import Settings
 from tests.test_errors_http import base_request
 from tests.test_readme_errors import README_PATH, table_rows
 
@@ -241,7 +241,7 @@ def _raised(fn: Callable[[], Any]) -> list[Item]:
 
 
 def test_joint_batch_of_names_the_field_in_the_services_words(app):
-    from client import JointBatch
+    from jointlimits.client import JointBatch
 
     edge = [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
     assert _raised(lambda: JointBatch.of(669, [[0, 1], [1, 2]], np.zeros((2, 2, 2)), -1, 1)) == [
@@ -258,7 +258,7 @@ def test_joint_batch_of_names_the_field_in_the_services_words(app):
 
 
 def test_scene_and_dofs_name_the_pose_and_hint_at_4x4_poses():
-    from client.scene import Scene, dofs, request_from_arrays
+    from jointlimits.client.scene import Scene, dofs, request_from_arrays
 
     assert _raised(lambda: dofs(np.zeros(5))) == [(("pose",), "a pose is a 4x4 transform, a (p, A) pair or 12 DOFs, got shape (5,)", "value_error")]
     scene = Scene()
@@ -268,7 +268,7 @@ def test_scene_and_dofs_name_the_pose_and_hint_at_4x4_poses():
         (("p0",), "must be a point (3,), got shape (2,)", "value_error")]
     poses = np.tile(np.eye(4), (2, 1, 1))  # 4x4 poses where DOFs belong
     (loc, msg, _), = _raised(lambda: request_from_arrays(poses, []))
-    assert loc == ("bodies", "q") and "got shape (2, 4, 4)" in msg and "client.scene.dofs" in msg
+    assert loc == ("bodies", "q") and "got shape (2, 4, 4)" in msg and "jointlimits.client.scene.dofs" in msg
     # The service says the same of the same arrays (the hint is the core's, on every path).
-    with pytest.raises(InvalidInput, match="client.scene.dofs"):
+    with pytest.raises(InvalidInput, match="jointlimits.client.scene.dofs"):
         LocalClient().evaluate(Request(poses, poses, poses, []))

@@ -8,9 +8,9 @@ import httpx
 import orjson
 import pytest
 
-from schemas import EvaluateRequest
-from service.http import openapi_text as text
-from service.settings import Settings
+from jointlimits.schemas import EvaluateRequest
+from jointlimits.service.http import openapi_text as text
+from jointlimits.service.settings import Settings
 from tests.test_contract_live import live, serve  # noqa: F401 (fixture)
 
 

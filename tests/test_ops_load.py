@@ -3,7 +3,7 @@
 About 110 s in all: a 30 s mixed load (JOINTLIMITS_LOAD_SECONDS to change it), a flood of
 oversized requests, a worker killed under load, SIGTERM under load, a slowloris of 50 connections,
 an oversized answer under load. The figures in the
-README come from `python -m service.loadtest --spawn --scenario all`, the same code.
+README come from `python -m jointlimits.service.loadtest --spawn --scenario all`, the same code.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import os
 
 import pytest
 
-from service import loadtest as lt
+from jointlimits.service import loadtest as lt
 
 LOAD_SECONDS = float(os.environ.get("JOINTLIMITS_LOAD_SECONDS", "30"))
 MAX_BODY_BYTES, MAX_JOINTS = 1_000_000, 1_000

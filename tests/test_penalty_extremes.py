@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import app
-from service.core import penalty
+from jointlimits.service.app import app
+from jointlimits.service.core import penalty
 from tests.test_state_inputs import REVOLUTE
 
 # (x, lower, upper, strength): every one overflows `u - l` or `x - u` in float64.

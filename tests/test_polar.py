@@ -1,13 +1,13 @@
-"""Polar factors (service.core.polar) and the body table's kept norms (kinematics.BodyTable)."""
+"""Polar factors (jointlimits.service.core.polar) and the body table's kept norms (kinematics.BodyTable)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, BodyTable, _plain_bodies
-from service.core.polar import polar_rotation
-from service.core.scene import Bodies
+from jointlimits.service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, BodyTable, _plain_bodies
+from jointlimits.service.core.polar import polar_rotation
+from jointlimits.service.core.scene import Bodies
 
 
 def _mixed(rng: np.random.Generator, m: int, svd: bool) -> np.ndarray:
@@ -107,7 +107,7 @@ def test_unused_bodies_change_no_bit_and_a_singular_one_is_still_refused():
     """A scene padded with bodies no joint reads answers every bit as without them; one of them
     with a singular A_ref is a 422 naming it, as before."""
     from bench.scenes import make_scene
-    from service.core import InputError, evaluate
+    from jointlimits.service.core import InputError, evaluate
 
     bodies, batches = make_scene(400, 0.5, seed=3)
     B = bodies.q.shape[0]

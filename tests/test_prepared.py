@@ -1,4 +1,4 @@
-"""The prepared scene (service.core.prepared): evaluate equals the stateless answer, commit follows the
+"""The prepared scene (jointlimits.service.core.prepared): evaluate equals the stateless answer, commit follows the
 contract's rem rule, update is validated and atomic."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service.core import Bodies, Evaluation, InputError, Joints, evaluate, prepare
-from service.core.errors import MAX_FAULTS
-from service.core.prepared import rem
+from jointlimits.service.core import Bodies, Evaluation, InputError, Joints, evaluate, prepare
+from jointlimits.service.core.errors import MAX_FAULTS
+from jointlimits.service.core.prepared import rem
 from tests.scenes import pack, random_scene, rotation_about
 
 Z = np.array([0.0, 0.0, 1.0])
@@ -288,12 +288,12 @@ def test_checks_are_leaves() -> None:
     import ast
     from pathlib import Path
 
-    import service.core.validate as validate
+    import jointlimits.service.core.validate as validate
 
     tree = ast.parse(Path(validate.__file__).read_text())
     imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    assert not imported & {"service.core.evaluate", "service.core.prepared", "service.core"}
+    assert not imported & {"jointlimits.service.core.evaluate", "jointlimits.service.core.prepared", "jointlimits.service.core"}
 
 
 # ---------------------------------------------------------------- frames at every scale (issue 9's careful frames)

@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service.core import Evaluation, InputError, evaluate
+from jointlimits.service.core import Evaluation, InputError, evaluate
 from tests.conftest import relerr
 from tests.scenes import (
     E_X,
@@ -407,8 +407,8 @@ def test_blocks_and_chunks_change_no_bit(monkeypatch: pytest.MonkeyPatch, mode: 
     blocks and chunks, give bitwise the default's answer, every joint active and some."""
     import importlib
 
-    assembly_module = importlib.import_module("service.core.assembly")
-    evaluate_module = importlib.import_module("service.core.evaluate")  # the package's `evaluate` is the function
+    assembly_module = importlib.import_module("jointlimits.service.core.assembly")
+    evaluate_module = importlib.import_module("jointlimits.service.core.evaluate")  # the package's `evaluate` is the function
 
     sc = scene(5)
     tile = lambda a: np.concatenate([a] * 13)  # noqa: E731  (39 joints per batch)

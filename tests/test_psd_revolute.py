@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.core import assembly, evaluate
-from service.core.constitution import Curvature
-from service.core.revolute import REVOLUTE
+from jointlimits.service.core import assembly, evaluate
+from jointlimits.service.core.constitution import Curvature
+from jointlimits.service.core.revolute import REVOLUTE
 from tests.scenes import random_scene
 
 # eigh's own backward error is a few eps times ||M||: 1e-13 leaves room for it and for the

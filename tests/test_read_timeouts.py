@@ -18,10 +18,10 @@ import httpx
 import pytest
 import uvicorn
 
-from service.app import create_app
-from service.http import timeouts
-from service.loadtest import scraped
-from service.settings import Settings
+from jointlimits.service.app import create_app
+from jointlimits.service.http import timeouts
+from jointlimits.service.loadtest import scraped
+from jointlimits.service.settings import Settings
 from tests.test_errors_http import _json
 
 HEADER_TIMEOUT, BODY_TIMEOUT = 1.0, 1.5
@@ -178,7 +178,7 @@ def test_a_client_leaving_mid_upload_counts_as_499_not_500(port):
 def test_cli_hands_the_timeouts_to_uvicorn_and_the_workers(monkeypatch):
     import os
 
-    from service import cli
+    from jointlimits.service import cli
 
     monkeypatch.setattr(os, "environ", {k: v for k, v in os.environ.items() if not k.startswith("JOINTLIMITS_")})
     a = cli.build_parser().parse_args(["serve"])
@@ -189,7 +189,7 @@ def test_cli_hands_the_timeouts_to_uvicorn_and_the_workers(monkeypatch):
     monkeypatch.setattr(uvicorn, "run", lambda *args, **kwargs: seen.update(kwargs))
     monkeypatch.setattr(cli.signal, "signal", lambda *args: None)
     assert cli.serve(a) == 0
-    assert seen["http"] == "service.http.timeouts:ReadTimeoutProtocol"
+    assert seen["http"] == "jointlimits.service.http.timeouts:ReadTimeoutProtocol"
     assert timeouts.header_timeout_from_env() == 2.5 and Settings().body_timeout == 7.0
     for bad in (["--header-timeout", "0"], ["--body-timeout", "-1"], ["--body-timeout", "inf"]):
         with pytest.raises(SystemExit):

@@ -18,9 +18,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from client import Request, codec
-from service.app import create_app
-from service.settings import Settings
+from jointlimits.client import Request, codec
+from jointlimits.service.app import create_app
+from jointlimits.service.settings import Settings
 from tests.test_contract_live import serve
 from tests.test_errors_http import base_request, edit, edit_body, with_batch
 

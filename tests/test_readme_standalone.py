@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from service import cli
+from jointlimits.service import cli
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text()
@@ -83,6 +83,6 @@ def test_every_option_is_in_the_readme_table():
 
 
 def test_the_console_script_says_it_too():
-    out = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--workers", "foo"],
+    out = subprocess.run([sys.executable, "-m", "jointlimits.service.cli", "serve", "--workers", "foo"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "argument --workers: must be a positive integer or 'auto', got 'foo'" in out.stderr

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from mpmath import mp, mpf
 
-from service.core import evaluate
+from jointlimits.service.core import evaluate
 from bench import reference as ref_mod
 from tests.conftest import relerr
 from bench.reference import JointRef, reference_request, reference_total_energy
@@ -107,7 +107,7 @@ def test_on_bound_joints_are_inactive(seed: int) -> None:
 def test_http_matches_reference(seed: int) -> None:
     from fastapi.testclient import TestClient  # imported here: the core tests do not depend on the HTTP layer
 
-    from service.app import app
+    from jointlimits.service.app import app
 
     sc, ref = reference_of("random", seed)
     with TestClient(app) as client:

@@ -15,8 +15,8 @@ from starlette.websockets import WebSocket
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from service.app import create_app
-from service.http.refusals import FaultListMiddleware
+from jointlimits.service.app import create_app
+from jointlimits.service.http.refusals import FaultListMiddleware
 from tests.test_contract_live import LIMITS, serve
 
 J = {"Content-Type": "application/json"}

@@ -15,8 +15,8 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 
-from client import Client, JointBatch, LocalClient, Request
-from service.core import Bodies, Joints, prepare
+from jointlimits.client import Client, JointBatch, LocalClient, Request
+from jointlimits.service.core import Bodies, Joints, prepare
 from tests.scenes import pack, rotation_about
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 

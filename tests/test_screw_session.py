@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client import Client, JointBatch, LocalClient, request_from_arrays
+from jointlimits.client import Client, JointBatch, LocalClient, request_from_arrays
 from tests.test_contract_live import serve
 
 STEP = 0.4

@@ -14,8 +14,8 @@ from websockets.exceptions import ConnectionClosed
 from websockets.frames import Frame, Opcode
 from websockets.sync.client import connect
 
-from service.app import create_app
-from service.settings import Settings
+from jointlimits.service.app import create_app
+from jointlimits.service.settings import Settings
 from tests.test_contract_live import LIMITS, serve
 
 TRIES = 20
@@ -82,11 +82,11 @@ def test_a_text_message_that_is_not_utf8_is_1007_with_a_reason(live):
 
 
 def test_the_reported_limit_is_the_one_in_force_under_plain_uvicorn():
-    """`uvicorn service.app:app` keeps uvicorn's 16 MiB ws_max_size: the opening reply says 16 MiB, not 64."""
+    """`uvicorn jointlimits.service.app:app` keeps uvicorn's 16 MiB ws_max_size: the opening reply says 16 MiB, not 64."""
     import socket
     import threading
 
-    from client import Client
+    from jointlimits.client import Client
     from tests.test_client_sdk import readme_scene
 
     sock = socket.socket()
@@ -106,7 +106,7 @@ def test_the_reported_limit_is_the_one_in_force_under_plain_uvicorn():
 
 
 def test_a_shutdown_closes_with_1012_and_a_reason():
-    from client import Client, SessionClosed
+    from jointlimits.client import Client, SessionClosed
     from tests.test_client_sdk import readme_scene
 
     request = readme_scene().request()

@@ -12,12 +12,12 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketDenialResponse
 
-from schemas import binary as wire
-from schemas import session as proto
-from service import sizing
-from service.app import create_app
-from service.loadtest import scene
-from service.settings import Settings
+from jointlimits.schemas import binary as wire
+from jointlimits.schemas import session as proto
+from jointlimits.service import sizing
+from jointlimits.service.app import create_app
+from jointlimits.service.loadtest import scene
+from jointlimits.service.settings import Settings
 
 PATH = proto.PATH
 BODY = scene(6, seed=3)  # 3 revolute + 3 prismatic joints, about half outside their range
@@ -359,7 +359,7 @@ def test_a_client_going_away_mid_session_ends_it_cleanly():
 def test_the_readme_hex_example_is_what_the_service_sends():
     from pathlib import Path
 
-    from service.http import session_codec
+    from jointlimits.service.http import session_codec
 
     text = (Path(__file__).parent.parent / "docs" / "sessions.md").read_text()  # moved from the README
     block = text.split("For a scene of one revolute batch of one joint", 1)[1].split("```\n", 2)[1]
@@ -372,7 +372,7 @@ def test_the_readme_hex_example_is_what_the_service_sends():
 
 
 def test_a_scene_over_the_inline_size_is_evaluated_in_a_thread_with_the_same_numbers():
-    from service.http.sessions import INLINE_JOINTS
+    from jointlimits.service.http.sessions import INLINE_JOINTS
 
     body = scene(INLINE_JOINTS + 44, seed=5)
     c = app()
@@ -414,7 +414,7 @@ def test_the_opening_may_carry_an_id_that_its_reply_repeats(Side):
 @pytest.mark.parametrize("Side", [Json, Binary], ids=["json", "msgpack"])
 @pytest.mark.parametrize("kind", ["evaluate", "commit", "update", "close"])
 def test_a_message_before_the_opening_gets_one_clear_fault(Side, kind):
-    from service.http.session_codec import NOT_OPEN
+    from jointlimits.service.http.session_codec import NOT_OPEN
 
     doc = {"kind": kind, "id": 5} | ({"q": Q} if kind in ("evaluate", "commit") else {})
     with app().websocket_connect(PATH) as ws:

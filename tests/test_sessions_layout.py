@@ -8,7 +8,7 @@ import json
 import msgpack
 import pytest
 
-from schemas import binary as wire
+from jointlimits.schemas import binary as wire
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 from tests.test_sessions import BODY, PATH, Q, Binary, Json, app, open_binary, same
 
@@ -69,7 +69,7 @@ def test_an_unknown_layout_in_the_opening_is_a_fault_naming_it():
 
 @pytest.mark.parametrize("binary", [False, True], ids=["json", "msgpack"])
 def test_sdk_sessions_answer_what_evaluate_answers(live, binary):
-    from client import Client, LocalClient
+    from jointlimits.client import Client, LocalClient
     from tests.test_layout_bodies import same as same_assembled, sdk_request
 
     req = sdk_request(30, 2, layout="bodies")

@@ -10,10 +10,10 @@ import time
 import numpy as np
 import pytest
 
-from client import AsyncClient, Client, InvalidInput, JointBatch, LocalClient, ServiceError, SessionClosed, request_from_arrays
-from schemas import binary as wire
-from schemas import session as proto
-from service.settings import Settings
+from jointlimits.client import AsyncClient, Client, InvalidInput, JointBatch, LocalClient, ServiceError, SessionClosed, request_from_arrays
+from jointlimits.schemas import binary as wire
+from jointlimits.schemas import session as proto
+from jointlimits.service.settings import Settings
 from tests.conftest import GOLDEN
 from tests.test_contract_live import sdk_request, serve
 
@@ -196,7 +196,7 @@ def test_reopening_after_a_dropped_connection_loses_nothing(live):
 def test_jointlimits_serve_passes_the_session_bounds():
     """`jointlimits serve --max-frame-bytes --max-sessions --session-idle-seconds` reach every worker; uvicorn's own
     message limit (`ws_max_size`, set from --max-frame-bytes) closes with 1009 too."""
-    from service.loadtest import LOOPBACK, Server
+    from jointlimits.service.loadtest import LOOPBACK, Server
     from tests.test_cli import console_script
 
     req, _ = chain()
@@ -248,7 +248,7 @@ def test_a_client_that_stops_reading_is_dropped_and_frees_its_place(monkeypatch)
     import httpx
     from websockets.sync.client import connect
 
-    from client.codec import encode
+    from jointlimits.client.codec import encode
 
     monkeypatch.setenv("JOINTLIMITS_WRITE_TIMEOUT", "2")  # read by the WebSocket protocol per connection
     req, _ = chain(2000)  # E+G+H of 2000 joints, all outside: ~9 MB per answer

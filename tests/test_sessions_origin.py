@@ -8,7 +8,7 @@ import json
 import pytest
 from starlette.testclient import WebSocketDenialResponse
 
-from service.settings import Settings
+from jointlimits.service.settings import Settings
 from tests.inprocess import serve, upgrade
 from tests.test_sessions import BODY, PATH, Json, app
 

@@ -11,12 +11,12 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from client.local import core_batches
-from schemas import session as proto
-from service import sizing
-from service.core import Bodies
-from service.core.prepared import prepare
-from service.loadtest import array_scene, scene
+from jointlimits.client.local import core_batches
+from jointlimits.schemas import session as proto
+from jointlimits.service import sizing
+from jointlimits.service.core import Bodies
+from jointlimits.service.core.prepared import prepare
+from jointlimits.service.loadtest import array_scene, scene
 from tests.test_sessions import PATH, Json, app, closed
 
 
@@ -70,7 +70,7 @@ def test_the_weight_bounds_what_a_prepared_scene_holds(joints, bodies):
 
 
 def test_the_worker_rule_still_counts_sessions_by_the_bound():
-    from service.settings import Settings
+    from jointlimits.service.settings import Settings
 
     s = Settings(max_session_joints=1000)
     assert sizing.worker_bytes(s) - sizing.worker_bytes(Settings(max_session_joints=0)) == 768 * 1000

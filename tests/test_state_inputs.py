@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from client import InvalidInput, LocalClient, codec
-from service.app import app
-from service.core import InputError, evaluate
-from service.http.convert import to_core
-from schemas import EvaluateRequest
+from jointlimits.client import InvalidInput, LocalClient, codec
+from jointlimits.service.app import app
+from jointlimits.service.core import InputError, evaluate
+from jointlimits.service.http.convert import to_core
+from jointlimits.schemas import EvaluateRequest
 from tests.test_golden_state import CASES, _sdk_request
 
 REVOLUTE = next(c["request"] for c in CASES if c["name"] == "revolute_turns_1_above")
@@ -79,7 +79,7 @@ def test_v1_request_answers_coordinate_equal_to_x():
 
 def test_joint_handle_reads_the_coordinate():
     """Scene offsets reach the answer; `result.joint(handle).coordinate` is x + offset (None when not answered)."""
-    from client import Scene
+    from jointlimits.client import Scene
     from tests.scenes import rotation_about
 
     scene = Scene()

@@ -1,4 +1,4 @@
-"""`client.uipc` on real pyuipc scenes, end to end, against `tests/engine_ref.py` (libuipc's kernels).
+"""`jointlimits.client.uipc` on real pyuipc scenes, end to end, against `tests/engine_ref.py` (libuipc's kernels).
 
 Each scene is built as a libuipc user builds it (`AffineBodyConstitution().apply_to`,
 `AffineBody*Joint().create_geometry`, `AffineBody*JointLimit().apply_to`). No simulation runs (the
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client import LocalClient
+from jointlimits.client import LocalClient
 from tests import engine_ref as ref
 from tests.conftest import relerr
 
@@ -57,7 +57,7 @@ def test_engine_ref_agrees_with_the_golden_cases(case):
 def test_the_module_imports_without_pyuipc_and_says_which_extra_installs_it():
     code = (
         "import sys; sys.modules['uipc'] = None\n"  # an import of uipc now raises ImportError
-        "import client.uipc as cu\n"
+        "import jointlimits.client.uipc as cu\n"
         "try:\n"
         "    cu.request_from_scene(object())\n"
         "except ImportError as e:\n"
@@ -69,7 +69,7 @@ def test_the_module_imports_without_pyuipc_and_says_which_extra_installs_it():
 
 
 def test_write_back_without_pyuipc_raises_the_same_import_error(monkeypatch):
-    import client.uipc as cu
+    import jointlimits.client.uipc as cu
 
     monkeypatch.setitem(sys.modules, "uipc", None)
     with pytest.raises(ImportError, match=r"jointlimits\[uipc\]"):
@@ -90,7 +90,7 @@ from uipc.constitution import (  # noqa: E402
 )
 from uipc.geometry import ground, tetmesh  # noqa: E402
 
-from client.uipc import SceneError, request_from_scene, write_back  # noqa: E402
+from jointlimits.client.uipc import SceneError, request_from_scene, write_back  # noqa: E402
 
 TET_V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64)
 TET_T = np.array([[0, 1, 2, 3]], dtype=np.int32)
@@ -405,7 +405,7 @@ def test_the_same_request_serves_the_http_clients_and_sessions(live):
     """Client, AsyncClient and a live session (binary and JSON) give LocalClient's numbers bit for bit."""
     import asyncio
 
-    from client import AsyncClient, Client
+    from jointlimits.client import AsyncClient, Client
 
     scene, _, _ = hinge_and_slider_scene(local=True)
     req, joints = request_from_scene(scene)

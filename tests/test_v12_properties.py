@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bench.reference import JointRef
-from client import JointBatch, LocalClient, request_from_arrays
+from jointlimits.client import JointBatch, LocalClient, request_from_arrays
 from tests.conftest import relerr
 
 SEEDS = range(8)

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from tests.v1_answers import PATH, cases, digest
-from service.core import evaluate
+from jointlimits.service.core import evaluate
 
 WANT = json.loads(PATH.read_text())
 

@@ -13,7 +13,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from client import codec
+from jointlimits.client import codec
 from tests.test_contract_live import live  # noqa: F401 (fixture)
 from tests.test_errors_http import base_request
 

@@ -19,10 +19,10 @@ import time
 import httpx
 import numpy as np
 
-from client import codec
-from service import cli
-from service.settings import Settings
-from service import loadtest as lt
+from jointlimits.client import codec
+from jointlimits.service import cli
+from jointlimits.service.settings import Settings
+from jointlimits.service import loadtest as lt
 from tests.test_admission import scene
 
 J, B = "application/json", "application/msgpack"

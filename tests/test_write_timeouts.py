@@ -13,10 +13,10 @@ import httpx
 import pytest
 import uvicorn
 
-from client import codec
-from service import loadtest as lt
-from service.http import timeouts
-from service.settings import Settings
+from jointlimits.client import codec
+from jointlimits.service import loadtest as lt
+from jointlimits.service.http import timeouts
+from jointlimits.service.settings import Settings
 from tests.inprocess import frame, read_close, read_frame, serve, upgrade
 
 WRITE_TIMEOUT, MESSAGE_TIMEOUT = 1.0, 1.5
@@ -212,7 +212,7 @@ def test_a_message_trickled_byte_by_byte_is_bounded_too(live):
 def test_cli_hands_the_write_timeout_and_the_protocols_to_uvicorn(monkeypatch):
     import os
 
-    from service import cli
+    from jointlimits.service import cli
 
     monkeypatch.setattr(os, "environ", {k: v for k, v in os.environ.items() if not k.startswith("JOINTLIMITS_")})
     assert cli.build_parser().parse_args(["serve"]).write_timeout == 30.0
@@ -223,8 +223,8 @@ def test_cli_hands_the_write_timeout_and_the_protocols_to_uvicorn(monkeypatch):
     monkeypatch.setattr(uvicorn, "run", lambda *args, **kwargs: seen.update(kwargs))
     monkeypatch.setattr(cli.signal, "signal", lambda *args: None)
     assert cli.serve(a) == 0
-    assert seen["http"] == "service.http.timeouts:ReadTimeoutProtocol"
-    assert seen["ws"] == "service.http.timeouts:WriteTimeoutWebSocketProtocol"
+    assert seen["http"] == "jointlimits.service.http.timeouts:ReadTimeoutProtocol"
+    assert seen["ws"] == "jointlimits.service.http.timeouts:WriteTimeoutWebSocketProtocol"
     assert timeouts.write_timeout_from_env() == 7.0 == Settings().write_timeout
     for bad in (["--write-timeout", "0"], ["--write-timeout", "-1"], ["--write-timeout", "inf"]):
         with pytest.raises(SystemExit):

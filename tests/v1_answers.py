@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from bench.scenes import make_scene
-from schemas import EvaluateRequest
-from service.core import Bodies, Evaluation, Joints, evaluate
-from service.http.convert import to_core
+from jointlimits.schemas import EvaluateRequest
+from jointlimits.service.core import Bodies, Evaluation, Joints, evaluate
+from jointlimits.service.http.convert import to_core
 
 PATH = Path(__file__).with_name("v1_answers.json")
 GOLDEN = json.loads(Path(__file__).with_name("golden_cases.json").read_text())["cases"]

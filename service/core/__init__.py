@@ -1,9 +1,9 @@
 """Vectorised NumPy core: one cubic penalty, per-constitution coordinates, a shared chain rule."""
 
-from service.core.errors import Fault, InputError
-from service.core.prepared import PreparedScene, evaluate, prepare
-from service.core.registry import CONSTITUTIONS
-from service.core.scene import BatchResult, Bodies, Evaluation, Joints
+from jointlimits.service.core.errors import Fault, InputError
+from jointlimits.service.core.prepared import PreparedScene, evaluate, prepare
+from jointlimits.service.core.registry import CONSTITUTIONS
+from jointlimits.service.core.scene import BatchResult, Bodies, Evaluation, Joints
 
 __all__ = [
     "CONSTITUTIONS",

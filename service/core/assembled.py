@@ -25,10 +25,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core import penalty
-from service.core.errors import MAX_FAULTS, Fault, InputError
-from service.core.scene import Array, BatchResult, Evaluation, Joints
-from service.core.validate import literal_msg, nonfinite_rows
+from jointlimits.service.core import penalty
+from jointlimits.service.core.errors import MAX_FAULTS, Fault, InputError
+from jointlimits.service.core.scene import Array, BatchResult, Evaluation, Joints
+from jointlimits.service.core.validate import literal_msg, nonfinite_rows
 
 LAYOUTS = ("joints", "bodies")
 

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.constitution import Array, Curvature
-from service.core.kinematics import component_major
+from jointlimits.service.core.constitution import Array, Curvature
+from jointlimits.service.core.kinematics import component_major
 
 BLOCK = 1024
 """Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just

@@ -2,7 +2,7 @@
 
 Everything else (the penalty, the chain rule to DOFs, Hessian modes, validation)
 is shared, so a new joint type is one small module implementing this protocol
-and one line in `service.core.registry`.
+and one line in `jointlimits.service.core.registry`.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:
-    from service.core.kinematics import CarefulFrames
+    from jointlimits.service.core.kinematics import CarefulFrames
 
 Array = NDArray[np.float64]
 
@@ -85,7 +85,7 @@ class Constitution(Protocol):
     """Every body-local vector `v_k` is a unit vector (directions only): then `|F_k| <= |A|_F` of its body,
     and `collapsed` may take a bound on the frames' sizes from the bodies' norms (`size_bound`)."""
     """How a body-local edge (`local_edges`) gives the world axis: by body i's rotation `R_i` (True) or
-    its `A_ref_i` (False), as the reference engine does for this constitution (`service.core.geometry`)."""
+    its `A_ref_i` (False), as the reference engine does for this constitution (`jointlimits.service.core.geometry`)."""
 
     def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
         """Body-local `v` (N, 4, 3) from the unit world axis `t` (N, 3) at `q_ref`, the body-local

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-from schemas.errors import NONFINITE_MSG, NONFINITE_TYPE  # noqa: F401 (the wire's words for a NaN, said on every path)
+from jointlimits.schemas.errors import NONFINITE_MSG, NONFINITE_TYPE  # noqa: F401 (the wire's words for a NaN, said on every path)
 
 Loc = tuple[str | int, ...]
 

@@ -1,6 +1,6 @@
 """A batch's energies and the derivatives of its active joints, from its frames and coordinates.
 
-The pipeline that validates and forms frames and coordinates is `service.core.prepared`.
+The pipeline that validates and forms frames and coordinates is `jointlimits.service.core.prepared`.
 """
 
 from __future__ import annotations
@@ -9,12 +9,12 @@ from functools import partial
 
 import numpy as np
 
-from service.core import assembly, penalty
-from service.core.constitution import Array, Constitution, Curvature
-from service.core.errors import MAX_FAULTS, Fault, check_deadline
-from service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames, take_joints
-from service.core.parallel import run_all
-from service.core.validate import nonfinite_rows, raise_if
+from jointlimits.service.core import assembly, penalty
+from jointlimits.service.core.constitution import Array, Constitution, Curvature
+from jointlimits.service.core.errors import MAX_FAULTS, Fault, check_deadline
+from jointlimits.service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames, take_joints
+from jointlimits.service.core.parallel import run_all
+from jointlimits.service.core.validate import nonfinite_rows, raise_if
 
 CHUNK = 8192
 """Active joints whose coordinate derivatives are taken at once: per-joint scalars cost a call each per

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.core.constitution import Array, Constitution
-from service.core.kinematics import axis, component_major, edge_axis, edge_vector, from_local, solve3
+from jointlimits.service.core.constitution import Array, Constitution
+from jointlimits.service.core.kinematics import axis, component_major, edge_axis, edge_vector, from_local, solve3
 
 
 def axis_and_anchors(

@@ -22,9 +22,9 @@ from functools import partial
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core.parallel import run_all
-from service.core.polar import polar_rotation
-from service.core.scene import Bodies
+from jointlimits.service.core.parallel import run_all
+from jointlimits.service.core.polar import polar_rotation
+from jointlimits.service.core.scene import Bodies
 
 Array = NDArray[np.float64]
 

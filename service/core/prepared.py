@@ -21,11 +21,11 @@ from functools import partial
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.core import assembled
-from service.core.constitution import Array, Constitution, Progress
-from service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
-from service.core.evaluate import _increments, collapsed_faults, differentiate
-from service.core.kinematics import (
+from jointlimits.service.core import assembled
+from jointlimits.service.core.constitution import Array, Constitution, Progress
+from jointlimits.service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
+from jointlimits.service.core.evaluate import _increments, collapsed_faults, differentiate
+from jointlimits.service.core.kinematics import (
     PREV_STEP,
     REF,
     STEPS,
@@ -39,11 +39,11 @@ from service.core.kinematics import (
     scaled_frames,
     state_frames,
 )
-from service.core.geometry import axis_and_anchors
-from service.core.parallel import run_all
-from service.core.registry import CONSTITUTIONS
-from service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
-from service.core.validate import (
+from jointlimits.service.core.geometry import axis_and_anchors
+from jointlimits.service.core.parallel import run_all
+from jointlimits.service.core.registry import CONSTITUTIONS
+from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
+from jointlimits.service.core.validate import (
     check_bodies,
     check_dofs,
     check_evaluation,
@@ -561,7 +561,7 @@ def evaluate(
     derivative chunks) on that many threads, with bitwise the same results; the HTTP service keeps 1, its worker
     processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
     `DeadlineExceeded` (checked between batches and derivative chunks). `layout` "bodies" answers
-    the gradient and Hessian summed per body (`service.core.assembled`) instead of per joint: only
+    the gradient and Hessian summed per body (`jointlimits.service.core.assembled`) instead of per joint: only
     the joints outside their range are differentiated and stored, then summed.
     """
     outputs = tuple(outputs)

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.core.constitution import Array, Curvature, Progress
-from service.core.kinematics import CarefulFrames, component_major, dot, to_local
+from jointlimits.service.core.constitution import Array, Curvature, Progress
+from jointlimits.service.core.kinematics import CarefulFrames, component_major, dot, to_local
 
 # theta = D.S / 2 with D = C_j - C_i, S = T_i + T_j: coefficients of D and S per block.
 _D = np.array([-1.0, 0.0, 1.0, 0.0])

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from service.core.constitution import Constitution
-from service.core.prismatic import PRISMATIC
-from service.core.revolute import REVOLUTE
+from jointlimits.service.core.constitution import Constitution
+from jointlimits.service.core.prismatic import PRISMATIC
+from jointlimits.service.core.revolute import REVOLUTE
 
 CONSTITUTIONS: dict[int, Constitution] = {c.uid: c for c in (REVOLUTE, PRISMATIC)}

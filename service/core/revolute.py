@@ -37,8 +37,8 @@ from contextlib import nullcontext
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core.constitution import Array, Curvature, Progress
-from service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot, to_local, unit
+from jointlimits.service.core.constitution import Array, Curvature, Progress
+from jointlimits.service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot, to_local, unit
 
 # Constant second derivatives of the bilinear cos and sin in the (4 x 4) block
 # layout of F; each block is a multiple of the 3 x 3 identity.

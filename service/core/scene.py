@@ -58,4 +58,4 @@ class Evaluation:
     total_energy: float
     batches: list[BatchResult] = field(default_factory=list)
     assembled: object | None = None
-    """`service.core.assembled.Assembled` when asked for `layout="bodies"`."""
+    """`jointlimits.service.core.assembled.Assembled` when asked for `layout="bodies"`."""

@@ -2,7 +2,7 @@
 
 Shapes of wire requests are already enforced by `schemas`; they are checked
 again here because the in-process API takes arbitrary arrays. The checks are
-leaves: they return faults and evaluate nothing; the pipeline (`service.core.prepared`)
+leaves: they return faults and evaluate nothing; the pipeline (`jointlimits.service.core.prepared`)
 calls them in order and caps the faults of a request (`errors.FaultLog`).
 """
 
@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core.errors import MAX_FAULTS, NONFINITE_MSG, NONFINITE_TYPE, Fault, InputError, Loc
-from service.core.kinematics import edge_vector, max_abs
-from service.core.polar import SINGULAR_RATIO
-from service.core.registry import CONSTITUTIONS
-from service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
+from jointlimits.service.core.errors import MAX_FAULTS, NONFINITE_MSG, NONFINITE_TYPE, Fault, InputError, Loc
+from jointlimits.service.core.kinematics import edge_vector, max_abs
+from jointlimits.service.core.polar import SINGULAR_RATIO
+from jointlimits.service.core.registry import CONSTITUTIONS
+from jointlimits.service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
 
 REVOLUTE_UID = 670
 """The one constitution with a state (`prev_coordinate`): its angle leaves (-pi, pi] over time steps."""
@@ -167,7 +167,7 @@ def check_dofs(name: str, a: np.ndarray, n: int) -> list[Fault]:
 
 POSE_HINT = (
     ": 4x4 poses? A body's 12 DOFs are [p, A row 0, A row 1, A row 2] of its transform [[A, p], [0, 1]]; "
-    "the Python SDK's client.scene.dofs(pose) converts one"
+    "the Python SDK's jointlimits.client.scene.dofs(pose) converts one"
 )
 
 

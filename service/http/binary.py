@@ -13,15 +13,15 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from schemas import OUTPUTS
-from schemas import binary as wire
-from schemas import evaluate as models
-from service.core import Bodies, Evaluation, Fault, InputError, Joints
-from service.core.errors import MAX_FAULTS, Loc
-from service.core.validate import DUPLICATE_KEY_MSG, HESSIAN_MODES, NOT_A_LIST, ORIGINS, literal_msg
-from service.http import limits
-from service.http.errors import HttpError
-from service.http.convert import base_uid_of, strength_of
+from jointlimits.schemas import OUTPUTS
+from jointlimits.schemas import binary as wire
+from jointlimits.schemas import evaluate as models
+from jointlimits.service.core import Bodies, Evaluation, Fault, InputError, Joints
+from jointlimits.service.core.errors import MAX_FAULTS, Loc
+from jointlimits.service.core.validate import DUPLICATE_KEY_MSG, HESSIAN_MODES, NOT_A_LIST, ORIGINS, literal_msg
+from jointlimits.service.http import limits
+from jointlimits.service.http.errors import HttpError
+from jointlimits.service.http.convert import base_uid_of, strength_of
 
 MEDIA_TYPE = wire.MEDIA_TYPE
 
@@ -213,7 +213,7 @@ def _unpack(body: bytes, r: _Reader, max_batches: int | None = None) -> Any:
 
 
 def decode(body: bytes, max_joints: int, max_batches: int | None = None, opening: bool = False) -> dict[str, Any]:
-    """Keyword arguments of `service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`.
+    """Keyword arguments of `jointlimits.service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`.
 
     More batches than `max_batches` is a 413 before any batch is read (each costs Python work here).
     `opening`: a session's opening document, whose optional `id` is returned too, under "id".

@@ -2,7 +2,7 @@
 
 Each request is admitted on its own cost (`limits`), but a worker serves many at once: four
 requests at the body bound, each within the limits, held 1.5 times the memory the pod was sized
-for. Two budgets per worker (sizes from the limits, `service.sizing`):
+for. Two budgets per worker (sizes from the limits, `jointlimits.service.sizing`):
 
 - **uploads** (`sizing.upload_bytes`): the bodies being received, counted as their bytes arrive
   (twice: the chunks and their joined copy). Nothing waits for it: once a chunk does not fit, the
@@ -35,13 +35,13 @@ from typing import Any
 from starlette.requests import Request
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service import sizing
-from service.core import Fault
-from service.http import limits
-from service.http.errors import RETRY_AFTER_SECONDS, HttpError
-from service.http.timeouts import DRAIN
-from service.settings import Settings
-from service.sizing import UPLOAD_FACTOR
+from jointlimits.service import sizing
+from jointlimits.service.core import Fault
+from jointlimits.service.http import limits
+from jointlimits.service.http.errors import RETRY_AFTER_SECONDS, HttpError
+from jointlimits.service.http.timeouts import DRAIN
+from jointlimits.service.settings import Settings
+from jointlimits.service.sizing import UPLOAD_FACTOR
 
 RESERVATIONS = "reservations"
 """Key in a request's scope state of the reservations `ReleaseMiddleware` gives back after its answer."""

@@ -9,21 +9,21 @@ import numpy as np
 import orjson
 from pydantic import ValidationError
 
-from schemas import OUTPUTS, EvaluateRequest
-from schemas.constitutions import STRENGTH_DEFAULT
-from schemas.session import OpeningRequest
-from service.core import CONSTITUTIONS, Bodies, Evaluation, Fault, InputError, Joints
-from service.core.errors import MAX_FAULTS
-from service.core.prepared import input_faults
-from service.core.validate import as_array
-from service.http import jsonkeys, limits
-from service.http.errors import from_validation
+from jointlimits.schemas import OUTPUTS, EvaluateRequest
+from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
+from jointlimits.schemas.session import OpeningRequest
+from jointlimits.service.core import CONSTITUTIONS, Bodies, Evaluation, Fault, InputError, Joints
+from jointlimits.service.core.errors import MAX_FAULTS
+from jointlimits.service.core.prepared import input_faults
+from jointlimits.service.core.validate import as_array
+from jointlimits.service.http import jsonkeys, limits
+from jointlimits.service.http.errors import from_validation
 
 MEDIA_TYPE = "application/json"
 
 
 def decode(body: bytes, max_joints: int, opening: bool = False) -> dict[str, Any]:
-    """Keyword arguments of `service.core.evaluate` for a JSON body (`opening`: a session's opening
+    """Keyword arguments of `jointlimits.service.core.evaluate` for a JSON body (`opening`: a session's opening
     document, whose `id` is returned too, under "id").
 
     Raises `HttpError` (413) for too many joints, `InputError` (422) for a malformed body.
@@ -155,7 +155,7 @@ def strength_of(strength: Any, n: int) -> np.ndarray:
 
 
 def to_core(req: EvaluateRequest) -> dict[str, Any]:
-    """Keyword arguments of `service.core.evaluate` for a parsed request."""
+    """Keyword arguments of `jointlimits.service.core.evaluate` for a parsed request."""
     b = req.bodies
     dof = lambda rows: np.asarray(rows, dtype=np.float64).reshape(len(rows), 12)  # noqa: E731
     return dict(

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from schemas import ConstitutionsResponse, Limits
-from schemas.constitutions import describe
-from service.core import CONSTITUTIONS
-from service.settings import Settings
+from jointlimits.schemas import ConstitutionsResponse, Limits
+from jointlimits.schemas.constitutions import describe
+from jointlimits.service.core import CONSTITUTIONS
+from jointlimits.service.settings import Settings
 
 
 def constitutions(settings: Settings) -> ConstitutionsResponse:

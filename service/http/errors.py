@@ -15,9 +15,9 @@ from fastapi import Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
 
-from service.core import Fault, InputError
-from schemas.errors import validation_items
-from service.core.errors import MAX_FAULTS, DeadlineExceeded
+from jointlimits.service.core import Fault, InputError
+from jointlimits.schemas.errors import validation_items
+from jointlimits.service.core.errors import MAX_FAULTS, DeadlineExceeded
 
 RETRY_AFTER_SECONDS = 5
 """`Retry-After` of a 503 past the request deadline: the worker is free again at once, a busy pod soon."""
@@ -81,7 +81,7 @@ async def client_gone(request: Request, exc: Exception) -> Response:
 
     Either way one access-log line at info and a 4xx in the metrics: not a 500 with a traceback.
     """
-    from service.http.timeouts import BODY_TIMED_OUT
+    from jointlimits.service.http.timeouts import BODY_TIMED_OUT
 
     timeout = request.scope.get("state", {}).get(BODY_TIMED_OUT)
     if timeout is not None:

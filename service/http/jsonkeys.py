@@ -25,9 +25,9 @@ import json
 import re
 from dataclasses import dataclass, field
 
-from schemas.evaluate import Bodies, EvaluateRequest, JointBatch
-from service.core.errors import MAX_FAULTS, Fault, Loc
-from service.core.validate import DUPLICATE_KEY_MSG
+from jointlimits.schemas.evaluate import Bodies, EvaluateRequest, JointBatch
+from jointlimits.service.core.errors import MAX_FAULTS, Fault, Loc
+from jointlimits.service.core.validate import DUPLICATE_KEY_MSG
 
 # A string; one never closed runs to the end of the body (else each of its escaped quotes
 # would start a new scan to the end: quadratic).

@@ -8,10 +8,10 @@ from collections.abc import Callable
 
 from fastapi import Request
 
-from service.core import Fault
-from service.http.errors import HttpError
-from schemas.answer import BATCH_OVERHEAD_BYTES, FLOATS_PER_JOINT, answer_bytes  # noqa: F401 (re-exported)
-from service.settings import Settings
+from jointlimits.service.core import Fault
+from jointlimits.service.http.errors import HttpError
+from jointlimits.schemas.answer import BATCH_OVERHEAD_BYTES, FLOATS_PER_JOINT, answer_bytes  # noqa: F401 (re-exported)
+from jointlimits.service.settings import Settings
 
 # A per-joint list of the JSON body: `"lower": [ ... ]`. Its commas bound its length from above.
 _PER_JOINT_LIST = re.compile(rb'"(?:lower|upper|strength)"\s*:\s*\[([^\[\]]*)\]')

@@ -12,13 +12,13 @@ from __future__ import annotations
 from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
 
-from service import sizing
-from service.http.auth import BearerAuthMiddleware, SessionOriginMiddleware
-from service.http.budget import Budget, ReleaseMiddleware
-from service.http.refusals import FaultListMiddleware
-from service.http.timeouts import BodyTimeoutMiddleware
-from service.observability import Metrics, ObservabilityMiddleware
-from service.settings import Settings
+from jointlimits.service import sizing
+from jointlimits.service.http.auth import BearerAuthMiddleware, SessionOriginMiddleware
+from jointlimits.service.http.budget import Budget, ReleaseMiddleware
+from jointlimits.service.http.refusals import FaultListMiddleware
+from jointlimits.service.http.timeouts import BodyTimeoutMiddleware
+from jointlimits.service.observability import Metrics, ObservabilityMiddleware
+from jointlimits.service.settings import Settings
 
 
 def install(app: FastAPI, settings: Settings) -> None:

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from schemas.binary import MEDIA_TYPES as BINARY_TYPES
-from service.core import Fault
-from service.http import binary, convert
-from service.http.errors import HttpError
+from jointlimits.schemas.binary import MEDIA_TYPES as BINARY_TYPES
+from jointlimits.service.core import Fault
+from jointlimits.service.http import binary, convert
+from jointlimits.service.http.errors import HttpError
 
 JSON, BINARY = convert.MEDIA_TYPE, binary.MEDIA_TYPE
 SUPPORTED = f"{JSON} or {BINARY}"

@@ -7,8 +7,8 @@ from typing import Any
 
 from pydantic.json_schema import models_json_schema
 
-from schemas import EvaluateRequest, ErrorResponse
-from service.http import openapi_text as text
+from jointlimits.schemas import EvaluateRequest, ErrorResponse
+from jointlimits.service.http import openapi_text as text
 
 _REF = "#/components/schemas/{model}"
 

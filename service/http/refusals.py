@@ -1,6 +1,6 @@
 """Every refusal in the fault-list shape `{"detail": [{"loc", "msg", "type"}]}`, whoever refuses.
 
-The routes' own 4xx and 503 are written by `service.http.errors`. Others come from elsewhere:
+The routes' own 4xx and 503 are written by `jointlimits.service.http.errors`. Others come from elsewhere:
 Starlette's 404 and 405 (`{"detail": "Not Found"}`), the CORS middleware's plain-text 400, a
 WebSocket upgrade closed before it is accepted (the server answers a bare 403). This outermost
 wrapper (inside the access log, which sees the final status) rewrites any such body; a body

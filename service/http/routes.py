@@ -9,13 +9,13 @@ from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
-from schemas import ConstitutionsResponse, EvaluateResponse
-from service.core import InputError, evaluate
-from service.core.errors import DeadlineExceeded, check_deadline
-from service import sizing
-from service.http import binary, budget, convert, discovery, limits, negotiate, openapi
-from service.http.errors import HttpError, client_gone, deadline_handler, http_error_handler, input_error_handler
-from service.settings import Settings
+from jointlimits.schemas import ConstitutionsResponse, EvaluateResponse
+from jointlimits.service.core import InputError, evaluate
+from jointlimits.service.core.errors import DeadlineExceeded, check_deadline
+from jointlimits.service import sizing
+from jointlimits.service.http import binary, budget, convert, discovery, limits, negotiate, openapi
+from jointlimits.service.http.errors import HttpError, client_gone, deadline_handler, http_error_handler, input_error_handler
+from jointlimits.service.settings import Settings
 
 router = APIRouter()
 CODECS = {negotiate.JSON: convert, negotiate.BINARY: binary}

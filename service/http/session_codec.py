@@ -14,13 +14,13 @@ import numpy as np
 import orjson
 from pydantic import ValidationError
 
-from schemas import binary as wire
-from schemas import session as proto
-from service.core import Evaluation, Fault, InputError
-from service.core.assembled import check_layout
-from service.core.validate import as_array, check_bodies, check_options, literal_msg, raise_if
-from service.http import binary, convert
-from service.http.errors import HttpError, from_validation
+from jointlimits.schemas import binary as wire
+from jointlimits.schemas import session as proto
+from jointlimits.service.core import Evaluation, Fault, InputError
+from jointlimits.service.core.assembled import check_layout
+from jointlimits.service.core.validate import as_array, check_bodies, check_options, literal_msg, raise_if
+from jointlimits.service.http import binary, convert
+from jointlimits.service.http.errors import HttpError, from_validation
 
 Frame = bytes | str
 

@@ -21,18 +21,18 @@ from fastapi import APIRouter, WebSocket
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect
 
-from schemas import session as proto
-from service.core import Evaluation, Fault, InputError
-from service.core.prepared import PreparedScene, prepare
-from service import sizing
-from service.http import budget, limits
-from service.http import session_codec as codec
-from service.http.budget import Reservation
-from service.http.errors import HttpError
-from service.http.timeouts import DRAIN, Drain
-from service.http.ws_protocol import frame_limit
-from service.observability import ACCESS_LOGGER, Metrics
-from service.settings import Settings
+from jointlimits.schemas import session as proto
+from jointlimits.service.core import Evaluation, Fault, InputError
+from jointlimits.service.core.prepared import PreparedScene, prepare
+from jointlimits.service import sizing
+from jointlimits.service.http import budget, limits
+from jointlimits.service.http import session_codec as codec
+from jointlimits.service.http.budget import Reservation
+from jointlimits.service.http.errors import HttpError
+from jointlimits.service.http.timeouts import DRAIN, Drain
+from jointlimits.service.http.ws_protocol import frame_limit
+from jointlimits.service.observability import ACCESS_LOGGER, Metrics
+from jointlimits.service.settings import Settings
 
 router = APIRouter()
 log = logging.getLogger(ACCESS_LOGGER)

@@ -45,8 +45,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
-from service.http.ws_protocol import SessionProtocol, not_utf8
-from service.observability import LIFESPAN_METRICS
+from jointlimits.service.http.ws_protocol import SessionProtocol, not_utf8
+from jointlimits.service.observability import LIFESPAN_METRICS
 
 BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `client_gone`
 DRAIN = "jointlimits.drain"
@@ -59,20 +59,20 @@ log = logging.getLogger("jointlimits.timeouts")
 
 def header_timeout_from_env() -> float:
     """`Settings().header_timeout`: JOINTLIMITS_HEADER_TIMEOUT, which `jointlimits serve` sets for its workers."""
-    from service.settings import Settings
+    from jointlimits.service.settings import Settings
 
     return Settings().header_timeout
 
 
 def write_timeout_from_env() -> float:
     """`Settings().write_timeout`: JOINTLIMITS_WRITE_TIMEOUT, which `jointlimits serve` sets for its workers."""
-    from service.settings import Settings
+    from jointlimits.service.settings import Settings
 
     return Settings().write_timeout
 
 
 def body_timeout_from_env() -> float:
-    from service.settings import Settings
+    from jointlimits.service.settings import Settings
 
     return Settings().body_timeout
 

@@ -96,13 +96,13 @@ def not_utf8() -> tuple[int, str]:
 def server_options(max_frame_bytes: int) -> dict[str, Any]:
     """uvicorn's WebSocket options for the service: this protocol, the message limit it enforces (the
     application's, so the two agree), no permessage-deflate (README, "The protocol, byte by byte")."""
-    return {"ws": "service.http.timeouts:WriteTimeoutWebSocketProtocol", "ws_max_size": max_frame_bytes,
+    return {"ws": "jointlimits.service.http.timeouts:WriteTimeoutWebSocketProtocol", "ws_max_size": max_frame_bytes,
             "ws_per_message_deflate": False}
 
 
 def frame_limit(websocket: WebSocket, configured: int) -> int:
     """The message limit in force on this connection: `configured` (JOINTLIMITS_MAX_FRAME_BYTES), or the server's
-    own limit where it is lower (plain `uvicorn service.app:app` keeps uvicorn's 16 MiB `ws_max_size`).
+    own limit where it is lower (plain `uvicorn jointlimits.service.app:app` keeps uvicorn's 16 MiB `ws_max_size`).
 
     uvicorn's `receive` is a method of its protocol, whose config holds the limit; under another server
     (or Starlette's TestClient) it is not known, and the configured one is reported and enforced."""

@@ -136,13 +136,17 @@ def build_context(dest: Path) -> Path:
         base = Path(dirpath)
         if base == ROOT:
             dirnames[:] = [d for d in dirnames if not dockerignored(d, patterns) or any(r.fullmatch(d) for r in reincluded)]
-        for name in filenames:
+        links = [d for d in dirnames if (base / d).is_symlink()]  # os.walk lists links to folders, never enters them
+        for name in [*filenames, *links]:
             rel = (base / name).relative_to(ROOT).as_posix()
             if dockerignored(rel, patterns):
                 continue
             target = dest / rel
             target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(base / name, target)
+            if (base / name).is_symlink():  # the context holds the link itself, as Docker's does
+                target.symlink_to(os.readlink(base / name))
+            else:
+                shutil.copy2(base / name, target)
     return dest
 
 
@@ -246,13 +250,15 @@ def test_image_shape():
 def test_dockerignore_keeps_the_context_small(tmp_path: Path):
     ctx = build_context(tmp_path / "ctx")
     top = {p.name for p in ctx.iterdir()}
-    assert top <= {"pyproject.toml", "README.md", "service", "schemas", "client"}, top
+    assert top <= {"pyproject.toml", "README.md", "service", "schemas", "client", "jointlimits"}, top
+    assert (ctx / "jointlimits" / "service").is_symlink()  # the namespace's links, as Docker copies them
     assert not list(ctx.rglob("__pycache__"))
 
 
 def test_the_image_installs_only_runtime_dependencies(built: Built):
     py = built.venv / "bin" / "python"
-    where = subprocess.run([py, "-c", "import service; print(service.__file__)"], capture_output=True, text=True, cwd=built.workdir)
+    where = subprocess.run([py, "-c", "import jointlimits.service as s; print(s.__file__)"], capture_output=True, text=True,
+                           cwd=built.workdir)
     assert where.returncode == 0, where.stderr
     assert str(built.venv) in where.stdout  # installed into the venv, not run from the source tree
     assert subprocess.run([py, "-c", "import pytest"], capture_output=True, cwd=built.workdir).returncode != 0

@@ -4,10 +4,10 @@ before contract v1.2) against v1.2's 9-quantity form (`Prismatic.projected_curva
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
+from bench.ab import pairs
 from jointlimits.service.core.constitution import Curvature
 from jointlimits.service.core.heap import keep_heap
 from jointlimits.service.core.prismatic import _D, _S, PRISMATIC
@@ -33,13 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(0)
     F, dE = rng.normal(size=(args.joints, 4, 3)), rng.normal(size=args.joints)
     _, curvature = PRISMATIC.derivatives(F, True)
-    t_new: list[float] = []
-    t_old: list[float] = []
-    for i in range(args.pairs):
-        for fn, out in ((PRISMATIC.projected_curvature, t_new), (v1_projection, t_old))[:: 1 if i % 2 else -1]:
-            t = time.perf_counter()
-            fn(dE, curvature)
-            out.append(time.perf_counter() - t)
+    t_new, t_old = pairs(lambda: PRISMATIC.projected_curvature(dE, curvature), lambda: v1_projection(dE, curvature),
+                         args.pairs)
     a, b = float(np.median(t_new)), float(np.median(t_old))
     wins = sum(x < y for x, y in zip(t_new, t_old))
     print(f"projection alone, {args.joints} joints: v1.2 {a * 1e3:.2f} ms, v1 {b * 1e3:.2f} ms, ratio {a / b:.3f}, "

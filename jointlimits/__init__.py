@@ -13,39 +13,22 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__all__ = [
-    "PRISMATIC_LIMIT",
-    "REVOLUTE_LIMIT",
-    "AsyncClient",
-    "BatchResult",
-    "Busy",
-    "Client",
-    "Evaluation",
-    "Fault",
-    "InvalidInput",
-    "Joint",
-    "JointBatch",
-    "JointResult",
-    "LocalClient",
-    "Request",
-    "Scene",
-    "ServiceError",
-    "SessionClosed",
-    "TooLarge",
-    "Unreachable",
-    "WrongURL",
-    "dofs",
-    "request_from_arrays",
-]
+_SUBPACKAGES = ("service", "schemas", "client")  # `from jointlimits import service` imports that, not the SDK
+
+
+def _sdk() -> Any:
+    return importlib.import_module("jointlimits.client")
 
 
 def __getattr__(name: str) -> Any:
     # The SDK is imported on first use: `import jointlimits.service.cli` (the server) stays free of it,
-    # and a broken dependency fails where the CLI reports it.
-    if name in __all__:
-        return getattr(importlib.import_module("jointlimits.client"), name)
+    # and a broken dependency fails where the CLI reports it. `__all__` is the SDK's (`import *` asks here).
+    if name == "__all__":
+        return list(_sdk().__all__)
+    if name not in _SUBPACKAGES and not name.startswith("__") and name in _sdk().__all__:
+        return getattr(_sdk(), name)
     raise AttributeError(f"module 'jointlimits' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted([*globals(), *__all__])
+    return sorted([*globals(), *_sdk().__all__])

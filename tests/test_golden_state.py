@@ -28,14 +28,14 @@ def case(request):
     return request.param
 
 
-def _check(batches, case) -> None:
-    """`batches` (dicts or objects with the FIELDS) against the case's 50-digit answers."""
+def _check(batches, case, tol: float = TOL) -> None:
+    """`batches` (dicts or objects with the FIELDS) against the case's 50-digit answers, to `tol`."""
     assert len(batches) == len(case["expect"])
     get = lambda b, f: b[f] if isinstance(b, dict) else getattr(b, f)  # noqa: E731
     for got, want in zip(batches, case["expect"]):
         assert list(get(got, "index")) == list(range(len(want["x"])))
         for f in FIELDS:
-            assert relerr(get(got, f), want[f]) <= TOL, f
+            assert relerr(get(got, f), want[f]) <= tol, f
 
 
 def test_state_case_in_process(case):

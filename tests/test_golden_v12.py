@@ -20,6 +20,7 @@ from jointlimits.service.app import app
 from jointlimits.service.core import InputError, evaluate
 from jointlimits.service.http.convert import to_core
 from tests.conftest import relerr
+from tests.test_golden_state import _check as check_state_case
 from tests.test_contract_live import serve
 
 CASES = json.loads((Path(__file__).parent / "golden_v12_cases.json").read_text())["cases"]
@@ -39,12 +40,7 @@ def live():
 
 
 def _check(batches, case) -> None:
-    assert len(batches) == len(case["expect"])
-    get = lambda b, f: b[f] if isinstance(b, dict) else getattr(b, f)  # noqa: E731
-    for got, want in zip(batches, case["expect"]):
-        assert list(get(got, "index")) == list(range(len(want["x"])))
-        for f in FIELDS:
-            assert relerr(get(got, f), want[f]) <= TOL, f
+    check_state_case(batches, case, TOL)
 
 
 def test_v12_case_in_process(case):

@@ -1,4 +1,4 @@
-"""What every session (WebSocket sync and async, in-process) shares, free of I/O (README "Sessions").
+"""What every session (WebSocket sync and async, in-process) shares, free of I/O (docs/sessions.md, "Sessions").
 
 A session keeps, client-side, what reopening needs: the scene as last updated, the last
 committed `q` (the server's `q_prev`) and the committed coordinates. `request_for_reopen()`

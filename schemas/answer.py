@@ -1,4 +1,4 @@
-"""The size of an answer, bounded from the request alone: joints x outputs x encoding (README, "Limits").
+"""The size of an answer, bounded from the request alone: joints x outputs x encoding (docs/deployment.md, "Limits").
 
 Wire arithmetic, no numerics: the service admits requests by it (`service/http/limits.py`)
 and the SDK splits requests by it, so that no part it sends is refused.

@@ -1,4 +1,4 @@
-"""The binary encoding of contract v1: msgpack with raw little-endian arrays (README, "Binary transport").
+"""The binary encoding of contract v1: msgpack with raw little-endian arrays (docs/http-api.md, "Binary transport").
 
 The document has exactly the JSON body's structure and keys. Every numeric array
 (`bodies.q`, `body_ids`, `edges`, `lower`, ..., `offset`, `prev_coordinate`, `x`,
@@ -87,7 +87,7 @@ def _bin_header(n: int) -> bytes:
     """msgpack `bin 8/16/32` header (big-endian length, as msgpack specifies).
 
     msgpack has no bin longer than 2**32 - 1 bytes; the service's answer bound keeps far
-    below it (README, Limits), and a longer array is refused here rather than mis-encoded.
+    below it (docs/deployment.md, Limits), and a longer array is refused here rather than mis-encoded.
     """
     if n >= 2**32:
         raise ValueError(f"an array of {n} bytes exceeds msgpack's largest bin (2**32 - 1 bytes): split it")

@@ -34,7 +34,7 @@ class Limits(BaseModel):
 
     max_body_bytes: int
     max_joints: int
-    # Admission by cost (README, "Limits"); None from a server that predates them.
+    # Admission by cost (docs/deployment.md, "Limits"); None from a server that predates them.
     max_batches: int | None = None
     max_answer_bytes: int | None = None
     """Bound of the answer from joints x outputs x encoding (`jointlimits.schemas.answer.answer_bytes`)."""

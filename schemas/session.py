@@ -1,4 +1,4 @@
-"""Messages of the session protocol (`/v1/sessions`, README "Sessions"): shared by the service and the client.
+"""Messages of the session protocol (`/v1/sessions`, docs/sessions.md, "Sessions"): shared by the service and the client.
 
 A session is one WebSocket connection. Its first message is a full evaluate request
 document (exactly `POST /v1/evaluate`'s body, JSON or msgpack): it opens the scene. Every

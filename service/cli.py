@@ -13,7 +13,7 @@ already set, a fresh directory is made for the run and removed afterwards.
 
 The supervisor kills a worker whose health ping goes unanswered for `--healthcheck-timeout`
 seconds; the answer needs the GIL, so the timeout must exceed the longest step that holds it
-(a JSON parse at `--max-json-values`, README "Limits and sizing a pod").
+(a JSON parse at `--max-json-values`, docs/deployment.md, "Limits and sizing a pod").
 
 SIGTERM / SIGINT shut down gracefully: stop accepting, finish in-flight requests (for at most
 `--graceful-timeout` seconds), exit 0.
@@ -132,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=int(_env("MAX_JOINTS", "1000000")),
         help="most joints in one request; more answers 413 (JOINTLIMITS_MAX_JOINTS)",
     )
-    # Admission by cost and the per-request deadline (README, "Limits").
+    # Admission by cost and the per-request deadline (docs/deployment.md, "Limits").
     s.add_argument(
         "--max-batches",
         type=_positive_int,

@@ -45,7 +45,7 @@ class Settings:
     """Seconds a connection's write buffer may stay full (the client not reading what it was sent: an answer,
     session replies, a close frame, pongs); then the connection is dropped and what it held freed
     (`jointlimits.service.http.timeouts`)."""
-    # Admission by cost (service/http/limits.py, README "Limits"): checked before any evaluation.
+    # Admission by cost (service/http/limits.py, docs/deployment.md, "Limits"): checked before any evaluation.
     max_batches: int = field(default_factory=lambda: int(_env("MAX_BATCHES", "4096")))
     """Most batches in one request (each costs ~0.5 ms of fixed work); more answers 413."""
     max_answer_bytes: int = field(default_factory=lambda: int(_env("MAX_ANSWER_BYTES", str(256 * 2**20))))

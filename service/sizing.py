@@ -1,8 +1,8 @@
-"""Memory a worker needs at its limits, and a pod with several workers (README, "Sizing a pod").
+"""Memory a worker needs at its limits, and a pod with several workers (docs/deployment.md, "Sizing a pod").
 
 An upper bound from the settings alone, with coefficients measured as the peak RSS
-(`VmHWM`) of one worker serving the largest request of each kind (commands in the
-README); each is rounded up. The terms of one request do not all peak at once, so the
+(`VmHWM`) of one worker serving the largest request of each kind (commands in
+docs/deployment.md); each is rounded up. The terms of one request do not all peak at once, so the
 bound is loose by up to ~1.6x at the defaults: a budget, not a prediction.
 """
 

@@ -190,14 +190,14 @@ def busy(what: str) -> HttpError:
 def uploads_full(budget: Budget) -> HttpError:
     return busy(
         f"this worker is receiving as many request bodies as its upload budget holds ({budget.capacity} bytes, "
-        "README 'Limits and sizing a pod')"
+        "docs/deployment.md, 'Limits and sizing a pod')"
     )
 
 
 def queue_full(settings: Settings, budget: Budget) -> HttpError:
     return busy(
-        f"this worker's requests in flight hold its memory budget ({budget.capacity} bytes, README 'Limits and "
-        f"sizing a pod') and this request waited {settings.queue_timeout:g} s (JOINTLIMITS_QUEUE_TIMEOUT) without starting",
+        f"this worker's requests in flight hold its memory budget ({budget.capacity} bytes, docs/deployment.md, "
+        f"'Limits and sizing a pod') and this request waited {settings.queue_timeout:g} s (JOINTLIMITS_QUEUE_TIMEOUT) without starting",
     )
 
 

@@ -27,7 +27,7 @@ def request_body() -> dict[str, Any]:
                 "schema": {
                     "type": "string",
                     "format": "binary",
-                    "description": "EvaluateRequest in the binary encoding (README, Binary transport)",
+                    "description": "EvaluateRequest in the binary encoding (docs/http-api.md, Binary transport)",
                 },
             },
         },

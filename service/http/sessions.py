@@ -1,4 +1,4 @@
-"""`/v1/sessions`: a prepared scene per WebSocket connection (README "Sessions").
+"""`/v1/sessions`: a prepared scene per WebSocket connection (docs/sessions.md, "Sessions").
 
 Parse a frame, call the prepared scene, encode the reply: nothing else. The state (the
 prepared scene with its `q_prev` and committed coordinates) lives with the connection, so
@@ -45,7 +45,7 @@ ends; the connection itself is dropped by the protocol's write timeout (JOINTLIM
 INLINE_JOINTS = 256
 """Scenes up to this many joints (a millisecond or so of work) are evaluated on the event loop: the hop to a
 worker thread and back costs tens of microseconds on an idle machine and milliseconds on a loaded one
-(README, "Sessions and prepared scenes"). Larger ones run in a worker thread, so that one large session does
+(docs/performance.md, "Sessions and prepared scenes"). Larger ones run in a worker thread, so that one large session does
 not hold up the replies of the worker's other sessions."""
 
 

@@ -95,7 +95,7 @@ def not_utf8() -> tuple[int, str]:
 
 def server_options(max_frame_bytes: int) -> dict[str, Any]:
     """uvicorn's WebSocket options for the service: this protocol, the message limit it enforces (the
-    application's, so the two agree), no permessage-deflate (README, "The protocol, byte by byte")."""
+    application's, so the two agree), no permessage-deflate (docs/sessions.md, "The protocol, byte by byte")."""
     return {"ws": "jointlimits.service.http.timeouts:WriteTimeoutWebSocketProtocol", "ws_max_size": max_frame_bytes,
             "ws_per_message_deflate": False}
 

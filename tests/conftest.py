@@ -36,6 +36,8 @@ SLOW = (
     "test_ops_load.py",  # the drills against `jointlimits serve --workers 2` (~95 s)
     "test_newcomer_bench.py::test_readme_quick_bench_runs_on_a_fresh_venv_with_the_bench_extra",  # a fresh venv with JAX, then the quick bench (~90 s)
     "test_docker.py",  # replays the Dockerfile into a fresh venv and serves from it (~20 s)
+    "test_write_drills.py",  # three drills, each its own `jointlimits serve` on loopback (~17 s)
+    "test_write_timeouts.py",  # the write-side bounds one by one on in-process servers, each waits out a timeout (~15 s)
     "test_wheel.py",  # builds the wheel (pip, an isolated build environment) and runs the README example from it (~5 s)
     "test_fuzz_http.py",  # schemathesis and hypothesis over HTTP (~11 s)
     "test_sessions_fuzz.py",  # fuzzes the session protocol (~3 s)

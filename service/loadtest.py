@@ -1230,9 +1230,12 @@ def scenario_stalled_sessions(
     }  # fmt: skip
 
 
-def scenario_pingflood(seconds: float = 5.0, env: dict[str, str] | None = None, extra_args: Sequence[str] = ()) -> dict[str, Any]:
-    """125-byte pings sent for up to `seconds` on one upgraded connection that reads nothing, on a fresh
-    1-worker server: the bytes sent, the worker's RSS before and after, when the server dropped it."""
+def scenario_pingflood(
+    seconds: float = 5.0, env: dict[str, str] | None = None, extra_args: Sequence[str] = (), max_bytes: int | None = None
+) -> dict[str, Any]:
+    """125-byte pings sent for up to `seconds` (and up to `max_bytes`, if given) on one upgraded connection that
+    reads nothing, on a fresh 1-worker server: the bytes sent, the worker's RSS before and after, when the
+    server dropped it."""
     ping = ws_frame(0x9, b"p" * 125) * 512  # 67 KB per send
     with Server(workers=1, env=env, extra_args=extra_args) as server:
         pid = server.worker_pids()[0]
@@ -1242,7 +1245,7 @@ def scenario_pingflood(seconds: float = 5.0, env: dict[str, str] | None = None, 
             raise RuntimeError(f"no session: {head!r}")
         s.settimeout(0.5)
         sent, t0, closed = 0, time.monotonic(), None
-        while time.monotonic() - t0 < seconds:
+        while time.monotonic() - t0 < seconds and (max_bytes is None or sent < max_bytes):
             try:
                 sent += s.send(ping)
             except TimeoutError:

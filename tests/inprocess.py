@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import socket
 import struct
-import threading
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -19,6 +17,7 @@ from jointlimits.service.app import create_app
 from jointlimits.service.http import timeouts
 from jointlimits.service.loadtest import ws_frame, ws_upgrade
 from jointlimits.service.settings import Settings
+from tests.test_contract_live import running
 
 
 @dataclass
@@ -45,8 +44,6 @@ class Live:
 def serve(settings: Settings, header_timeout: float = 5.0, write_timeout: float = 1.0,
           message_timeout: float | None = None) -> Iterator[Live]:
     """uvicorn in a thread; `log_config=None` leaves logging to the test (caplog sees uvicorn's records)."""
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
     app = create_app(settings)
     config = uvicorn.Config(
         app, log_config=None, log_level="info", lifespan="on",
@@ -54,19 +51,8 @@ def serve(settings: Settings, header_timeout: float = 5.0, write_timeout: float 
         ws=timeouts.ws_protocol(write_timeout, message_timeout if message_timeout is not None else settings.body_timeout),
         ws_max_size=settings.max_frame_bytes, ws_per_message_deflate=False,
     )  # fmt: skip
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 10
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
-        time.sleep(0.01)
-    try:
-        yield Live(sock.getsockname()[1], server, app)
-    finally:
-        server.should_exit = True
-        thread.join(timeout=10)
-        sock.close()
+    with running(config) as (server, port):
+        yield Live(port, server, app)
 
 
 def upgrade(port: int, headers: dict[str, str] | None = None, rcvbuf: int | None = None) -> tuple[socket.socket, bytes]:

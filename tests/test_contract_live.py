@@ -25,16 +25,13 @@ LIMITS = Settings(max_body_bytes=2_000_000, max_joints=400, token=None, cors_ori
 
 
 @contextmanager
-def serve(settings: Settings = LIMITS, app: FastAPI | None = None) -> Iterator[str]:
-    """Run the app (`create_app(settings)`, or `app`) under uvicorn in a thread; yields its base URL, stops it on exit."""
+def running(config: uvicorn.Config) -> Iterator[tuple[uvicorn.Server, int]]:
+    """`config` served by uvicorn in a thread on a free loopback port: yields the server and the port once it
+    has started, stops it on exit (every in-process server of the tests runs so)."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
-    app = app or create_app(settings)
-    # The WebSocket options `jointlimits serve` passes: its protocol, the message limit of the app's settings.
-    frame_bytes = getattr(getattr(app, "state", None), "settings", settings).max_frame_bytes
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off", **server_options(frame_bytes)))
+    server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     deadline = time.monotonic() + 10
@@ -43,11 +40,21 @@ def serve(settings: Settings = LIMITS, app: FastAPI | None = None) -> Iterator[s
             raise RuntimeError("uvicorn did not start")
         time.sleep(0.01)
     try:
-        yield f"http://127.0.0.1:{port}"
+        yield server, sock.getsockname()[1]
     finally:
         server.should_exit = True
         thread.join(timeout=10)
         sock.close()
+
+
+@contextmanager
+def serve(settings: Settings = LIMITS, app: FastAPI | None = None) -> Iterator[str]:
+    """Run the app (`create_app(settings)`, or `app`) under uvicorn in a thread; yields its base URL, stops it on exit."""
+    app = app or create_app(settings)
+    # The WebSocket options `jointlimits serve` passes: its protocol, the message limit of the app's settings.
+    frame_bytes = getattr(getattr(app, "state", None), "settings", settings).max_frame_bytes
+    with running(uvicorn.Config(app, log_level="warning", lifespan="off", **server_options(frame_bytes))) as (_, port):
+        yield f"http://127.0.0.1:{port}"
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import socket
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -22,6 +21,7 @@ from jointlimits.service.app import create_app
 from jointlimits.service.http import timeouts
 from jointlimits.service.loadtest import scraped
 from jointlimits.service.settings import Settings
+from tests.test_contract_live import running
 from tests.test_errors_http import _json
 
 HEADER_TIMEOUT, BODY_TIMEOUT = 1.0, 1.5
@@ -31,25 +31,11 @@ SLACK = 1.5  # scheduling on a loaded 2-core machine; the timers themselves are 
 @contextmanager
 def serve_with_timeouts() -> Iterator[int]:
     settings = Settings(max_body_bytes=2_000_000, token=None, cors_origins=(), body_timeout=BODY_TIMEOUT)
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
     config = uvicorn.Config(
         create_app(settings), log_level="warning", lifespan="on", http=timeouts.http_protocol(HEADER_TIMEOUT)
     )
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 10
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
-        time.sleep(0.01)
-    try:
+    with running(config) as (_, port):
         yield port
-    finally:
-        server.should_exit = True
-        thread.join(timeout=10)
-        sock.close()
 
 
 @pytest.fixture(scope="module")

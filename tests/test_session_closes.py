@@ -16,7 +16,7 @@ from websockets.sync.client import connect
 
 from jointlimits.service.app import create_app
 from jointlimits.service.settings import Settings
-from tests.test_contract_live import LIMITS, serve
+from tests.test_contract_live import LIMITS, running, serve
 
 TRIES = 20
 
@@ -83,26 +83,12 @@ def test_a_text_message_that_is_not_utf8_is_1007_with_a_reason(live):
 
 def test_the_reported_limit_is_the_one_in_force_under_plain_uvicorn():
     """`uvicorn jointlimits.service.app:app` keeps uvicorn's 16 MiB ws_max_size: the opening reply says 16 MiB, not 64."""
-    import socket
-    import threading
-
     from jointlimits.client import Client
     from tests.test_client_sdk import readme_scene
 
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    server = uvicorn.Server(uvicorn.Config(create_app(LIMITS), log_level="warning", lifespan="off"))  # uvicorn's defaults
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    while not server.started:
-        time.sleep(0.01)
-    try:
-        url = f"http://127.0.0.1:{sock.getsockname()[1]}"
-        with Client(url).session(readme_scene().request()) as s:
+    with running(uvicorn.Config(create_app(LIMITS), log_level="warning", lifespan="off")) as (_, port):  # uvicorn's defaults
+        with Client(f"http://127.0.0.1:{port}").session(readme_scene().request()) as s:
             assert s.state.limits["max_frame_bytes"] == 16 * 2**20
-    finally:
-        server.should_exit = True
-        thread.join(10)
 
 
 def test_a_shutdown_closes_with_1012_and_a_reason():

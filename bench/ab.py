@@ -64,6 +64,11 @@ def pairs(new: Callable[[], Any], old: Callable[[], Any], n: int) -> tuple[list[
     return t_new, t_old
 
 
+def medians(t_new: list[float], t_old: list[float]) -> tuple[float, float, int]:
+    """The two sides' medians (upper, for an even count) and in how many pairs the first was faster."""
+    return sorted(t_new)[len(t_new) // 2], sorted(t_old)[len(t_old) // 2], sum(x < y for x, y in zip(t_new, t_old))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.ab", description=__doc__.split("\n\n")[0])
     ap.add_argument("rev", help="the git revision to compare against (e.g. main, HEAD~1, a commit)")
@@ -100,8 +105,7 @@ def main(argv: list[str] | None = None) -> int:
                 new_call = lambda t=threads: evaluate(*scene, **kw, threads=t)  # noqa: E731
                 old_call = lambda t=threads: old.evaluate(*scene, **kw, threads=t)  # noqa: E731
             t_new, t_old = pairs(new_call, old_call, args.pairs)
-            a, b = sorted(t_new)[len(t_new) // 2], sorted(t_old)[len(t_old) // 2]
-            wins = sum(x < y for x, y in zip(t_new, t_old))
+            a, b, wins = medians(t_new, t_old)
             print(f"threads {threads}: this tree {a * 1e3:.1f} ms, {args.rev} {b * 1e3:.1f} ms, "
                   f"ratio {a / b:.3f}, this tree faster in {wins} of {args.pairs} pairs")
     return 0

@@ -7,7 +7,7 @@ import argparse
 
 import numpy as np
 
-from bench.ab import pairs
+from bench.ab import medians, pairs
 from jointlimits.service.core.constitution import Curvature
 from jointlimits.service.core.heap import keep_heap
 from jointlimits.service.core.prismatic import _D, _S, PRISMATIC
@@ -35,8 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     _, curvature = PRISMATIC.derivatives(F, True)
     t_new, t_old = pairs(lambda: PRISMATIC.projected_curvature(dE, curvature), lambda: v1_projection(dE, curvature),
                          args.pairs)
-    a, b = float(np.median(t_new)), float(np.median(t_old))
-    wins = sum(x < y for x, y in zip(t_new, t_old))
+    a, b, wins = medians(t_new, t_old)
     print(f"projection alone, {args.joints} joints: v1.2 {a * 1e3:.2f} ms, v1 {b * 1e3:.2f} ms, ratio {a / b:.3f}, "
           f"v1.2 faster in {wins} of {args.pairs}")
     return 0

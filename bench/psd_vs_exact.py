@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from bench.ab import pairs
+from bench.ab import medians, pairs
 from bench.scenes import make_scene
 from jointlimits.service.core import evaluate
 from jointlimits.service.core.heap import keep_heap
@@ -24,7 +24,7 @@ def main(argv: list[str] | None = None) -> int:
             t_psd, t_exact = pairs(lambda: evaluate(*scene, hessian_mode="psd", threads=threads),  # noqa: B023
                                    lambda: evaluate(*scene, hessian_mode="exact", threads=threads),  # noqa: B023
                                    args.pairs)
-            a, b = sorted(t_psd)[len(t_psd) // 2], sorted(t_exact)[len(t_exact) // 2]
+            a, b, _ = medians(t_psd, t_exact)
             print(f"{', '.join(map(str, uids))} threads {threads}: psd {a * 1e3:.1f} ms, exact {b * 1e3:.1f} ms, "
                   f"psd/exact {a / b:.3f}", flush=True)
     return 0

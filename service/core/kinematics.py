@@ -15,7 +15,7 @@ from the origin from losing digits to its translation.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from functools import partial
 
@@ -135,18 +135,24 @@ class BodyTable:
         body has its conditioning ratio (`polar_rotation`)."""
         n = bodies.q.shape[0]
         rows = tuple(rows)
+        self.threads = threads
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
         dofs = np.empty((3, 12, n), dtype=dtype)  # (q_ref, q_prev, q; DOF; body): one transposed copy per state
-        for s in {0, *(s for row in rows for s in STEPS[row])}:
-            transpose_into(dofs[s], q[s])
         self.dofs = dofs  # (state; DOF; body), the unfilled states garbage
         self.positions = dofs[:, :3]  # (state; xyz; body)
         self.states = dofs[:, 3:]  # (state; A[r, c]; body): A itself in each spanned state
         # (REF..TOTAL_STEP)[A[r, c]; body]: A_ref is the state's own rows (no copy), then the increments.
         self.linear = [dofs[0, 3:], *np.empty((3, 9, n), dtype=dtype)]
+        spanned = sorted({0, *(s for row in rows for s in STEPS[row])})
+
+        def fill(cols: slice) -> None:
+            for s in spanned:
+                transpose_into(dofs[s][:, cols], q[s][cols])
+            self._subtract(rows, cols)
+
+        self._over_bodies(fill)
         self.dtype = np.dtype(dtype)
         self._norms: dict[tuple[str, int], Array] = {}  # `_plain_bodies`' squared norms, kept until their rows change
-        self.increments(rows)
         self.plain = self.plain_over(rows)
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
@@ -158,15 +164,27 @@ class BodyTable:
 
     def load(self, state: int, q: Array) -> None:
         """Bodies' DOFs `q` (B, 12) into `state` (the rows of A's increments from or to it keep their old values)."""
-        transpose_into(self.dofs[state], q)
+        self._over_bodies(lambda cols: transpose_into(self.dofs[state][:, cols], q[cols]))
         self._norms.pop(("state", state), None)
 
     def increments(self, rows: Iterable[int]) -> None:
         """The increment `rows` of `A` from the states they span, as loaded."""
+        rows = tuple(rows)
+        self._over_bodies(lambda cols: self._subtract(rows, cols))
+        for row in rows:
+            self._norms.pop(("row", row), None)
+
+    def _subtract(self, rows: tuple[int, ...], cols: slice) -> None:
+        """The increment `rows` of `A` for the bodies `cols`."""
         for row in rows:
             a, b = STEPS[row]
-            np.subtract(self.dofs[b, 3:], self.dofs[a, 3:], out=self.linear[row])
-            self._norms.pop(("row", row), None)
+            np.subtract(self.dofs[b, 3:, cols], self.dofs[a, 3:, cols], out=self.linear[row][:, cols])
+
+    def _over_bodies(self, task: Callable[[slice], None]) -> None:
+        """`task` on `threads` contiguous ranges of bodies at once (a range per thread: each writes its own columns)."""
+        n = self.dofs.shape[2]
+        cuts = [n * k // self.threads for k in range(self.threads + 1)]
+        run_all([partial(task, slice(a, b)) for a, b in zip(cuts[:-1], cuts[1:])], self.threads)
 
     def plain_over(self, rows: Iterable[int]) -> NDArray[np.bool_]:
         """`_plain_bodies` over the increment `rows` (the norms of states and rows that did not change since are kept)."""

@@ -129,12 +129,17 @@ class BodyTable:
         threads: int = 1,
         rows: Iterable[int] = STEPS,
         used: NDArray[np.bool_] | None = None,
+        later: Iterable[int] = (),
+        rotate: bool = True,
     ) -> None:
-        """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage).
-        `used` (B,): the bodies some joint reads; only theirs are sure to have a polar factor, every
-        body has its conditioning ratio (`polar_rotation`)."""
+        """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage);
+        `plain` is taken over `rows`. `later`: increment rows filled too (a stateless call's steps to
+        `q`, on the same threads), for a `plain_over` of their own later. `used` (B,): the bodies some
+        joint reads; only theirs are sure to have a polar factor, every body has its conditioning
+        ratio (`polar_rotation`). `rotate` False: the polar factors wait for `rotate`."""
         n = bodies.q.shape[0]
         rows = tuple(rows)
+        filled = tuple(sorted({*rows, *later}))
         self.threads = threads
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
         dofs = np.empty((3, 12, n), dtype=dtype)  # (q_ref, q_prev, q; DOF; body): one transposed copy per state
@@ -143,33 +148,52 @@ class BodyTable:
         self.states = dofs[:, 3:]  # (state; A[r, c]; body): A itself in each spanned state
         # (REF..TOTAL_STEP)[A[r, c]; body]: A_ref is the state's own rows (no copy), then the increments.
         self.linear = [dofs[0, 3:], *np.empty((3, 9, n), dtype=dtype)]
-        spanned = sorted({0, *(s for row in rows for s in STEPS[row])})
+        spanned = sorted({0, *(s for row in filled for s in STEPS[row])})
+
+        # `_plain_bodies`' squared norms, kept until their rows change: taken here with the rows, while in cache.
+        self._fetched: dict[tuple[str, int, int], tuple[NDArray[np.intp], Array]] = {}  # `prefetch`
+        self._norms: dict[tuple[str, int], Array] = {
+            **{("state", s): np.empty(n, dtype=dtype) for s in spanned},
+            **{("row", row): np.empty(n, dtype=dtype) for row in filled},
+        }
 
         def fill(cols: slice) -> None:
             for s in spanned:
                 transpose_into(dofs[s][:, cols], q[s][cols])
-            self._subtract(rows, cols)
+            self._subtract(filled, cols)
+            for (kind, k), out in self._norms.items():
+                a = self.states[k] if kind == "state" else self.linear[k]
+                np.einsum("ij,ij->j", a[:, cols], a[:, cols], out=out[cols])
 
         self._over_bodies(fill)
         self.dtype = np.dtype(dtype)
-        self._norms: dict[tuple[str, int], Array] = {}  # `_plain_bodies`' squared norms, kept until their rows change
         self.plain = self.plain_over(rows)
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
-        A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
+        self._A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
+        if rotate:
+            self.rotate(used)
+
+    def rotate(self, used: NDArray[np.bool_] | None = None, also: Sequence[Callable[[], object]] = ()) -> None:
+        """The polar factors `rotation` (9, B) and conditioning `ratio` (B,) (see `__init__`), a range of
+        bodies per thread, the tasks `also` beside them on the same threads (`prefetch_tasks`)."""
+        threads = self.threads
         split = (lambda a: np.array_split(a, threads, axis=-1)) if threads > 1 else (lambda a: [a])  # noqa: E731
         masks = [None] * threads if used is None else split(used)
-        parts = run_all([partial(polar_rotation, a, u) for a, u in zip(split(A_ref), masks)], threads)
+        polar = [partial(polar_rotation, a, u) for a, u in zip(split(self._A_ref), masks)]
+        parts = run_all([*polar, *also], threads)[: len(polar)]
         R, self.ratio = parts[0] if len(parts) == 1 else (np.concatenate(a, axis=-1) for a in zip(*parts))
-        self.rotation = R.astype(dtype, copy=False)  # (9, B)
+        self.rotation = R.astype(self.dtype, copy=False)  # (9, B)
 
     def load(self, state: int, q: Array) -> None:
         """Bodies' DOFs `q` (B, 12) into `state` (the rows of A's increments from or to it keep their old values)."""
+        self._fetched = {}  # gathers of the old numbers
         self._over_bodies(lambda cols: transpose_into(self.dofs[state][:, cols], q[cols]))
         self._norms.pop(("state", state), None)
 
     def increments(self, rows: Iterable[int]) -> None:
         """The increment `rows` of `A` from the states they span, as loaded."""
         rows = tuple(rows)
+        self._fetched = {}
         self._over_bodies(lambda cols: self._subtract(rows, cols))
         for row in rows:
             self._norms.pop(("row", row), None)
@@ -190,21 +214,64 @@ class BodyTable:
         """`_plain_bodies` over the increment `rows` (the norms of states and rows that did not change since are kept)."""
         return _plain_bodies(self.states, self.linear, rows, self._norms)
 
+    def prefetch(self, wanted: Iterable[tuple[str, int, NDArray[np.intp]]]) -> None:
+        """Gather `wanted` now, for the next `linear_of`, `rotations`, `positions_of` or `size_bound` of the
+        same `pairs` (the same object) to take, each once: (kind, key, pairs), kind "linear" (key a row of
+        `linear`), "rotation" (key 0), "positions" or "size" (key a state).
+
+        Gathers read the table at random, a fifth to a quarter of an evaluation: left to each batch's own
+        thread they add to the batch of more work (the revolute one), and the other thread waits. Here
+        they run on the table's threads, a few rows per task, before the batches start. Bitwise the same
+        arrays. With one thread, nothing: the gathers are taken where they are used (and not kept alive).
+        """
+        run_all(self.prefetch_tasks(wanted), self.threads)
+
+    def prefetch_tasks(self, wanted: Iterable[tuple[str, int, NDArray[np.intp]]]) -> list[Callable[[], object]]:
+        """`prefetch`'s gathers as tasks, to run beside others (`rotate`); their arrays are `prefetch`'s
+        once the tasks have run. None with one thread."""
+        self._fetched = {}  # a gather an error left unused is not kept
+        if self.threads <= 1:
+            return []
+        tasks: list[Callable[[], object]] = []
+        for kind, key, pairs in wanted:
+            if kind == "size":
+                out = np.empty(pairs.shape[1], dtype=self.dtype)
+                tasks.append(partial(self._size_bound, pairs, key, out))
+            else:
+                src = {"linear": self.linear, "positions": self.positions}[kind][key] if kind != "rotation" else self.rotation
+                out = np.empty((src.shape[0], *pairs.shape), dtype=src.dtype)
+                tasks += [partial(np.take, src[r : r + 3], pairs, axis=1, mode=GATHER, out=out[r : r + 3]) for r in range(0, src.shape[0], 3)]
+            self._fetched[(kind, key, id(pairs))] = (pairs, out)  # the pairs held: their id is not reused meanwhile
+        return tasks
+
+    def _prefetched(self, kind: str, key: int, pairs: NDArray[np.intp]) -> Array | None:
+        """What `prefetch` gathered for (kind, key, pairs), once; else None."""
+        got = self._fetched.pop((kind, key, id(pairs)), None)
+        return got[1] if got is not None and got[0] is pairs else None
+
     def size_bound(self, pairs: NDArray[np.intp], state: int) -> Array:
         """`4 |A_i|_F^2 |A_j|_F^2` (N,) of joints `pairs` (2, N) in `state` (`Constitution.collapsed`), from
         the bodies' squared norms that `plain_over` took (or takes now)."""
+        got = self._prefetched("size", state, pairs)
+        return self._size_bound(pairs, state, np.empty(pairs.shape[1], dtype=self.dtype)) if got is None else got
+
+    def _size_bound(self, pairs: NDArray[np.intp], state: int, out: Array) -> Array:
         key = ("state", state)
         if key not in self._norms:
             self._norms[key] = np.einsum("ij,ij->j", self.states[state], self.states[state])
         n2 = np.take(self._norms[key], pairs, mode=GATHER)
-        return 4.0 * n2[0] * n2[1]
+        np.multiply(4.0, n2[0], out=out)
+        out *= n2[1]
+        return out
 
     def positions_of(self, pairs: NDArray[np.intp], state: int) -> Array:
         """`p` (N, 2, 3) of joints `pairs` in `state` (0: q_ref, 1: q_prev, 2: q).
 
         `pairs` (2, N) contiguous: each joint's bodies i and j (the transpose of `body_ids`).
         """
-        return np.take(self.positions[state], pairs, axis=1, mode=GATHER).transpose(2, 1, 0)
+        g = self._prefetched("positions", state, pairs)
+        g = np.take(self.positions[state], pairs, axis=1, mode=GATHER) if g is None else g
+        return g.transpose(2, 1, 0)
 
     def plain_joints(self, pairs: NDArray[np.intp]) -> NDArray[np.bool_]:
         """(N,) True where both bodies of joints `pairs` (2, N) are `plain` (see `_plain_bodies`)."""
@@ -218,15 +285,15 @@ class BodyTable:
 
     def linear_of(self, pairs: NDArray[np.intp], row: int) -> Array:
         """`A` (N, 2, 3, 3) of joints `pairs` (2, N) at `q_ref` (`REF`) or its increment `row`."""
-        return self._matrices(self.linear[row], pairs)
+        return self._matrices(self.linear[row], pairs, self._prefetched("linear", row, pairs))
 
     def rotations(self, pairs: NDArray[np.intp]) -> Array:
         """`R_ref` (N, 2, 3, 3) of joints `pairs` (2, N)."""
-        return self._matrices(self.rotation, pairs)
+        return self._matrices(self.rotation, pairs, self._prefetched("rotation", 0, pairs))
 
     @staticmethod
-    def _matrices(rows: Array, pairs: NDArray[np.intp]) -> Array:
-        g = np.take(rows, pairs, axis=1, mode=GATHER)  # (9, 2, N)
+    def _matrices(rows: Array, pairs: NDArray[np.intp], g: Array | None = None) -> Array:
+        g = np.take(rows, pairs, axis=1, mode=GATHER) if g is None else g  # (9, 2, N)
         return g.reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
 
 

@@ -103,8 +103,10 @@ class PreparedScene:
     Not thread-safe: one scene serves one caller at a time (a session, a solver loop).
     """
 
-    def __init__(self, table: BodyTable, batches: list[_Batch], threads: int) -> None:
+    def __init__(self, table: BodyTable, batches: list[_Batch], threads: int, loaded: bool = False) -> None:
         self._table = table
+        self._loaded = loaded  # the table already holds the q of the first evaluation (the stateless call)
+        self._prefetched = loaded  # and its gathers (`_gathers`)
         self._batches = batches
         self._threads = threads
         self._dtype = table.dtype
@@ -172,6 +174,9 @@ class PreparedScene:
     ) -> Evaluation:
         # The steps x takes now: all of them (v1), or from q_prev alone once the angle is a state.
         self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
+        if not self._prefetched:
+            self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row)])
+        self._prefetched = False
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
         threads = self._threads
         inner = threads if len(self._batches) == 1 else 1  # one level of threads: a pool never waits on itself
@@ -199,8 +204,11 @@ class PreparedScene:
         `q_prev`), the increments `rows` of `A` to it (`STEP` from q_prev, `TOTAL_STEP` from q_ref),
         and which bodies the common frame path serves over the increments `steps` (`table.plain`)."""
         t = self._table
-        t.load(2, q)
-        t.increments(rows)
+        if self._loaded:  # the stateless call: filled with the table, on its threads
+            self._loaded = False
+        else:
+            t.load(2, q)
+            t.increments(rows)
         t.plain = t.plain_over(steps)
 
     @staticmethod
@@ -412,28 +420,34 @@ def _plus_offset(x: Array, offset: Array | None, index: NDArray[np.int64] | None
 def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, own: bool) -> PreparedScene:
     """`prepare` of bodies whose states are already checked, and joints as arrays. `own`: the scene's
     limits are its own arrays (`update` writes them); else the stateless call's, which allocates
-    nothing it does not need (every fresh array here is page faults of its own)."""
+    nothing it does not need (every fresh array here is page faults of its own), and whose table
+    takes `bodies.q` and the steps to it at once (the one evaluation's `_load`, on the same threads)."""
     constitutions = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
     # q_prev is always in the table: the state a commit replaces.
     rows = {PREV_STEP} | {row for c in constitutions for row in _increments(c)[:-1]}
+    later = () if own else {_increments(c)[-1] for c in constitutions}
     n_bodies = bodies.q_ref.shape[0]
     with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
-        table = BodyTable(bodies, dtype, threads, rows=rows, used=_bodies_used(batches, n_bodies))
+        table = BodyTable(bodies, dtype, threads, rows=rows, later=later, rotate=False)
+    # The batches' checks on the threads; then, if they pass, the batches' gathers beside the polar factors.
+    checks = run_all([partial(check_joints, b, joints, n_bodies) for b, joints in enumerate(batches)], threads)
+    pairs = [np.ascontiguousarray(j.body_ids.T) for j in batches]  # (2, N): contiguous indices gather 30% faster
+    gathers = [] if any(checks) else [w for j, p in zip(batches, pairs) for w in _gathers(CONSTITUTIONS[j.constitution_uid], p, own)]
+    with np.errstate(all="ignore"):
+        table.rotate(_bodies_used(batches, n_bodies), also=table.prefetch_tasks(gathers))
     log = FaultLog()
     log.add(check_rotations(table.ratio))
-    for b, joints in enumerate(batches):
-        if log.full:
-            break
-        log.add(check_joints(b, joints, n_bodies))
+    for faults in checks:  # in batch order (the log keeps the first)
+        log.add(faults)
     log.raise_if_any()
     with np.errstate(all="ignore"):  # run_all carries the state into its threads
-        prepared = run_all([partial(_prepare_batch, b, j, table, own) for b, j in enumerate(batches)], threads)
+        prepared = run_all([partial(_prepare_batch, b, j, table, own, p) for b, (j, p) in enumerate(zip(batches, pairs))], threads)
     if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
         for jb in prepared:
             log.add(jb.faults)
             jb.faults = []
     log.raise_if_any()
-    return PreparedScene(table, prepared, threads)
+    return PreparedScene(table, prepared, threads, loaded=not own)
 
 
 def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
@@ -448,10 +462,30 @@ def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
     return used
 
 
-def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool) -> _Batch:
-    """Batch `b`'s frames at its states, from `table` (read only: batches are prepared on threads)."""
+def _gathers(c: Constitution, pairs: NDArray[np.intp], own: bool) -> list[tuple[str, int, NDArray[np.intp]]]:
+    """What `_prepare_batch` gathers from the table for a batch of `c` on `pairs` (`BodyTable.prefetch`),
+    and unless `own` (the stateless call, its table already holding q) what its evaluation gathers."""
+    rows = _increments(c)
+    wanted = [("linear", REF)] + [("linear", row) for row in rows[:-1]]  # the rotations are gathered by the batch's
+    # own thread: they wait for the polar factors, which these gathers run beside
+    if c.alpha.any():
+        wanted += [("positions", s) for s in sorted({0, STEPS[rows[-1]][0]} | {s for row in rows[:-1] for s in STEPS[row]})]
+    if c.unit_frames:
+        wanted += [("size", s) for s in range(len(rows))]  # q_ref and the start of each fixed step
+    if not own:
+        wanted += _evaluation_gathers(c, rows[-1])
+    return [(kind, key, pairs) for kind, key in wanted]
+
+
+def _evaluation_gathers(c: Constitution, row: int) -> list[tuple[str, int]]:
+    """What an evaluation of a batch of `c` whose last step is the table's `row` gathers: `_step`, the collapse test at q."""
+    return [("linear", row)] + [("positions", 2)] * bool(c.alpha.any()) + [("size", 2)] * c.unit_frames
+
+
+def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: NDArray[np.intp]) -> _Batch:
+    """Batch `b`'s frames at its states, from `table` (read only: batches are prepared on threads); `pairs`
+    (2, N) its bodies i and j, contiguous."""
     c = CONSTITUTIONS[joints.constitution_uid]
-    pairs = np.ascontiguousarray(joints.body_ids.T)  # (2, N): contiguous indices gather 30% faster
     dtype = table.dtype
     points = bool(c.alpha.any())
     rows = _increments(c)

@@ -277,7 +277,11 @@ def _check_edges(b: int, joints: Joints, geometry: str) -> list[Fault]:
     p0, p1 = ("p0", "p1") if geometry == "edges" else ("l0", "l1")
     with np.errstate(over="ignore", invalid="ignore"):
         size = max_abs(edge_vector(edge))
-    size[~np.isfinite(edge).all(axis=(1, 2))] = 1.0  # a non-finite edge is named as such, not as too long
+    # A non-finite edge is named as such, not as too long. Its size is not finite either (inf - inf, NaN):
+    # where every size is finite (the common case), no per-row reduction.
+    unsized = ~np.isfinite(size)
+    if unsized.any():
+        size[unsized & ~np.isfinite(edge).all(axis=(1, 2))] = 1.0
     at = ("batches", b, geometry)
     faults = [Fault((*at, j), f"zero-length edge: {p0} == {p1} gives no joint axis") for j in _where(size == 0)]
     return faults + [Fault((*at, j), f"edge too long: {p1} - {p0} overflows float64") for j in _where(~np.isfinite(size))]

@@ -38,6 +38,26 @@ def median_time(fn: Callable[[], Any], reps: int = 5, warmup: int = 1) -> float:
     return float(np.median(ts))
 
 
+def median_times(fns: dict[Any, Callable[[], Any]], reps: int = 5, warmup: int = 1) -> dict[Any, float]:
+    """Median wall time (s) of each of `fns`, called in turn: `warmup` rounds, then `reps` timed rounds.
+
+    Every median then spans the same stretch of the run: a machine that slows down or speeds up
+    meanwhile (these are shared virtual machines: 10-30% between minutes) moves them alike, and the
+    ratios between them (what the targets read) keep still where medians taken one after the other
+    would each catch a different moment.
+    """
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    ts: dict[Any, list[float]] = {k: [] for k in fns}
+    for _ in range(reps):
+        for k, fn in fns.items():
+            t = time.perf_counter()
+            fn()
+            ts[k].append(time.perf_counter() - t)
+    return {k: float(np.median(v)) for k, v in ts.items()}
+
+
 def _hessian_mode(mode: str) -> str:
     return "psd" if mode == "psd" else "exact"
 

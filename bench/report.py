@@ -227,7 +227,9 @@ def _all_active_lines(a: dict[str, Any]) -> list[str]:
     return [f"{count(a['n'])} joints, half #670 half #669, every one outside its range (each differentiated), "
             "median seconds; ratio: the peer's time / the core's faster of 1 and "
             f"{a['threads']} threads. JAX runs on all cores; Warp on 1 thread (its CPU device has no thread pool), "
-            "compile time not counted, energy + gradient by wp.Tape.", "",
+            "compile time not counted, energy + gradient by wp.Tape. The energy and E+G calls of the core, "
+            "the prepared scene and Warp are timed in turns, one call of each per round, so that every "
+            "median spans the same minutes of a shared machine.", "",
             *_table(["mode", "core, 1 thread", f"core, {a['threads']} threads", "JAX jit(vmap), same inputs", "ratio",
                      "Warp CPU, 1 thread", "ratio"], rows), "",
             *_table(["target", "measured", "required", "status"],

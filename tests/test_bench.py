@@ -347,3 +347,13 @@ def test_psd_measurements_run_at_tiny_sizes():
     assert run.returncode == 0, run.stderr
     assert re.fullmatch(r"projection alone, 100 joints: v1\.2 \d+\.\d\d ms, v1 \d+\.\d\d ms, ratio \d+\.\d{3}, "
                         r"v1\.2 faster in [0-3] of 3", run.stdout.strip()), run.stdout
+
+
+def test_median_times_calls_each_in_turn():
+    """`median_times` (the Warp targets' timing): every callable once per round, warm-up rounds first,
+    the rounds interleaved (not one callable's calls in a row), a median per key."""
+    order: list[str] = []
+    fns = {k: (lambda k=k: order.append(k)) for k in ("core", "warp", "prepared")}
+    t = M.median_times(fns, reps=3, warmup=1)
+    assert set(t) == set(fns) and all(v >= 0 for v in t.values())
+    assert order == ["core", "warp", "prepared"] * 4

@@ -175,7 +175,9 @@ def _derivatives(
 def _gradient(dE: Array, Jdx: Array, out: Array) -> None:
     """`E' J^T dx` (M, 24) into `out`, its zeros +0.0: a negative E' times a zero of `J^T dx` (a
     revolute joint's translation entries, an axis-aligned edge's) would answer -0.0."""
-    np.multiply(dE[:, None], Jdx, out=out)
+    # Transposed views: NumPy then runs along the joints of each of the 24 entries (`Jdx` is
+    # component-major), where `dE[:, None] * Jdx` into the rows ran along each row's 24 (2x slower).
+    np.multiply(Jdx.T, dE, out=out.T)
     out += 0.0  # -0.0 + 0.0 == +0.0, every other value unchanged
 
 

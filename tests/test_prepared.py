@@ -53,6 +53,28 @@ def test_prepared_evaluate_with_threads_is_bitwise_the_same() -> None:
     _same(one.evaluate(sc.q), two.evaluate(sc.q))
 
 
+def test_prepared_scene_on_threads_gathers_every_q_afresh() -> None:
+    """On threads the evaluation's gathers run before the batches (`BodyTable.prefetch`): each q gets its
+    own, and an evaluation stopped after gathering (a deadline already past) leaves none for the next
+    load to read (a commit's step from q_ref would otherwise take the stopped call's increments)."""
+    import time
+
+    from jointlimits.service.core.errors import DeadlineExceeded
+
+    sc = _scene(4)
+    rng = np.random.default_rng(4)
+    joints = [b.joints() for b in sc.batches]
+    two, one = prepare(sc.bodies(), joints, threads=2), prepare(sc.bodies(), joints)
+    qs = [sc.q + 1e-2 * rng.normal(size=sc.q.shape) for _ in range(3)]
+    for q in (sc.q, qs[0], sc.q):
+        _same(two.evaluate(q), evaluate(Bodies(q, sc.q_prev, sc.q_ref), joints))
+    with pytest.raises(DeadlineExceeded):
+        two.evaluate(qs[1], deadline=time.monotonic() - 1.0)
+    for a, b in zip(two.commit(qs[2]), one.commit(qs[2]), strict=True):
+        np.testing.assert_array_equal(a, b)
+    _same(two.evaluate(qs[0]), one.evaluate(qs[0]))
+
+
 def test_prepare_does_not_use_q_nor_alias_the_callers_arrays() -> None:
     sc = _scene(2)
     joints = [b.joints() for b in sc.batches]

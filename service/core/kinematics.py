@@ -228,7 +228,7 @@ class BodyTable:
 
     def prefetch_tasks(self, wanted: Iterable[tuple[str, int, NDArray[np.intp]]]) -> list[Callable[[], object]]:
         """`prefetch`'s gathers as tasks, to run beside others (`rotate`); their arrays are `prefetch`'s
-        once the tasks have run. None with one thread."""
+        once the tasks have run. No tasks with one thread."""
         self._fetched = {}  # a gather an error left unused is not kept
         if self.threads <= 1:
             return []

@@ -106,7 +106,7 @@ class PreparedScene:
     def __init__(self, table: BodyTable, batches: list[_Batch], threads: int, loaded: bool = False) -> None:
         self._table = table
         self._loaded = loaded  # the table already holds the q of the first evaluation (the stateless call)
-        self._prefetched = loaded  # and its gathers (`_gathers`)
+        self._gathered = loaded  # and its gathers (`_gathers`)
         self._batches = batches
         self._threads = threads
         self._dtype = table.dtype
@@ -174,9 +174,9 @@ class PreparedScene:
     ) -> Evaluation:
         # The steps x takes now: all of them (v1), or from q_prev alone once the angle is a state.
         self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
-        if not self._prefetched:
+        if not self._gathered:
             self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row)])
-        self._prefetched = False
+        self._gathered = False
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
         threads = self._threads
         inner = threads if len(self._batches) == 1 else 1  # one level of threads: a pool never waits on itself

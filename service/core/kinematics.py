@@ -150,8 +150,8 @@ class BodyTable:
         self.linear = [dofs[0, 3:], *np.empty((3, 9, n), dtype=dtype)]
         spanned = sorted({0, *(s for row in filled for s in STEPS[row])})
 
-        # `_plain_bodies`' squared norms, kept until their rows change: taken here with the rows, while in cache.
         self._fetched: dict[tuple[str, int, int], tuple[NDArray[np.intp], Array]] = {}  # `prefetch`
+        # `_plain_bodies`' squared norms, kept until their rows change: taken here with the rows, while in cache.
         self._norms: dict[tuple[str, int], Array] = {
             **{("state", s): np.empty(n, dtype=dtype) for s in spanned},
             **{("row", row): np.empty(n, dtype=dtype) for row in filled},
@@ -163,7 +163,7 @@ class BodyTable:
             self._subtract(filled, cols)
             for (kind, k), out in self._norms.items():
                 a = self.states[k] if kind == "state" else self.linear[k]
-                np.einsum("ij,ij->j", a[:, cols], a[:, cols], out=out[cols])
+                squared_norms(a[:, cols], out=out[cols])
 
         self._over_bodies(fill)
         self.dtype = np.dtype(dtype)
@@ -238,7 +238,7 @@ class BodyTable:
                 out = np.empty(pairs.shape[1], dtype=self.dtype)
                 tasks.append(partial(self._size_bound, pairs, key, out))
             else:
-                src = {"linear": self.linear, "positions": self.positions}[kind][key] if kind != "rotation" else self.rotation
+                src = self.rotation if kind == "rotation" else (self.linear if kind == "linear" else self.positions)[key]
                 out = np.empty((src.shape[0], *pairs.shape), dtype=src.dtype)
                 tasks += [partial(np.take, src[r : r + 3], pairs, axis=1, mode=GATHER, out=out[r : r + 3]) for r in range(0, src.shape[0], 3)]
             self._fetched[(kind, key, id(pairs))] = (pairs, out)  # the pairs held: their id is not reused meanwhile
@@ -258,7 +258,7 @@ class BodyTable:
     def _size_bound(self, pairs: NDArray[np.intp], state: int, out: Array) -> Array:
         key = ("state", state)
         if key not in self._norms:
-            self._norms[key] = np.einsum("ij,ij->j", self.states[state], self.states[state])
+            self._norms[key] = squared_norms(self.states[state])
         n2 = np.take(self._norms[key], pairs, mode=GATHER)
         np.multiply(4.0, n2[0], out=out)
         out *= n2[1]
@@ -297,6 +297,11 @@ class BodyTable:
         return g.reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
 
 
+def squared_norms(a: Array, out: Array | None = None) -> Array:
+    """Squared Frobenius norms (B,) of bodies' rows `a` (K, B) (or into `out`): one fused pass."""
+    return np.einsum("ij,ij->j", a, a, out=out)
+
+
 def plain_range(dtype: type) -> tuple[float, float]:
     """`|A|` (Frobenius) of a body in every state inside this range keeps every product the joint
     coordinates and their collapse test form (up to ~|A|^4, with margin) a normal number:
@@ -328,7 +333,7 @@ def _plain_bodies(
 
     def norm(key: tuple[str, int], a: Array) -> Array:
         if key not in norms:
-            norms[key] = np.einsum("ij,ij->j", a, a)  # squared Frobenius norms, one fused pass
+            norms[key] = squared_norms(a)
         return norms[key]
 
     # Compared squared.

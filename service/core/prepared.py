@@ -103,10 +103,9 @@ class PreparedScene:
     Not thread-safe: one scene serves one caller at a time (a session, a solver loop).
     """
 
-    def __init__(self, table: BodyTable, batches: list[_Batch], threads: int, loaded: bool = False) -> None:
+    def __init__(self, table: BodyTable, batches: list[_Batch], threads: int, fresh: bool = False) -> None:
         self._table = table
-        self._loaded = loaded  # the table already holds the q of the first evaluation (the stateless call)
-        self._gathered = loaded  # and its gathers (`_gathers`)
+        self._fresh = fresh  # the table already holds q, its steps and their gathers (the stateless call's one evaluation)
         self._batches = batches
         self._threads = threads
         self._dtype = table.dtype
@@ -173,10 +172,13 @@ class PreparedScene:
         layout: str = "joints",
     ) -> Evaluation:
         # The steps x takes now: all of them (v1), or from q_prev alone once the angle is a state.
-        self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
-        if not self._gathered:
+        steps = {r for jb in self._batches for r in self._x_rows(jb)}
+        if self._fresh:  # loaded and gathered with the table, on its threads (`_prepare`)
+            self._fresh = False
+            self._table.plain = self._table.plain_over(steps)
+        else:
+            self._load(q, {jb.row for jb in self._batches}, steps)
             self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row)])
-        self._gathered = False
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
         threads = self._threads
         inner = threads if len(self._batches) == 1 else 1  # one level of threads: a pool never waits on itself
@@ -204,11 +206,8 @@ class PreparedScene:
         `q_prev`), the increments `rows` of `A` to it (`STEP` from q_prev, `TOTAL_STEP` from q_ref),
         and which bodies the common frame path serves over the increments `steps` (`table.plain`)."""
         t = self._table
-        if self._loaded:  # the stateless call: filled with the table, on its threads
-            self._loaded = False
-        else:
-            t.load(2, q)
-            t.increments(rows)
+        t.load(2, q)
+        t.increments(rows)
         t.plain = t.plain_over(steps)
 
     @staticmethod
@@ -447,7 +446,7 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
             log.add(jb.faults)
             jb.faults = []
     log.raise_if_any()
-    return PreparedScene(table, prepared, threads, loaded=not own)
+    return PreparedScene(table, prepared, threads, fresh=not own)
 
 
 def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
@@ -469,12 +468,18 @@ def _gathers(c: Constitution, pairs: NDArray[np.intp], own: bool) -> list[tuple[
     wanted = [("linear", REF)] + [("linear", row) for row in rows[:-1]]  # the rotations are gathered by the batch's
     # own thread: they wait for the polar factors, which these gathers run beside
     if c.alpha.any():
-        wanted += [("positions", s) for s in sorted({0, STEPS[rows[-1]][0]} | {s for row in rows[:-1] for s in STEPS[row]})]
+        wanted += [("positions", s) for s in sorted(_states(rows))]
     if c.unit_frames:
         wanted += [("size", s) for s in range(len(rows))]  # q_ref and the start of each fixed step
     if not own:
         wanted += _evaluation_gathers(c, rows[-1])
     return [(kind, key, pairs) for kind, key in wanted]
+
+
+def _states(rows: tuple[int, ...]) -> set[int]:
+    """The states a batch whose steps are the table's `rows` reads when prepared: q_ref, where the last
+    step starts, and those the fixed steps span."""
+    return {0, STEPS[rows[-1]][0]} | {s for row in rows[:-1] for s in STEPS[row]}
 
 
 def _evaluation_gathers(c: Constitution, row: int) -> list[tuple[str, int]]:
@@ -491,8 +496,7 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     rows = _increments(c)
     A_ref = table.linear_of(pairs, REF)
     start = STEPS[rows[-1]][0]
-    states = {0, start} | {s for row in rows[:-1] for s in STEPS[row]}
-    p = {s: table.positions_of(pairs, s) for s in states} if points else {}
+    p = {s: table.positions_of(pairs, s) for s in _states(rows)} if points else {}
     r = {s: relative_position(ps) for s, ps in p.items()}
     cast = lambda a: None if a is None else a.astype(dtype, copy=False)  # noqa: E731
     R_ref = table.rotations(pairs)

@@ -75,6 +75,29 @@ def test_prepared_scene_on_threads_gathers_every_q_afresh() -> None:
     _same(two.evaluate(qs[0]), one.evaluate(qs[0]))
 
 
+@pytest.mark.parametrize("threads", [2, 3])
+def test_stateless_call_on_threads_names_the_faults_of_one_thread(threads: int) -> None:
+    """The stateless call prepares each batch on the thread that then evaluates it: a frame collapsed at
+    q_prev in batch 1 (found while preparing it) and one at q in batch 0 (found while evaluating it)
+    are named as on one thread, whichever task ends first (batch 0's, the first in order)."""
+    eye = pack(np.zeros(3), np.eye(3))
+    flat = pack(np.zeros(3), np.zeros((3, 3)))  # A = 0: no angle
+    ref = np.stack([eye] * 3)
+    q, q_prev = ref.copy(), ref.copy()
+    q[1], q_prev[2] = flat, flat
+    batch = lambda j: Joints(670, 18, np.array([[0, j]]), EDGE[None], np.array([-1.0]), np.array([1.0]), np.ones(1))  # noqa: E731
+    bodies, joints = Bodies(q, q_prev, ref), [batch(1), batch(2)]
+    with pytest.raises(InputError) as want:
+        evaluate(bodies, joints)
+    assert [(f.loc, "collapses at q " in f.msg) for f in want.value.faults] == [(("batches", 0, "body_ids", 0), True)]
+    with pytest.raises(InputError) as got:
+        evaluate(bodies, joints, threads=threads)
+    assert got.value.faults == want.value.faults
+    with pytest.raises(InputError) as second:  # batch 1 alone: its fault at q_prev, from its preparation
+        evaluate(bodies, joints[1:], threads=threads)
+    assert [f.loc for f in second.value.faults] == [("batches", 0, "body_ids", 0)] and "at q_prev" in second.value.faults[0].msg
+
+
 def test_prepare_does_not_use_q_nor_alias_the_callers_arrays() -> None:
     sc = _scene(2)
     joints = [b.joints() for b in sc.batches]

@@ -176,13 +176,20 @@ class BodyTable:
     def rotate(self, used: NDArray[np.bool_] | None = None, also: Sequence[Callable[[], object]] = ()) -> None:
         """The polar factors `rotation` (9, B) and conditioning `ratio` (B,) (see `__init__`), a range of
         bodies per thread, the tasks `also` beside them on the same threads (`prefetch_tasks`)."""
-        threads = self.threads
-        split = (lambda a: np.array_split(a, threads, axis=-1)) if threads > 1 else (lambda a: [a])  # noqa: E731
-        masks = [None] * threads if used is None else split(used)
-        polar = [partial(polar_rotation, a, u) for a, u in zip(split(self._A_ref), masks)]
-        parts = run_all([*polar, *also], threads)[: len(polar)]
-        R, self.ratio = parts[0] if len(parts) == 1 else (np.concatenate(a, axis=-1) for a in zip(*parts))
+        if self.threads <= 1:
+            R, self.ratio = polar_rotation(self._A_ref, used)
+            run_all(also, 1)
+        else:
+            n = self._A_ref.shape[1]
+            R, self.ratio = np.empty((9, n)), np.empty(n)
+            cuts = [n * k // self.threads for k in range(self.threads + 1)]
+            polar = [partial(self._rotate_part, R, slice(a, b), used) for a, b in zip(cuts[:-1], cuts[1:])]
+            run_all([*polar, *also], self.threads)
         self.rotation = R.astype(self.dtype, copy=False)  # (9, B)
+
+    def _rotate_part(self, R: Array, cols: slice, used: NDArray[np.bool_] | None) -> None:
+        """The polar factors of the bodies `cols` into `R` (9, B) and `ratio`, on the thread that took them."""
+        R[:, cols], self.ratio[cols] = polar_rotation(self._A_ref[:, cols], None if used is None else used[cols])
 
     def load(self, state: int, q: Array) -> None:
         """Bodies' DOFs `q` (B, 12) into `state` (the rows of A's increments from or to it keep their old values)."""
@@ -273,11 +280,12 @@ class BodyTable:
         g = np.take(self.positions[state], pairs, axis=1, mode=GATHER) if g is None else g
         return g.transpose(2, 1, 0)
 
-    def plain_joints(self, pairs: NDArray[np.intp]) -> NDArray[np.bool_]:
-        """(N,) True where both bodies of joints `pairs` (2, N) are `plain` (see `_plain_bodies`)."""
-        if self.plain.all():  # the common case: no gather
+    def plain_joints(self, pairs: NDArray[np.intp], plain: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
+        """(N,) True where both bodies of joints `pairs` (2, N) are `plain` (B,) (default `self.plain`, see `_plain_bodies`)."""
+        plain = self.plain if plain is None else plain
+        if plain.all():  # the common case: no gather
             return np.ones(pairs.shape[1], dtype=bool)
-        return np.take(self.plain, pairs, mode=GATHER).all(axis=0)
+        return np.take(plain, pairs, mode=GATHER).all(axis=0)
 
     def linear_at(self, pairs: NDArray[np.intp], state: int) -> Array:
         """`A` (N, 2, 3, 3) of joints `pairs` (2, N) in `state` (0: q_ref, 1: q_prev, 2: q; spanned states only)."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextvars
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -23,7 +23,8 @@ def _pool(threads: int) -> ThreadPoolExecutor:
 
 
 def run_all(tasks: Sequence[Callable[[], T]], threads: int) -> list[T]:
-    """Each task's result, in order; the first task's exception (in order) is raised.
+    """Each task's result, in order; the first task's exception (in order) is raised, once every task has
+    ended (a caller that retries or reports then never races a task still reading its arrays).
 
     Every task runs in a copy of the caller's context, so `np.errstate` (a context
     variable) holds in the workers as it does in the caller.
@@ -32,4 +33,5 @@ def run_all(tasks: Sequence[Callable[[], T]], threads: int) -> list[T]:
         return [task() for task in tasks]
     pool = _pool(threads)
     futures = [pool.submit(contextvars.copy_context().run, task) for task in tasks]
+    wait(futures)
     return [f.result() for f in futures]

@@ -14,7 +14,7 @@ depends on `q` and `q_ref` alone and has no state.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from functools import partial
 
@@ -97,20 +97,34 @@ class _Batch:
     # from starts[0] over `fixed`; "last": from starts[-1]; "ref": from F_ref), kept until `starts` change
 
 
+@dataclass
+class _Pending:
+    """A batch of the stateless call, prepared when its evaluation starts."""
+
+    prepare: Callable[[], _Batch]  # `_prepare_batch` of the batch
+    size: int  # its joints
+    x_rows: tuple[int, ...]  # the body table's increment rows its coordinate takes (`PreparedScene._x_rows`)
+
+
 class PreparedScene:
     """A scene prepared once (`prepare`): evaluate any `q`, commit time steps, update limits.
 
     Not thread-safe: one scene serves one caller at a time (a session, a solver loop).
     """
 
-    def __init__(self, table: BodyTable, batches: list[_Batch], threads: int, fresh: bool = False) -> None:
+    def __init__(
+        self, table: BodyTable, batches: list[_Batch], threads: int, pending: list[_Pending] | None = None
+    ) -> None:
         self._table = table
-        self._fresh = fresh  # the table already holds q, its steps and their gathers (the stateless call's one evaluation)
-        self._batches = batches
+        # The stateless call's one evaluation: the table already holds q, its steps and their gathers, and
+        # each batch is prepared on the thread that then evaluates it (no wait between the two for the other batch).
+        self._pending = pending
+        self._batches: list[_Batch] = batches if pending is None else [None] * len(pending)  # type: ignore[list-item]
         self._threads = threads
         self._dtype = table.dtype
+        self._plain = table.plain  # the bodies the frames' common path serves over the steps to q (`_load`)
         self.n_bodies: int = table.dofs.shape[2]
-        self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches]
+        self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches] if pending is None else [p.size for p in pending]
 
     # ---------------------------------------------------------------- evaluate
 
@@ -171,26 +185,24 @@ class PreparedScene:
         deadline: float | None = None,
         layout: str = "joints",
     ) -> Evaluation:
-        # The steps x takes now: all of them (v1), or from q_prev alone once the angle is a state.
-        steps = {r for jb in self._batches for r in self._x_rows(jb)}
-        if self._fresh:  # loaded and gathered with the table, on its threads (`_prepare`)
-            self._fresh = False
-            self._table.plain = self._table.plain_over(steps)
+        pending, self._pending = self._pending, None
+        if pending is not None:  # loaded and gathered with the table, on its threads (`_prepare`)
+            self._plain = self._table.plain_over({r for p in pending for r in p.x_rows})
         else:
-            self._load(q, {jb.row for jb in self._batches}, steps)
+            # The steps x takes now: all of them (v1), or from q_prev alone once the angle is a state.
+            self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
             self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row)])
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
         threads = self._threads
         inner = threads if len(self._batches) == 1 else 1  # one level of threads: a pool never waits on itself
         psd = hessian_mode == "psd"
-        results = run_all(
-            [
-                # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
-                partial(self._evaluate_batch, b, jb, want_g, want_h, psd, active_only, inner, deadline, layout == "bodies")
-                for b, jb in enumerate(self._batches)
-            ],
-            threads,
-        )
+        # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
+        rest = (want_g, want_h, psd, active_only, inner, deadline, layout == "bodies")
+        if pending is None:
+            tasks = [partial(self._evaluate_batch, b, jb, *rest) for b, jb in enumerate(self._batches)]
+        else:
+            tasks = [partial(self._prepare_and_evaluate, b, p, *rest) for b, p in enumerate(pending)]
+        results = run_all(tasks, threads)
         total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
         if not np.isfinite(total):
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
@@ -204,11 +216,11 @@ class PreparedScene:
     def _load(self, q: Array, rows: Iterable[int], steps: Iterable[int]) -> None:
         """`q` (B, 12) into the body table's state 2 (scratch: the table's states 0, 1 are `q_ref`,
         `q_prev`), the increments `rows` of `A` to it (`STEP` from q_prev, `TOTAL_STEP` from q_ref),
-        and which bodies the common frame path serves over the increments `steps` (`table.plain`)."""
+        and which bodies the common frame path serves over the increments `steps` (`_plain`)."""
         t = self._table
         t.load(2, q)
         t.increments(rows)
-        t.plain = t.plain_over(steps)
+        self._plain = t.plain_over(steps)
 
     @staticmethod
     def _x_rows(jb: _Batch) -> tuple[int, ...]:
@@ -222,12 +234,12 @@ class PreparedScene:
         the coordinate formed at q for the collapse test (`Progress.known`).
 
         As `kinematics.state_frames`: each state is the previous one plus the step, except for
-        joints of bodies the common path does not serve (`table.plain`), formed directly (scaled).
+        joints of bodies the common path does not serve (`_plain`), formed directly (scaled).
         The steps `fixed` are taken once per scene (`_progress`, kept as `path`): bit for bit what
         summing them again would give, for every joint that is not careful (whose x is its own).
         """
         states = [*starts, starts[-1] + dF]
-        idx = np.flatnonzero(~self._table.plain_joints(jb.pairs))
+        idx = np.flatnonzero(~self._table.plain_joints(jb.pairs, self._plain))
         careful = None
         if idx.shape[0]:
             careful = careful_frames(self._table, jb.pairs, rows, jb.c.alpha, jb.v, idx)
@@ -257,6 +269,11 @@ class PreparedScene:
             states, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF, "last")
             x = jb.theta + x
         return x, states[-1], _last_state(careful), known
+
+    def _prepare_and_evaluate(self, b: int, pending: _Pending, *rest: object) -> dict:
+        """The stateless call's batch `b`: prepared (`pending`), then evaluated, on one thread."""
+        self._batches[b] = jb = pending.prepare()
+        return self._evaluate_batch(b, jb, *rest)  # type: ignore[arg-type]
 
     def _evaluate_batch(
         self,
@@ -439,14 +456,18 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     for faults in checks:  # in batch order (the log keeps the first)
         log.add(faults)
     log.raise_if_any()
+    tasks = [partial(_prepare_batch, b, j, table, own, p) for b, (j, p) in enumerate(zip(batches, pairs))]
+    if not own:  # each batch prepared by the task that evaluates it; its collapsed frames named with those at q
+        x_rows = [_increments(CONSTITUTIONS[j.constitution_uid]) for j in batches]
+        x_rows = [r if j.prev_coordinate is None else r[-1:] for j, r in zip(batches, x_rows)]  # as `PreparedScene._x_rows`
+        return PreparedScene(table, [], threads, [_Pending(t, p.shape[1], r) for t, p, r in zip(tasks, pairs, x_rows)])
     with np.errstate(all="ignore"):  # run_all carries the state into its threads
-        prepared = run_all([partial(_prepare_batch, b, j, table, own, p) for b, (j, p) in enumerate(zip(batches, pairs))], threads)
-    if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
-        for jb in prepared:
-            log.add(jb.faults)
-            jb.faults = []
+        prepared = run_all(tasks, threads)
+    for jb in prepared:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
+        log.add(jb.faults)
+        jb.faults = []
     log.raise_if_any()
-    return PreparedScene(table, prepared, threads, fresh=not own)
+    return PreparedScene(table, prepared, threads)
 
 
 def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:

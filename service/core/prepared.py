@@ -189,7 +189,6 @@ class PreparedScene:
         if pending is not None:  # loaded and gathered with the table, on its threads (`_prepare`)
             self._plain = self._table.plain_over({r for p in pending for r in p.x_rows})
         else:
-            # The steps x takes now: all of them (v1), or from q_prev alone once the angle is a state.
             self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
             self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row)])
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
@@ -224,7 +223,7 @@ class PreparedScene:
 
     @staticmethod
     def _x_rows(jb: _Batch) -> tuple[int, ...]:
-        return jb.rows if jb.theta is None else jb.rows[-1:]
+        return _x_rows(jb.rows, jb.theta is not None)
 
     def _to_q(
         self, jb: _Batch, starts: list[Array], fixed: list[Array], rows: tuple[int, ...], dF: Array, path: str
@@ -414,6 +413,12 @@ def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: lis
     return p
 
 
+def _x_rows(rows: tuple[int, ...], stated: bool) -> tuple[int, ...]:
+    """The increment rows of a batch's steps `rows` that its coordinate takes at q: all of them (v1), or
+    the last one alone once the angle is a state (`stated`: a `prev_coordinate` or a commit)."""
+    return rows[-1:] if stated else rows
+
+
 def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:
     """`careful` reduced to its last state (the frames at q), for the collapse test there."""
     if careful is None:
@@ -437,7 +442,8 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     """`prepare` of bodies whose states are already checked, and joints as arrays. `own`: the scene's
     limits are its own arrays (`update` writes them); else the stateless call's, which allocates
     nothing it does not need (every fresh array here is page faults of its own), and whose table
-    takes `bodies.q` and the steps to it at once (the one evaluation's `_load`, on the same threads)."""
+    takes `bodies.q` and the steps to it at once (the one evaluation's `_load`, on the same threads), and
+    whose batches are prepared by the tasks that evaluate them (`_Pending`)."""
     constitutions = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
     # q_prev is always in the table: the state a commit replaces.
     rows = {PREV_STEP} | {row for c in constitutions for row in _increments(c)[:-1]}
@@ -458,8 +464,7 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     log.raise_if_any()
     tasks = [partial(_prepare_batch, b, j, table, own, p) for b, (j, p) in enumerate(zip(batches, pairs))]
     if not own:  # each batch prepared by the task that evaluates it; its collapsed frames named with those at q
-        x_rows = [_increments(CONSTITUTIONS[j.constitution_uid]) for j in batches]
-        x_rows = [r if j.prev_coordinate is None else r[-1:] for j, r in zip(batches, x_rows)]  # as `PreparedScene._x_rows`
+        x_rows = [_x_rows(_increments(CONSTITUTIONS[j.constitution_uid]), j.prev_coordinate is not None) for j in batches]
         return PreparedScene(table, [], threads, [_Pending(t, p.shape[1], r) for t, p, r in zip(tasks, pairs, x_rows)])
     with np.errstate(all="ignore"):  # run_all carries the state into its threads
         prepared = run_all(tasks, threads)

@@ -13,7 +13,7 @@ from jointlimits.service.core import assembly, penalty
 from jointlimits.service.core.constitution import Array, Constitution, Curvature
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, check_deadline
 from jointlimits.service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames, take_joints
-from jointlimits.service.core.parallel import run_all
+from jointlimits.service.core.parallel import Sharing, run_all
 from jointlimits.service.core.validate import nonfinite_rows, raise_if
 
 CHUNK = 8192
@@ -44,6 +44,7 @@ def differentiate(
     threads: int,
     deadline: float | None = None,
     compact: bool = False,
+    share: Sharing | None = None,
 ) -> dict:
     """Energy (N,) of batch `b` at its frames `F` (N, 4, 3) and coordinate `x` (N,), and the asked-for
     derivatives of its active joints: the fields of a `BatchResult`, plus `all_energy` (N,) and the
@@ -53,7 +54,8 @@ def differentiate(
     Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
     past `deadline` (a `time.monotonic()` value), checked before each derivative chunk. `compact`:
     derivative rows for the active joints only (as `active_only`) while index, x, energy keep every
-    joint; `active` (A,) says which (`layout="bodies"` sums those rows alone).
+    joint; `active` (A,) says which (`layout="bodies"` sums those rows alone). `share`: the derivative
+    chunks go to the batches' shared runner (`threads` its threads), else to `threads` threads.
     """
     dtype = F.dtype
     g = penalty.distance(x, lo, up)  # one gap for the energy and the active joints
@@ -112,7 +114,8 @@ def differentiate(
         # Per-joint scalars for every active joint at once: per chunk they would be a dozen short
         # calls each (call overhead, and a GIL hand-off each on threads).
         _, dE, d2E = penalty.derivatives(*(take_joints(a, active) for a in (x, lo, up, s)))
-        for bad in run_all([partial(chunk, start) for start in range(0, active.shape[0], size)], threads):
+        chunks = [partial(chunk, start) for start in range(0, active.shape[0], size)]
+        for bad in run_all(chunks, threads) if share is None else share.run(chunks):
             overflow += bad
     _raise_overflow(b, overflow)
     return dict(

@@ -40,7 +40,7 @@ from jointlimits.service.core.kinematics import (
     state_frames,
 )
 from jointlimits.service.core.geometry import axis_and_anchors
-from jointlimits.service.core.parallel import run_all
+from jointlimits.service.core.parallel import Sharing, run_all
 from jointlimits.service.core.registry import CONSTITUTIONS
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
 from jointlimits.service.core.validate import (
@@ -193,15 +193,17 @@ class PreparedScene:
             self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row)])
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
         threads = self._threads
-        inner = threads if len(self._batches) == 1 else 1  # one level of threads: a pool never waits on itself
+        # One batch: its derivative chunks on the pool. Several: each batch on a thread, their chunks
+        # shared, so that the thread whose batch ends first takes the others' (a pool never waits on itself).
+        share = Sharing(len(self._batches)) if threads > 1 and len(self._batches) > 1 else None
         psd = hessian_mode == "psd"
         # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
-        rest = (want_g, want_h, psd, active_only, inner, deadline, layout == "bodies")
+        rest = (want_g, want_h, psd, active_only, threads, deadline, layout == "bodies", share)
         if pending is None:
             tasks = [partial(self._evaluate_batch, b, jb, *rest) for b, jb in enumerate(self._batches)]
         else:
             tasks = [partial(self._prepare_and_evaluate, b, p, *rest) for b, p in enumerate(pending)]
-        results = run_all(tasks, threads)
+        results = run_all(tasks if share is None else [share.task(t) for t in tasks], threads)
         total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
         if not np.isfinite(total):
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
@@ -285,13 +287,14 @@ class PreparedScene:
         threads: int,
         deadline: float | None = None,
         compact: bool = False,
+        share: Sharing | None = None,
     ) -> dict:
         check_deadline(deadline)
         x, F, careful, known = self._x(jb, self._step(jb, jb.row, jb.r_start))
         bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
         raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound))[:MAX_FAULTS])
         r = differentiate(
-            b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact
+            b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact, share
         )
         r["coordinate"] = _plus_offset(r["x"], jb.offset, r["index"] if active_only else None)
         return r

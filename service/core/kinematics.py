@@ -131,12 +131,15 @@ class BodyTable:
         used: NDArray[np.bool_] | None = None,
         later: Iterable[int] = (),
         rotate: bool = True,
+        plains: Iterable[Iterable[int]] = (),
     ) -> None:
         """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage);
         `plain` is taken over `rows`. `later`: increment rows filled too (a stateless call's steps to
         `q`, on the same threads), for a `plain_over` of their own later. `used` (B,): the bodies some
         joint reads; only theirs are sure to have a polar factor, every body has its conditioning
-        ratio (`polar_rotation`). `rotate` False: the polar factors wait for `rotate`."""
+        ratio (`polar_rotation`). `rotate` False: the polar factors wait for `rotate`. `plains`: sets of
+        filled rows whose `plain_over` is taken now too, with the rows, on the threads (kept until a
+        `load` or `increments`)."""
         n = bodies.q.shape[0]
         rows = tuple(rows)
         filled = tuple(sorted({*rows, *later}))
@@ -157,6 +160,9 @@ class BodyTable:
             **{("row", row): np.empty(n, dtype=dtype) for row in filled},
         }
 
+        # `plain_over` of each set of rows, taken while the rows are in cache; kept until they change.
+        self._plains = {frozenset(r): np.empty(n, dtype=bool) for r in (rows, *plains)}
+
         def fill(cols: slice) -> None:
             for s in spanned:
                 transpose_into(dofs[s][:, cols], q[s][cols])
@@ -164,6 +170,9 @@ class BodyTable:
             for (kind, k), out in self._norms.items():
                 a = self.states[k] if kind == "state" else self.linear[k]
                 squared_norms(a[:, cols], out=out[cols])
+            norms = {key: a[cols] for key, a in self._norms.items()}
+            for key, out in self._plains.items():
+                out[cols] = _plain_bodies(self.states[:, :, cols], [a[:, cols] for a in self.linear], key, norms)
 
         self._over_bodies(fill)
         self.dtype = np.dtype(dtype)
@@ -194,6 +203,7 @@ class BodyTable:
     def load(self, state: int, q: Array) -> None:
         """Bodies' DOFs `q` (B, 12) into `state` (the rows of A's increments from or to it keep their old values)."""
         self._fetched = {}  # gathers of the old numbers
+        self._plains = {}
         self._over_bodies(lambda cols: transpose_into(self.dofs[state][:, cols], q[cols]))
         self._norms.pop(("state", state), None)
 
@@ -201,6 +211,7 @@ class BodyTable:
         """The increment `rows` of `A` from the states they span, as loaded."""
         rows = tuple(rows)
         self._fetched = {}
+        self._plains = {}
         self._over_bodies(lambda cols: self._subtract(rows, cols))
         for row in rows:
             self._norms.pop(("row", row), None)
@@ -219,7 +230,10 @@ class BodyTable:
 
     def plain_over(self, rows: Iterable[int]) -> NDArray[np.bool_]:
         """`_plain_bodies` over the increment `rows` (the norms of states and rows that did not change since are kept)."""
-        return _plain_bodies(self.states, self.linear, rows, self._norms)
+        rows = frozenset(rows)
+        if rows not in self._plains:
+            self._plains[rows] = _plain_bodies(self.states, self.linear, rows, self._norms)
+        return self._plains[rows]
 
     def prefetch(self, wanted: Iterable[tuple[str, int, NDArray[np.intp]]]) -> None:
         """Gather `wanted` now, for the next `linear_of`, `rotations`, `positions_of` or `size_bound` of the

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from functools import partial
+from functools import partial, reduce
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -44,6 +44,7 @@ from jointlimits.service.core.parallel import Sharing, run_all
 from jointlimits.service.core.registry import CONSTITUTIONS
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
 from jointlimits.service.core.validate import (
+    body_checks,
     check_bodies,
     check_dofs,
     check_evaluation,
@@ -451,15 +452,22 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     # q_prev is always in the table: the state a commit replaces.
     rows = {PREV_STEP} | {row for c in constitutions for row in _increments(c)[:-1]}
     later = () if own else {_increments(c)[-1] for c in constitutions}
+    # The stateless call's steps to q, whose `plain_over` its table takes with the rows (`_Pending.x_rows`).
+    x_rows = [_x_rows(_increments(CONSTITUTIONS[j.constitution_uid]), j.prev_coordinate is not None)
+              for j in batches if j.constitution_uid in CONSTITUTIONS]
+    plains = () if own else [{r for rs in x_rows for r in rs}]
     n_bodies = bodies.q_ref.shape[0]
     with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
-        table = BodyTable(bodies, dtype, threads, rows=rows, later=later, rotate=False)
+        table = BodyTable(bodies, dtype, threads, rows=rows, later=later, rotate=False, plains=plains)
     # The batches' checks on the threads; then, if they pass, the batches' gathers beside the polar factors.
-    checks = run_all([partial(check_joints, b, joints, n_bodies) for b, joints in enumerate(batches)], threads)
+    # Beside them, which bodies each batch reads (for the polar factors), a mask per batch.
+    done = run_all([partial(check_joints, b, joints, n_bodies) for b, joints in enumerate(batches)]
+                   + [partial(_bodies_used, [joints], n_bodies) for joints in batches], threads)
+    checks, used = done[: len(batches)], reduce(np.logical_or, done[len(batches) :], np.zeros(n_bodies, dtype=bool))
     pairs = [np.ascontiguousarray(j.body_ids.T) for j in batches]  # (2, N): contiguous indices gather 30% faster
     gathers = [] if any(checks) else [w for j, p in zip(batches, pairs) for w in _gathers(CONSTITUTIONS[j.constitution_uid], p, own)]
     with np.errstate(all="ignore"):
-        table.rotate(_bodies_used(batches, n_bodies), also=table.prefetch_tasks(gathers))
+        table.rotate(used, also=table.prefetch_tasks(gathers))
     log = FaultLog()
     log.add(check_rotations(table.ratio))
     for faults in checks:  # in batch order (the log keeps the first)
@@ -467,7 +475,6 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     log.raise_if_any()
     tasks = [partial(_prepare_batch, b, j, table, own, p) for b, (j, p) in enumerate(zip(batches, pairs))]
     if not own:  # each batch prepared by the task that evaluates it; its collapsed frames named with those at q
-        x_rows = [_x_rows(_increments(CONSTITUTIONS[j.constitution_uid]), j.prev_coordinate is not None) for j in batches]
         return PreparedScene(table, [], threads, [_Pending(t, p.shape[1], r) for t, p, r in zip(tasks, pairs, x_rows)])
     with np.errstate(all="ignore"):  # run_all carries the state into its threads
         prepared = run_all(tasks, threads)
@@ -636,7 +643,8 @@ def evaluate(
     log = FaultLog()
     log.add(check_options(outputs, hessian_mode))
     log.add(assembled.check_layout(layout))
-    log.add(check_bodies(bodies))
+    for faults in run_all(body_checks(bodies), threads):  # each state read once, on the threads
+        log.add(faults)
     log.raise_if_any()
     arrays = [_as_arrays(j) for j in batches]
     scene = _prepare(bodies, arrays, threads, dtype, own=False)

@@ -631,9 +631,9 @@ def evaluate(
     Infinity. Only the outputs asked for are computed, and only joints outside their range are
     differentiated. `dtype` np.float32 runs everything after validation and the polar factors in
     single precision (a benchmark variant: ~1e-5 relative error; the wire is float64). `threads`
-    > 1 evaluates the polar factors, each batch's frames, then the batches (or, for one batch, its
-    derivative chunks) on that many threads, with bitwise the same results; the HTTP service keeps 1, its worker
-    processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
+    > 1 runs the body table, the polar factors and the gathers, then the batches, a batch per thread,
+    their derivative chunks shared (one batch: its chunks) on that many threads, with bitwise the same
+    results; the HTTP service keeps 1, its worker processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
     `DeadlineExceeded` (checked between batches and derivative chunks). `layout` "bodies" answers
     the gradient and Hessian summed per body (`jointlimits.service.core.assembled`) instead of per joint: only
     the joints outside their range are differentiated and stored, then summed.

@@ -28,14 +28,7 @@ Results = list[dict[str, np.ndarray]]  # per batch: energy (N,), gradient (N, 24
 
 def median_time(fn: Callable[[], Any], reps: int = 5, warmup: int = 1) -> float:
     """Median wall time (s) of `reps` calls after `warmup` calls."""
-    for _ in range(warmup):
-        fn()
-    ts = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
+    return median_times({fn: fn}, reps, warmup)[fn]
 
 
 def median_times(fns: dict[Any, Callable[[], Any]], reps: int = 5, warmup: int = 1) -> dict[Any, float]:

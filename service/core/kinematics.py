@@ -191,9 +191,7 @@ class BodyTable:
         else:
             n = self._A_ref.shape[1]
             R, self.ratio = np.empty((9, n)), np.empty(n)
-            cuts = [n * k // self.threads for k in range(self.threads + 1)]
-            polar = [partial(self._rotate_part, R, slice(a, b), used) for a, b in zip(cuts[:-1], cuts[1:])]
-            run_all([*polar, *also], self.threads)
+            run_all([*(partial(self._rotate_part, R, cols, used) for cols in self._ranges()), *also], self.threads)
         self.rotation = R.astype(self.dtype, copy=False)  # (9, B)
 
     def _rotate_part(self, R: Array, cols: slice, used: NDArray[np.bool_] | None) -> None:
@@ -224,9 +222,13 @@ class BodyTable:
 
     def _over_bodies(self, task: Callable[[slice], None]) -> None:
         """`task` on `threads` contiguous ranges of bodies at once (a range per thread: each writes its own columns)."""
+        run_all([partial(task, cols) for cols in self._ranges()], self.threads)
+
+    def _ranges(self) -> list[slice]:
+        """The bodies in `threads` contiguous ranges of (nearly) equal size."""
         n = self.dofs.shape[2]
         cuts = [n * k // self.threads for k in range(self.threads + 1)]
-        run_all([partial(task, slice(a, b)) for a, b in zip(cuts[:-1], cuts[1:])], self.threads)
+        return [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
 
     def plain_over(self, rows: Iterable[int]) -> NDArray[np.bool_]:
         """`_plain_bodies` over the increment `rows` (the norms of states and rows that did not change since are kept)."""

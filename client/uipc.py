@@ -210,35 +210,66 @@ def _body_ids(bodies: _Bodies, gid: int, geo_ids: NDArray[Any], inst_ids: NDArra
     return out
 
 
+def _bad_number(v: NDArray[Any]) -> str:
+    """Words for a value (a number or a vector) holding a NaN or an infinity."""
+    nan = bool(np.isnan(v).any())
+    return ("is NaN" if nan else "is not finite") + ("" if nan and v.ndim == 0 else f" ({v.tolist()})")
+
+
 def _read_joints(gid: int, geo: Any, uid: int, bodies: _Bodies, use_angle: bool) -> tuple[bool, dict[str, Any]]:
-    """One limited joint geometry's edges, as arrays (E rows), with the engine's checks."""
+    """One limited joint geometry's edges, as arrays (E rows), with the engine's checks and the service's:
+    a fault is named here by geometry and edge, not later by batch row. A value written after `apply_to`
+    skips its checks, so they are all redone here."""
     E = int(geo.edges().size())
     floats = lambda name, *shape: np.asarray(_edge_attr(geo, name, gid), dtype=np.float64).reshape(E, *shape)  # noqa: E731
     ints = lambda name: np.asarray(_edge_attr(geo, name, gid)).astype(np.int64).reshape(E)  # noqa: E731
     local = all(geo.edges().find(n) is not None for n in LOCAL_ATTRS)  # the engine's `use_local`
-    ids = np.stack([_body_ids(bodies, gid, ints("l_geo_id"), ints("l_inst_id"), "l"),
+    l_geo, l_inst = ints("l_geo_id"), ints("l_inst_id")
+    ids = np.stack([_body_ids(bodies, gid, l_geo, l_inst, "l"),
                     _body_ids(bodies, gid, ints("r_geo_id"), ints("r_inst_id"), "r")], axis=1)
+    if np.any(itself := ids[:, 0] == ids[:, 1]):  # the engine takes it; the service does not
+        e = int(np.argmax(itself))
+        raise SceneError(f"`l_geo_id`, `l_inst_id` = `r_geo_id`, `r_inst_id`: body (geometry {l_geo[e]}, "
+                         f"instance {l_inst[e]}) is jointed to itself", gid, e)
     lim = {n: floats(f"limit/{n}") for n in ("lower", "upper", "strength")}
+    offset = _edge_attr(geo, OFFSET_ATTR[uid], gid, required=False)
+    offset = np.zeros(E) if offset is None else np.asarray(offset, dtype=np.float64).reshape(E)
+    prev = floats("angle") if uid == REVOLUTE_LIMIT and use_angle else None
     if local:
         edges = np.stack([floats(n, 3) for n in LOCAL_ATTRS], axis=1).reshape(E, 2, 2, 3)  # [[l0, l1], [r0, r1]]
         axis = edges[:, 0, 1] - edges[:, 0, 0]
+        named: dict[str, Array] = dict(zip(LOCAL_ATTRS, edges.reshape(E, 4, 3).transpose(1, 0, 2)))
     else:
         P = np.asarray(geo.positions().view(), dtype=np.float64).reshape(-1, 3)
-        edges = P[np.asarray(geo.edges().topo().view()).reshape(E, 2)]  # (E, 2, 3): world positions at q_ref
+        topo = np.asarray(geo.edges().topo().view()).reshape(E, 2)
+        edges = P[topo]  # (E, 2, 3): world positions at q_ref
         axis = edges[:, 1] - edges[:, 0]
+        if np.any(bad := ~np.isfinite(edges).all(axis=2)):  # (E, 2): the edges' vertices only
+            e, k = (int(i) for i in np.argwhere(bad)[0])
+            raise SceneError(f"`position` of vertex {topo[e, k]} {_bad_number(edges[e, k])}", gid, e)
+        named = {}
+    named |= {f"limit/{n}": v for n, v in lim.items()} | {OFFSET_ATTR[uid]: offset}
+    named |= {} if prev is None else {"angle": prev}
+    for name, v in named.items():
+        if np.any(bad := ~np.isfinite(v).all(axis=tuple(range(1, v.ndim)))):  # per edge, also of 0 edges
+            e = int(np.argmax(bad))
+            raise SceneError(f"`{name}` {_bad_number(v[e])}", gid, e)
+    lo, up, s = lim["lower"], lim["upper"], lim["strength"]
+    if np.any(empty := lo > up):
+        e = int(np.argmax(empty))
+        raise SceneError(f"`limit/lower` {float(lo[e])!r} > `limit/upper` {float(up[e])!r}: an empty range "
+                         "(the engine refuses it at world.init())", gid, e)
+    if np.any(s < 0):  # the engine takes it; the service does not
+        e = int(np.argmax(s < 0))
+        raise SceneError(f"`limit/strength`: negative strength {float(s[e])!r}", gid, e)
     # The engine refuses a zero axis at world.init() (revolute: |t|^2 <= 1e-24, prismatic: P0 == P1);
     # a local axis turns by R_i (670) or A_ref_i (669), both invertible, so l1 - l0 decides.
     short = ~(np.einsum("ek,ek->e", axis, axis) > (1e-24 if uid == REVOLUTE_LIMIT else 0.0))
     if np.any(short):
         raise SceneError("the joint's axis has zero length (the engine refuses it at world.init())",
                          gid, int(np.argmax(short)))
-    offset = _edge_attr(geo, OFFSET_ATTR[uid], gid, required=False)
-    prev = None
-    if uid == REVOLUTE_LIMIT and use_angle:
-        prev = floats("angle")
     return local, dict(
-        refs=[(gid, e) for e in range(E)], body_ids=ids, edges=edges, prev=prev,
-        offset=np.zeros(E) if offset is None else np.asarray(offset, dtype=np.float64).reshape(E), **lim,
+        refs=[(gid, e) for e in range(E)], body_ids=ids, edges=edges, prev=prev, offset=offset, **lim,
     )
 
 
@@ -262,8 +293,9 @@ def request_from_scene(
 
     One batch per constitution and edge variant (world edges, local edges): 670's first, each
     constitution's variants in the order their first geometry comes; rows in slot order, then edge
-    order. Raises `SceneError` for a scene the engine would refuse or that
-    cannot be read, and ImportError without pyuipc.
+    order. Raises `SceneError` for a scene the engine would refuse, or with values the service
+    refuses (checked here, also where written after `apply_to`, to name the geometry and edge), or
+    that cannot be read, and ImportError without pyuipc.
     """
     _uipc()
     slots = _slots(scene)

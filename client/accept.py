@@ -61,4 +61,4 @@ def _from_wire(req: EvaluateRequest) -> Request:
     ]
     b = req.bodies
     return Request(f64(b.q, 12), f64(b.q_prev, 12), f64(b.q_ref, 12), batches, tuple(req.outputs),
-                   req.hessian_mode, req.active_only)
+                   req.hessian_mode, req.active_only, req.layout)

@@ -79,7 +79,7 @@ class AsyncClient(BaseClient):
 
         return job.merge(await asyncio.gather(*(run(part) for part in job.parts)))
 
-    def session(self, request: Request) -> AsyncSession:
+    def session(self, request: Request | dict | EvaluateRequest) -> AsyncSession:
         """`async with client.session(r) as s:` (or `s = await client.session(r)`): `Client.session`, awaitable."""
         from jointlimits.client.session import connection_options  # imported here: HTTP alone never loads websockets
         from jointlimits.client.session_aio import AsyncSession

@@ -111,7 +111,7 @@ class LocalClient:
             progress(request.n_joints, request.n_joints)
         return result(ev).sized(request)
 
-    def session(self, request: Request) -> LocalSession:
+    def session(self, request: Request | dict | EvaluateRequest) -> LocalSession:
         """`Client.session`'s API in-process, on the core's prepared scene (bitwise the same numbers)."""
         from jointlimits.client.session_local import LocalSession
 

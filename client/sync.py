@@ -108,8 +108,9 @@ class Client(BaseClient):
         job = self._job(request, progress)
         return job.merge([job.receive(part, self._send(self._evaluate_request(part))) for part in job.parts])
 
-    def session(self, request: Request) -> Session:
-        """A session on the server's prepared scene of `request` (docs/sessions.md, "Sessions"): `with client.session(r) as s:`."""
+    def session(self, request: Request | dict | EvaluateRequest) -> Session:
+        """A session on the server's prepared scene of `request` (what `evaluate` takes; docs/sessions.md,
+        "Sessions"): `with client.session(r) as s:`."""
         from jointlimits.client.session import connection_options  # imported here: HTTP alone never loads websockets
         from jointlimits.client.session_sync import Session
 

@@ -12,8 +12,8 @@ from typing import TypedDict
 import httpx
 
 from jointlimits.client import codec, split, transport
-from jointlimits.client.errors import ServiceError
-from jointlimits.client.model import Evaluation, Request
+from jointlimits.client.errors import Fault, InvalidInput, ServiceError
+from jointlimits.client.model import Evaluation, Request, null_arrays
 from jointlimits.client.progress import ProgressCallback, resolve_progress
 from jointlimits.schemas import ConstitutionsResponse
 
@@ -70,7 +70,10 @@ class BaseClient:
         return transport.Retry(self.retries, self.backoff, f"{request.method} {request.url}", self.max_retry_after)
 
     def _job(self, request: Request, progress: bool | ProgressCallback | None) -> Job:
-        """`request` in parts that fit `self._limits` (fetched by the caller: that is I/O)."""
+        """`request` in parts that fit `self._limits` (fetched by the caller: that is I/O); a None array
+        is refused here, as the service would (it cannot be counted, split or encoded)."""
+        if missing := null_arrays(request):
+            raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in missing], where="invalid input")
         n = transport.part_joints(
             self._limits, self.binary, self.max_joints_per_request, request.outputs, len(request.batches)
         )

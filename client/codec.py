@@ -31,6 +31,8 @@ def encode(request: Request, binary: bool) -> tuple[bytes, str]:
 
 
 def _document(request: Request, f64: Any, i64: Any) -> dict[str, Any]:
+    # A None array goes as null (nil), for the service to name (a session's opening).
+    f64, i64 = ((lambda a, f=f: None if a is None else f(a)) for f in (f64, i64))
     return {
         "bodies": {k: f64(getattr(request, k)) for k in ("q", "q_prev", "q_ref")},
         "batches": [

@@ -9,7 +9,7 @@ import numpy as np
 
 from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, InvalidInput
-from jointlimits.client.model import BatchResult, Evaluation, Request
+from jointlimits.client.model import BatchResult, Evaluation, Request, null_arrays
 from jointlimits.client.progress import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from jointlimits.schemas.constitutions import describe
@@ -25,7 +25,11 @@ HTTP_OPTIONS = frozenset(
 
 def core_batches(request: Request, copy: bool = False) -> list[core.Joints]:
     """The request's batches as the core's `Joints`; `copy`: arrays of their own (a session's scene
-    changes with updates), else the request's own arrays (the core only reads them)."""
+    changes with updates), else the request's own arrays (the core only reads them).
+
+    A None where an array is needed is `core.InputError` (`model.null_arrays`: the core would fail on it)."""
+    if missing := null_arrays(request):
+        raise core.InputError(missing)
     own = np.array if copy else (lambda a: a)
     c = lambda a: None if a is None else own(a)  # noqa: E731
     return [
@@ -94,8 +98,8 @@ class LocalClient:
         `e.loc` is what the service would answer); a non-request is a `TypeError`.
         """
         request = as_request(request)
-        joints = core_batches(request)
         try:
+            joints = core_batches(request)
             ev = core.evaluate(
                 bodies=core.Bodies(request.q, request.q_prev, request.q_ref),
                 batches=joints,

@@ -12,7 +12,7 @@ from jointlimits.schemas import OUTPUTS
 from jointlimits.service.core.assembled import Assembled  # noqa: F401 (re-exported: Evaluation.assembled)
 from jointlimits.service.core.errors import MAX_FAULTS
 from jointlimits.service.core.errors import Fault as CoreFault
-from jointlimits.service.core.validate import as_array
+from jointlimits.service.core.validate import NOT_A_LIST, as_array
 
 Array = NDArray[np.float64]
 
@@ -145,6 +145,14 @@ class Request:
     @property
     def n_joints(self) -> int:
         return sum(len(b) for b in self.batches)
+
+
+def null_arrays(request: Request) -> list[CoreFault]:
+    """None where an array is needed (a state of the bodies, a batch's `body_ids`, `lower`, `upper`, `strength`),
+    named as the service names a `null` there (None is an absent `edges`, `offset`, ...)."""
+    faults = [CoreFault(("bodies", k), *NOT_A_LIST) for k in ("q", "q_prev", "q_ref") if getattr(request, k) is None]
+    return faults + [CoreFault(("batches", b, k), *NOT_A_LIST) for b, batch in enumerate(request.batches)
+                     for k in ("body_ids", "lower", "upper", "strength") if getattr(batch, k) is None]
 
 
 class Joint(int):

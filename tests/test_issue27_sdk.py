@@ -60,3 +60,40 @@ def test_http_clients_keep_the_layout_of_a_document(live, form, binary):  # noqa
             return await c.evaluate(wire_forms()[form])
 
     assert_per_body(asyncio.run(run()))
+
+
+# ---------------------------------------------------------------- 2. a `null` array, from the SDK's arrays too
+
+NULLS = {("batches", 1, "lower"), ("batches", 0, "body_ids"), ("bodies", "q_prev"), ("batches", 1, "strength")}
+
+
+def null_request(loc: tuple):
+    """The base request with None where the wire document would have `null` at `loc`."""
+    from tests.test_one_fault_every_path import put, to_request
+
+    doc = base_doc()
+    put(*loc, value=None)(doc)
+    return to_request(doc)
+
+
+def faults_of(fn) -> list:
+    with pytest.raises(InvalidInput) as e:
+        fn()
+    return [(f.loc, f.msg, f.type) for f in e.value.faults]
+
+
+@pytest.mark.parametrize("loc", sorted(NULLS, key=str))
+def test_a_none_array_in_the_sdks_arrays_is_the_services_null_fault(live, loc):  # noqa: F811
+    want = [(("body", *loc), "Input should be a valid list", "list_type")]
+    assert faults_of(lambda: LocalClient().evaluate(null_request(loc))) == want
+    assert faults_of(lambda: LocalClient().session(null_request(loc))) == want
+    for binary in (True, False):
+        with Client(live, binary=binary) as c:
+            assert faults_of(lambda: c.evaluate(null_request(loc))) == want
+            assert faults_of(lambda: c.session(null_request(loc))) == want
+
+    async def run():
+        async with AsyncClient(live) as c:
+            await c.evaluate(null_request(loc))
+
+    assert faults_of(lambda: asyncio.run(run())) == want

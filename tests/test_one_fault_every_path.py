@@ -105,6 +105,13 @@ MORE: dict[str, Callable[[Doc], None]] = {
     "no outputs": put("outputs", value=[]),
     "unknown hessian_mode": put("hessian_mode", value="fast"),
     "unknown layout": put("layout", value="rows"),
+    # A `null` where an array belongs (issue 27): "Input should be a valid list", list_type, at the array.
+    "a null per-joint array": put("batches", 1, "lower", value=None),
+    "a null body_ids": put("batches", 0, "body_ids", value=None),
+    "a null state of the bodies": put("bodies", "q_prev", value=None),
+    "a null optional array": put("batches", 1, "strength", value=None),
+    "a null edges": put("batches", 1, "edges", value=None),
+    "null outputs": put("outputs", value=None),
     "faults of every class at once": both(put("batches", 1, "body_ids", 2, value=[0, 3]), put("batches", 1, "lower", 0, value=5.0),
                                           put("batches", 0, "strength", 1, value=-1.0), put("batches", 0, "upper", 0, value=float("inf"))),
 }
@@ -126,7 +133,7 @@ def to_msgpack(doc: Doc) -> bytes:
     """The document in the binary encoding: its arrays as array maps (a ragged list cannot be one)."""
     out = copy.deepcopy(doc)
     for name in BODY_ARRAYS:
-        if name in out.get("bodies", {}):
+        if out.get("bodies", {}).get(name) is not None:  # a null stays nil
             out["bodies"][name] = wire.pack_array(np.asarray(out["bodies"][name], dtype=np.float64), F8)
     for batch in out.get("batches", []):
         for name, dtype in BATCH_ARRAYS.items():
@@ -198,7 +205,10 @@ def answers(app: TestClient, change: Callable[[Doc], None]) -> dict[str, list[It
     except ValueError:
         return out  # ragged: no binary or array form
     out |= {"msgpack": http(app, doc, True), "session msgpack": session(app, doc, True)}
-    if all(k in doc["batches"][b] for b in range(len(doc["batches"])) for k in ("lower", "upper", "strength")):
+    # The SDK's arrays hold what a dict does, but a None edges or offset is an absent one, and outputs are no array.
+    optional = (b.get(k, 0) is None for b in doc["batches"] for k in ("edges", "local_edges", "offset", "prev_coordinate"))
+    if (all(k in doc["batches"][b] for b in range(len(doc["batches"])) for k in ("lower", "upper", "strength"))
+            and doc.get("outputs", ()) is not None and not any(optional)):
         out["local arrays"] = local_arrays(doc)
     return out
 
@@ -212,6 +222,16 @@ def test_every_path_answers_the_same_faults(app, name):
     want = got["json"]
     assert want and all(loc[0] == "body" for loc, _, _ in want)
     assert {path: faults for path, faults in got.items() if faults != want} == {}, want
+
+
+def test_a_null_array_is_named_at_the_array_as_not_a_list(app):
+    """Issue 27: the words of a number where an array belongs (and of JSON's `q: null` before), on every path."""
+    nulls = {"a null per-joint array": ("batches", 1, "lower"), "a null body_ids": ("batches", 0, "body_ids"),
+             "a null state of the bodies": ("bodies", "q_prev"), "a null optional array": ("batches", 1, "strength"),
+             "a null edges": ("batches", 1, "edges"), "null outputs": ("outputs",)}
+    for name, loc in nulls.items():
+        got = answers(app, MORE[name])
+        assert len(got) >= 5 and all(f == [(("body", *loc), "Input should be a valid list", "list_type")] for f in got.values()), got
 
 
 def test_every_row_of_the_errors_table_is_compared_or_one_paths_own():

@@ -94,6 +94,9 @@ class _Reader:
         return {k: v for k, v in obj.items() if k in keys}
 
     def array(self, obj: Any, loc: Loc, dtype: str, ndim: int, empty: np.ndarray) -> np.ndarray:
+        if obj is None:  # nil: named as JSON's null is
+            self.fault(loc, *NOT_A_LIST)
+            return empty
         if isinstance(obj, dict):
             n = len(self.faults)
             self.keys(obj, loc)

@@ -15,7 +15,7 @@ from jointlimits.schemas.session import OpeningRequest
 from jointlimits.service.core import CONSTITUTIONS, Bodies, Evaluation, Fault, InputError, Joints
 from jointlimits.service.core.errors import MAX_FAULTS
 from jointlimits.service.core.prepared import input_faults
-from jointlimits.service.core.validate import as_array
+from jointlimits.service.core.validate import NOT_A_LIST, as_array
 from jointlimits.service.http import jsonkeys, limits
 from jointlimits.service.http.errors import from_validation
 
@@ -57,7 +57,8 @@ def parse(body: bytes, opening: bool = False) -> EvaluateRequest:
         # Rust-side parse and validation straight from bytes; rejects NaN, Infinity and 1e400.
         req = (OpeningRequest if opening else EvaluateRequest).model_validate_json(body)
     except ValidationError as e:
-        faults = from_validation(e).faults
+        # pydantic's JSON mode says "a valid array"; the core and msgpack "a valid list": one wording on every path.
+        faults = [Fault(f.loc, *NOT_A_LIST) if f.type == "list_type" else f for f in from_validation(e).faults]
         if any(f.type == "json_invalid" for f in faults):
             raise InputError(faults) from None  # the scan's findings mean nothing in a broken document
         if any(in_array(f) for f in faults):
@@ -108,7 +109,7 @@ def in_core_words(body: bytes, faults: list[Fault]) -> list[Fault]:
     for b, raw in enumerate(batches if isinstance(batches, list) else []):
         fields = {}
         for name, integer in BATCH_ARRAYS.items():
-            if isinstance(raw, dict) and raw.get(name) is not None:
+            if isinstance(raw, dict) and name in raw:  # a null too: named at the array, as msgpack's nil
                 fields[name], found = as_array(raw[name], ("batches", b, name), integer)
                 arrays += found
         joints.append((raw, fields))

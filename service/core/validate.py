@@ -104,8 +104,8 @@ def _element_faults(value: Any, loc: Loc, integer: bool) -> list[Fault]:
 def _is_number(x: Any, integer: bool) -> bool:
     if isinstance(x, bool):
         return False
-    if integer:
-        return isinstance(x, (int, np.integer)) or (isinstance(x, (float, np.floating)) and float(x).is_integer())
+    if integer:  # pydantic's strict integers: 0.0 is a float, on every path (issue 27)
+        return isinstance(x, (int, np.integer))
     return x is None or isinstance(x, (int, float, np.integer, np.floating))
 
 

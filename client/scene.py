@@ -6,16 +6,17 @@ a pair `(p (3,), A (3, 3))`, or the 12 DOFs `q = [p, A row 0, A row 1, A row 2]`
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Union
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from jointlimits.client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request, _array, invalid
+from jointlimits.client.model import BASE_UID, PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request, _array, invalid
 from jointlimits.service.core.errors import Fault as CoreFault
-from jointlimits.service.core.scene import Bodies
-from jointlimits.service.core.validate import check_bodies
+from jointlimits.service.core.scene import Bodies, Joints
+from jointlimits.service.core.validate import ORIGINS, check_bodies, check_joints
 from jointlimits.schemas import OUTPUTS
 from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
 
@@ -125,10 +126,51 @@ class Scene:
         if (local_edge is None) == (p0 is None or p1 is None):
             raise TypeError("give the joint's edge either as p0, p1 (world, at ref) or as local_edge, not both")
         kind, edge = ("edges", self._edge(p0, p1)) if local_edge is None else ("local_edges", self._local_edge(local_edge))
+        ids = (int(i), int(j))
+        lower, upper, *rest = self._check(uid, ids, kind, edge, origin, (lower, upper, *rest))
         key = (uid, kind, origin)
         rows = self._joints.setdefault(key, [])
-        rows.append(((int(i), int(j)), edge, lower, upper, *rest))
+        rows.append((ids, edge, lower, upper, *rest))
         return Joint(len(rows) - 1, uid, list(self._joints).index(key))
+
+    def _check(self, uid: int, ids: tuple[int, int], kind: str, edge: np.ndarray, origin: str,
+               numbers: tuple[ArrayLike, ...]) -> list[float]:
+        """`lower`, `upper`, `strength`, `offset` as floats, once the service's checks of this one joint pass
+        (its bodies added and two, finite numbers, `lower <= upper`, `strength >= 0`, its edge, `origin`):
+        else `InvalidInput` naming the argument, in the service's words, at the call that made the mistake."""
+        where = f"Scene.add_{'revolute' if uid == REVOLUTE_LIMIT else 'prismatic'}_limit"
+        faults: list[CoreFault] = []
+        values = {name: _array(v, name, faults) for name, v in zip(("lower", "upper", "strength", "offset"), numbers)}
+        faults += [CoreFault((name,), f"must be one number, got shape {a.shape}")
+                   for name, a in values.items() if a is not None and a.size != 1]
+        if faults:
+            raise invalid(faults, where)
+        one = {name: a.reshape(1).astype(np.float64) for name, a in values.items()}  # type: ignore[union-attr]
+        lo, up, strength, offset = nums = [float(a[0]) for a in one.values()]
+        n_bodies = len(self._q)
+        g = edge if kind == "edges" else edge[0]  # p0 -> p1, or l0 -> l1: the vector the service normalises
+        with np.errstate(over="ignore", invalid="ignore"):
+            plain = (0 <= min(ids) and max(ids) < n_bodies and ids[0] != ids[1] and origin in ORIGINS
+                     and all(map(math.isfinite, (*nums, lo - offset, up - offset))) and lo <= up and strength >= 0
+                     and bool(np.isfinite(edge).all() and np.isfinite(g[1] - g[0]).all() and (g[1] != g[0]).any()))
+        if plain:  # nothing the service would name (the common case): its checks, 3x this call's cost, are skipped
+            return nums
+        joint = Joints(constitution_uid=uid, base_uid=BASE_UID[uid], body_ids=np.array([ids], dtype=np.int64),
+                       edges=edge[None] if kind == "edges" else None, origin=origin,
+                       local_edges=edge[None] if kind == "local_edges" else None, **one)
+
+        def argument(loc: tuple) -> tuple:  # ("batches", 0, field, 0, *rest) -> the argument that holds it
+            field, rest = loc[2], tuple(loc[4:])
+            if field == "body_ids":  # out of range (the first body outside) or both the same
+                return ("i",) if not 0 <= ids[0] < n_bodies else ("j",)
+            if field == "edges":  # an element of p0 or p1, or the edge as a whole
+                return (("p0", "p1")[rest[0]], *rest[1:]) if rest else ("p1",)
+            return ("local_edge" if field == "local_edges" else field, *rest)
+
+        faults = [CoreFault(argument(f.loc), f.msg, f.type) for f in check_joints(0, joint, n_bodies)]
+        if faults:
+            raise invalid(faults, where)
+        return nums
 
     @staticmethod
     def _edge(p0: ArrayLike, p1: ArrayLike) -> np.ndarray:

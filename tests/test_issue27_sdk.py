@@ -97,3 +97,75 @@ def test_a_none_array_in_the_sdks_arrays_is_the_services_null_fault(live, loc): 
             await c.evaluate(null_request(loc))
 
     assert faults_of(lambda: asyncio.run(run())) == want
+
+
+# ---------------------------------------------------------------- 3. `Scene` checks a joint where it is added
+
+
+def two_bodies():
+    from jointlimits.client import Scene
+
+    scene = Scene()
+    scene.add_body(np.eye(4))
+    scene.add_body(np.eye(4))
+    return scene
+
+
+EDGE = ([0, 0, 0], [0, 0, 1])
+# The mistake (arguments of add_revolute_limit after the two bodies) -> (loc, msg, type) Scene raises.
+SCENE_MISTAKES = {
+    "lower > upper": (dict(i=0, j=1, lower=5.0, upper=0.2),
+                      ("lower",), "lower 5.0 > upper 0.2: the range is empty", "value_error"),
+    "a body not added": (dict(i=0, j=2, lower=-1, upper=1),
+                         ("j",), "body index [0, 2] out of range [0, 2) (there are 2 bodies)", "value_error"),
+    "a negative body": (dict(i=-1, j=1, lower=-1, upper=1),
+                        ("i",), "body index [-1, 1] out of range [0, 2) (there are 2 bodies)", "value_error"),
+    "one body": (dict(i=1, j=1, lower=-1, upper=1), ("j",), "joint couples body 1 to itself", "value_error"),
+    "strength < 0": (dict(i=0, j=1, lower=-1, upper=1, strength=-1.0),
+                     ("strength",), "strength -1.0 < 0: must be >= 0", "value_error"),
+    "a NaN bound": (dict(i=0, j=1, lower=float("nan"), upper=1), ("lower",), "Input should be a finite number", "finite_number"),
+    "a zero-length edge": (dict(i=0, j=1, p0=[0, 0, 1], p1=[0, 0, 1], lower=-1, upper=1),
+                           ("p1",), "zero-length edge: p0 == p1 gives no joint axis", "value_error"),
+    "an infinite point": (dict(i=0, j=1, p0=[0, 0, float("inf")], lower=-1, upper=1),
+                          ("p0", 2), "Input should be a finite number", "finite_number"),
+    "an unknown origin": (dict(i=0, j=1, lower=-1, upper=1, origin="world"),
+                          ("origin",), "Input should be 'q_ref' or 'absolute'", "literal_error"),
+    "an edge too long": (dict(i=0, j=1, p0=[-1e308, 0, 0], p1=[1e308, 0, 0], lower=-1, upper=1),
+                         ("p1",), "edge too long: p1 - p0 overflows float64", "value_error"),
+    "an offset too far": (dict(i=0, j=1, lower=-1e308, upper=1, offset=1e308),
+                          ("offset",), "lower - offset or upper - offset overflows float64", "value_error"),
+    "a list for a bound": (dict(i=0, j=1, lower=[-1, -2], upper=1), ("lower",), "must be one number, got shape (2,)", "value_error"),
+}
+
+
+@pytest.mark.parametrize("name", SCENE_MISTAKES)
+def test_scene_refuses_a_bad_joint_at_the_call_naming_the_argument(name):
+    kwargs, loc, msg, kind = SCENE_MISTAKES[name]
+    kwargs = {"p0": EDGE[0], "p1": EDGE[1], **kwargs}
+    scene = two_bodies()
+    with pytest.raises(ValueError) as e:
+        scene.add_revolute_limit(**kwargs)
+    assert isinstance(e.value, InvalidInput) and "invalid input (Scene.add_revolute_limit)" in str(e.value)
+    if name == "lower > upper":  # docs/sdk.md quotes it
+        assert str(e.value) == "invalid input (Scene.add_revolute_limit): lower: lower 5.0 > upper 0.2: the range is empty"
+    assert [(f.loc, f.msg, f.type) for f in e.value.faults] == [(loc, msg, kind)]
+    assert scene.request().batches == []  # nothing was added
+    with pytest.raises(InvalidInput, match="Scene.add_prismatic_limit"):
+        scene.add_prismatic_limit(**kwargs)
+
+
+def test_scene_local_edges_and_the_services_words():
+    scene = two_bodies()
+    with pytest.raises(InvalidInput) as e:
+        scene.add_prismatic_limit(0, 1, local_edge=[[[0, 0, 0], [0, 0, 0]], [[0, 0, 0], [0, 0, 1]]], lower=-1, upper=1)
+    assert [(f.loc, f.msg) for f in e.value.faults] == [(("local_edge",), "zero-length edge: l0 == l1 gives no joint axis")]
+    # The service says the same of the same joint (the errors table's `lower > upper` row, here batch 0).
+    scene.add_revolute_limit(0, 1, *EDGE, lower=-1, upper=1)
+    bad = scene.request()
+    bad.batches[0].lower[0] = 5.0
+    with pytest.raises(InvalidInput) as service:
+        LocalClient().evaluate(bad)
+    assert service.value.msg == "lower 5.0 > upper 1.0: the range is empty"
+    with pytest.raises(InvalidInput) as sdk:
+        scene.add_revolute_limit(0, 1, *EDGE, lower=5.0, upper=1.0)
+    assert sdk.value.msg == service.value.msg

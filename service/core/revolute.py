@@ -28,11 +28,20 @@ h3 = P_-sigma(b - sigma a), d = b - sigma a, the PSD part of E' d2x/dF2 is exact
 
 finite for every r > 0 (the degenerate rho^2 = r, a complex-parallel frame, included).
 tests/test_psd_revolute.py checks it against `numpy.linalg.eigh`.
+
+Frames whose r leaves 2^+-240 (`_unsafe`) are differentiated from each body's frames scaled by its own
+power of two, 2^-e_i and 2^-e_j: not an orthogonal change of F, so their projection is not the scaled
+frames' one carried back. It is the one at F / 2^max(e_i, e_j), one common power of two (which commutes
+with the projection: P(F) = P(F / 2^m) / 4^m): there the gradients g are O(1) and rho^2 >= 1/16, only r is
+tiny, kept as r_s 2^-|e_i - e_j| (r_s of the scaled frames), and every power of two goes into the
+coefficients exactly (`_rescaled_projection`). tests/test_revolute_psd_scales.py checks it at scales
+1e-100 ... 1e100 against a 50-digit reference.
 """
 
 from __future__ import annotations
 
 from contextlib import nullcontext
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -128,6 +137,23 @@ def _unsafe(F: Array, cs: tuple[Array, Array]) -> NDArray[np.bool_]:
     e = np.finfo(F.dtype).maxexp // 4 - 16
     r = np.hypot(*cs)
     return ~((r >= 2.0**-e) & (r <= 2.0**e))
+
+
+@dataclass
+class _Scaled:
+    """Rows `rows` (M,) of a curvature were formed from frames scaled per body by `2^-exponents` (M, 2),
+    `curvature` their curvature there (`Revolute.derivatives`): what `projected_curvature` needs for them."""
+
+    rows: NDArray[np.intp]
+    exponents: NDArray[np.int32]
+    curvature: Curvature
+
+
+@dataclass
+class _RescaledCurvature(Curvature):
+    """A revolute curvature with some rows formed from scaled frames (`_Scaled`)."""
+
+    scaled: _Scaled | None = None
 
 
 def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = None) -> tuple[Array, Curvature | None]:
@@ -252,6 +278,8 @@ class Revolute:
                 curvature.kron[bad] = np.ldexp(cv_b.kron, -(eb[:, :, None] + eb[:, None, :]))
                 curvature.basis[bad] = np.ldexp(cv_b.basis, -eb[:, None, :, None])
                 curvature.coef[bad], curvature.dx_coef[bad] = cv_b.coef, cv_b.dx_coef
+                # The PSD projection of these rows needs their scaled frames' quantities (`_rescaled_projection`).
+                curvature = _RescaledCurvature(**vars(curvature), scaled=_Scaled(bad, e, cv_b))
         return dx, curvature
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
@@ -261,39 +289,88 @@ class Revolute:
         frame with r > 0, which validation guarantees (collapsed frames are rejected): no eigensolver.
         Returns kron (N, 4, 4), basis (N, 3, 4, 3) = (h1, h3, d), coef (N, 3, 3) diagonal.
         """
-        n = dE.shape[0]
-        g_c, g_s = curvature.basis[:, 0], curvature.basis[:, 1]
+        scaled = getattr(curvature, "scaled", None)
         x_c, x_s = curvature.dx_coef[:, 0], curvature.dx_coef[:, 1]  # -s / r^2, c / r^2
-        r = 1.0 / np.hypot(x_c, x_s)
-        cos_t, sin_t = (x_s * r)[:, None, None], (-x_c * r)[:, None, None]  # w = r e^{i theta}
-        rho2 = np.einsum("nkc,nkc->n", g_c, g_c)  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
-        sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype)[:, None, None]
-        mu = np.abs(dE)
-        b = cos_t * g_c + sin_t * g_s  # r grad(log r)
-        a = cos_t * g_s - sin_t * g_c  # r grad(x)
-        u = b + sign * a
-        d = b - sign * a
-
-        def J(v: Array) -> Array:
-            """`(K / lambda0) (x) I_3` on v (N, 4, 3): an involution, eigenvalues +-1."""
-            out = np.empty_like(v)
-            out[:, 0] = cos_t[:, 0] * v[:, 3] - sin_t[:, 0] * v[:, 2]
-            out[:, 1] = -cos_t[:, 0] * v[:, 2] - sin_t[:, 0] * v[:, 3]
-            out[:, 2] = -cos_t[:, 0] * v[:, 1] - sin_t[:, 0] * v[:, 0]
-            out[:, 3] = cos_t[:, 0] * v[:, 0] - sin_t[:, 0] * v[:, 1]
-            return out
-
-        basis = component_major(n, (3, 4, 3), dE.dtype)
-        basis[:, 0] = 0.5 * (u + sign * J(u))  # h1 = P_sigma u
-        basis[:, 1] = 0.5 * (d - sign * J(d))  # h3 = P_-sigma d
-        basis[:, 2] = d
-        coef = np.zeros((n, 3, 3), dtype=dE.dtype)
-        coef[:, 0, 0] = coef[:, 1, 1] = -mu / (2.0 * r * (rho2 + r))
-        coef[:, 2, 2] = mu / (2.0 * r * r)
-        # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
-        kron = (0.5 * dE)[:, None, None] * curvature.kron
-        kron += (mu / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
+        # The rows `scaled` names hold nothing meaningful here (their r^2 is not a normal number): overwritten below.
+        with np.errstate(all="ignore") if scaled is not None else nullcontext():  # else: the caller's error state
+            r = 1.0 / np.hypot(x_c, x_s)
+            g_c = curvature.basis[:, 0]
+            rho2 = np.einsum("nkc,nkc->n", g_c, g_c)  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
+            sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype)
+            mu = np.abs(dE)
+            basis = _psd_vectors(sign, curvature.basis, x_c, x_s, r)
+            coef = np.zeros((dE.shape[0], 3, 3), dtype=dE.dtype)
+            coef[:, 0, 0] = coef[:, 1, 1] = -mu / (2.0 * r * (rho2 + r))
+            coef[:, 2, 2] = mu / (2.0 * r * r)
+            # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
+            kron = (0.5 * dE)[:, None, None] * curvature.kron
+            kron += (mu / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
+        if scaled is not None:
+            rows = scaled.rows
+            kron[rows], basis[rows], coef[rows] = _rescaled_projection(dE[rows], scaled)
         return Curvature(kron=kron, basis=basis, coef=coef, diagonal=True)
+
+
+def _psd_vectors(sign: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> Array:
+    """(h1, h3, d) (N, 3, 4, 3) of the PSD notes from g = (g_c, g_s) (N, 2, 4, 3) and `sign` = sigma (N,);
+    `x_c`, `x_s`, `r` (N,) give cos_t = x_s r and sin_t = -x_c r. Linear in g: any common scale of g carries over."""
+    cos_t, sin_t = (x_s * r)[:, None, None], (-x_c * r)[:, None, None]  # w = r e^{i theta}
+    sign = sign[:, None, None]
+    g_c, g_s = g[:, 0], g[:, 1]
+    b = cos_t * g_c + sin_t * g_s  # r grad(log r)
+    a = cos_t * g_s - sin_t * g_c  # r grad(x)
+    u = b + sign * a
+    d = b - sign * a
+
+    def J(v: Array) -> Array:
+        """`(K / lambda0) (x) I_3` on v (N, 4, 3): an involution, eigenvalues +-1."""
+        out = np.empty_like(v)
+        out[:, 0] = cos_t[:, 0] * v[:, 3] - sin_t[:, 0] * v[:, 2]
+        out[:, 1] = -cos_t[:, 0] * v[:, 2] - sin_t[:, 0] * v[:, 3]
+        out[:, 2] = -cos_t[:, 0] * v[:, 1] - sin_t[:, 0] * v[:, 0]
+        out[:, 3] = cos_t[:, 0] * v[:, 0] - sin_t[:, 0] * v[:, 1]
+        return out
+
+    basis = component_major(g.shape[0], (3, 4, 3), g.dtype)
+    basis[:, 0] = 0.5 * (u + sign * J(u))  # h1 = P_sigma u
+    basis[:, 1] = 0.5 * (d - sign * J(d))  # h3 = P_-sigma d
+    basis[:, 2] = d
+    return basis
+
+
+def _rescaled_projection(dE: Array, scaled: _Scaled) -> tuple[Array, Array, Array]:
+    """kron, basis, coef of `projected_curvature` for rows differentiated from scaled frames.
+
+    The frames are F = D F_s, body k's scaled by 2^e_k; the projection is taken at F / 2^m, m = max(e_i, e_j),
+    a common scale that commutes with it (module docstring). There g = (g_c, g_s) is g_s with body i's blocks
+    times 2^(e_j - m) and body j's times 2^(e_i - m) (each block of g is the other body's frame, halved),
+    so |g| = O(1) and rho^2 >= 1/16 (the larger body's max entry is in [1/2, 1)); r = r_s 2^(e_i + e_j - 2m),
+    which may underflow: it enters only beside rho^2 and as r_s times a power of two. The basis (h1, h3, d)
+    is taken there, O(1); the coefficients carry 4^-m and the remaining powers of two, and E' as its
+    mantissa and exponent, by `ldexp` (one rounding, only where the result itself leaves the normal range):
+    an answer beyond float64 becomes inf (the caller's overflow error), never a wrong finite number.
+    """
+    e = scaled.exponents.astype(np.int64)
+    cv = scaled.curvature
+    x_c, x_s = cv.dx_coef[:, 0], cv.dx_coef[:, 1]
+    r = 1.0 / np.hypot(x_c, x_s)  # r_s: O(1) frames, far from collapse (validation)
+    top = e.max(axis=1)
+    spread = e[:, 0] + e[:, 1] - 2 * top  # <= 0
+    shift = (e[:, ::-1] - top[:, None])[:, BLOCK_BODY]  # (M, 4): block k of g times 2^(e_other - m)
+    g = np.ldexp(cv.basis, shift[:, None, :, None])
+    g_c = g[:, 0]
+    rho2 = np.einsum("nkc,nkc->n", g_c, g_c)
+    sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype)
+    mant, p = np.frexp(np.abs(dE))  # |E'| = mant 2^p, mant in [1/2, 1) (or 0, inf, NaN as |E'|)
+    basis = _psd_vectors(sign, g, x_c, x_s, r)
+    # P(F) = P(F / 2^m) / 4^m: each coefficient at F / 2^m (r there is r_s 2^spread), times 4^-m.
+    ij = p - (e[:, 0] + e[:, 1])  # 2^(-spread - 2m) = 2^-(e_i + e_j)
+    coef = np.zeros((dE.shape[0], 3, 3), dtype=dE.dtype)
+    coef[:, 0, 0] = coef[:, 1, 1] = -np.ldexp(mant / (2.0 * r * (rho2 + np.ldexp(r, spread))), ij)
+    coef[:, 2, 2] = np.ldexp(mant / (2.0 * r * r), p - 2 * e.min(axis=1))  # 2^(-2 spread - 2m) = 4^-min(e_i, e_j)
+    kron = (0.5 * sign * mant)[:, None, None] * cv.kron  # K_s = K 2^(e_i + e_j)
+    kron += (mant / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
+    return np.ldexp(kron, ij[:, None, None]), basis, coef
 
 
 REVOLUTE = Revolute()

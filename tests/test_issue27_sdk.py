@@ -169,3 +169,17 @@ def test_scene_local_edges_and_the_services_words():
     with pytest.raises(InvalidInput) as sdk:
         scene.add_revolute_limit(0, 1, *EDGE, lower=5.0, upper=1.0)
     assert sdk.value.msg == service.value.msg
+
+
+# ---------------------------------------------------------------- 4. `GET /` points to the docs
+
+
+def test_the_root_redirects_to_the_docs_and_stays_out_of_the_schema():
+    c = TestClient(create_app(Settings(token="s3cret", cors_origins=())))  # open, as /docs is, with a token set
+    r = c.get("/", follow_redirects=False)
+    assert r.status_code == 307 and r.headers["location"] == "/docs"
+    assert c.get("/").status_code == 200 and "swagger" in c.get("/").text.lower()
+    assert "/" not in c.get("/openapi.json").json()["paths"]
+    # Behind a proxy that mounts the service under a prefix, the redirect keeps it (as /docs finds its openapi.json).
+    mounted = TestClient(create_app(Settings(token=None, cors_origins=())), root_path="/jl")
+    assert mounted.get("/", follow_redirects=False).headers["location"] == "/jl/docs"

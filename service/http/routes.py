@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 from fastapi import APIRouter, FastAPI, Request
-from fastapi.responses import Response
+from fastapi.responses import RedirectResponse, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
@@ -19,6 +19,13 @@ from jointlimits.service.settings import Settings
 
 router = APIRouter()
 CODECS = {negotiate.JSON: convert, negotiate.BINARY: binary}
+
+
+@router.get("/", include_in_schema=False)
+def root(request: Request) -> RedirectResponse:
+    """A browser at the service's root lands on its docs (FastAPIOffline's Swagger UI, service/app.py), under
+    whatever prefix a proxy mounts the service at."""
+    return RedirectResponse(request.scope.get("root_path", "").rstrip("/") + "/docs")
 
 
 @router.get("/healthz")

@@ -33,6 +33,8 @@ class Client(BaseClient):
     `Busy` at once), all from the one `retries` budget. No other status is retried (not the
     deadline's 503 either); a 4xx/5xx raises `ServiceError` (`InvalidInput` for 422) carrying
     the server's `loc`s, `Busy` for a 503 still busy when the retries are spent.
+    `token` goes as `Authorization: Bearer <token>` (sessions too); none given, `$JOINTLIMITS_TOKEN` (the
+    server's setting of that name) when set and not empty; `token=""` sends none.
     """
 
     _http: httpx.Client

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Sequence
 
@@ -34,8 +35,16 @@ _JSON_VALUES_PER_JOINT = 11 + 2 * 3 * 12 + 8
 """Worst-case values of one joint in a JSON body: its 11 numbers, two bodies' three 12-DOF rows, separators."""
 
 
+TOKEN_ENV = "JOINTLIMITS_TOKEN"
+"""The bearer token when a client is given none: the server's own setting (service/settings.py), so a
+client beside the server, or a job with the secret in its environment, needs no token in its code."""
+
+
 def headers(token: str | None, binary: bool) -> dict[str, str]:
+    """`token` None: `$JOINTLIMITS_TOKEN` (empty or unset: none); "": none."""
     h = {"Accept": codec.BINARY if binary else codec.JSON}
+    if token is None:
+        token = os.environ.get(TOKEN_ENV)
     if token:
         h["Authorization"] = f"Bearer {token}"
     return h

@@ -183,3 +183,40 @@ def test_the_root_redirects_to_the_docs_and_stays_out_of_the_schema():
     # Behind a proxy that mounts the service under a prefix, the redirect keeps it (as /docs finds its openapi.json).
     mounted = TestClient(create_app(Settings(token=None, cors_origins=())), root_path="/jl")
     assert mounted.get("/", follow_redirects=False).headers["location"] == "/jl/docs"
+
+
+# ---------------------------------------------------------------- 5. the SDK's token from the environment
+
+
+def test_the_sdk_takes_the_servers_token_variable(monkeypatch):
+    from jointlimits.client import ServiceError
+    from tests.test_contract_live import serve
+
+    monkeypatch.setenv("JOINTLIMITS_TOKEN", "s3cret")
+    assert Settings().token == "s3cret"  # the server's setting of the same name
+    with serve(Settings(max_body_bytes=2_000_000, max_joints=400, token="s3cret", cors_origins=())) as url:
+        doc = base_doc()
+        for binary in (True, False):
+            with Client(url, binary=binary) as c:
+                assert c.evaluate(doc).total_energy > 0
+                with c.session(doc) as s:
+                    assert s.evaluate(doc["bodies"]["q"]).total_energy > 0
+
+        async def run(**kw):
+            async with AsyncClient(url, **kw) as c:
+                return await c.evaluate(doc)
+
+        assert asyncio.run(run()).total_energy > 0
+        # A token passed wins over the variable; "" sends none.
+        for token in ("wrong", ""):
+            with pytest.raises(ServiceError) as e, Client(url, token=token) as c:
+                c.evaluate(doc)
+            assert e.value.status == 401
+        monkeypatch.delenv("JOINTLIMITS_TOKEN")
+        with pytest.raises(ServiceError) as e:
+            asyncio.run(run())
+        assert e.value.status == 401
+        monkeypatch.setenv("JOINTLIMITS_TOKEN", "")  # empty: unset, as the server reads it
+        with pytest.raises(ServiceError) as e, Client(url) as c:
+            c.evaluate(doc)
+        assert e.value.status == 401

@@ -4,9 +4,7 @@
 from __future__ import annotations
 
 import asyncio
-import json
 
-import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient

@@ -55,6 +55,8 @@ def test_http_clients_keep_the_layout_of_a_document(live, form, binary):  # noqa
 
     async def run():
         async with AsyncClient(live, binary=binary) as c:
+            async with c.session(wire_forms()[form]) as s:
+                assert_per_body(await s.evaluate(base_doc()["bodies"]["q"]))
             return await c.evaluate(wire_forms()[form])
 
     assert_per_body(asyncio.run(run()))

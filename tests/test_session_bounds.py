@@ -5,13 +5,22 @@ whatever its framing, and the rest the server drains is bounded in bytes and tim
 from __future__ import annotations
 
 import json
+import socket
+import struct
+import time
+from collections.abc import Callable
 
 import pytest
 from fastapi.testclient import TestClient
 
 from jointlimits.client import InvalidInput, JointBatch
+from jointlimits.service import loadtest as lt
+from jointlimits.service import sizing
+from jointlimits.service.http import budget
 from jointlimits.service.app import create_app
 from jointlimits.service.settings import Settings
+from jointlimits.service.sizing import UPLOAD_FACTOR
+from tests import inprocess
 from tests.test_one_fault_every_path import base_doc, http
 
 NOT_AN_INTEGER = ("Input should be a valid integer", "int_type")
@@ -62,3 +71,97 @@ def test_a_whole_float_body_id_is_named_beside_another_fault_and_by_the_sdk(app)
 def _evaluate(ws, doc: dict) -> str:
     ws.send_text(json.dumps({"kind": "evaluate", "q": doc["bodies"]["q"]}))
     return ws.receive_text()
+
+
+# ---------------------------------------------------------------- unfinished messages count as uploads
+
+MiB = 2**20
+
+
+def head(opcode: int, n: int, fin: bool = True) -> bytes:
+    """A client frame's header announcing `n` payload bytes (mask key 0: the payload goes out as it is)."""
+    return bytes([(0x80 if fin else 0) | opcode, 0x80 | 127]) + n.to_bytes(8, "big") + b"\0\0\0\0"
+
+
+def close_frame(s: socket.socket, give_up: float = 20.0) -> tuple[int | None, str]:
+    """Read (and drop) frames until the server's close frame: its code and reason; (None, why) if the connection
+    ended without one (a reset, or EOF)."""
+    s.settimeout(give_up)
+    buf = b""
+    try:
+        while True:
+            while len(buf) >= 2:
+                op, n, at = buf[0] & 0x0F, buf[1] & 0x7F, 2
+                if n == 126:
+                    n, at = struct.unpack("!H", buf[2:4])[0], 4
+                elif n == 127:
+                    n, at = struct.unpack("!Q", buf[2:10])[0], 10
+                if len(buf) < at + n:
+                    break
+                payload, buf = buf[at : at + n], buf[at + n :]
+                if op == 0x8:
+                    return struct.unpack("!H", payload[:2])[0], payload[2:].decode()
+            chunk = s.recv(1 << 16)
+            if not chunk:
+                return None, "EOF without a close frame"
+            buf += chunk
+    except OSError as e:  # a reset (1006 to a WebSocket client), or nothing within give_up
+        return None, repr(e)
+
+
+def wait_for(cond: Callable[[], bool], give_up: float = 10.0) -> bool:
+    deadline = time.monotonic() + give_up
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def test_unfinished_messages_count_in_the_upload_budget_and_are_refused_past_it():
+    """Four connections each holding an unfinished message kept their bytes in the worker, uncounted (issue 27:
+    4 x 48 MiB while the upload budget said 0). Each message's bytes are counted as they arrive, twice as a
+    body's are (its buffer and the joined copy); the connection whose bytes do not fit is closed with 1013
+    (try again later) and its reason, the rest of its message drained; closing gives them back."""
+    settings = Settings(token=None, cors_origins=(), max_body_bytes=2_000_000)  # the budget's floor: 128 MiB
+    capacity = sizing.upload_bytes(settings)
+    sent = 24 * MiB  # of a 48 MiB message: 48 MiB counted per connection, two fit
+    assert 2 * UPLOAD_FACTOR * sent <= capacity < 3 * UPLOAD_FACTOR * sent
+    with inprocess.serve(settings) as live:
+        uploads = live.app.state.uploads
+        socks = []
+        try:
+            for k in range(2):
+                s, response = inprocess.upgrade(live.port)
+                assert b" 101 " in response
+                s.sendall(head(0x2, 48 * MiB) + bytes(sent))
+                socks.append(s)
+                want = (k + 1) * UPLOAD_FACTOR * sent  # the payload so far (websockets holds the header apart)
+                assert wait_for(lambda: uploads.held == want), (uploads.held, want)
+            assert lt.scraped(live.port, "jointlimits_upload_budget_bytes") == uploads.held  # /metrics shows them
+            for opcode in (0x2, 0x1):  # binary, then text: both refused as their bytes pass the budget
+                s, _ = inprocess.upgrade(live.port)
+                s.sendall(head(opcode, 48 * MiB) + bytes(sent))  # all sent: the server drains what it refused
+                code, reason = close_frame(s)
+                assert code == 1013 and f"upload budget ({capacity} bytes) is full" in reason, (code, reason)
+                s.close()
+            assert uploads.held == 2 * UPLOAD_FACTOR * sent  # the refused ones hold nothing
+            assert wait_for(lambda: lt.scraped(live.port, "jointlimits_sessions_total", reason="uploads_full") == 2)
+        finally:
+            for s in socks:
+                s.close()
+        assert wait_for(lambda: uploads.held == 0), uploads.held  # given back when their connections end
+
+
+def test_a_message_in_tiny_fragments_counts_what_its_fragments_hold():
+    """A fragment is a bytes object in a list (~40 bytes besides its data): a 64 MiB message in 1-byte fragments
+    would hold gigabytes. What they hold is counted, not their payload alone: under a 4 MiB budget, 100 000
+    fragments of 1 byte (100 kB of payload) are refused."""
+    with inprocess.serve(Settings(token=None, cors_origins=())) as live:
+        live.app.state.uploads = budget.Budget(4 * MiB)
+        s, _ = inprocess.upgrade(live.port)
+        one = inprocess.frame(0x0, b"\0", fin=False)
+        s.sendall(inprocess.frame(0x2, b"\0", fin=False) + one * 100_000)
+        assert close_frame(s)[0] == 1013
+        s.close()
+        assert wait_for(lambda: live.app.state.uploads.held == 0)

@@ -7,7 +7,8 @@ for. Two budgets per worker (sizes from the limits, `jointlimits.service.sizing`
 - **uploads** (`sizing.upload_bytes`): the bodies being received, counted as their bytes arrive
   (twice: the chunks and their joined copy). Nothing waits for it: once a chunk does not fit, the
   rest of the body is read and dropped and the answer is a 503 `busy`. So a client that sends
-  slowly holds only what it sent, and no upload can wait on another.
+  slowly holds only what it sent, and no upload can wait on another. A WebSocket session's messages
+  count here too, from their first byte (`ws_protocol.SessionProtocol`: one that does not fit closes with 1013).
 - **in flight** (`sizing.inflight_bytes`): a received request's cost, first bounded from its body's
   size (`sizing.cost_before_body`), then cut to what it holds once parsed (`sizing.request_cost`,
   before the core runs), then to its encoded answer's bytes, released when they have left the process

@@ -1,7 +1,7 @@
 """uvicorn's WebSocket protocol (websockets, sans-I/O) with a close the client always reads, and a reason.
 
 `jointlimits serve` runs it as the base of `timeouts.WriteTimeoutWebSocketProtocol` (the write-side bounds on
-top: `server_options`). Three changes:
+top: `server_options`). Four changes:
 
 - A message over the limit (`ws_max_size`, set to `JOINTLIMITS_MAX_FRAME_BYTES`) or a text message that is
   not UTF-8: uvicorn wrote the close frame and closed the socket at once; with the client's message still
@@ -11,10 +11,16 @@ top: `server_options`). Three changes:
 - The application hears the same code and reason (`websocket.disconnect`), so the session's log line and
   `jointlimits_sessions_total{reason}` name the cause.
 - A shutdown closes sessions with 1012 and a reason (uvicorn sends none).
+- A message's bytes count in the worker's upload budget (`app.state.uploads`, service/http/budget.py) from
+  its first byte: twice while it arrives (the buffer, then the joined copy), once from its arrival until the
+  application asks for the next message. Bytes that do not fit close the session with 1013 (try again later)
+  and a reason, drained as 1009 is: unfinished messages are bounded as request bodies are.
 """
 
 from __future__ import annotations
 
+import asyncio
+import sys
 from typing import Any
 
 from starlette.websockets import WebSocket
@@ -22,19 +28,93 @@ from websockets.exceptions import PayloadTooBig
 from websockets.frames import Close, Frame, Opcode
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
+from jointlimits.service.sizing import UPLOAD_FACTOR
+
 DRAIN_SECONDS = 30.0
 """Longest time the rest of a refused message is read and dropped before the socket is closed anyway."""
 
 SHUTDOWN_REASON = "the server is shutting down: reopen the session (another worker or pod answers)"
+TRY_AGAIN_LATER = 1013  # "Try Again Later" (IANA's WebSocket close codes): the worker's upload budget is full
+
+
+class _Queue(asyncio.Queue):  # type: ignore[type-arg]
+    """uvicorn's queue of ASGI events, with the bytes of the messages it holds (`held`)."""
+
+    held = 0
+
+    def _put(self, item: Any) -> None:
+        self.held += _size(item)
+        super()._put(item)
+
+    def _get(self) -> Any:
+        item = super()._get()
+        self.held -= _size(item)
+        return item
+
+
+def _size(event: dict[str, Any]) -> int:
+    """Memory of a received message's payload (a text message's `str`: at most its UTF-8 bytes)."""
+    data = event.get("bytes", event.get("text"))
+    return sys.getsizeof(data) if data else 0
 
 
 class SessionProtocol(WebSocketsSansIOProtocol):
     draining = False
+    _upload: Any = None  # this connection's `budget.Reservation` in the worker's upload budget
+    _in_app = 0  # bytes of the message the application took last (held until it asks for the next one)
+    _fragments = 0  # bytes of `frames`, the fragments of the message arriving (a running sum: there may be millions)
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.queue = _Queue()
 
     def data_received(self, data: bytes) -> None:
         if self.draining:
             return  # the rest of a refused message: dropped unread
         super().data_received(data)
+        self._count_upload()
+
+    def handle_text(self, event: Frame) -> None:
+        self._fragments = 0  # a new message
+        self._fragment(event)
+        super().handle_text(event)
+
+    def handle_bytes(self, event: Frame) -> None:
+        self._fragments = 0
+        self._fragment(event)
+        super().handle_bytes(event)
+
+    def handle_cont(self, event: Frame) -> None:
+        self._fragment(event)
+        super().handle_cont(event)
+
+    def _fragment(self, event: Frame) -> None:
+        # A fragment is a bytes object in uvicorn's list: ~40 bytes besides its data, which a flood of tiny ones costs.
+        self._fragments = 0 if event.fin else self._fragments + sys.getsizeof(event.data) + 8
+
+    async def receive(self) -> Any:
+        message = await super().receive()
+        self._in_app = _size(message)  # the one before is done with: the application asks for the next
+        self._count_upload()
+        return message
+
+    def _count_upload(self) -> None:
+        """Hold what this connection's messages take in the worker's upload budget: the message arriving twice,
+        those received once; past the budget, close with 1013 and drain."""
+        if self.close_sent or self.disconnected:  # given back already (`_close_and_drain`, `connection_lost`)
+            return
+        if self._upload is None:
+            uploads = getattr(getattr(getattr(self, "scope", {}).get("app"), "state", None), "uploads", None)
+            if uploads is None:  # not the service's application, or not yet running
+                return
+            self._upload = uploads.reserve_now()
+        partial = len(self.conn.reader.buffer) + self._fragments
+        want = UPLOAD_FACTOR * partial + self.queue.held + self._in_app
+        if want <= self._upload.size:
+            self._upload.shrink(want)
+        elif not self._upload.try_grow(want - self._upload.size):
+            capacity = self._upload.budget.capacity
+            self._close_and_drain(TRY_AGAIN_LATER, f"this worker's upload budget ({capacity} bytes) is full: retry later")
 
     def eof_received(self) -> bool | None:
         return None  # the client closed its side: the transport closes (nothing is left unread)
@@ -62,6 +142,10 @@ class SessionProtocol(WebSocketsSansIOProtocol):
         super().send_receive_event_to_app()
 
     def _close_and_drain(self, code: int, reason: str) -> None:
+        self.frames, self._fragments = [], 0  # freed now, not when the connection ends
+        self.conn.reader.buffer.clear()
+        if self._upload is not None:
+            self._upload.release()
         self.queue.put_nowait({"type": "websocket.disconnect", "code": code, "reason": reason})
         self.transport.write(Frame(Opcode.CLOSE, Close(code, reason).serialize()).serialize(mask=False))
         if self.transport.can_write_eof():
@@ -71,6 +155,11 @@ class SessionProtocol(WebSocketsSansIOProtocol):
             self.read_paused = False
             self.transport.resume_reading()
         self.close_timer = self.loop.call_later(DRAIN_SECONDS, self.transport.close)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        super().connection_lost(exc)
+        if self._upload is not None:
+            self._upload.release()
 
     def shutdown(self) -> None:
         if self.handshake_complete and not self.close_sent:

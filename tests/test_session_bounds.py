@@ -5,18 +5,21 @@ whatever its framing, and the rest the server drains is bounded in bytes and tim
 from __future__ import annotations
 
 import json
+import logging
 import socket
 import struct
+import threading
 import time
 from collections.abc import Callable
 
 import pytest
 from fastapi.testclient import TestClient
 
-from jointlimits.client import InvalidInput, JointBatch
+from jointlimits.client import InvalidInput, JointBatch, codec
 from jointlimits.service import loadtest as lt
 from jointlimits.service import sizing
 from jointlimits.service.http import budget
+from jointlimits.service.http.ws_protocol import DRAIN_MESSAGES
 from jointlimits.service.app import create_app
 from jointlimits.service.settings import Settings
 from jointlimits.service.sizing import UPLOAD_FACTOR
@@ -165,3 +168,98 @@ def test_a_message_in_tiny_fragments_counts_what_its_fragments_hold():
         assert close_frame(s)[0] == 1013
         s.close()
         assert wait_for(lambda: live.app.state.uploads.held == 0)
+
+
+# ---------------------------------------------------------------- a message over the limit: 1009, every time
+
+LIMIT = 16 * MiB
+TOO_BIG = f"message of {LIMIT + 1} bytes over the limit; this service accepts at most {LIMIT} (JOINTLIMITS_MAX_FRAME_BYTES)"
+TRIES = 5
+
+
+def framings(opcode: int, n: int) -> dict[str, list[bytes]]:
+    """A message of `n` zero bytes as the frames a client may send: one frame, two halves, 1 MiB fragments, and
+    `n - 1` bytes then the last one (the limit is passed by the last fragment's header)."""
+    frame, half = inprocess.frame, n // 2
+    mib = [frame(opcode if k == 0 else 0x0, bytes(min(MiB, n - at)), fin=at + MiB >= n) for k, at in enumerate(range(0, n, MiB))]
+    return {
+        "one frame": [head(opcode, n) + bytes(n)],
+        "two halves": [frame(opcode, bytes(half), fin=False), frame(0x0, bytes(n - half))],
+        "1 MiB fragments": mib,
+        "the last byte alone": [frame(opcode, bytes(n - 1), fin=False), frame(0x0, b"\0")],
+    }
+
+
+@pytest.fixture(scope="module")
+def limited():
+    with inprocess.serve(Settings(token=None, cors_origins=(), max_frame_bytes=LIMIT)) as live:
+        yield live
+
+
+@pytest.mark.parametrize("opcode", [0x2, 0x1], ids=["binary", "text"])
+def test_a_message_over_the_limit_is_read_as_1009_with_its_reason_every_time(limited, opcode):
+    """Issue 27: a Node client's `max_frame_bytes + 1` ended in 1006 (a reset) in 5 of 6 tries. A raw client
+    that sends the whole message before it reads anything (the harshest: it reads nothing while sending, from a
+    small send buffer) gets the close frame, 1009 and its reason, in one frame or fragmented, every time."""
+    got = {}
+    for name, frames in framings(opcode, LIMIT + 1).items():
+        for _ in range(TRIES):
+            s, _ = inprocess.upgrade(limited.port)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 16)
+            try:
+                for f in frames:
+                    s.sendall(f)
+                got.setdefault(name, []).append(close_frame(s))
+            except OSError as e:
+                got.setdefault(name, []).append((None, repr(e)))
+            finally:
+                s.close()
+    assert got == {name: [(1009, TOO_BIG)] * TRIES for name in got}, got
+
+
+def test_the_drain_after_1009_is_bounded_in_bytes(limited):
+    """The rest of a refused message (and messages sent behind it) is read and dropped so that the client reads its
+    close frame, up to `DRAIN_MESSAGES` at the limit and `DRAIN_SECONDS`: a client that keeps sending past that
+    is cut off (it read its 1009 meanwhile if it reads while it sends)."""
+    s, _ = inprocess.upgrade(limited.port)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 16)
+    codes: list[tuple[int | None, str]] = []
+    reader = threading.Thread(target=lambda: codes.append(close_frame(s)))
+    reader.start()
+    sent, chunk = 0, bytes(MiB)
+    try:
+        s.sendall(head(0x2, 2**40))  # a terabyte announced
+        while sent < 20 * LIMIT:
+            sent += s.send(chunk)
+    except OSError:  # cut off: reset, or broken pipe
+        pass
+    reader.join(10)
+    s.close()
+    assert codes and codes[0][0] == 1009, codes
+    assert sent < (DRAIN_MESSAGES + 2) * LIMIT, sent  # what was drained, plus what the two kernels buffer
+
+
+def test_a_reply_due_when_the_limit_closes_the_session_is_dropped_not_an_error(limited, caplog, monkeypatch):
+    """A message over the limit arriving while the session prepares its scene: the reply found the connection closed
+    under it, and the session ended as an error ("session failed", a traceback, counted `error`, not
+    `frame_too_large`). It is dropped: the session hears the close on its next read."""
+    from jointlimits.service.http import sessions
+    from tests.test_client_sdk import readme_scene
+
+    slow = sessions.prepare
+
+    def prepare(*args, **kwargs):
+        time.sleep(0.5)  # long enough for the oversized message's header to arrive meanwhile
+        return slow(*args, **kwargs)
+
+    monkeypatch.setattr(sessions, "prepare", prepare)
+    before = {r: lt.scraped(limited.port, "jointlimits_sessions_total", reason=r) for r in ("error", "frame_too_large")}
+    s, _ = inprocess.upgrade(limited.port)
+    s.sendall(inprocess.frame(0x1, codec.encode(readme_scene().request(), binary=False)[0]))
+    time.sleep(0.1)
+    s.sendall(head(0x2, LIMIT + 1))
+    assert close_frame(s) == (1009, TOO_BIG)
+    s.close()
+    assert wait_for(lambda: lt.scraped(limited.port, "jointlimits_sessions_total", reason="frame_too_large") == before["frame_too_large"] + 1)
+    assert lt.scraped(limited.port, "jointlimits_sessions_total", reason="error") == before["error"]
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text

@@ -355,7 +355,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, SessionProtocol):
 
     async def send(self, message: Any) -> None:
         await super().send(message)
-        if message.get("type") == "websocket.close" and self.close_timer is not None:
+        if message.get("type") == "websocket.close" and self.close_timer is not None and not self.draining:
             # uvicorn waits 10 s for the client's answer to our close frame, then closes gracefully (the kernel
             # keeps what the client did not read): the client gets the write timeout, then a reset.
             self.close_timer.cancel()

@@ -7,7 +7,9 @@ top: `server_options`). Four changes:
   not UTF-8: uvicorn wrote the close frame and closed the socket at once; with the client's message still
   arriving, the kernel answered it with a reset, and the client saw 1006 instead of 1009 (issue 20: 1009
   in 0-2 of 6 tries at 64 MiB). Here the close frame (1009 / 1007, with a reason) and a FIN go out, then
-  the rest of what the client sends is read and dropped until it closes, at most `DRAIN_SECONDS`.
+  the rest of what the client sends is read and dropped until it closes, at most `DRAIN_SECONDS` and
+  `DRAIN_MESSAGES` times the limit. A reply the application sends meanwhile is dropped (it hears the close
+  on its next receive).
 - The application hears the same code and reason (`websocket.disconnect`), so the session's log line and
   `jointlimits_sessions_total{reason}` name the cause.
 - A shutdown closes sessions with 1012 and a reason (uvicorn sends none).
@@ -32,6 +34,9 @@ from jointlimits.service.sizing import UPLOAD_FACTOR
 
 DRAIN_SECONDS = 30.0
 """Longest time the rest of a refused message is read and dropped before the socket is closed anyway."""
+DRAIN_MESSAGES = 4
+"""Most bytes read and dropped after the close, in messages at the limit: the rest of the refused one and those a
+client sent behind it before it read the close (tests/test_session_closes.py sends two more)."""
 
 SHUTDOWN_REASON = "the server is shutting down: reopen the session (another worker or pod answers)"
 TRY_AGAIN_LATER = 1013  # "Try Again Later" (IANA's WebSocket close codes): the worker's upload budget is full
@@ -60,6 +65,7 @@ def _size(event: dict[str, Any]) -> int:
 
 class SessionProtocol(WebSocketsSansIOProtocol):
     draining = False
+    _drained = 0  # bytes read and dropped since the close
     _upload: Any = None  # this connection's `budget.Reservation` in the worker's upload budget
     _in_app = 0  # bytes of the message the application took last (held until it asks for the next one)
     _fragments = 0  # bytes of `frames`, the fragments of the message arriving (a running sum: there may be millions)
@@ -69,8 +75,11 @@ class SessionProtocol(WebSocketsSansIOProtocol):
         self.queue = _Queue()
 
     def data_received(self, data: bytes) -> None:
-        if self.draining:
-            return  # the rest of a refused message: dropped unread
+        if self.draining:  # the rest of a refused message: dropped unread, up to DRAIN_MESSAGES at the limit
+            self._drained += len(data)
+            if self._drained > DRAIN_MESSAGES * (self.config.ws_max_size or 0):
+                self.transport.close()  # cut off (a reset): the client has had its close frame for that long
+            return
         super().data_received(data)
         self._count_upload()
 
@@ -155,6 +164,11 @@ class SessionProtocol(WebSocketsSansIOProtocol):
             self.read_paused = False
             self.transport.resume_reading()
         self.close_timer = self.loop.call_later(DRAIN_SECONDS, self.transport.close)
+
+    async def send(self, message: Any) -> None:
+        if self.draining:  # closed under the application (1009, 1007, 1013): it hears so on its next receive
+            return
+        await super().send(message)
 
     def connection_lost(self, exc: Exception | None) -> None:
         super().connection_lost(exc)

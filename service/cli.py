@@ -1,10 +1,10 @@
 """`jointlimits serve`: run the service under uvicorn with production defaults.
 
 Every option can also come from the environment (`JOINTLIMITS_<OPTION>`); a command-line
-flag wins over the environment, which wins over the default. The request limits and CORS
-are handed to the application through the same `JOINTLIMITS_*` variables that
-`jointlimits.service.settings.Settings` reads, so each worker process sees them. The bearer token is
-read from `JOINTLIMITS_TOKEN` or `--token-file` only, never from a flag (flags show in `ps`).
+flag wins over the environment, which wins over the default. The application's options are
+the fields of `jointlimits.service.settings.Settings`, flags made from that table; each worker
+process gets them through the same `JOINTLIMITS_*` variables (`Settings.environ`). The bearer
+token is read from `JOINTLIMITS_TOKEN` or `--token-file` only, never from a flag (flags show in `ps`).
 
 Several workers (`--workers N`, N > 1, or `auto`) run under uvicorn's supervisor, which
 shares one listening socket and respawns a worker that dies. Prometheus needs its
@@ -31,12 +31,12 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
-ENV_PREFIX = "JOINTLIMITS_"
+from jointlimits.service.settings import ENV_PREFIX, TABLE, Settings, boolean, positive_int
 
-
-def _env(name: str, default: str) -> str:
-    return os.environ.get(ENV_PREFIX + name, default)
+BOOL = "true|false"
+"""What boolean options show; 1/0, yes/no, on/off are accepted too."""
 
 
 def available_cpus() -> int:
@@ -68,38 +68,17 @@ def _cgroup_cpu_quota() -> float | None:
 def _workers(value: str) -> int:
     if value.strip().lower() == "auto":
         return available_cpus()
-    return _positive_int(value, "a positive integer or 'auto'")
+    return positive_int(value, "a positive integer or 'auto'")
 
 
-def _positive_int(value: str, what: str = "a positive integer") -> int:
-    # argparse would name a bare ValueError by this function's name ("invalid _workers value").
-    try:
-        n = int(value)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be {what}, got {value!r}")
-    return n
-
-
-BOOL = "true|false"
-"""What boolean options show; 1/0, yes/no, on/off are accepted too."""
-
-
-def _positive_float(value: str) -> float:
-    x = float(value)
-    if not (0 < x < float("inf")):
-        raise argparse.ArgumentTypeError("must be a positive number of seconds")
-    return x
-
-
-def _bool(value: str) -> bool:
-    v = value.strip().lower()
-    if v in ("1", "true", "yes", "on"):
-        return True
-    if v in ("0", "false", "no", "off", ""):
-        return False
-    raise argparse.ArgumentTypeError(f"must be true or false (or 1/0, yes/no, on/off), got {value!r}")
+def _option(parser: argparse.ArgumentParser, name: str, default: Any, help: str, **kwargs: Any) -> None:
+    """`--<name>` defaulting to JOINTLIMITS_<NAME>, else `default`. A variable's text goes through `type`
+    as a flag's does, so a bad variable is refused like a bad flag."""
+    env = ENV_PREFIX + name.upper()
+    if kwargs.get("type") is boolean:
+        kwargs["metavar"] = BOOL
+    flag = "--" + name.replace("_", "-")
+    parser.add_argument(flag, default=os.environ.get(env, default), help=f"{help} ({env})", **kwargs)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -112,157 +91,32 @@ def build_parser() -> argparse.ArgumentParser:
         description="Serve the HTTP API. Each option defaults to its JOINTLIMITS_* environment variable.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    s.add_argument("--host", default=_env("HOST", "127.0.0.1"), help="bind address (JOINTLIMITS_HOST); 0.0.0.0 in the container")
-    s.add_argument("--port", type=int, default=int(_env("PORT", "8000")), help="TCP port (JOINTLIMITS_PORT)")
-    s.add_argument(
-        "--workers",
-        type=_workers,
-        default=_env("WORKERS", "auto"),
-        help="worker processes, or 'auto' = usable CPUs, cgroup quota included (JOINTLIMITS_WORKERS)",
-    )
-    s.add_argument(
-        "--max-body-bytes",
-        type=_positive_int,
-        default=int(_env("MAX_BODY_BYTES", str(256 * 2**20))),
-        help="largest request body; larger answers 413 (JOINTLIMITS_MAX_BODY_BYTES)",
-    )
-    s.add_argument(
-        "--max-joints",
-        type=_positive_int,
-        default=int(_env("MAX_JOINTS", "1000000")),
-        help="most joints in one request; more answers 413 (JOINTLIMITS_MAX_JOINTS)",
-    )
-    # Admission by cost and the per-request deadline (docs/deployment.md, "Limits").
-    s.add_argument(
-        "--max-batches",
-        type=_positive_int,
-        default=_env("MAX_BATCHES", "4096"),  # a string: argparse applies `type`, so a bad variable is refused too
-        help="most batches in one request; more answers 413 (JOINTLIMITS_MAX_BATCHES)",
-    )
-    s.add_argument(
-        "--max-answer-bytes",
-        type=_positive_int,
-        default=_env("MAX_ANSWER_BYTES", str(256 * 2**20)),
-        help="largest answer, bounded before any work from joints x outputs x encoding; larger answers 413 "
-        "(JOINTLIMITS_MAX_ANSWER_BYTES)",
-    )
-    s.add_argument(
-        "--max-json-values",
-        type=_positive_int,
-        default=_env("MAX_JSON_VALUES", "2000000"),
-        help="most values (commas + 1) in a JSON body; more answers 413 before parsing (JOINTLIMITS_MAX_JSON_VALUES)",
-    )
-    s.add_argument(
-        "--request-timeout",
-        type=_positive_float,
-        default=_env("REQUEST_TIMEOUT", "60"),
-        help="seconds an evaluation may take (parse, core, encode); past it 503 with Retry-After "
-        "(JOINTLIMITS_REQUEST_TIMEOUT)",
-    )
-    s.add_argument(
-        "--queue-timeout",
-        type=_positive_float,
-        default=_env("QUEUE_TIMEOUT", "30"),
-        help="seconds a request may wait for the worker's memory budget of requests in flight before it starts; "
-        "past it 503 busy with Retry-After, nothing evaluated (JOINTLIMITS_QUEUE_TIMEOUT)",
-    )
-    s.add_argument(
-        "--healthcheck-timeout",
-        type=_positive_int,
-        default=_env("HEALTHCHECK_TIMEOUT", "30"),
-        help="seconds uvicorn's supervisor waits for a worker's health ping before killing it; above the "
-        "longest step that holds the GIL (a JSON parse at --max-json-values) (JOINTLIMITS_HEALTHCHECK_TIMEOUT)",
-    )
-    s.add_argument(
-        "--cors-origins",
-        default=_env("CORS_ORIGINS", ""),
-        help="comma-separated origins allowed by CORS; empty = CORS off (JOINTLIMITS_CORS_ORIGINS)",
-    )
-    s.add_argument(
-        "--max-sessions",
-        type=_positive_int,
-        default=int(_env("MAX_SESSIONS", "64")),
-        help="open WebSocket sessions per worker; one more is closed with code 4429 (JOINTLIMITS_MAX_SESSIONS)",
-    )
-    s.add_argument(
-        "--max-session-joints",
-        type=_positive_int,
-        default=int(_env("MAX_SESSION_JOINTS", "1000000")),
-        help="joints all open sessions of a worker hold together; a scene past it is refused with 413, then "
-        "code 4413 (JOINTLIMITS_MAX_SESSION_JOINTS)",
-    )
-    s.add_argument(
-        "--max-frame-bytes",
-        type=_positive_int,
-        default=int(_env("MAX_FRAME_BYTES", str(64 * 2**20))),
-        help="largest session message; larger closes the session with code 1009 (JOINTLIMITS_MAX_FRAME_BYTES)",
-    )
-    s.add_argument(
-        "--session-idle-seconds",
-        type=float,
-        default=float(_env("SESSION_IDLE_SECONDS", "300")),
-        help="a session without a message for this long is closed with code 4408 (JOINTLIMITS_SESSION_IDLE_SECONDS)",
-    )
+    _option(s, "host", "127.0.0.1", "bind address; 0.0.0.0 in the container")
+    _option(s, "port", 8000, "TCP port", type=int)
+    _option(s, "workers", "auto", "worker processes, or 'auto' = usable CPUs, cgroup quota included", type=_workers)
+    for setting in TABLE:  # the application's settings (the token has no flag)
+        if setting.flag:
+            _option(s, setting.name, setting.default, setting.help, type=setting.parse)
     s.add_argument(
         "--token-file",
-        default=_env("TOKEN_FILE", "") or None,
+        default=os.environ.get(ENV_PREFIX + "TOKEN_FILE") or None,
         help="file holding the bearer token required on /v1/* (JOINTLIMITS_TOKEN_FILE; or JOINTLIMITS_TOKEN itself)",
     )
-    s.add_argument(
-        "--graceful-timeout",
+    _option(
+        s, "healthcheck_timeout", 30,
+        "seconds uvicorn's supervisor waits for a worker's health ping before killing it; above the "
+        "longest step that holds the GIL (a JSON parse at --max-json-values)",
+        type=positive_int,
+    )
+    _option(s, "graceful_timeout", 30.0, "seconds in-flight requests get to finish after SIGTERM", type=float)
+    _option(
+        s, "keepalive_timeout", 75.0,
+        "seconds an idle keep-alive connection stays open; keep it above your load balancer's idle timeout",
         type=float,
-        default=float(_env("GRACEFUL_TIMEOUT", "30")),
-        help="seconds in-flight requests get to finish after SIGTERM (JOINTLIMITS_GRACEFUL_TIMEOUT)",
     )
-    s.add_argument(
-        "--keepalive-timeout",
-        type=float,
-        default=float(_env("KEEPALIVE_TIMEOUT", "75")),
-        help="seconds an idle keep-alive connection stays open; keep it above your load balancer's "
-        "idle timeout (JOINTLIMITS_KEEPALIVE_TIMEOUT)",
-    )
-    s.add_argument(
-        "--header-timeout",
-        type=_positive_float,
-        default=_positive_float(_env("HEADER_TIMEOUT", "10")),
-        help="seconds a connection has to send a request's headers, from its first byte (or from connecting); "
-        "then 408 and closed: slowloris (JOINTLIMITS_HEADER_TIMEOUT)",
-    )
-    s.add_argument(
-        "--body-timeout",
-        type=_positive_float,
-        default=_positive_float(_env("BODY_TIMEOUT", "30")),
-        help="seconds from a request's headers to the end of its body; then 408 and closed (JOINTLIMITS_BODY_TIMEOUT)",
-    )
-    s.add_argument(
-        "--write-timeout",
-        type=_positive_float,
-        default=_positive_float(_env("WRITE_TIMEOUT", "30")),
-        help="seconds a connection's write buffer may stay full (the client not reading its answer, session "
-        "replies or pongs); then the connection is dropped and what it held freed (JOINTLIMITS_WRITE_TIMEOUT)",
-    )
-    s.add_argument("--backlog", type=_positive_int, default=int(_env("BACKLOG", "2048")), help="listen backlog (JOINTLIMITS_BACKLOG)")
-    s.add_argument(
-        "--log-level",
-        default=_env("LOG_LEVEL", "info"),
-        choices=["critical", "error", "warning", "info", "debug"],
-        help="log level (JOINTLIMITS_LOG_LEVEL)",
-    )
-    s.add_argument(
-        "--keep-heap",
-        type=_bool,
-        metavar=BOOL,
-        default=_bool(_env("KEEP_HEAP", "true")),
-        help="keep freed memory in each worker's heap: no page faults per request, holds the largest request's "
-        "memory (JOINTLIMITS_KEEP_HEAP)",
-    )
-    s.add_argument(
-        "--access-log",
-        type=_bool,
-        metavar=BOOL,
-        default=_bool(_env("ACCESS_LOG", "true")),
-        help="one JSON line per request on stdout (JOINTLIMITS_ACCESS_LOG)",
-    )
+    _option(s, "backlog", 2048, "listen backlog", type=positive_int)
+    _option(s, "log_level", "info", "log level", choices=["critical", "error", "warning", "info", "debug"])
+    _option(s, "access_log", True, "one JSON line per request on stdout", type=boolean)
     return parser
 
 
@@ -281,29 +135,14 @@ def serve(args: argparse.Namespace) -> int:
     from jointlimits.service.observability import log_config
     from jointlimits.service.http.ws_protocol import server_options
 
-    # Hand the application settings to every worker through the environment Settings reads.
-    os.environ[ENV_PREFIX + "MAX_BODY_BYTES"] = str(args.max_body_bytes)
-    os.environ[ENV_PREFIX + "MAX_JOINTS"] = str(args.max_joints)
-    os.environ[ENV_PREFIX + "CORS_ORIGINS"] = args.cors_origins
-    for name in ("max_batches", "max_answer_bytes", "max_json_values", "request_timeout", "queue_timeout"):
-        os.environ[ENV_PREFIX + name.upper()] = str(getattr(args, name))
-    os.environ[ENV_PREFIX + "KEEP_HEAP"] = "true" if args.keep_heap else "false"
-    os.environ[ENV_PREFIX + "HEADER_TIMEOUT"] = str(args.header_timeout)  # read by ReadTimeoutProtocol
-    os.environ[ENV_PREFIX + "BODY_TIMEOUT"] = str(args.body_timeout)
-    os.environ[ENV_PREFIX + "WRITE_TIMEOUT"] = str(args.write_timeout)  # read by both protocols below
-    if args.token_file:
-        token = Path(args.token_file).read_text().strip()
-        if not token:
+    given = {t.name: getattr(args, t.name) for t in TABLE if t.flag}
+    if args.token_file:  # else Settings reads JOINTLIMITS_TOKEN
+        given["token"] = Path(args.token_file).read_text().strip()
+        if not given["token"]:
             print(f"jointlimits: token file {args.token_file} is empty", file=sys.stderr)
             return 2
-        os.environ[ENV_PREFIX + "TOKEN"] = token
+    os.environ.update(Settings(**given).environ())  # what every worker's Settings() reads
 
-    for name in ("max_sessions", "max_session_joints", "max_frame_bytes", "session_idle_seconds"):  # WebSocket sessions
-        os.environ[ENV_PREFIX + name.upper()] = str(getattr(args, name))
-
-    from jointlimits.service.settings import Settings
-
-    Settings()  # fail here, once, on a malformed variable rather than in every worker
     if args.workers > 1:
         # uvicorn's supervisor would respawn workers that cannot import the app, forever: fail fast
         # instead, in a throw-away process (the supervisor itself stays small: it never imports it).

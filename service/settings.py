@@ -1,60 +1,160 @@
-"""Service configuration, from the environment (`JOINTLIMITS_*`) or explicit arguments."""
+"""Service configuration: one table, `Settings`, whose fields are also the flags of `jointlimits serve`.
+
+A field `max_body_bytes` is the flag `--max-body-bytes` and the variable `JOINTLIMITS_MAX_BODY_BYTES`;
+a flag wins over the variable, which wins over the default. `Settings()` reads each field not given
+from the environment; `Settings.environ()` is what makes `Settings()` in a worker process equal to it.
+"""
 
 from __future__ import annotations
 
+import argparse
 import os
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from typing import Any, NamedTuple
+
+ENV_PREFIX = "JOINTLIMITS_"
+_FROM_ENV: Any = object()  # a field not given: its variable, else its default
 
 
-def _env(name: str, default: str) -> str:
-    return os.environ.get(f"JOINTLIMITS_{name}", default)
+# Readers of a flag's or a variable's text; argparse shows an ArgumentTypeError's message as it is.
+def positive_int(text: str, what: str = "a positive integer") -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+    return n
 
 
-@dataclass(frozen=True)
+def positive_float(text: str) -> float:
+    x = float(text)
+    if not (0 < x < float("inf")):
+        raise argparse.ArgumentTypeError("must be a positive number of seconds")
+    return x
+
+
+def boolean(text: str) -> bool:
+    v = text.strip().lower()
+    if v in ("1", "true", "yes", "on"):
+        return True
+    if v in ("0", "false", "no", "off", ""):
+        return False
+    raise argparse.ArgumentTypeError(f"must be true or false (or 1/0, yes/no, on/off), got {text!r}")
+
+
+def _token(text: str) -> str | None:
+    return text or None
+
+
+def _setting(default: Any, parse: Callable[[str], Any], help: str, flag: bool = True) -> Any:
+    """A row of the table: its default, how a flag's or a variable's text reads, the flag's help, whether
+    there is a flag."""
+    return field(default=_FROM_ENV, metadata={"row": (default, parse, help, flag)})
+
+
+@dataclass(frozen=True, kw_only=True)
 class Settings:
-    max_body_bytes: int = field(default_factory=lambda: int(_env("MAX_BODY_BYTES", str(256 * 2**20))))
-    """Largest request body accepted; larger answers 413 before it is parsed."""
-    max_joints: int = field(default_factory=lambda: int(_env("MAX_JOINTS", "1000000")))
-    """Most joints (over all batches) in one request; more answers 413."""
-    # WebSocket sessions (/v1/sessions, service/http/sessions.py); a scene's joints are bounded by max_joints.
-    max_sessions: int = field(default_factory=lambda: int(_env("MAX_SESSIONS", "64")))
-    """Open sessions per worker process; one more is closed at once with code 4429."""
-    max_frame_bytes: int = field(default_factory=lambda: int(_env("MAX_FRAME_BYTES", str(64 * 2**20))))
-    """Largest WebSocket message a session accepts; larger closes the session with code 1009."""
-    max_session_joints: int = field(default_factory=lambda: int(_env("MAX_SESSION_JOINTS", "1000000")))
-    """Joints all open sessions of a worker may hold together (a prepared scene keeps ~0.7 KiB per joint);
-    a scene that would pass it is refused (413, then close 4413)."""
-    session_idle_seconds: float = field(default_factory=lambda: float(_env("SESSION_IDLE_SECONDS", "300")))
-    """A session with no message from its client for this long is closed with code 4408."""
-    token: str | None = field(default_factory=lambda: _env("TOKEN", "") or None)
-    """Bearer token required on /v1/evaluate when set; the API is open when unset."""
-    cors_origins: tuple[str, ...] = field(
-        default_factory=lambda: tuple(o for o in _env("CORS_ORIGINS", "").split(",") if o)
+    """The table: each field's default, reader and flag help (`_setting`). A field not given is read from
+    its variable, else its default."""
+
+    max_body_bytes: int = _setting(256 * 2**20, positive_int, "largest request body; larger answers 413")
+    max_joints: int = _setting(1_000_000, positive_int, "most joints in one request; more answers 413")
+    # Admission by cost and the per-request deadline (service/http/limits.py; docs/deployment.md, "Limits").
+    max_batches: int = _setting(4096, positive_int, "most batches in one request; more answers 413")
+    max_answer_bytes: int = _setting(
+        256 * 2**20, positive_int,
+        "largest answer, bounded before any work from joints x outputs x encoding; larger answers 413",
     )
-    """Origins allowed by CORS; CORS is off when empty."""
-    keep_heap: bool = field(default_factory=lambda: _env("KEEP_HEAP", "true").strip().lower() not in ("0", "false", "no", "off"))
-    """Keep freed memory in the worker's heap (`jointlimits.service.core.heap`): no page faults per request, at the
-    price of holding the largest request's memory."""
-    header_timeout: float = field(default_factory=lambda: float(_env("HEADER_TIMEOUT", "10")))
-    """Seconds a connection has to send a request's head (line and headers); then 408 and closed
-    (enforced by `jointlimits.service.http.timeouts.ReadTimeoutProtocol`, which `jointlimits serve` runs)."""
-    body_timeout: float = field(default_factory=lambda: float(_env("BODY_TIMEOUT", "30")))
-    """Seconds from a request's head to the end of its body; then 408 and the connection closed. Also the
-    bound on a WebSocket session message from its first byte to its last (then close 1008)."""
-    write_timeout: float = field(default_factory=lambda: float(_env("WRITE_TIMEOUT", "30")))
-    """Seconds a connection's write buffer may stay full (the client not reading what it was sent: an answer,
-    session replies, a close frame, pongs); then the connection is dropped and what it held freed
-    (`jointlimits.service.http.timeouts`)."""
-    # Admission by cost (service/http/limits.py, docs/deployment.md, "Limits"): checked before any evaluation.
-    max_batches: int = field(default_factory=lambda: int(_env("MAX_BATCHES", "4096")))
-    """Most batches in one request (each costs ~0.5 ms of fixed work); more answers 413."""
-    max_answer_bytes: int = field(default_factory=lambda: int(_env("MAX_ANSWER_BYTES", str(256 * 2**20))))
-    """Largest answer, bounded from joints x outputs x encoding before any work; larger answers 413."""
-    request_timeout: float = field(default_factory=lambda: float(_env("REQUEST_TIMEOUT", "60")))
-    """Seconds one evaluation may take (parse, core, encode); past it 503 with Retry-After."""
-    queue_timeout: float = field(default_factory=lambda: float(_env("QUEUE_TIMEOUT", "30")))
-    """Seconds a request may wait for the worker's memory budget of requests in flight
-    (`service/http/budget.py`) before it starts; past it 503 `busy` with Retry-After, its body unread."""
-    max_json_values: int = field(default_factory=lambda: int(_env("MAX_JSON_VALUES", "2000000")))
-    """Most values (numbers and list items, counted as commas + 1) in a JSON body: parsing costs ~90 bytes
-    and 0.2-2.5 us each (more under load), whatever their length; more answers 413 before parsing."""
+    max_json_values: int = _setting(
+        2_000_000, positive_int, "most values (commas + 1) in a JSON body; more answers 413 before parsing"
+    )
+    request_timeout: float = _setting(
+        60.0, positive_float, "seconds an evaluation may take (parse, core, encode); past it 503 with Retry-After"
+    )
+    queue_timeout: float = _setting(
+        30.0, positive_float,
+        "seconds a request may wait for the worker's memory budget of requests in flight before it starts; "
+        "past it 503 busy with Retry-After, nothing evaluated",
+    )
+    # Text (a flag, a variable) is split at commas by __post_init__.
+    cors_origins: tuple[str, ...] = _setting("", str, "comma-separated origins allowed by CORS; empty = CORS off")
+    # No flag: a flag shows in `ps` (`jointlimits serve --token-file` reads it from a file instead).
+    token: str | None = _setting(
+        None, _token, "bearer token required on /v1/*; the API is open when unset", flag=False
+    )
+    # WebSocket sessions (service/http/sessions.py); a scene's joints are bounded by max_joints too.
+    max_sessions: int = _setting(64, positive_int, "open WebSocket sessions per worker; one more is closed with code 4429")
+    max_session_joints: int = _setting(
+        1_000_000, positive_int,
+        "joints all open sessions of a worker hold together; a scene past it is refused with 413, then code 4413",
+    )
+    max_frame_bytes: int = _setting(
+        64 * 2**20, positive_int, "largest session message; larger closes the session with code 1009"
+    )
+    session_idle_seconds: float = _setting(
+        300.0, float, "a session without a message for this long is closed with code 4408"
+    )
+    # Connection deadlines, enforced by the protocols of service/http/timeouts.py (`jointlimits serve` runs them).
+    header_timeout: float = _setting(
+        10.0, positive_float,
+        "seconds a connection has to send a request's headers, from its first byte (or from connecting); "
+        "then 408 and closed: slowloris",
+    )
+    body_timeout: float = _setting(  # also a session message's bound, from its first byte to its last (close 1008)
+        30.0, positive_float, "seconds from a request's headers to the end of its body; then 408 and closed"
+    )
+    write_timeout: float = _setting(
+        30.0, positive_float,
+        "seconds a connection's write buffer may stay full (the client not reading its answer, session "
+        "replies or pongs); then the connection is dropped and what it held freed",
+    )
+    keep_heap: bool = _setting(  # service/core/heap.py
+        True, boolean,
+        "keep freed memory in each worker's heap: no page faults per request, holds the largest request's memory",
+    )
+
+    def __post_init__(self) -> None:
+        for s in TABLE:
+            if getattr(self, s.name) is _FROM_ENV:
+                object.__setattr__(self, s.name, s.from_env())
+        if isinstance(self.cors_origins, str):
+            object.__setattr__(self, "cors_origins", tuple(o for o in self.cors_origins.split(",") if o))
+
+    def environ(self) -> dict[str, str]:
+        """The variables that make `Settings()` in another process (a worker) equal to this one."""
+        return {s.env: _text(v) for s in TABLE if (v := getattr(self, s.name)) is not None}
+
+
+class Setting(NamedTuple):
+    name: str
+    default: Any
+    parse: Callable[[str], Any]
+    help: str
+    flag: bool
+
+    @property
+    def env(self) -> str:
+        return ENV_PREFIX + self.name.upper()
+
+    def from_env(self) -> Any:
+        text = os.environ.get(self.env)
+        if text is None:
+            return self.default
+        try:
+            return self.parse(text)
+        except (ValueError, argparse.ArgumentTypeError) as e:  # name the variable: no flag to name here
+            raise ValueError(f"{self.env}: {e}") from None
+
+
+TABLE: tuple[Setting, ...] = tuple(Setting(f.name, *f.metadata["row"]) for f in fields(Settings))
+
+
+def _text(value: Any) -> str:
+    """A value as its variable holds it (what the field's `parse` reads back)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, tuple):
+        return ",".join(value)
+    return str(value)

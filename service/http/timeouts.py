@@ -47,6 +47,7 @@ from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIO
 
 from jointlimits.service.http.ws_protocol import SessionProtocol, not_utf8
 from jointlimits.service.observability import LIFESPAN_METRICS
+from jointlimits.service.settings import Settings
 
 BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `client_gone`
 DRAIN = "jointlimits.drain"
@@ -59,22 +60,12 @@ log = logging.getLogger("jointlimits.timeouts")
 
 def header_timeout_from_env() -> float:
     """`Settings().header_timeout`: JOINTLIMITS_HEADER_TIMEOUT, which `jointlimits serve` sets for its workers."""
-    from jointlimits.service.settings import Settings
-
     return Settings().header_timeout
 
 
 def write_timeout_from_env() -> float:
     """`Settings().write_timeout`: JOINTLIMITS_WRITE_TIMEOUT, which `jointlimits serve` sets for its workers."""
-    from jointlimits.service.settings import Settings
-
     return Settings().write_timeout
-
-
-def body_timeout_from_env() -> float:
-    from jointlimits.service.settings import Settings
-
-    return Settings().body_timeout
 
 
 class Drain:
@@ -282,7 +273,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, SessionProtocol):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.message_timeout is None:
-            self.message_timeout = body_timeout_from_env()
+            self.message_timeout = Settings().body_timeout
         self._message_timer: asyncio.TimerHandle | None = None
         self._owed_pong = b""  # the answer to the latest ping, held while writes are paused (one at most)
         self._init_write_bound()

@@ -107,7 +107,7 @@ def _arrays_in_core_words(frame: str, kind: str | None, faults: list[Fault]) -> 
     arrays: dict[str, np.ndarray] = {}
     found: list[Fault] = []
     for name, integer in MESSAGE_ARRAYS.items():
-        if doc.get(name) is not None:
+        if name in doc and name in proto.KEYS.get(kind or "", {}):  # a null too: named at the array, as msgpack's nil
             a, bad = as_array(doc[name], (name,), integer)
             found += bad
             if a is not None:

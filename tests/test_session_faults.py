@@ -1,0 +1,94 @@
+"""One fault per mistake in a session's later messages (`evaluate`, `commit`, `update`), whatever the path: a JSON
+message, a msgpack message, the SDK's sessions (in-process, and over WebSocket in either encoding). The same
+`(loc, msg, type)` list on each, as tests/test_one_fault_every_path.py pins for requests; and the session goes on."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from jointlimits.client import Client, InvalidInput, LocalClient
+from jointlimits.schemas import binary as wire
+from jointlimits.schemas import session as proto
+from jointlimits.service.app import create_app
+from jointlimits.service.settings import Settings
+from tests.test_contract_live import live  # noqa: F401 (fixture)
+from tests.test_one_fault_every_path import base_doc
+
+APP = TestClient(create_app(Settings(token=None, cors_origins=())))
+Q = base_doc()["bodies"]["q"]
+NOT_A_LIST = ("Input should be a valid list", "list_type")
+NOT_AN_INTEGER = ("Input should be a valid integer", "int_type")
+Item = tuple[tuple[Any, ...], str, str]
+
+
+def to_msgpack(message: dict) -> bytes:
+    """A message in msgpack: each list of numbers an array map (`index` of <i8), anything else as it is."""
+    out = {}
+    for k, v in message.items():
+        if isinstance(v, list) and k != "outputs":
+            dtype = wire.INT64 if k == "index" else wire.FLOAT64
+            out[k] = wire.pack_array(np.asarray(v, dtype=np.dtype(dtype)), dtype)
+        else:
+            out[k] = v
+    return wire.dumps(out)
+
+
+def replies(frames: list[str | bytes]) -> list[dict]:
+    """Open the base scene (in the frames' encoding), send each frame, read each reply."""
+    binary = isinstance(frames[0], bytes)
+    doc = base_doc()
+    with APP.websocket_connect(proto.PATH) as ws:
+        if binary:
+            ws.send_bytes(wire.dumps({**doc, "bodies": {k: wire.pack_array(np.asarray(v), wire.FLOAT64) for k, v in doc["bodies"].items()},
+                                      "batches": [{k: wire.pack_array(np.asarray(v, np.int64 if k == "body_ids" else np.float64),
+                                                                      wire.INT64 if k == "body_ids" else wire.FLOAT64)
+                                                   if isinstance(v, list) else v for k, v in b.items()} for b in doc["batches"]]}))
+        else:
+            ws.send_text(json.dumps(doc))
+        read = (lambda: msgpack.unpackb(ws.receive_bytes())) if binary else (lambda: json.loads(ws.receive_text()))
+        assert read()["kind"] == proto.OPENED
+        out = []
+        for frame in frames:
+            ws.send_bytes(frame) if binary else ws.send_text(frame)
+            out.append(read())
+    return out
+
+
+def detail(reply: dict) -> list[Item]:
+    assert reply["kind"] == proto.ERROR and reply["status"] == 422, reply
+    return [(tuple(d["loc"]), d["msg"], d["type"]) for d in reply["detail"]]
+
+
+def raised(fn: Callable[[], Any]) -> list[Item]:
+    with pytest.raises(InvalidInput) as e:
+        fn()
+    return [(f.loc, f.msg, f.type) for f in e.value.faults]
+
+
+# name -> (the message, the SDK's call that sends it (None: the SDK cannot), its one fault; msgpack: False where the
+# mistake cannot be written in msgpack (an index is an <i8 array map)).
+UPDATE = {"kind": "update", "batch": 0, "index": [0], "lower": [-0.25]}
+CASES: dict[str, tuple[dict, Callable[[Any], Any] | None, Item, bool]] = {
+    # A null array: "Input should be a valid list" at the array, as in a request (issue 27).
+    "null q (evaluate)": ({"kind": "evaluate", "q": None}, lambda s: s.evaluate(None), (("body", "q"), *NOT_A_LIST), True),
+    "null q (commit)": ({"kind": "commit", "q": None}, lambda s: s.commit(None), (("body", "q"), *NOT_A_LIST), True),
+    "null index": ({**UPDATE, "index": None}, lambda s: s.update(0, None, lower=[-0.25]), (("body", "index"), *NOT_A_LIST), True),
+}
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_a_message_gets_one_fault_on_every_service_path_and_the_session_goes_on(name):
+    message, _, want, in_msgpack = CASES[name]
+    encodings = [json.dumps] + ([to_msgpack] if in_msgpack else [])
+    for encode in encodings:
+        # Then a real update, and an evaluate that sees it: the fault changed nothing, the connection is still open.
+        got, updated, ev = replies([encode(message), encode(UPDATE), encode({"kind": "evaluate", "q": Q, "outputs": ["energy"]})])
+        assert detail(got) == [want], (encode.__name__, name)
+        assert updated["kind"] == proto.UPDATED and ev["kind"] == proto.EVALUATION

@@ -57,12 +57,14 @@ class OpeningRequest(EvaluateRequest):
     id: Id | None = None
 
 
+# An optional field is absent (the session's default, or unchanged), never null: a null is refused, as in a
+# request (`Field(None)`: None only as the default, which pydantic does not validate).
 class EvaluateMessage(_Message):
     kind: Literal["evaluate"]
     q: list[Dof]
-    outputs: Annotated[list[Output], Field(min_length=1)] | None = None
-    hessian_mode: HessianMode | None = None
-    active_only: Annotated[bool, Field(strict=True)] | None = None
+    outputs: Annotated[list[Output], Field(min_length=1)] = Field(None)
+    hessian_mode: HessianMode = Field(None)
+    active_only: Annotated[bool, Field(strict=True)] = Field(None)
 
 
 class CommitMessage(_Message):
@@ -74,10 +76,10 @@ class UpdateMessage(_Message):
     kind: Literal["update"]
     batch: Int64
     index: list[Int64]
-    lower: list[Real] | None = None
-    upper: list[Real] | None = None
-    strength: list[Real] | None = None
-    offset: list[Real] | None = None
+    lower: list[Real] = Field(None)
+    upper: list[Real] = Field(None)
+    strength: list[Real] = Field(None)
+    offset: list[Real] = Field(None)
 
 
 class CloseMessage(_Message):

@@ -80,6 +80,19 @@ CASES: dict[str, tuple[dict, Callable[[Any], Any] | None, Item, bool]] = {
     "null q (evaluate)": ({"kind": "evaluate", "q": None}, lambda s: s.evaluate(None), (("body", "q"), *NOT_A_LIST), True),
     "null q (commit)": ({"kind": "commit", "q": None}, lambda s: s.commit(None), (("body", "q"), *NOT_A_LIST), True),
     "null index": ({**UPDATE, "index": None}, lambda s: s.update(0, None, lower=[-0.25]), (("body", "index"), *NOT_A_LIST), True),
+    "null lower": ({**UPDATE, "lower": None}, None, (("body", "lower"), *NOT_A_LIST), True),
+    "null offset": ({**UPDATE, "offset": None}, None, (("body", "offset"), *NOT_A_LIST), True),
+    # ... and a null option, as in a request (in JSON it was taken as absent).
+    "null outputs": ({"kind": "evaluate", "q": Q, "outputs": None}, None, (("body", "outputs"), *NOT_A_LIST), True),
+    "null hessian_mode": ({"kind": "evaluate", "q": Q, "hessian_mode": None}, None,
+                          (("body", "hessian_mode"), "Input should be 'exact' or 'psd'", "literal_error"), True),
+    "null active_only": ({"kind": "evaluate", "q": Q, "active_only": None}, None,
+                         (("body", "active_only"), "Input should be a valid boolean", "bool_type"), True),
+    "a number for outputs": ({"kind": "evaluate", "q": Q, "outputs": 5}, None, (("body", "outputs"), *NOT_A_LIST), True),
+    # Another kind's array is an unknown key (JSON took an update's `q` as its own and applied the update).
+    "q in an update": ({**UPDATE, "q": Q}, None, (("body", "q"), "Extra inputs are not permitted", "extra_forbidden"), True),
+    "index in an evaluate": ({"kind": "evaluate", "q": Q, "index": [0.5]}, None,
+                             (("body", "index"), "Extra inputs are not permitted", "extra_forbidden"), True),
 }
 
 
@@ -92,3 +105,11 @@ def test_a_message_gets_one_fault_on_every_service_path_and_the_session_goes_on(
         got, updated, ev = replies([encode(message), encode(UPDATE), encode({"kind": "evaluate", "q": Q, "outputs": ["energy"]})])
         assert detail(got) == [want], (encode.__name__, name)
         assert updated["kind"] == proto.UPDATED and ev["kind"] == proto.EVALUATION
+
+
+def test_an_absent_value_is_left_as_it_is():
+    """docs/sessions.md: an update sets the values it gives (absent: unchanged; null: a fault, above)."""
+    upper = base_doc()["batches"][0]["upper"][0]
+    for encode in (json.dumps, to_msgpack):
+        updated, ev = replies([encode({**UPDATE, "lower": [upper - 0.5]}), encode({"kind": "evaluate", "q": Q})])
+        assert updated == {"kind": proto.UPDATED, "batch": 0, "joints": 1} and ev["kind"] == proto.EVALUATION

@@ -18,7 +18,7 @@ from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core import Evaluation, Fault, InputError
 from jointlimits.service.core.assembled import check_layout
-from jointlimits.service.core.validate import as_array, check_bodies, check_options, literal_msg, raise_if
+from jointlimits.service.core.validate import NOT_A_LIST, as_array, check_bodies, check_options, literal_msg, raise_if
 from jointlimits.service.http import binary, convert
 from jointlimits.service.http.errors import HttpError, from_validation
 
@@ -116,7 +116,7 @@ def _arrays_in_core_words(frame: str, kind: str | None, faults: list[Fault]) -> 
         raise InputError(others + found or faults)
     out = Message(kind=kind, id=doc.get("id"), q=arrays.get("q"))
     if kind == proto.EVALUATE:
-        out.options = {k: doc[k] for k in ("outputs", "hessian_mode", "active_only") if doc.get(k) is not None}
+        out.options = {k: doc[k] for k in ("outputs", "hessian_mode", "active_only") if k in doc}
     if kind == proto.UPDATE:
         out.batch, out.index = doc["batch"], arrays["index"]
         out.values = {k: arrays[k] for k in proto.UPDATABLE if k in arrays}
@@ -124,8 +124,9 @@ def _arrays_in_core_words(frame: str, kind: str | None, faults: list[Fault]) -> 
 
 
 def _in_array(f: Fault) -> bool:
-    """A fault inside one of the message's arrays (not its absence: that is pydantic's "Field required")."""
-    return bool(f.loc[:1]) and f.loc[0] in MESSAGE_ARRAYS and f.type != "missing"
+    """A fault inside one of the message's arrays (not its absence, "Field required", nor another kind's array,
+    "Extra inputs are not permitted": pydantic's to name)."""
+    return bool(f.loc[:1]) and f.loc[0] in MESSAGE_ARRAYS and f.type not in ("missing", "extra_forbidden")
 
 
 def _json_kind(frame: str) -> str | None:
@@ -143,6 +144,8 @@ def _untagged(f: Fault, tag: str | None) -> Fault:
         return Fault(("kind",), *MISSING)
     if f.type == "dict_type" and f.loc == ():
         return Fault((), *NOT_A_MAP)
+    if f.type == "list_type":  # pydantic's JSON mode says "a valid array"; msgpack and requests "a valid list"
+        f = Fault(f.loc, *NOT_A_LIST)
     return Fault(f.loc[1:], f.msg, f.type) if tag is not None and f.loc[:1] == (tag,) else f
 
 

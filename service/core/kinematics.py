@@ -238,9 +238,9 @@ class BodyTable:
         return self._plains[rows]
 
     def prefetch(self, wanted: Iterable[tuple[str, int, NDArray[np.intp]]]) -> None:
-        """Gather `wanted` now, for the next `linear_of`, `rotations`, `positions_of` or `size_bound` of the
-        same `pairs` (the same object) to take, each once: (kind, key, pairs), kind "linear" (key a row of
-        `linear`), "rotation" (key 0), "positions" or "size" (key a state).
+        """Gather `wanted` now, for the next `linear_of`, `linear_at`, `rotations`, `positions_of` or `size_bound`
+        of the same `pairs` (the same object) to take, each once: (kind, key, pairs), kind "linear" (key a row
+        of `linear`), "rotation" (key 0), "state", "positions" or "size" (key a state).
 
         Gathers read the table at random, a fifth to a quarter of an evaluation: left to each batch's own
         thread they add to the batch of more work (the revolute one), and the other thread waits. Here
@@ -261,7 +261,7 @@ class BodyTable:
                 out = np.empty(pairs.shape[1], dtype=self.dtype)
                 tasks.append(partial(self._size_bound, pairs, key, out))
             else:
-                src = self.rotation if kind == "rotation" else (self.linear if kind == "linear" else self.positions)[key]
+                src = self.rotation if kind == "rotation" else {"linear": self.linear, "state": self.states, "positions": self.positions}[kind][key]
                 out = np.empty((src.shape[0], *pairs.shape), dtype=src.dtype)
                 tasks += [partial(np.take, src[r : r + 3], pairs, axis=1, mode=GATHER, out=out[r : r + 3]) for r in range(0, src.shape[0], 3)]
             self._fetched[(kind, key, id(pairs))] = (pairs, out)  # the pairs held: their id is not reused meanwhile
@@ -305,7 +305,7 @@ class BodyTable:
 
     def linear_at(self, pairs: NDArray[np.intp], state: int) -> Array:
         """`A` (N, 2, 3, 3) of joints `pairs` (2, N) in `state` (0: q_ref, 1: q_prev, 2: q; spanned states only)."""
-        return self._matrices(self.states[state], pairs)
+        return self._matrices(self.states[state], pairs, self._prefetched("state", state, pairs))
 
     def linear_of(self, pairs: NDArray[np.intp], row: int) -> Array:
         """`A` (N, 2, 3, 3) of joints `pairs` (2, N) at `q_ref` (`REF`) or its increment `row`."""
@@ -463,8 +463,8 @@ def state_frames(
 def frame_quantities(r: Array | None, A: Array, alpha: Array, v: Array) -> Array:
     """`F` (N, 4, 3), component-major, of joints whose bodies have `A` (N, 2, 3, 3), body j at `r` (N, 3) from body i.
 
-    `alpha` (4,) and `v` (N, 4, 3) as in the module docstring; `r` may be None when
-    `alpha` is zero. `F` is linear in `(r, A)`: their increments give the increment of `F`.
+    `alpha` (4,) and `v` (N, 4, 3) as in the module docstring; `r` None: `A v` alone (no positions,
+    whatever `alpha`). `F` is linear in `(r, A)`: their increments give the increment of `F`.
     """
     n = A.shape[0]
     F = component_major(n, (4, 3), A.dtype)
@@ -476,6 +476,11 @@ def frame_quantities(r: Array | None, A: Array, alpha: Array, v: Array) -> Array
             np.multiply(A[:, side, row, 0], v[:, k, 0], out=out)
             out += np.multiply(A[:, side, row, 1], v[:, k, 1], out=tmp)
             out += np.multiply(A[:, side, row, 2], v[:, k, 2], out=tmp)
+    return F if r is None else add_positions(F, r, alpha)
+
+
+def add_positions(F: Array, r: Array, alpha: Array) -> Array:
+    """`F` (N, 4, 3) plus body j's position `r` (N, 3) from body i in its points (`alpha_k r`), in place."""
     for k in (2, 3):  # body i is the origin: F_0, F_1 see no position
         if alpha[k]:
             F[:, k] += r if alpha[k] == 1.0 else alpha[k] * r  # 1.0 * r is r: no pass for it

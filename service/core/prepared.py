@@ -32,6 +32,7 @@ from jointlimits.service.core.kinematics import (
     TOTAL_STEP,
     BodyTable,
     CarefulFrames,
+    add_positions,
     careful_frames,
     exponents,
     frame_quantities,
@@ -84,6 +85,7 @@ class _Batch:
     row: int  # the body table's increment row of the last step (to q): STEP or TOTAL_STEP
     start: int  # the state the last step starts from (0: q_ref, 1: q_prev)
     r_start: Array | None  # (N, 3) body j from body i in that state (points only)
+    held: Array | None  # (N, 4, 3) the frames in that state without body j's position, `A v` (points, origin q_ref: `_step`)
     lower: Array  # the request's bounds on the coordinate, float64 (`update` writes them: copies in `prepare`)
     upper: Array
     strength: Array
@@ -92,7 +94,8 @@ class _Batch:
     up: Array
     s: Array
     theta: Array | None  # the committed angle at q_prev (coordinate - offset), None: summed over the steps
-    x0: Array | None  # origin "absolute": x's value at q_ref from the constitution's own zero (None: 0, the specs' origin)
+    absolute: bool  # origin "absolute": x from the constitution's own zero (False: from q_ref, the specs' origin)
+    x0: Array | None  # absolute and not telescoping: x's value at q_ref, added to x (a telescoping x is its value at q)
     faults: list[Fault]  # the stateless call's collapsed frames at q_ref, q_prev: reported with those at q
     progress: dict[str, Progress]  # the coordinate's progress over the steps that do not depend on q ("whole":
     # from starts[0] over `fixed`; "last": from starts[-1]; "ref": from F_ref), kept until `starts` change
@@ -191,7 +194,7 @@ class PreparedScene:
             self._plain = self._table.plain_over({r for p in pending for r in p.x_rows})
         else:
             self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
-            self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row)])
+            self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row, jb.absolute)])
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
         threads = self._threads
         # One batch: its derivative chunks on the pool. Several: each batch on a thread, their chunks
@@ -229,18 +232,26 @@ class PreparedScene:
         return _x_rows(jb.rows, jb.theta is not None)
 
     def _to_q(
-        self, jb: _Batch, starts: list[Array], fixed: list[Array], rows: tuple[int, ...], dF: Array, path: str
+        self,
+        jb: _Batch,
+        starts: list[Array],
+        fixed: list[Array],
+        rows: tuple[int, ...],
+        dF: Array | None,
+        path: str,
+        F_q: Array | None = None,
     ) -> tuple[list[Array], CarefulFrames | None, Array, object]:
         """Frames (N, 4, 3) in each state of the steps `rows` (the last one at `q`, loaded), their
         careful frames, x (N,) summed over the steps `fixed + [dF]` that start at `starts`, and what
         the coordinate formed at q for the collapse test (`Progress.known`).
 
-        As `kinematics.state_frames`: each state is the previous one plus the step, except for
-        joints of bodies the common path does not serve (`_plain`), formed directly (scaled).
-        The steps `fixed` are taken once per scene (`_progress`, kept as `path`): bit for bit what
-        summing them again would give, for every joint that is not careful (whose x is its own).
+        As `kinematics.state_frames`: each state is the previous one plus the step (the frames at q
+        `F_q` where given, `_step`), except for joints of bodies the common path does not serve
+        (`_plain`), formed directly (scaled). The steps `fixed` are taken once per scene (`_progress`,
+        kept as `path`): bit for bit what summing them again would give, for every joint that is not
+        careful (whose x is its own).
         """
-        states = [*starts, starts[-1] + dF]
+        states = [*starts, starts[-1] + dF if F_q is None else F_q]  # dF None: F_q, and x its value (`_step`)
         idx = np.flatnonzero(~self._table.plain_joints(jb.pairs, self._plain))
         careful = None
         if idx.shape[0]:
@@ -248,27 +259,47 @@ class PreparedScene:
             states = [F.copy() for F in states[:-1]] + states[-1:]  # the cached starts stay as they are
             for k, F in enumerate(states):
                 F[idx] = careful.unscaled(k)
+        if dF is None:
+            return states, careful, jb.c.value(states[-1]), None
         p = jb.c.advance(_progress(jb.c, jb.progress, path, starts, fixed), states[-2], dF)
         x = p.x
         if careful is not None:
             x[careful.idx] = jb.c.careful_coordinate(careful)
         return states, careful, x, p.known[-1]
 
-    def _step(self, jb: _Batch, row: int, r_start: Array | None) -> Array:
+    def _step(self, jb: _Batch, row: int, r_start: Array | None) -> tuple[Array | None, Array | None]:
         """The frames' increment (N, 4, 3) over the table's increment `row` to `q` (loaded), from the
-        state where body j sits at `r_start` (N, 3) from body i (points only)."""
-        t = self._table
-        r = None if r_start is None else relative_position(t.positions_of(jb.pairs, 2)) - r_start
-        return frame_quantities(r, t.linear_of(jb.pairs, row), jb.c.alpha, jb.v)
+        state where body j sits at `r_start` (N, 3) from body i (points only); and for frames with
+        points the frames at q themselves (else None). With the absolute origin (points telescope) x is
+        the value at q alone: the frames there from q's own A and positions, as the engine forms them,
+        and no increment (None).
 
-    def _x(self, jb: _Batch, dF: Array) -> tuple[Array, Array, CarefulFrames | None, object]:
-        """The joint coordinate `x` (N,) and the frames (N, 4, 3) at `q` from the last step `dF`, the
-        careful frames of the state at q (`_last_state`) and what the coordinate formed there."""
+        The start's frames plus the step would keep body j's position at q only to the rounding of
+        its position at the start: nothing of it where the bodies were 1e17 apart there and are 0.4
+        apart at q. So the frames at q are `A v` at the start plus A's increment (`held`: within a small
+        factor of `A(q) v` itself wherever the common path serves, `kinematics._plain_bodies`), then
+        body j's position at q.
+        """
+        t = self._table
+        if r_start is not None and jb.absolute:
+            r_q = relative_position(t.positions_of(jb.pairs, 2))
+            return None, frame_quantities(r_q, t.linear_at(jb.pairs, 2), jb.c.alpha, jb.v)
+        dF = frame_quantities(None, t.linear_of(jb.pairs, row), jb.c.alpha, jb.v)  # A's increment times v
+        if r_start is None:
+            return dF, None
+        r_q = relative_position(t.positions_of(jb.pairs, 2))
+        F_q = add_positions(jb.held + dF, r_q, jb.c.alpha)
+        return add_positions(dF, r_q - r_start, jb.c.alpha), F_q
+
+    def _x(self, jb: _Batch, dF: Array | None, F_q: Array | None) -> tuple[Array, Array, CarefulFrames | None, object]:
+        """The joint coordinate `x` (N,) and the frames (N, 4, 3) at `q` from the last step `dF` (and
+        the frames at q `F_q`, if given: `_step`), the careful frames of the state at q (`_last_state`)
+        and what the coordinate formed there."""
         if jb.theta is None:
-            states, careful, x, known = self._to_q(jb, jb.starts, jb.fixed, jb.rows, dF, "whole")
+            states, careful, x, known = self._to_q(jb, jb.starts, jb.fixed, jb.rows, dF, "whole", F_q)
             x = _from_origin(x, jb)
         else:
-            states, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF, "last")
+            states, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF, "last", F_q)
             x = jb.theta + x
         return x, states[-1], _last_state(careful), known
 
@@ -291,7 +322,7 @@ class PreparedScene:
         share: Sharing | None = None,
     ) -> dict:
         check_deadline(deadline)
-        x, F, careful, known = self._x(jb, self._step(jb, jb.row, jb.r_start))
+        x, F, careful, known = self._x(jb, *self._step(jb, jb.row, jb.r_start))
         bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
         raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound))[:MAX_FAULTS])
         r = differentiate(
@@ -337,7 +368,8 @@ class PreparedScene:
         r_ref = None
         if jb.c.alpha.any():
             r_ref = jb.r_start if jb.start == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
-        states, careful, x, known = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), self._step(jb, TOTAL_STEP, r_ref), "ref")
+        dF, F_q = self._step(jb, TOTAL_STEP, r_ref)
+        states, careful, x, known = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), dF, "ref", F_q)
         return states[-1], _from_origin(x, jb), _last_state(careful), known
 
     def _angle(self, jb: _Batch) -> Array:
@@ -431,7 +463,9 @@ def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:
 
 
 def _from_origin(x: Array, jb: _Batch) -> Array:
-    """`x` (N,) measured from the batch's origin: plus its value at q_ref where that is "absolute"."""
+    """`x` (N,) measured from the batch's origin: plus its value at q_ref where that is "absolute" (a telescoping
+    coordinate is already: its value at q, `_step`; x(q_ref) plus the difference from there would keep x
+    only to the rounding of x(q_ref), nothing of a slide of 0.4 after one of 1e17)."""
     return x if jb.x0 is None else x + jb.x0
 
 
@@ -465,7 +499,7 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
                    + [partial(_bodies_used, [joints], n_bodies) for joints in batches], threads)
     checks, used = done[: len(batches)], reduce(np.logical_or, done[len(batches) :], np.zeros(n_bodies, dtype=bool))
     pairs = [np.ascontiguousarray(j.body_ids.T) for j in batches]  # (2, N): contiguous indices gather 30% faster
-    gathers = [] if any(checks) else [w for j, p in zip(batches, pairs) for w in _gathers(CONSTITUTIONS[j.constitution_uid], p, own)]
+    gathers = [] if any(checks) else [w for j, p in zip(batches, pairs) for w in _gathers(CONSTITUTIONS[j.constitution_uid], p, own, j.origin == "absolute")]
     with np.errstate(all="ignore"):
         table.rotate(used, also=table.prefetch_tasks(gathers))
     log = FaultLog()
@@ -497,9 +531,10 @@ def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
     return used
 
 
-def _gathers(c: Constitution, pairs: NDArray[np.intp], own: bool) -> list[tuple[str, int, NDArray[np.intp]]]:
+def _gathers(c: Constitution, pairs: NDArray[np.intp], own: bool, absolute: bool) -> list[tuple[str, int, NDArray[np.intp]]]:
     """What `_prepare_batch` gathers from the table for a batch of `c` on `pairs` (`BodyTable.prefetch`),
-    and unless `own` (the stateless call, its table already holding q) what its evaluation gathers."""
+    and unless `own` (the stateless call, its table already holding q) what its evaluation gathers
+    (`absolute`: its origin)."""
     rows = _increments(c)
     wanted = [("linear", REF)] + [("linear", row) for row in rows[:-1]]  # the rotations are gathered by the batch's
     # own thread: they wait for the polar factors, which these gathers run beside
@@ -508,7 +543,7 @@ def _gathers(c: Constitution, pairs: NDArray[np.intp], own: bool) -> list[tuple[
     if c.unit_frames:
         wanted += [("size", s) for s in range(len(rows))]  # q_ref and the start of each fixed step
     if not own:
-        wanted += _evaluation_gathers(c, rows[-1])
+        wanted += _evaluation_gathers(c, rows[-1], absolute)
     return [(kind, key, pairs) for kind, key in wanted]
 
 
@@ -518,9 +553,12 @@ def _states(rows: tuple[int, ...]) -> set[int]:
     return {0, STEPS[rows[-1]][0]} | {s for row in rows[:-1] for s in STEPS[row]}
 
 
-def _evaluation_gathers(c: Constitution, row: int) -> list[tuple[str, int]]:
-    """What an evaluation of a batch of `c` whose last step is the table's `row` gathers: `_step`, the collapse test at q."""
-    return [("linear", row)] + [("positions", 2)] * bool(c.alpha.any()) + [("size", 2)] * c.unit_frames
+def _evaluation_gathers(c: Constitution, row: int, absolute: bool) -> list[tuple[str, int]]:
+    """What an evaluation of a batch of `c` whose last step is the table's `row` gathers: `_step` (A's step, or
+    with points and the `absolute` origin A at q itself), the collapse test at q."""
+    points = bool(c.alpha.any())
+    step = ("state", 2) if points and absolute else ("linear", row)
+    return [step] + [("positions", 2)] * points + [("size", 2)] * c.unit_frames
 
 
 def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: NDArray[np.intp]) -> _Batch:
@@ -538,8 +576,14 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     R_ref = table.rotations(pairs)
     t, anchors = axis_and_anchors(c, cast(joints.edges), cast(joints.local_edges), p.get(0), A_ref, R_ref)
     v = c.local_vectors(t, anchors, R_ref)
-    F_ref = frame_quantities(r.get(0), A_ref, c.alpha, v)
-    x0 = _absolute_zero(c, F_ref, A_ref, v) if joints.origin == "absolute" else None
+    F_ref = frame_quantities(None, A_ref, c.alpha, v)
+    absolute = joints.origin == "absolute"
+    held = None
+    if points and not absolute:  # x's last step starts at q_ref (points telescope): `_step` forms the frames at q from `A_ref v`
+        held = F_ref.copy(order="K")  # component-major, as F_ref
+    if points:
+        add_positions(F_ref, r[0], c.alpha)
+    x0 = _absolute_zero(c, A_ref, v) if absolute and not c.telescopes else None
     # The steps before the last one (q_ref -> q_prev) and where each starts.
     fixed = []
     for row in rows[:-1]:
@@ -571,6 +615,7 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
         row=rows[-1],
         start=start,
         r_start=r.get(start),
+        held=held,
         lower=lower,
         upper=upper,
         strength=strength,
@@ -579,20 +624,20 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
         up=up.astype(dtype, copy=False),
         s=strength.astype(dtype, copy=own),
         theta=theta,
+        absolute=absolute,
         x0=x0,
         faults=faults,
         progress=progress,
     )
 
 
-def _absolute_zero(c: Constitution, F_ref: Array, A_ref: Array, v: Array) -> Array:
-    """x at q_ref measured from the constitution's own zero (N,), `F_ref` (N, 4, 3) the frames there.
+def _absolute_zero(c: Constitution, A_ref: Array, v: Array) -> Array:
+    """x at q_ref measured from the constitution's own zero (N,), of a coordinate of directions alone (the
+    angle; one with points telescopes: its absolute value is taken at q, `PreparedScene._step`).
 
-    A coordinate of directions alone (no points: the angle) reads them from `A_ref` scaled per body
-    by a power of two (exact): frames at the edge of float64 keep every digit of their angle.
+    The directions are read from `A_ref` scaled per body by a power of two (exact): frames at the edge
+    of float64 keep every digit of their angle.
     """
-    if c.alpha.any():
-        return c.value(F_ref)
     return c.value(scaled_frames(None, A_ref, exponents(A_ref), c.alpha, v))
 
 

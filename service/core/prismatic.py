@@ -6,7 +6,8 @@ F = [C_i, T_i, C_j, T_j], with C_k = p_k + A_k c_k (the anchor) and T_k = A_k t_
     theta = (C_j - C_i) . (T_i + T_j) / 2,   x = theta(q) - theta(q_ref).
 
 The incremental form of the spec telescopes exactly to this difference; `F(q)` is taken as
-`F(q_ref)` plus the increment `F(q - q_ref)`.
+`F(q_ref)` plus the increment `F(q - q_ref)`, body j's position at q its own (`PreparedScene._step`);
+`origin: "absolute"` takes theta(q) itself (the engine's formula), from the frames at q.
 theta is bilinear in F, so d2x/dF2 is a constant, `kron(PAIRS, I_3)`.
 """
 

@@ -89,6 +89,12 @@ CASES: dict[str, tuple[dict, Callable[[Any], Any] | None, Item, bool]] = {
     "null active_only": ({"kind": "evaluate", "q": Q, "active_only": None}, None,
                          (("body", "active_only"), "Input should be a valid boolean", "bool_type"), True),
     "a number for outputs": ({"kind": "evaluate", "q": Q, "outputs": 5}, None, (("body", "outputs"), *NOT_A_LIST), True),
+    # A number (or a string) where an array belongs.
+    "a number for q (evaluate)": ({"kind": "evaluate", "q": 5.0}, lambda s: s.evaluate(5.0), (("body", "q"), *NOT_A_LIST), True),
+    "a number for q (commit)": ({"kind": "commit", "q": 5}, lambda s: s.commit(5), (("body", "q"), *NOT_A_LIST), True),
+    "a number for index": ({**UPDATE, "index": 0}, lambda s: s.update(0, 0, lower=[-0.25]), (("body", "index"), *NOT_A_LIST), True),
+    "a number for lower": ({**UPDATE, "lower": 5.0}, lambda s: s.update(0, [0], lower=5.0), (("body", "lower"), *NOT_A_LIST), True),
+    "a string for upper": ({**UPDATE, "upper": "x"}, lambda s: s.update(0, [0], upper="x"), (("body", "upper"), *NOT_A_LIST), True),
     # Another kind's array is an unknown key (JSON took an update's `q` as its own and applied the update).
     "q in an update": ({**UPDATE, "q": Q}, None, (("body", "q"), "Extra inputs are not permitted", "extra_forbidden"), True),
     "index in an evaluate": ({"kind": "evaluate", "q": Q, "index": [0.5]}, None,
@@ -105,6 +111,13 @@ def test_a_message_gets_one_fault_on_every_service_path_and_the_session_goes_on(
         got, updated, ev = replies([encode(message), encode(UPDATE), encode({"kind": "evaluate", "q": Q, "outputs": ["energy"]})])
         assert detail(got) == [want], (encode.__name__, name)
         assert updated["kind"] == proto.UPDATED and ev["kind"] == proto.EVALUATION
+
+
+def test_a_number_in_a_0d_array_map_is_named_as_a_bare_one():
+    """msgpack's other way to put a number where an array belongs: an array map of shape []."""
+    scalar = {"dtype": wire.FLOAT64, "shape": [], "data": np.float64(5.0).tobytes()}
+    got, = replies([to_msgpack({**UPDATE, "lower": scalar})])
+    assert detail(got) == [(("body", "lower"), *NOT_A_LIST)]
 
 
 def test_an_absent_value_is_left_as_it_is():

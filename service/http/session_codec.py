@@ -17,6 +17,7 @@ from pydantic import ValidationError
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core import Evaluation, Fault, InputError
+from jointlimits.service.core.errors import Loc
 from jointlimits.service.core.assembled import check_layout
 from jointlimits.service.core.validate import NOT_A_LIST, as_array, check_bodies, check_options, literal_msg, raise_if
 from jointlimits.service.http import binary, convert
@@ -164,18 +165,28 @@ def _decode_binary(frame: bytes) -> Message:
     fields = r.fields(doc, (), proto.KEYS[kind])
     out = Message(kind=kind, id=binary.message_id(r, fields.get("id")))
     if "q" in fields:
-        out.q = r.array(fields["q"], ("q",), wire.FLOAT64, 2, np.zeros((0, 12)))
+        out.q = _array(r, fields["q"], ("q",), wire.FLOAT64, 2)
     if kind == proto.EVALUATE:
         given = {k: fields[k] for k in ("outputs", "hessian_mode", "active_only") if k in fields}
         parsed = dict(zip(("outputs", "hessian_mode", "active_only"), binary._options(r, given)))
         out.options = {k: parsed[k] for k in given}
     if kind == proto.UPDATE:
         out.batch = r.int64(fields.get("batch", 0), ("batch",))
-        out.index = r.array(fields.get("index"), ("index",), wire.INT64, 1, np.zeros(0, np.int64))
-        out.values = {k: r.array(fields[k], (k,), wire.FLOAT64, 1, np.zeros(0)) for k in proto.UPDATABLE if k in fields}
+        out.index = _array(r, fields.get("index"), ("index",), wire.INT64, 1)
+        out.values = {k: _array(r, fields[k], (k,), wire.FLOAT64, 1) for k in proto.UPDATABLE if k in fields}
     if r.faults:
         raise InputError(r.faults)
     return out
+
+
+def _array(r: binary._Reader, obj: Any, loc: Loc, dtype: str, ndim: int) -> np.ndarray:
+    """The binary reader's array, but a number or a string where an array belongs is named as in JSON (the
+    reader says "must be an array map"); its nil and its 0-d array map are already."""
+    empty = np.zeros((0,) * ndim, np.int64 if dtype == wire.INT64 else np.float64)
+    if isinstance(obj, (bool, int, float, str)):
+        r.fault(loc, *NOT_A_LIST)
+        return empty
+    return r.array(obj, loc, dtype, ndim, empty)
 
 
 def message_id(frame: Frame) -> int | str | None:

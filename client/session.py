@@ -18,10 +18,12 @@ from numpy.typing import ArrayLike
 
 from jointlimits.client import codec
 from jointlimits.client.accept import as_request
-from jointlimits.client.errors import Fault, ServiceError
+from jointlimits.client.errors import Fault, InvalidInput, ServiceError
 from jointlimits.client.model import REVOLUTE_LIMIT, Array, Evaluation, Request
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
+from jointlimits.service.core.errors import Fault as CoreFault
+from jointlimits.service.core.validate import NOT_AN_INTEGER, as_array
 
 Frame = bytes | str
 _BINARY_ERROR = b"\xa4kind\xa5error"
@@ -94,7 +96,7 @@ class SessionState:
         return self._encode({"kind": proto.COMMIT, "q": self._q(q)})
 
     def update_frame(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Frame:
-        doc: dict[str, Any] = {"kind": proto.UPDATE, "batch": int(batch), "index": np.asarray(index, dtype=np.int64).reshape(-1)}
+        doc: dict[str, Any] = {"kind": proto.UPDATE, "batch": batch_number(batch), "index": message_array(index, "index", integer=True)}
         doc.update({k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in values.items() if v is not None})
         return self._encode(doc)
 
@@ -184,6 +186,24 @@ class SessionState:
         return replace(self.request, q=q, q_prev=q.copy(), batches=batches)
 
 
+def message_array(value: Any, name: str, integer: bool = False) -> np.ndarray:
+    """An array of a session message as the service reads it (`validate.as_array`, its JSON decoder's reading):
+    no cast (an index of 0.5 is not joint 0); else `InvalidInput`, the service's fault, before anything is sent."""
+    a, faults = as_array(value, (name,), integer)
+    if faults:
+        raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in faults], where="invalid input")
+    return a
+
+
+def batch_number(batch: Any) -> int:
+    """An update's `batch` as the service reads it: an int64 (0.5 is not batch 0), in pydantic's words."""
+    listed = isinstance(batch, (list, tuple)) or (isinstance(batch, np.ndarray) and batch.ndim > 0)
+    a, faults = (None, [CoreFault(("batch",), *NOT_AN_INTEGER)]) if listed else as_array([batch], ("batch",), integer=True)
+    if faults:
+        raise InvalidInput(422, [Fault(("body", "batch"), f.msg, f.type) for f in faults[:1]], where="invalid input")
+    return int(a[0])
+
+
 def options(request: Request, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> dict[str, Any]:
     """The evaluate options of a call, the opening request's where not given (for the in-process session)."""
     return {
@@ -194,7 +214,7 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
     }
 
 
-__all__ = ["SessionClosed", "SessionState", "connection_options", "options", "ws_url"]
+__all__ = ["SessionClosed", "SessionState", "batch_number", "connection_options", "message_array", "options", "ws_url"]
 
 
 class StateView:

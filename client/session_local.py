@@ -12,7 +12,7 @@ from numpy.typing import ArrayLike
 from jointlimits.client.errors import Fault, InvalidInput
 from jointlimits.client.model import Array, Evaluation, Request
 from jointlimits.client.local import core_batches, result
-from jointlimits.client.session import SessionClosed, SessionState, StateView, options
+from jointlimits.client.session import SessionClosed, SessionState, StateView, batch_number, message_array, options
 from jointlimits.service import core
 from jointlimits.service.core.prepared import prepare
 
@@ -66,7 +66,8 @@ class LocalSession(StateView):
         scene = self._live()
         values = {"lower": lower, "upper": upper, "strength": strength, "offset": offset}
         given = {k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in values.items() if v is not None}
-        _call(lambda: scene.update(int(batch), np.asarray(index, dtype=np.int64).reshape(-1), **given))
+        b, idx = batch_number(batch), message_array(index, "index", integer=True)  # as the service reads them
+        _call(lambda: scene.update(b, idx, **given))
         self.state.apply_update(batch, index, values)
         if offset is not None:  # a new offset moves the batch's committed coordinates with it
             self.state.coordinates[batch] = np.array(scene.coordinates()[batch])

@@ -77,8 +77,8 @@ def raised(fn: Callable[[], Any]) -> list[Item]:
 UPDATE = {"kind": "update", "batch": 0, "index": [0], "lower": [-0.25]}
 CASES: dict[str, tuple[dict, Callable[[Any], Any] | None, Item, bool]] = {
     # A null array: "Input should be a valid list" at the array, as in a request (issue 27).
-    "null q (evaluate)": ({"kind": "evaluate", "q": None}, lambda s: s.evaluate(None), (("body", "q"), *NOT_A_LIST), True),
-    "null q (commit)": ({"kind": "commit", "q": None}, lambda s: s.commit(None), (("body", "q"), *NOT_A_LIST), True),
+    "null q (evaluate)": ({"kind": "evaluate", "q": None}, None, (("body", "q"), *NOT_A_LIST), True),
+    "null q (commit)": ({"kind": "commit", "q": None}, None, (("body", "q"), *NOT_A_LIST), True),
     "null index": ({**UPDATE, "index": None}, lambda s: s.update(0, None, lower=[-0.25]), (("body", "index"), *NOT_A_LIST), True),
     "null lower": ({**UPDATE, "lower": None}, None, (("body", "lower"), *NOT_A_LIST), True),
     "null offset": ({**UPDATE, "offset": None}, None, (("body", "offset"), *NOT_A_LIST), True),
@@ -90,11 +90,17 @@ CASES: dict[str, tuple[dict, Callable[[Any], Any] | None, Item, bool]] = {
                          (("body", "active_only"), "Input should be a valid boolean", "bool_type"), True),
     "a number for outputs": ({"kind": "evaluate", "q": Q, "outputs": 5}, None, (("body", "outputs"), *NOT_A_LIST), True),
     # A number (or a string) where an array belongs.
-    "a number for q (evaluate)": ({"kind": "evaluate", "q": 5.0}, lambda s: s.evaluate(5.0), (("body", "q"), *NOT_A_LIST), True),
-    "a number for q (commit)": ({"kind": "commit", "q": 5}, lambda s: s.commit(5), (("body", "q"), *NOT_A_LIST), True),
+    "a number for q (evaluate)": ({"kind": "evaluate", "q": 5.0}, None, (("body", "q"), *NOT_A_LIST), True),
+    "a number for q (commit)": ({"kind": "commit", "q": 5}, None, (("body", "q"), *NOT_A_LIST), True),
     "a number for index": ({**UPDATE, "index": 0}, lambda s: s.update(0, 0, lower=[-0.25]), (("body", "index"), *NOT_A_LIST), True),
-    "a number for lower": ({**UPDATE, "lower": 5.0}, lambda s: s.update(0, [0], lower=5.0), (("body", "lower"), *NOT_A_LIST), True),
-    "a string for upper": ({**UPDATE, "upper": "x"}, lambda s: s.update(0, [0], upper="x"), (("body", "upper"), *NOT_A_LIST), True),
+    "a number for lower": ({**UPDATE, "lower": 5.0}, None, (("body", "lower"), *NOT_A_LIST), True),
+    "a string for upper": ({**UPDATE, "upper": "x"}, None, (("body", "upper"), *NOT_A_LIST), True),
+    # An index is an integer: the SDK cast [0.5] to joint 0.
+    "an index of 0.5": ({**UPDATE, "index": [0.5]}, lambda s: s.update(0, np.array([0.5]), lower=[-0.25]), (("body", "index", 0), *NOT_AN_INTEGER), False),
+    "an index of 0.0": ({**UPDATE, "index": [1, 0.0], "lower": [-0.25, -0.25]},
+                        lambda s: s.update(0, [1, 0.0], lower=[-0.25, -0.25]), (("body", "index", 1), *NOT_AN_INTEGER), False),
+    "an index of true": ({**UPDATE, "index": [True]}, lambda s: s.update(0, [True], lower=[-0.25]), (("body", "index", 0), *NOT_AN_INTEGER), False),
+    "a batch of 0.5": ({**UPDATE, "batch": 0.5}, lambda s: s.update(0.5, [0], lower=[-0.25]), (("body", "batch"), *NOT_AN_INTEGER), False),
     # Another kind's array is an unknown key (JSON took an update's `q` as its own and applied the update).
     "q in an update": ({**UPDATE, "q": Q}, None, (("body", "q"), "Extra inputs are not permitted", "extra_forbidden"), True),
     "index in an evaluate": ({"kind": "evaluate", "q": Q, "index": [0.5]}, None,
@@ -111,6 +117,22 @@ def test_a_message_gets_one_fault_on_every_service_path_and_the_session_goes_on(
         got, updated, ev = replies([encode(message), encode(UPDATE), encode({"kind": "evaluate", "q": Q, "outputs": ["energy"]})])
         assert detail(got) == [want], (encode.__name__, name)
         assert updated["kind"] == proto.UPDATED and ev["kind"] == proto.EVALUATION
+
+
+@pytest.mark.parametrize("name", [n for n, case in CASES.items() if case[1] is not None])
+def test_the_sdk_raises_what_the_service_answers(live, name):  # noqa: F811
+    """LocalSession and the WebSocket sessions (JSON, msgpack): the fault of the service, before anything changes."""
+    _, call, want, _ = CASES[name]
+    doc = base_doc()
+    with LocalClient().session(doc) as s:
+        assert raised(lambda: call(s)) == [want]
+        before = s.evaluate(Q).total_energy
+    for binary in (False, True):
+        with Client(live, binary=binary).session(doc) as s:
+            assert raised(lambda: call(s)) == [want], binary
+            # Neither the server's scene nor the SDK's copy of it changed (the cast made joint 0's lower -0.25).
+            assert s.evaluate(Q).total_energy == before
+            assert s.request_for_reopen().batches[0].lower.tolist() == doc["batches"][0]["lower"]
 
 
 def test_a_number_in_a_0d_array_map_is_named_as_a_bare_one():

@@ -15,8 +15,8 @@ import uvicorn
 
 from jointlimits.service.app import create_app
 from jointlimits.service.http import timeouts
-from jointlimits.service.loadtest import ws_frame, ws_upgrade
 from jointlimits.service.settings import Settings
+from tests.drills import ws_frame, ws_upgrade
 from tests.test_contract_live import running
 
 

@@ -16,7 +16,6 @@ import pytest
 from fastapi.testclient import TestClient
 
 from jointlimits.client import JointBatch, codec, request_from_arrays
-from jointlimits.service import loadtest as lt
 from jointlimits.schemas import binary as wire
 from jointlimits.service.app import create_app
 from jointlimits.service.core import BatchResult, Evaluation, evaluate
@@ -25,6 +24,7 @@ from jointlimits.service.core.evaluate import CHUNK
 from jointlimits.service.core import evaluate as checked_evaluate
 from jointlimits.service.http import binary, convert, limits, routes
 from jointlimits.service.settings import Settings
+from tests import drills as lt
 
 EGH = ("energy", "gradient", "hessian")
 J, B = "application/json", "application/msgpack"

@@ -6,8 +6,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from jointlimits.service.app import create_app
-from jointlimits.service.loadtest import scene
 from jointlimits.service.settings import Settings
+from tests.drills import scene
 
 BODY = scene(2, seed=1)
 

@@ -20,11 +20,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from jointlimits.client import codec
-from jointlimits.service import loadtest as lt
 from jointlimits.service import sizing
 from jointlimits.service.app import create_app
 from jointlimits.service.http.budget import Budget, Busy
 from jointlimits.service.settings import Settings
+from tests import drills as lt
 
 J, B = "application/json", "application/msgpack"
 DEPLOY = {  # deploy/deployment.yaml's limits (tests/test_deploy.py keeps the manifest to the sizing rule)
@@ -318,7 +318,7 @@ def _bad_range(doc: dict) -> dict:
 
 
 def test_concurrent_requests_at_the_limits_keep_a_worker_within_the_sizing_rule(monkeypatch):
-    """Six concurrent copies of the costliest request of each kind (`loadtest.scenario_burst`: the answer bound,
+    """Six concurrent copies of the costliest request of each kind (`drills.scenario_burst`: the answer bound,
     the body bound), at the manifest's limits, on one worker: each answers 200 or 503 busy (a body refused
     as it arrives is drained, not reset), at least one is served, the worker survives, serves the request
     again once quiet, and its peak memory stays within `sizing.worker_bytes`."""

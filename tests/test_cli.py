@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from jointlimits.service import cli
-from jointlimits.service.loadtest import LOOPBACK, Server, get, scene
+from tests.drills import LOOPBACK, Server, get, scene
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -11,8 +11,8 @@ import time
 
 import pytest
 
-from jointlimits.service.loadtest import scene
 from jointlimits.service.settings import Settings
+from tests.drills import scene
 from tests.inprocess import frame, read_close, serve, upgrade
 
 OPEN = json.dumps(scene(6, seed=3)).encode()

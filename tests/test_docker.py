@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from jointlimits.service.loadtest import LOOPBACK, free_port, get
+from tests.drills import LOOPBACK, free_port, get
 
 ROOT = Path(__file__).resolve().parent.parent
 VENV_IN_IMAGE = "/opt/venv"

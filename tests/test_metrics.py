@@ -9,9 +9,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from jointlimits.service.app import create_app
-from jointlimits.service.loadtest import metric_total, scene
 from jointlimits.service.observability import ACCESS_LOGGER, JsonFormatter, log_config
 from jointlimits.service.settings import Settings
+from tests.drills import metric_total, scene
 
 
 @pytest.fixture

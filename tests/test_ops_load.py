@@ -1,9 +1,9 @@
-"""Load and faults on a real 2-worker server on loopback (`service/loadtest.py` does the work).
+"""Load and faults on a real 2-worker server on loopback (`tests/drills.py` does the work).
 
 About 110 s in all: a 30 s mixed load (JOINTLIMITS_LOAD_SECONDS to change it), a flood of
 oversized requests, a worker killed under load, SIGTERM under load, a slowloris of 50 connections,
 an oversized answer under load. The figures in the
-README come from `python -m jointlimits.service.loadtest --spawn --scenario all`, the same code.
+README come from `python -m tests.drills --spawn --scenario all`, the same code.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import os
 
 import pytest
 
-from jointlimits.service import loadtest as lt
+from tests import drills as lt
 
 LOAD_SECONDS = float(os.environ.get("JOINTLIMITS_LOAD_SECONDS", "30"))
 MAX_BODY_BYTES, MAX_JOINTS = 1_000_000, 1_000

@@ -19,8 +19,8 @@ import uvicorn
 
 from jointlimits.service.app import create_app
 from jointlimits.service.http import timeouts
-from jointlimits.service.loadtest import scraped
 from jointlimits.service.settings import Settings
+from tests.drills import scraped
 from tests.test_contract_live import running
 from tests.test_errors_http import _json
 

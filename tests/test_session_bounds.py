@@ -16,13 +16,13 @@ import pytest
 from fastapi.testclient import TestClient
 
 from jointlimits.client import InvalidInput, JointBatch, codec
-from jointlimits.service import loadtest as lt
 from jointlimits.service import sizing
 from jointlimits.service.http import budget
 from jointlimits.service.http.ws_protocol import DRAIN_MESSAGES
 from jointlimits.service.app import create_app
 from jointlimits.service.settings import Settings
 from jointlimits.service.sizing import UPLOAD_FACTOR
+from tests import drills as lt
 from tests import inprocess
 from tests.test_one_fault_every_path import base_doc, http
 

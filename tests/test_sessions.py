@@ -16,8 +16,8 @@ from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service import sizing
 from jointlimits.service.app import create_app
-from jointlimits.service.loadtest import scene
 from jointlimits.service.settings import Settings
+from tests.drills import scene
 
 PATH = proto.PATH
 BODY = scene(6, seed=3)  # 3 revolute + 3 prismatic joints, about half outside their range

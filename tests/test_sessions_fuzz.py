@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.app import create_app
-from jointlimits.service.loadtest import scene
 from jointlimits.service.settings import Settings
+from tests.drills import scene
 from tests.test_sessions import BODY, Q, open_binary
 
 scalars = st.one_of(st.none(), st.booleans(), st.integers(-(2**70), 2**70), st.floats(allow_nan=False, allow_infinity=False),

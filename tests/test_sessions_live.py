@@ -196,7 +196,7 @@ def test_reopening_after_a_dropped_connection_loses_nothing(live):
 def test_jointlimits_serve_passes_the_session_bounds():
     """`jointlimits serve --max-frame-bytes --max-sessions --session-idle-seconds` reach every worker; uvicorn's own
     message limit (`ws_max_size`, set from --max-frame-bytes) closes with 1009 too."""
-    from jointlimits.service.loadtest import LOOPBACK, Server
+    from tests.drills import LOOPBACK, Server
     from tests.test_cli import console_script
 
     req, _ = chain()

@@ -16,7 +16,7 @@ from jointlimits.schemas import session as proto
 from jointlimits.service import sizing
 from jointlimits.service.core import Bodies
 from jointlimits.service.core.prepared import prepare
-from jointlimits.service.loadtest import array_scene, scene
+from tests.drills import array_scene, scene
 from tests.test_sessions import PATH, Json, app, closed
 
 

@@ -37,6 +37,8 @@ def test_the_wheel_installs_one_top_level_name(wheel: Path) -> None:
     assert top == {"jointlimits"}
     for sub in ("service/app.py", "service/core/prepared.py", "schemas/evaluate.py", "client/sync.py", "client/uipc.py"):
         assert f"jointlimits/{sub}" in names, sub
+    # The load and fault drills are a test module (tests/drills.py, `python -m tests.drills`), not the product's.
+    assert [n for n in names if "drills" in n or "loadtest" in n] == []
     entry = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("entry_points.txt"))).decode()
     assert "jointlimits = jointlimits.service.cli:main" in entry
 

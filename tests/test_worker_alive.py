@@ -22,7 +22,7 @@ import numpy as np
 from jointlimits.client import codec
 from jointlimits.service import cli
 from jointlimits.service.settings import Settings
-from jointlimits.service import loadtest as lt
+from tests import drills as lt
 from tests.test_admission import scene
 
 J, B = "application/json", "application/msgpack"

@@ -1,12 +1,12 @@
 """Drills of issue 19 on `jointlimits serve` (1 worker, loopback, small limits and short timeouts so that each
 stays under ~20 s): stalled HTTP clients are dropped and the worker stays under the sizing rule; HTTP answers
 200 promptly beside four stalled sessions; a ping flood moves RSS by a bounded amount. The same drills at the
-manifest's limits: `python -m jointlimits.service.loadtest --spawn --scenario stalled|stalled-sessions|pingflood` (README,
+manifest's limits: `python -m tests.drills --spawn --scenario stalled|stalled-sessions|pingflood` (README,
 "Under load and faults")."""
 
 from __future__ import annotations
 
-from jointlimits.service import loadtest as lt
+from tests import drills as lt
 
 MiB = 2**20
 # Answers of 64 MiB against a rule of ~600 MiB: eight of them unread would hold more than the rule.

@@ -14,9 +14,9 @@ import pytest
 import uvicorn
 
 from jointlimits.client import codec
-from jointlimits.service import loadtest as lt
 from jointlimits.service.http import timeouts
 from jointlimits.service.settings import Settings
+from tests import drills as lt
 from tests.inprocess import frame, read_close, read_frame, serve, upgrade
 
 WRITE_TIMEOUT, MESSAGE_TIMEOUT = 1.0, 1.5

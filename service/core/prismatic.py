@@ -5,9 +5,9 @@ F = [C_i, T_i, C_j, T_j], with C_k = p_k + A_k c_k (the anchor) and T_k = A_k t_
 
     theta = (C_j - C_i) . (T_i + T_j) / 2,   x = theta(q) - theta(q_ref).
 
-The incremental form of the spec telescopes exactly to this difference; `F(q)` is taken as
-`F(q_ref)` plus the increment `F(q - q_ref)`, body j's position at q its own (`PreparedScene._step`);
-`origin: "absolute"` takes theta(q) itself (the engine's formula), from the frames at q.
+The incremental form of the spec telescopes exactly to this difference, taken from the frames at
+q_ref and their increment `F(q - q_ref)` (`Prismatic.advance`); `origin: "absolute"` takes
+theta(q) itself (the engine's formula), from the frames at q (`PreparedScene._step`).
 theta is bilinear in F, so d2x/dF2 is a constant, `kron(PAIRS, I_3)`.
 """
 
@@ -66,17 +66,23 @@ class Prismatic:
         return x
 
     def begin(self, F: Array) -> Progress:
-        D, S = F[:, 2] - F[:, 0], F[:, 1] + F[:, 3]
-        return Progress(None, (D, S, dot(D, S)), [None])
+        return Progress(None, (F[:, 2] - F[:, 0], F[:, 1] + F[:, 3]), [None])
 
     def advance(self, progress: Progress, F: Array, dF: Array) -> Progress:
-        # The one step from q_ref (the slide telescopes): D and S at q from their increments (A's
-        # increments times body-local vectors, small), not from A(q) itself; the difference of the two
-        # thetas then rounds no worse than a step form ((D + dD) . dS + dD . S) / 2 did on the bench's
-        # cases, and better for steps of 0.9 rad.
-        D, S, DS = progress.state
-        D2, S2 = D + (dF[:, 2] - dF[:, 0]), S + (dF[:, 1] + dF[:, 3])
-        x = 0.5 * (dot(D2, S2) - DS)
+        # The one step q_ref -> q (the slide telescopes), in increment form: D2.S2 - D.S = D2.dS + dD.S,
+        # no two products of the frames' size cancelled. From the computed D, S, dD, dS (u = 2^-53, first
+        # order): D2 = D + dD rounds by u|D2|, each 3-term dot by 3u of its sum of |products|, their sum by
+        # u|2x|, halving is exact, so (Cauchy-Schwarz)
+        #     |x - x_exact| <= 2u (|D2| |dS| + |dD| |S|) + u|x|,
+        # relative to the step. The difference of the two thetas (theta(q) - theta(q_ref) as it reads: the
+        # engine's formula) rounds by 1.5u (|D2| |S2| + |D| |S|) + u|x|, relative to the frames: where the
+        # step is small, far more (anchors 1e3 apart turned by 1e-3: hundreds of times); where it is as
+        # large as the frames (|dD| <= |D| + |D2|, alike for S), within a small factor of ours. The frames'
+        # own rounding adds to both, to ours relative to the step but for the relative positions' (the
+        # whole bound: tests/test_prismatic_scales.py, `_bound`).
+        D, S = progress.state
+        dD, dS = dF[:, 2] - dF[:, 0], dF[:, 1] + dF[:, 3]
+        x = 0.5 * (dot(D + dD, dS) + dot(dD, S))
         return Progress(x if progress.x is None else progress.x + x, (), [*progress.known, None])
 
     def careful_coordinate(self, careful: CarefulFrames) -> Array:

@@ -546,6 +546,15 @@ def scraped(port: int, name: str, **labels: str) -> float:
     return float("nan") if text is None else metric_total(text, name, **labels)
 
 
+def budget_given_back(port: int, within: float = 5.0) -> float:
+    """The worker's in-flight budget once it has settled: polled until 0, at most `within` seconds (a dropped
+    session's task may still be ending when its client's socket is seen closed); what it holds then."""
+    deadline = time.monotonic() + within
+    while (held := scraped(port, "jointlimits_inflight_budget_bytes")) != 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return held
+
+
 def evaluate_requests_counted(port: int) -> float:
     """POST /v1/evaluate requests answered, according to the server's own /metrics (all workers)."""
     return scraped(port, "jointlimits_http_requests_total", route="/v1/evaluate")
@@ -1239,7 +1248,7 @@ def scenario_stalled_sessions(
         closed = watch_dropped(socks, t0, give_up)
         for s in socks:
             s.close()
-        held_after = scraped(server.port, "jointlimits_inflight_budget_bytes")
+        held_after = budget_given_back(server.port)
         counted = connections_closed_counted(server.port, WRITE_REASONS)
     return {
         "sessions": sessions, "sessions_opened": opened, "session_joints": joints, "http_joints": http_joints,

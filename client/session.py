@@ -97,14 +97,14 @@ class SessionState:
 
     def update_frame(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Frame:
         doc: dict[str, Any] = {"kind": proto.UPDATE, "batch": batch_number(batch), "index": message_array(index, "index", integer=True)}
-        doc.update({k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in values.items() if v is not None})
+        doc.update({k: message_array(v, k) for k, v in values.items() if v is not None})  # None: left out
         return self._encode(doc)
 
     def close_frame(self) -> Frame:
         return self._encode({"kind": proto.CLOSE})
 
     def _q(self, q: ArrayLike) -> Array:
-        return np.asarray(q, dtype=np.float64)
+        return message_array(q, "q")
 
     def _encode(self, doc: dict[str, Any]) -> Frame:
         if self.binary:

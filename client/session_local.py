@@ -53,10 +53,11 @@ class LocalSession(StateView):
     def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
                  active_only: bool | None = None) -> Evaluation:
         scene, opts = self._live(), options(self.state.request, outputs, hessian_mode, active_only)
-        return result(_call(lambda: scene.evaluate(np.asarray(q, dtype=np.float64), **opts))).sized(self.state.request)
+        q = message_array(q, "q")  # as the service reads a message's arrays: no cast, no reshape
+        return result(_call(lambda: scene.evaluate(q, **opts))).sized(self.state.request)
 
     def commit(self, q: ArrayLike) -> list[Array]:
-        scene, q = self._live(), np.array(q, dtype=np.float64)
+        scene, q = self._live(), np.array(message_array(q, "q"))
         self.state.coordinates = [np.array(c) for c in _call(lambda: scene.commit(q))]
         self.state.q_prev = q
         return self.state.coordinates
@@ -65,7 +66,7 @@ class LocalSession(StateView):
                strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
         scene = self._live()
         values = {"lower": lower, "upper": upper, "strength": strength, "offset": offset}
-        given = {k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in values.items() if v is not None}
+        given = {k: message_array(v, k) for k, v in values.items() if v is not None}  # None: left out
         b, idx = batch_number(batch), message_array(index, "index", integer=True)  # as the service reads them
         _call(lambda: scene.update(b, idx, **given))
         self.state.apply_update(batch, index, values)

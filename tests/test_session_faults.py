@@ -77,8 +77,8 @@ def raised(fn: Callable[[], Any]) -> list[Item]:
 UPDATE = {"kind": "update", "batch": 0, "index": [0], "lower": [-0.25]}
 CASES: dict[str, tuple[dict, Callable[[Any], Any] | None, Item, bool]] = {
     # A null array: "Input should be a valid list" at the array, as in a request (issue 27).
-    "null q (evaluate)": ({"kind": "evaluate", "q": None}, None, (("body", "q"), *NOT_A_LIST), True),
-    "null q (commit)": ({"kind": "commit", "q": None}, None, (("body", "q"), *NOT_A_LIST), True),
+    "null q (evaluate)": ({"kind": "evaluate", "q": None}, lambda s: s.evaluate(None), (("body", "q"), *NOT_A_LIST), True),
+    "null q (commit)": ({"kind": "commit", "q": None}, lambda s: s.commit(None), (("body", "q"), *NOT_A_LIST), True),
     "null index": ({**UPDATE, "index": None}, lambda s: s.update(0, None, lower=[-0.25]), (("body", "index"), *NOT_A_LIST), True),
     "null lower": ({**UPDATE, "lower": None}, None, (("body", "lower"), *NOT_A_LIST), True),
     "null offset": ({**UPDATE, "offset": None}, None, (("body", "offset"), *NOT_A_LIST), True),
@@ -90,11 +90,14 @@ CASES: dict[str, tuple[dict, Callable[[Any], Any] | None, Item, bool]] = {
                          (("body", "active_only"), "Input should be a valid boolean", "bool_type"), True),
     "a number for outputs": ({"kind": "evaluate", "q": Q, "outputs": 5}, None, (("body", "outputs"), *NOT_A_LIST), True),
     # A number (or a string) where an array belongs.
-    "a number for q (evaluate)": ({"kind": "evaluate", "q": 5.0}, None, (("body", "q"), *NOT_A_LIST), True),
-    "a number for q (commit)": ({"kind": "commit", "q": 5}, None, (("body", "q"), *NOT_A_LIST), True),
+    "a number for q (evaluate)": ({"kind": "evaluate", "q": 5.0}, lambda s: s.evaluate(5.0), (("body", "q"), *NOT_A_LIST), True),
+    "a number for q (commit)": ({"kind": "commit", "q": 5}, lambda s: s.commit(5), (("body", "q"), *NOT_A_LIST), True),
     "a number for index": ({**UPDATE, "index": 0}, lambda s: s.update(0, 0, lower=[-0.25]), (("body", "index"), *NOT_A_LIST), True),
-    "a number for lower": ({**UPDATE, "lower": 5.0}, None, (("body", "lower"), *NOT_A_LIST), True),
-    "a string for upper": ({**UPDATE, "upper": "x"}, None, (("body", "upper"), *NOT_A_LIST), True),
+    "a number for lower": ({**UPDATE, "lower": 5.0}, lambda s: s.update(0, [0], lower=5.0), (("body", "lower"), *NOT_A_LIST), True),
+    "a string for upper": ({**UPDATE, "upper": "x"}, lambda s: s.update(0, [0], upper="x"), (("body", "upper"), *NOT_A_LIST), True),
+    # An array as given: the SDK flattened [[2.5]].
+    "rows for upper": ({**UPDATE, "upper": [[2.5]]}, lambda s: s.update(0, [0], upper=[[2.5]]),
+                       (("body", "batches", 0, "upper"), "must have shape (1,) (one entry per index), got (1, 1)", "value_error"), True),
     # An index is an integer: the SDK cast [0.5] to joint 0.
     "an index of 0.5": ({**UPDATE, "index": [0.5]}, lambda s: s.update(0, np.array([0.5]), lower=[-0.25]), (("body", "index", 0), *NOT_AN_INTEGER), False),
     "an index of 0.0": ({**UPDATE, "index": [1, 0.0], "lower": [-0.25, -0.25]},

@@ -39,6 +39,7 @@ NORMAL = 1000  # the client sent `close` (or closed itself)
 GOING_AWAY = 1001  # the server is shutting down (uvicorn's)
 MESSAGE_TOO_BIG = 1009  # a message over the frame limit (uvicorn's own limit closes with it too)
 INTERNAL_ERROR = 1011  # a server failure (a bug: never for any input)
+TRY_AGAIN_LATER = 1013  # the worker's upload budget is full (service/http/ws_protocol.py): reopen later, as after 4429
 IDLE_TIMEOUT = 4408  # no message for the idle time
 SCENE_TOO_LARGE = 4413  # the opening scene has more joints than the limit
 TOO_MANY_SESSIONS = 4429  # this worker holds its maximum number of sessions

@@ -151,3 +151,11 @@ def test_an_absent_value_is_left_as_it_is():
     for encode in (json.dumps, to_msgpack):
         updated, ev = replies([encode({**UPDATE, "lower": [upper - 0.5]}), encode({"kind": "evaluate", "q": Q})])
         assert updated == {"kind": proto.UPDATED, "batch": 0, "joints": 1} and ev["kind"] == proto.EVALUATION
+
+
+def test_try_again_later_is_a_close_code_of_the_protocol():
+    """1013 (the upload budget full) is named beside 4429 in schemas/session.py, the codes the SDK knows."""
+    from jointlimits.service.http import sessions, ws_protocol
+
+    assert proto.TRY_AGAIN_LATER == ws_protocol.TRY_AGAIN_LATER == 1013
+    assert sessions.DISCONNECT_REASONS[proto.TRY_AGAIN_LATER] == "uploads_full"

@@ -65,19 +65,15 @@ def frame(opcode: int, payload: bytes, fin: bool = True, rsv: int = 0) -> bytes:
     return ws_frame(opcode, payload, fin, rsv)
 
 
-def read_close(s: socket.socket, give_up: float = 10.0) -> int | None:
-    """Read frames until a close frame (its code) or the end of the connection (None)."""
+def close_frame(s: socket.socket, give_up: float = 20.0) -> tuple[int | None, str]:
+    """Read (and drop) frames until the server's close frame: its code (1005 if it has none) and reason;
+    (None, why) if the connection ended without one (a reset, EOF, or nothing within `give_up`)."""
     s.settimeout(give_up)
     buf = b""
     try:
         while True:
-            chunk = s.recv(65536)
-            if not chunk:
-                return None
-            buf += chunk
             while len(buf) >= 2:
-                op, n = buf[0] & 0x0F, buf[1] & 0x7F
-                at = 2
+                op, n, at = buf[0] & 0x0F, buf[1] & 0x7F, 2
                 if n == 126:
                     n, at = struct.unpack("!H", buf[2:4])[0], 4
                 elif n == 127:
@@ -86,9 +82,18 @@ def read_close(s: socket.socket, give_up: float = 10.0) -> int | None:
                     break
                 payload, buf = buf[at : at + n], buf[at + n :]
                 if op == 0x8:
-                    return struct.unpack("!H", payload[:2])[0] if len(payload) >= 2 else 1005
-    except (TimeoutError, ConnectionResetError):
-        return None
+                    return (struct.unpack("!H", payload[:2])[0], payload[2:].decode()) if len(payload) >= 2 else (1005, "")
+            chunk = s.recv(1 << 16)
+            if not chunk:
+                return None, "EOF without a close frame"
+            buf += chunk
+    except OSError as e:  # a reset (1006 to a WebSocket client), or nothing within give_up
+        return None, repr(e)
+
+
+def read_close(s: socket.socket, give_up: float = 10.0) -> int | None:
+    """The code of the server's close frame; None if the connection ended without one."""
+    return close_frame(s, give_up)[0]
 
 
 def read_frame(s: socket.socket, give_up: float = 5.0) -> tuple[int, bytes]:

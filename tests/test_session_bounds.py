@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import socket
-import struct
 import threading
 import time
 from collections.abc import Callable
@@ -86,32 +85,6 @@ def head(opcode: int, n: int, fin: bool = True) -> bytes:
     return bytes([(0x80 if fin else 0) | opcode, 0x80 | 127]) + n.to_bytes(8, "big") + b"\0\0\0\0"
 
 
-def close_frame(s: socket.socket, give_up: float = 20.0) -> tuple[int | None, str]:
-    """Read (and drop) frames until the server's close frame: its code and reason; (None, why) if the connection
-    ended without one (a reset, or EOF)."""
-    s.settimeout(give_up)
-    buf = b""
-    try:
-        while True:
-            while len(buf) >= 2:
-                op, n, at = buf[0] & 0x0F, buf[1] & 0x7F, 2
-                if n == 126:
-                    n, at = struct.unpack("!H", buf[2:4])[0], 4
-                elif n == 127:
-                    n, at = struct.unpack("!Q", buf[2:10])[0], 10
-                if len(buf) < at + n:
-                    break
-                payload, buf = buf[at : at + n], buf[at + n :]
-                if op == 0x8:
-                    return struct.unpack("!H", payload[:2])[0], payload[2:].decode()
-            chunk = s.recv(1 << 16)
-            if not chunk:
-                return None, "EOF without a close frame"
-            buf += chunk
-    except OSError as e:  # a reset (1006 to a WebSocket client), or nothing within give_up
-        return None, repr(e)
-
-
 def wait_for(cond: Callable[[], bool], give_up: float = 10.0) -> bool:
     deadline = time.monotonic() + give_up
     while not cond():
@@ -145,7 +118,7 @@ def test_unfinished_messages_count_in_the_upload_budget_and_are_refused_past_it(
             for opcode in (0x2, 0x1):  # binary, then text: both refused as their bytes pass the budget
                 s, _ = inprocess.upgrade(live.port)
                 s.sendall(head(opcode, 48 * MiB) + bytes(sent))  # all sent: the server drains what it refused
-                code, reason = close_frame(s)
+                code, reason = inprocess.close_frame(s)
                 assert code == 1013 and f"upload budget ({capacity} bytes) is full" in reason, (code, reason)
                 s.close()
             assert uploads.held == 2 * UPLOAD_FACTOR * sent  # the refused ones hold nothing
@@ -165,7 +138,7 @@ def test_a_message_in_tiny_fragments_counts_what_its_fragments_hold():
         s, _ = inprocess.upgrade(live.port)
         one = inprocess.frame(0x0, b"\0", fin=False)
         s.sendall(inprocess.frame(0x2, b"\0", fin=False) + one * 100_000)
-        assert close_frame(s)[0] == 1013
+        assert inprocess.close_frame(s)[0] == 1013
         s.close()
         assert wait_for(lambda: live.app.state.uploads.held == 0)
 
@@ -209,7 +182,7 @@ def test_a_message_over_the_limit_is_read_as_1009_with_its_reason_every_time(lim
             try:
                 for f in frames:
                     s.sendall(f)
-                got.setdefault(name, []).append(close_frame(s))
+                got.setdefault(name, []).append(inprocess.close_frame(s))
             except OSError as e:
                 got.setdefault(name, []).append((None, repr(e)))
             finally:
@@ -224,7 +197,7 @@ def test_the_drain_after_1009_is_bounded_in_bytes(limited):
     s, _ = inprocess.upgrade(limited.port)
     s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 16)
     codes: list[tuple[int | None, str]] = []
-    reader = threading.Thread(target=lambda: codes.append(close_frame(s)))
+    reader = threading.Thread(target=lambda: codes.append(inprocess.close_frame(s)))
     reader.start()
     sent, chunk = 0, bytes(MiB)
     try:
@@ -258,7 +231,7 @@ def test_a_reply_due_when_the_limit_closes_the_session_is_dropped_not_an_error(l
     s.sendall(inprocess.frame(0x1, codec.encode(readme_scene().request(), binary=False)[0]))
     time.sleep(0.1)
     s.sendall(head(0x2, LIMIT + 1))
-    assert close_frame(s) == (1009, TOO_BIG)
+    assert inprocess.close_frame(s) == (1009, TOO_BIG)
     s.close()
     assert wait_for(lambda: lt.scraped(limited.port, "jointlimits_sessions_total", reason="frame_too_large") == before["frame_too_large"] + 1)
     assert lt.scraped(limited.port, "jointlimits_sessions_total", reason="error") == before["error"]

@@ -4,6 +4,8 @@ where theta(q_ref) ~ 1e300 must cancel to leave theta(q)).
 - `origin: "absolute"`: x is theta(q) itself, from the frames at q (`prepared.PreparedScene._step`), not
   theta(q_ref) plus the slide since, which keeps theta(q) only to the rounding of theta(q_ref); the frames
   at q keep body j's position at q whole, whatever the origin.
+- The derivatives keep `E'' dx dx^T` (and `E' J^T dx`) where E'' (or E') alone leaves float64's normal
+  range (`penalty.scale_up`).
 - Stiff, narrow ranges (a width of 1e-4 of x: the penalty multiplies x's rounding by 1e4): x within its
   argued bound, and no worse than a plain transcription of the engine's kernel (tests/engine_ref.py) on the
   same cases.
@@ -13,11 +15,13 @@ u = 2^-53 throughout.
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 import pytest
 
 from bench import reference
-from jointlimits.service.core import Bodies, Joints, evaluate
+from jointlimits.service.core import Bodies, Joints, evaluate, penalty
 from jointlimits.service.core.prepared import prepare
 from tests import engine_ref
 from tests.conftest import relerr
@@ -173,6 +177,83 @@ def test_absolute_slide_after_a_huge_reference(monkeypatch: pytest.MonkeyPatch) 
         g = want["x"] - upper[k]
         assert relerr(ev.energy[k], want["energy"]) <= 3 * bound / g + 8 * U, k
         assert relerr(ev.gradient[k], want["gradient"]) <= 2 * bound / g + 16 * U, k
+
+
+# ---------------------------------------------------------------- E'' and E' beyond the normal range
+
+
+def _huge_at_q() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One joint whose bodies' A at q are 1e150 times those at q_ref (I), its anchors 0.5 apart along the
+    axis: x = theta(q) ~ 0.5e300, D parallel to S (no cancellation). Returns q, q_ref, local edges."""
+    q_ref = np.array([_dof([0, 0, 0], np.eye(3)), _dof(0.3 * T, np.eye(3))])
+    q = np.array([_dof([0, 0, 0], 1e150 * np.eye(3)), _dof(0.3 * T, 1e150 * np.eye(3))])
+    l0 = np.array([0.1, 0.2, 0.3])
+    L = np.array([[[l0, l0 + T], [l0 + 0.5 * T, [0.0, 0, 0]]]])
+    return q, q_ref, L
+
+
+@pytest.mark.parametrize("mode", ["exact", "psd"])
+def test_hessian_keeps_the_curvature_term_where_E2_underflows(mode: str) -> None:
+    """Limits [-1e300, -1e299]: E'' ~ 5e-600 underflows, E'' dx dx^T ~ 5e-300 does not (measured before:
+    the term dropped, the Hessian 0.92 off normwise in exact mode, 0.86 in psd).
+
+    Tolerance 32u normwise: x to ~8u (the frames at q: 4, the axis' normalisation: 3, the dot: 3), so
+    g = x - u and E'' ~ g to 8u, E' ~ g^2 to 16u; the scaled E', E'' (`penalty.scale_up`) round ~6 more
+    times, the chain rule's factors and their 7-term GEMM ~10: terms of one sign. Measured <= 2.6u.
+    """
+    q, q_ref, L = _huge_at_q()
+    ev = evaluate(Bodies(q, q_ref, q_ref), [_joints(L, [-1e300], [-1e299], "q_ref")], hessian_mode=mode).batches[0]
+    want = _reference(q, q_ref, L, 0, -1e300, -1e299, "q_ref")
+    H = want[f"hessian_{mode}"]
+    assert 0 < abs(H).max() < 1e-290
+    assert relerr(ev.gradient[0], want["gradient"]) <= 32 * U
+    assert relerr(ev.hessian[0], H) <= 32 * U
+
+
+def test_gradient_keeps_its_digits_where_E1_is_subnormal() -> None:
+    """x 1e300 below a range 1e308 wide: E' ~ 3e-324 is subnormal (one bit), E' J^T dx ~ 1e-174 is not
+    (measured before: the gradient 0.65 off normwise). Tolerance as above; measured 3.4u."""
+    q, q_ref, L = _huge_at_q()
+    x = evaluate(Bodies(q, q_ref, q_ref), [_joints(L, [-1e308], [1e308], "q_ref")], outputs=("energy",)).batches[0].x[0]
+    lower = x + 1e300
+    upper = lower + 1e308
+    ev = evaluate(Bodies(q, q_ref, q_ref), [_joints(L, [lower], [upper], "q_ref")], outputs=("energy", "gradient")).batches[0]
+    want = _reference(q, q_ref, L, 0, lower, upper, "q_ref")
+    assert 0 < abs(want["gradient"]).max() < 1e-150
+    assert relerr(ev.gradient[0], want["gradient"]) <= 32 * U
+
+
+# (x, lower, upper, strength): E' or E'' (or both) below 2^-1000 = 9.3e-302, but for the second.
+SMALL = [
+    (-6.5e298, -1e300, -1e299, 1.0),  # E' = 5e-303, E'' = 3e-601
+    (2.0, 0.0, 1.0, 1.0),  # E' = 3, E'' = 6: unchanged
+    (1e-170, 0.0, 0.0, 1e-300),  # the degenerate range (w = 1): E' = 3e-640, E'' = 6e-470
+    (1.7e308, -1.7e308, 1e308, 2.0),  # u - l overflows: E' = 1.5e-309 (subnormal), E'' = 4e-617
+    (-1e308, 1e300, 1e301, 1e-10),  # below: E' = 4e-297, E'' = 8e-605
+]
+
+
+def test_scaled_penalty_derivatives_are_exact_to_a_few_ulps() -> None:
+    """`penalty.scale_up` against exact rationals: 2^k E' and 2^k E'' within 8u (their ~6 roundings; measured
+    3.3u), each at least 2^-1000; joints whose E', E'' were already normal keep their bits (k = 0)."""
+    x, lo, up, s = (np.array(a) for a in zip(*SMALL))
+    with np.errstate(over="ignore"):  # u - l overflows in the fourth: `derivatives` takes halves there
+        _, dE, d2E = penalty.derivatives(x, lo, up, s)
+    plain = dE.copy(), d2E.copy()
+    with np.errstate(over="ignore"):
+        k = penalty.scale_up(dE, d2E, x, lo, up, s)
+    assert k is not None
+    for j, (xj, lj, uj, sj) in enumerate(SMALL):
+        X, L_, U_, S = map(Fraction, (xj, lj, uj, sj))
+        g, side = (X - U_, 1) if X > U_ else (L_ - X, -1)
+        w = U_ - L_ if U_ > L_ else Fraction(1)
+        exact = side * 3 * S * g**2 / w**3 * Fraction(2) ** int(k[j]), 6 * S * g / w**3 * Fraction(2) ** int(k[j])
+        for got, want in zip((dE[j], d2E[j]), exact):
+            assert abs(Fraction(float(got)) - want) <= 8 * U * abs(want), j
+            assert abs(got) >= 2.0**-1000, j
+        if abs(plain[0][j]) >= 2.0**-1000 and plain[1][j] >= 2.0**-1000:
+            assert k[j] == 0 and dE[j] == plain[0][j] and d2E[j] == plain[1][j], j
+    assert penalty.scale_up(*(a[1:2].copy() for a in plain), x[1:2], lo[1:2], up[1:2], s[1:2]) is None
 
 
 # ---------------------------------------------------------------- stiff, narrow ranges

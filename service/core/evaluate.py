@@ -98,6 +98,12 @@ def differentiate(
         rows = partial(take_joints, sel=sel)
         part = slice(start, start + size)
         h_finite = _derivatives(c, rows(F), rows(v), dE[part], d2E[part], g_out, h_out, psd)
+        if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`): back by 2^-k
+            k = shift[part]
+            lifted = np.flatnonzero(k)
+            for out in (g_out, h_out):
+                if out is not None and lifted.shape[0]:
+                    out[lifted] = np.ldexp(out[lifted], -k[lifted].reshape(-1, *(1,) * (out.ndim - 1)))
         # Only active rows can overflow: checked while they are still in cache (the Hessian only
         # when its factors do not already bound it).
         bad = nonfinite_rows(g_out) if want_g else []
@@ -113,7 +119,9 @@ def differentiate(
     if want_g or want_h:
         # Per-joint scalars for every active joint at once: per chunk they would be a dozen short
         # calls each (call overhead, and a GIL hand-off each on threads).
-        _, dE, d2E = penalty.derivatives(*(take_joints(a, active) for a in (x, lo, up, s)))
+        at_active = [take_joints(a, active) for a in (x, lo, up, s)]
+        _, dE, d2E = penalty.derivatives(*at_active)
+        shift = penalty.scale_up(dE, d2E, *at_active)
         chunks = [partial(chunk, start) for start in range(0, active.shape[0], size)]
         for bad in run_all(chunks, threads) if share is None else share.run(chunks):
             overflow += bad

@@ -80,6 +80,40 @@ def derivatives(
     return strength * (r * r * r), side * 3.0 * sw * (r * r), 6.0 * sww * r
 
 
+def scale_up(dE: Array, d2E: Array, x: Array, lower: Array, upper: Array, strength: Array) -> NDArray[np.int_] | None:
+    """Exponents `k >= 0` (N,), with `dE`, `d2E` (`derivatives` of joints outside their range, (N,)) replaced in
+    place by `2^k E'`, `2^k E''` where either is below `2^(minexp + 22)` (subnormal, or 0 though the joint
+    is out: 2^-1000 in float64); None where no joint is (the common case: nothing changed).
+
+    E'' alone underflows where the Hessian's `E'' dx dx^T` need not: a joint 1e300 outside a range 1e300
+    wide has E'' ~ 1e-600, and a frame of 1e150 makes the term ~1e-300. So the scaled E', E'' are formed
+    from the exponents of s, g and w (`6 s r / w^2`, `3 s r^2 / w`, r = g / w, each at least 2^-1000, at
+    most ~2^75: k is the least that lifts the smaller), the derivatives from them, and the caller scales
+    those back by 2^-k (exact, or one rounding where they are subnormal).
+    """
+    target = np.finfo(dE.dtype).minexp + 22
+    rows = np.flatnonzero((np.abs(dE) < 2.0**target) | (d2E < 2.0**target))
+    if rows.shape[0] == 0:
+        return None
+    xs, lo, up, s = (np.broadcast_to(a, dE.shape)[rows] for a in (x, lower, upper, strength))
+    above, below = xs > up, xs < lo
+    g = _distance(xs, lo, up, above, below)
+    r, w, (wide, half_w) = _relative(g, xs, lo, up)
+    (mg, eg), (mw, ew), (ms, es) = np.frexp(g), np.frexp(w), np.frexp(s)
+    mr, er = mg / mw, eg - ew  # r = mr 2^er from g and w themselves: r alone may be subnormal
+    if wide.shape[0]:  # g or w overflowed: r from their halves (normal: g >= ulp(u) there), w = 2 (w / 2)
+        mr[wide], er[wide] = np.frexp(r[wide])
+        mw[wide], ew[wide] = np.frexp(half_w)
+        ew[wide] += 1
+    e2, e1 = es + er - 2 * ew, es + 2 * er - ew  # E'' = 6 s r / w^2, |E'| = 3 s r^2 / w: mantissas in [3/8, 48)
+    k = np.maximum(0, target - np.minimum(e1, e2))
+    d2E[rows] = np.ldexp(6.0 * ms * mr / (mw * mw), e2 + k)
+    dE[rows] = np.ldexp((above.astype(dE.dtype) - below) * 3.0 * ms * mr * mr / mw, e1 + k)
+    shift = np.zeros(dE.shape[0], dtype=np.int32)
+    shift[rows] = k
+    return shift
+
+
 def _relative(g: Array, x: Array, lower: Array, upper: Array) -> tuple[Array, Array, tuple[NDArray[np.intp], Array]]:
     """`(g / w, w, (wide, w / 2 at wide))` of the gaps `g` (`_distance`): the relative gap, the width and the
     joints `wide` where `g` or `w` overflowed from finite inputs (`u - l` or `x - u` beyond float64), there

@@ -148,11 +148,14 @@ class Request:
 
 
 def null_arrays(request: Request) -> list[CoreFault]:
-    """None where an array is needed (a state of the bodies, a batch's `body_ids`, `lower`, `upper`, `strength`),
-    named as the service names a `null` there (None is an absent `edges`, `offset`, ...)."""
-    faults = [CoreFault(("bodies", k), *NOT_A_LIST) for k in ("q", "q_prev", "q_ref") if getattr(request, k) is None]
+    """None or a scalar where an array is needed (a state of the bodies, a batch's `body_ids`, `lower`, `upper`,
+    `strength`; a given `edges`, `offset`, ...), named as the service names a `null` or a number there (a None
+    optional array is an absent one)."""
+    needed, optional = ("body_ids", "lower", "upper", "strength"), ("edges", "local_edges", "offset", "prev_coordinate")
+    not_a_list = lambda a, need: (a is None and need) or (a is not None and np.ndim(a) == 0)  # noqa: E731
+    faults = [CoreFault(("bodies", k), *NOT_A_LIST) for k in ("q", "q_prev", "q_ref") if not_a_list(getattr(request, k), True)]
     return faults + [CoreFault(("batches", b, k), *NOT_A_LIST) for b, batch in enumerate(request.batches)
-                     for k in ("body_ids", "lower", "upper", "strength") if getattr(batch, k) is None]
+                     for k in needed + optional if not_a_list(getattr(batch, k), k in needed)]
 
 
 class Joint(int):

@@ -112,6 +112,11 @@ MORE: dict[str, Callable[[Doc], None]] = {
     "a null optional array": put("batches", 1, "strength", value=None),
     "a null edges": put("batches", 1, "edges", value=None),
     "null outputs": put("outputs", value=None),
+    # A number where an array belongs: the same words (a bare msgpack number, a 0-d array in the local mode).
+    "a number for a per-joint array": put("batches", 1, "lower", value=5.0),
+    "a number for a state of the bodies": put("bodies", "q_prev", value=1.0),
+    "a number for body_ids": put("batches", 0, "body_ids", value=0),
+    "a number for an optional array": put("batches", 1, "offset", value=0.5),
     "faults of every class at once": both(put("batches", 1, "body_ids", 2, value=[0, 3]), put("batches", 1, "lower", 0, value=5.0),
                                           put("batches", 0, "strength", 1, value=-1.0), put("batches", 0, "upper", 0, value=float("inf"))),
 }
@@ -130,14 +135,15 @@ def items(detail: list[dict]) -> list[Item]:
 
 
 def to_msgpack(doc: Doc) -> bytes:
-    """The document in the binary encoding: its arrays as array maps (a ragged list cannot be one)."""
+    """The document in the binary encoding: its arrays as array maps (a ragged list cannot be one); a null stays
+    nil and a number a msgpack number."""
     out = copy.deepcopy(doc)
     for name in BODY_ARRAYS:
-        if out.get("bodies", {}).get(name) is not None:  # a null stays nil
+        if isinstance(out.get("bodies", {}).get(name), list):
             out["bodies"][name] = wire.pack_array(np.asarray(out["bodies"][name], dtype=np.float64), F8)
     for batch in out.get("batches", []):
         for name, dtype in BATCH_ARRAYS.items():
-            if batch.get(name) is not None:
+            if isinstance(batch.get(name), list):
                 batch[name] = wire.pack_array(np.asarray(batch[name], dtype=np.dtype(dtype)), dtype)
     return wire.dumps(out)
 
@@ -228,7 +234,9 @@ def test_a_null_array_is_named_at_the_array_as_not_a_list(app):
     """Issue 27: the words of a number where an array belongs (and of JSON's `q: null` before), on every path."""
     nulls = {"a null per-joint array": ("batches", 1, "lower"), "a null body_ids": ("batches", 0, "body_ids"),
              "a null state of the bodies": ("bodies", "q_prev"), "a null optional array": ("batches", 1, "strength"),
-             "a null edges": ("batches", 1, "edges"), "null outputs": ("outputs",)}
+             "a null edges": ("batches", 1, "edges"), "null outputs": ("outputs",),
+             "a number for a per-joint array": ("batches", 1, "lower"), "a number for a state of the bodies": ("bodies", "q_prev"),
+             "a number for body_ids": ("batches", 0, "body_ids"), "a number for an optional array": ("batches", 1, "offset")}
     for name, loc in nulls.items():
         got = answers(app, MORE[name])
         assert len(got) >= 5 and all(f == [(("body", *loc), "Input should be a valid list", "list_type")] for f in got.values()), got

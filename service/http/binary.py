@@ -94,7 +94,7 @@ class _Reader:
         return {k: v for k, v in obj.items() if k in keys}
 
     def array(self, obj: Any, loc: Loc, dtype: str, ndim: int, empty: np.ndarray) -> np.ndarray:
-        if obj is None:  # nil: named as JSON's null is
+        if obj is None or isinstance(obj, (bool, int, float, str)):  # nil or a scalar: named as in JSON
             self.fault(loc, *NOT_A_LIST)
             return empty
         if isinstance(obj, dict):

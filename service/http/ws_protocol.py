@@ -30,6 +30,7 @@ from websockets.exceptions import PayloadTooBig
 from websockets.frames import Close, Frame, Opcode
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
+from jointlimits.schemas.session import TRY_AGAIN_LATER
 from jointlimits.service.sizing import UPLOAD_FACTOR
 
 DRAIN_SECONDS = 30.0
@@ -39,7 +40,6 @@ DRAIN_MESSAGES = 4
 client sent behind it before it read the close (tests/test_session_closes.py sends two more)."""
 
 SHUTDOWN_REASON = "the server is shutting down: reopen the session (another worker or pod answers)"
-TRY_AGAIN_LATER = 1013  # "Try Again Later" (IANA's WebSocket close codes): the worker's upload budget is full
 
 
 class _Queue(asyncio.Queue):  # type: ignore[type-arg]

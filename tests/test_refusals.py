@@ -131,3 +131,24 @@ def test_an_upgrade_closed_before_accept_is_a_403_saying_why(stub):
     status, detail = upgrade_refusal(stub + "/ws")
     assert status == 403
     assert detail == [{"loc": ["header"], "msg": "origin not allowed", "type": "forbidden"}]
+
+
+def test_the_services_own_refusals_are_not_read_again(monkeypatch):
+    """A 422, 413 and 401 written by the service pass the fault-list wrapper unread (issue 28: no second parse)."""
+    from fastapi.testclient import TestClient
+
+    from jointlimits.service.http import refusals
+
+    def unread(body: bytes) -> bool:
+        raise AssertionError("a refusal of the service's own was parsed again")
+
+    monkeypatch.setattr(refusals, "is_fault_list", unread)
+    with TestClient(create_app(replace(LIMITS, token="s3cret"))) as client:
+        r = client.post("/v1/evaluate", content=b"{}", headers=J)
+        assert r.status_code == 401 and r.json()["detail"][0]["type"] == "unauthorized"
+        auth = {**J, "Authorization": "Bearer s3cret"}
+        r = client.post("/v1/evaluate", content=b'{"bodies": 1}', headers=auth)
+        assert r.status_code == 422 and {d["type"] for d in r.json()["detail"]} >= {"missing"}
+        r = client.post("/v1/evaluate", content=b"{}", headers={"Content-Type": "text/plain", "Authorization": "Bearer s3cret"})
+        assert r.status_code == 415 and r.json()["detail"][0]["type"] == "media_type"
+        assert "jointlimits.fault_list" not in str(r.headers)

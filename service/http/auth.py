@@ -15,6 +15,8 @@ import json
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from jointlimits.service.http.refusals import FAULT_LIST
+
 PROTECTED_PREFIX = "/v1/"
 
 
@@ -44,6 +46,7 @@ class BearerAuthMiddleware:
             {
                 "type": f"{prefix}.response.start",
                 "status": 401,
+                FAULT_LIST: True,
                 "headers": [
                     (b"content-type", b"application/json"),
                     (b"content-length", str(len(body)).encode()),
@@ -86,7 +89,7 @@ class SessionOriginMiddleware:
             await send({"type": "websocket.close", "code": 1008, "reason": "origin not allowed"})  # 403 with no body
             return
         headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-        await send({"type": "websocket.http.response.start", "status": 403, "headers": headers})
+        await send({"type": "websocket.http.response.start", "status": 403, "headers": headers, FAULT_LIST: True})
         await send({"type": "websocket.http.response.body", "body": body})
 
     @staticmethod

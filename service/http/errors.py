@@ -14,10 +14,12 @@ from collections.abc import Sequence
 from fastapi import Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
+from starlette.types import Message, Receive, Scope, Send
 
 from jointlimits.service.core import Fault, InputError
 from jointlimits.schemas.errors import validation_items
 from jointlimits.service.core.errors import MAX_FAULTS, DeadlineExceeded
+from jointlimits.service.http.refusals import FAULT_LIST
 
 RETRY_AFTER_SECONDS = 5
 """`Retry-After` of a 503 past the request deadline: the worker is free again at once, a busy pod soon."""
@@ -61,15 +63,25 @@ def render(faults: Sequence[Fault], prefix: Sequence[str] = ()) -> dict:
     }
 
 
-async def input_error_handler(request: Request, exc: Exception) -> JSONResponse:
+class FaultList(JSONResponse):
+    """A refusal rendered here, marked so that `refusals.FaultListMiddleware` passes it on without reading it."""
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        async def marked(message: Message) -> None:
+            await send({**message, FAULT_LIST: True} if message["type"].endswith("response.start") else message)
+
+        await super().__call__(scope, receive, marked)
+
+
+async def input_error_handler(request: Request, exc: Exception) -> FaultList:
     assert isinstance(exc, InputError)
-    return JSONResponse(render(exc.faults, ("body",)), status_code=422)
+    return FaultList(render(exc.faults, ("body",)), status_code=422)
 
 
-async def http_error_handler(request: Request, exc: Exception) -> JSONResponse:
+async def http_error_handler(request: Request, exc: Exception) -> FaultList:
     assert isinstance(exc, HttpError)
     # These faults carry their own full loc (["body"], ["header", "accept"], ...).
-    return JSONResponse(render(exc.faults), status_code=exc.status, headers=exc.headers)
+    return FaultList(render(exc.faults), status_code=exc.status, headers=exc.headers)
 
 
 CLIENT_CLOSED = 499
@@ -86,11 +98,11 @@ async def client_gone(request: Request, exc: Exception) -> Response:
     timeout = request.scope.get("state", {}).get(BODY_TIMED_OUT)
     if timeout is not None:
         fault = Fault(("body",), f"request body not received within {timeout:g} s (JOINTLIMITS_BODY_TIMEOUT)", "timeout")
-        return JSONResponse(render([fault]), status_code=408, headers={"Connection": "close"})
+        return FaultList(render([fault]), status_code=408, headers={"Connection": "close"})
     return Response(status_code=CLIENT_CLOSED)
 
 
-async def deadline_handler(request: Request, exc: Exception) -> JSONResponse:
+async def deadline_handler(request: Request, exc: Exception) -> FaultList:
     assert isinstance(exc, DeadlineExceeded)
     timeout = request.app.state.settings.request_timeout
     msg = (
@@ -98,7 +110,7 @@ async def deadline_handler(request: Request, exc: Exception) -> JSONResponse:
         "and was stopped: retry later if the service is busy, or split the request"
     )
     detail = [{"loc": ["body"], "msg": msg, "type": "timeout"}]
-    return JSONResponse({"detail": detail}, status_code=503, headers={"Retry-After": str(RETRY_AFTER_SECONDS)})
+    return FaultList({"detail": detail}, status_code=503, headers={"Retry-After": str(RETRY_AFTER_SECONDS)})
 
 
 def from_validation(e: ValidationError) -> InputError:

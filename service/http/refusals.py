@@ -3,8 +3,9 @@
 The routes' own 4xx and 503 are written by `jointlimits.service.http.errors`. Others come from elsewhere:
 Starlette's 404 and 405 (`{"detail": "Not Found"}`), the CORS middleware's plain-text 400, a
 WebSocket upgrade closed before it is accepted (the server answers a bare 403). This outermost
-wrapper (inside the access log, which sees the final status) rewrites any such body; a body
-already in the shape passes untouched, so the routes' answers cost one status check.
+wrapper (inside the access log, which sees the final status) rewrites any such body. The service's
+own refusals (`errors.FaultList`, the auth middleware) are written in the shape once and say so in
+their `response.start` message (`FAULT_LIST`): they pass untouched and unread, never parsed again.
 """
 
 from __future__ import annotations
@@ -13,6 +14,9 @@ import json
 from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+FAULT_LIST = "jointlimits.fault_list"
+"""Key of a `response.start` message whose body is already a fault list: passed on as is (the key dropped)."""
 
 # For each status a client may meet before the routes: where the fault is and its type.
 _FAULT = {
@@ -84,6 +88,9 @@ class _HttpRefusal:
     async def __call__(self, message: Message) -> None:
         kind = message["type"]
         if kind == f"{self.prefix}.response.start" and message["status"] >= 400:
+            if FAULT_LIST in message:  # written in the shape by the service itself
+                await self.send({k: v for k, v in message.items() if k != FAULT_LIST})
+                return
             self.start = message
             return
         if self.start is None or kind != f"{self.prefix}.response.body":

@@ -30,6 +30,9 @@ Array = NDArray[np.float64]
 
 # Which body each frame quantity belongs to (0: body i, 1: body j).
 BLOCK_BODY = np.array([0, 0, 1, 1])
+SMALL = 256
+"""Joints up to which a kernel takes whole (N, 4, 3) blocks per pass: each pass's call overhead, not its
+N numbers, is the cost there (`frame_quantities`: 36 passes of N, or 3 of 12 N; measured equal near 500)."""
 
 # The body table holds `A` at the reference state and its increments, each taken once per
 # body; a joint coordinate is then an increment of a bilinear form in the increments of F
@@ -468,6 +471,12 @@ def frame_quantities(r: Array | None, A: Array, alpha: Array, v: Array) -> Array
     """
     n = A.shape[0]
     F = component_major(n, (4, 3), A.dtype)
+    if n <= SMALL:  # a few joints: three passes over all 12 quantities (the same sums, in the same order)
+        As = A[:, BLOCK_BODY]  # (N, 4, 3, 3): each quantity's body
+        np.multiply(As[..., 0], v[:, :, None, 0], out=F)
+        F += As[..., 1] * v[:, :, None, 1]
+        F += As[..., 2] * v[:, :, None, 2]
+        return F if r is None else add_positions(F, r, alpha)
     tmp = np.empty(n, dtype=A.dtype)
     for k in range(4):
         side = BLOCK_BODY[k]

@@ -20,6 +20,16 @@ _NEWTON_TOL = 1e-8
 U (I + E^2 / 2 + O(E^3)), so the step just taken left an error of about half its square (< 1e-16)."""
 
 
+SMALL = 256
+"""Bodies up to which `_cofactors_t` forms its nine entries in whole (9, M) passes: their call overhead,
+not the M numbers, is the cost there (as `kinematics.SMALL`)."""
+# Cofactor (3 r + k) = a[_P] a[_Q] - a[_S] a[_T]: row r of the cofactors is row r+1 x row r+2.
+_P, _Q, _S, _T = (np.array(i) for i in zip(*(
+    (u + (k + 1) % 3, w + (k + 2) % 3, u + (k + 2) % 3, w + (k + 1) % 3)
+    for u, w in ((3 * ((r + 1) % 3), 3 * ((r + 2) % 3)) for r in range(3)) for k in range(3)
+)))
+
+
 def _cofactors_t(a: Array, out: Array | None = None) -> tuple[Array, Array]:
     """Cofactors and determinant in component-major layout: `a` (9, M) -> `C` (9, M), det (M,).
 
@@ -27,6 +37,13 @@ def _cofactors_t(a: Array, out: Array | None = None) -> tuple[Array, Array]:
     make every product a SIMD pass (strided views of (M, 3, 3) are 10x slower). Each
     entry is written in place (`out`, else a new array): no copy of a temporary.
     """
+    if a.shape[1] <= SMALL:  # a few bodies: all nine entries in two passes (the same products, the same order)
+        C = np.multiply(a[_P], a[_Q], out=out)
+        C -= a[_S] * a[_T]
+        det = np.multiply(a[0], C[0])
+        det += a[1] * C[1]
+        det += a[2] * C[2]
+        return C, det
     C = np.empty_like(a) if out is None else out
     tmp = np.empty_like(a[0])
     for r in range(3):

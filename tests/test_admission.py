@@ -175,7 +175,7 @@ def test_json_values_over_the_bound_are_413_before_parsing(monkeypatch):
     def no_parse(*a, **kw):
         raise AssertionError("parsed a body that should have been refused")
 
-    monkeypatch.setattr(convert.EvaluateRequest, "model_validate_json", no_parse)
+    monkeypatch.setattr(convert, "from_json", no_parse)
     r = client(max_json_values=values - 1).post("/v1/evaluate", content=body, headers={"Content-Type": J})
     assert r.status_code == 413
     (d,) = r.json()["detail"]
@@ -372,7 +372,7 @@ def test_batches_are_counted_before_they_are_read(no_work, monkeypatch):
     monkeypatch.setattr(binary, "_batch", no_batch)
     r = post(client(max_batches=8), req, True)
     assert r.status_code == 413 and "has 9 batches" in r.json()["detail"][0]["msg"]
-    monkeypatch.setattr(convert.EvaluateRequest, "model_validate_json", no_batch)
+    monkeypatch.setattr(convert, "from_json", no_batch)
     r = post(client(max_batches=8), req, False)
     assert r.status_code == 413
     assert "up to 9 batches (counted by their braces)" in r.json()["detail"][0]["msg"]

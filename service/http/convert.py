@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 import numpy as np
 import orjson
 from pydantic import ValidationError
+from pydantic_core import from_json
 
 from jointlimits.schemas import OUTPUTS, EvaluateRequest
 from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
@@ -15,7 +15,7 @@ from jointlimits.schemas.session import OpeningRequest
 from jointlimits.service.core import CONSTITUTIONS, Bodies, Evaluation, Fault, InputError, Joints
 from jointlimits.service.core.errors import MAX_FAULTS
 from jointlimits.service.core.prepared import input_faults
-from jointlimits.service.core.validate import NOT_A_LIST, as_array
+from jointlimits.service.core.validate import as_array
 from jointlimits.service.http import jsonkeys, limits
 from jointlimits.service.http.errors import from_validation
 
@@ -38,9 +38,11 @@ def parse(body: bytes, opening: bool = False) -> EvaluateRequest:
     """The request of a JSON body, or `InputError` with at most `MAX_FAULTS` faults, found cheaply.
 
     Keys first, on the bytes (`jsonkeys`): repeated ones, which pydantic would let through
-    (last wins), and unknown and missing ones; at the cap pydantic never runs. Then pydantic,
-    whose lists are `FailFast` (a list's first bad item ends its checks): its error list is
-    bounded too, as long as unknown keys (the one error it lists without bound) are.
+    (last wins), and unknown and missing ones; at the cap pydantic never runs. Then the body is
+    parsed once (`load`) and pydantic checks the document, whose lists are `FailFast` (a list's
+    first bad item ends its checks): its error list is bounded too, as long as unknown keys (the
+    one error it lists without bound) are. Faults inside numeric arrays are named from the same
+    document in the core's words (`in_core_words`).
     """
     keys = jsonkeys.scan(body, opening=opening)
     key_faults = keys.faults
@@ -53,22 +55,41 @@ def parse(body: bytes, opening: bool = False) -> EvaluateRequest:
         if known_field:
             key_faults = [*key_faults, Fault(loc, "holds an object, where a request has numbers or lists", "model_type")]
         raise InputError(key_faults)
+    doc = load(body)  # a broken document: the scan's findings mean nothing
     try:
-        # Rust-side parse and validation straight from bytes; rejects NaN, Infinity and 1e400.
-        req = (OpeningRequest if opening else EvaluateRequest).model_validate_json(body)
+        req = (OpeningRequest if opening else EvaluateRequest).model_validate(doc)
     except ValidationError as e:
-        # pydantic's JSON mode says "a valid array"; the core and msgpack "a valid list": one wording on every path.
-        faults = [Fault(f.loc, *NOT_A_LIST) if f.type == "list_type" else f for f in from_validation(e).faults]
-        if any(f.type == "json_invalid" for f in faults):
-            raise InputError(faults) from None  # the scan's findings mean nothing in a broken document
+        faults = [json_words(f) for f in from_validation(e).faults]
         if any(in_array(f) for f in faults):
-            faults = in_core_words(body, faults)
+            faults = in_core_words(doc, faults)
         seen = {(f.loc, f.type) for f in key_faults}
         raise InputError([*key_faults, *(f for f in faults if (f.loc, f.type) not in seen)]) from None
     repeated = [f for f in key_faults if f.type == "duplicate_key"]
     if repeated:
         raise InputError(repeated)  # pydantic let them through (the last one wins)
     return req
+
+
+def load(body: bytes | str) -> Any:
+    """A JSON document as plain data, parsed once by pydantic's own parser (jiter): NaN, Infinity and
+    1e400 (inf) are read as floats, for the core to name as non-finite; `InputError` in pydantic's
+    words for a broken document."""
+    try:
+        return from_json(body)
+    except ValueError as e:
+        raise InputError([Fault((), f"Invalid JSON: {e}", "json_invalid")]) from None
+
+
+OBJECT = "Input should be an object"
+
+
+def json_words(f: Fault) -> Fault:
+    """A fault of pydantic's Python mode in the words its JSON mode uses for the same document."""
+    if f.type == "model_type":
+        return Fault(f.loc, OBJECT, f.type)
+    if f.type == "model_attributes_type" and f.loc == ():
+        return Fault((), OBJECT, "dict_type")
+    return f
 
 
 BODY_ARRAYS = ("q", "q_prev", "q_ref")
@@ -88,14 +109,10 @@ def in_array(f: Fault) -> bool:
     return len(loc) >= 3 and loc[0] == "batches" and loc[2] in BATCH_ARRAYS
 
 
-def in_core_words(body: bytes, faults: list[Fault]) -> list[Fault]:
+def in_core_words(doc: Any, faults: list[Fault]) -> list[Fault]:
     """pydantic's faults inside numeric arrays (a row of 11 numbers, a list where a number belongs) replaced
-    by what the core says of the same arrays, as msgpack and the SDK get them: the document is read again
-    leniently, each array built whatever its shape (`validate.as_array`), then the one validator runs."""
-    try:
-        doc = json.loads(body)  # as lenient as pydantic: NaN, Infinity, 1e400 (inf)
-    except ValueError:
-        return faults
+    by what the core says of the same arrays, as msgpack and the SDK get them: each array of the parsed
+    document built whatever its shape (`validate.as_array`), then the one validator runs."""
     others = [f for f in faults if not in_array(f)]
     arrays: list[Fault] = []
     bodies = doc.get("bodies") if isinstance(doc, dict) else None

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from jointlimits.service.core.constitution import Array, Curvature
-from jointlimits.service.core.kinematics import component_major
+from jointlimits.service.core.kinematics import SMALL, component_major
 
 BLOCK = 1024
 """Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just
@@ -181,7 +181,13 @@ def _hessian_directions(
         # Entry by entry along the joints: a 3 x 3 block of 3-element rows costs the iterator a loop per
         # row (and a row of W at a time, as strided views, measured slower still).
         H = out[q].reshape(m, 576)
-        for (b, b2), block in W.items():
+        if m <= SMALL:  # a few joints: one scatter (each entry of H takes at most one entry of W: any order)
+            at, a, c = _KRON_SCATTER[same]
+            H[:, at] += np.concatenate([W[key][:, a[t], c[t]] for t, key in enumerate(W)], axis=1)
+            blocks_left = {}
+        else:
+            blocks_left = W
+        for (b, b2), block in blocks_left.items():
             for a, c, rows, cols in _KRON_ENTRIES[b, b2]:
                 w = block[:, a, c]
                 for i, j in zip(rows, cols):
@@ -218,6 +224,25 @@ def _kron_entries(b: int, b2: int) -> list[tuple[int, int, list[int], list[int]]
 
 
 _KRON_ENTRIES = {(b, b2): _kron_entries(b, b2) for b in range(2) for b2 in range(2)}
+
+
+def _kron_scatter(keys: list[tuple[int, int]]) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """`_KRON_ENTRIES` of the blocks `keys` (in `_kron_blocks`' order) as one scatter: the flat positions
+    (P,), and per block the entries (a, c) each of its positions takes."""
+    at, a_of, c_of = [], [], []
+    for b, b2 in keys:
+        a_k, c_k = [], []
+        for a, c, rows, cols in _KRON_ENTRIES[b, b2]:
+            spots = rows + (cols if b != b2 else [])
+            at += spots
+            a_k += [a] * len(spots)
+            c_k += [c] * len(spots)
+        a_of.append(np.array(a_k))
+        c_of.append(np.array(c_k))
+    return np.array(at), a_of, c_of
+
+
+_KRON_SCATTER = {False: _kron_scatter([(0, 1)]), True: _kron_scatter([(0, 1), (0, 0), (1, 1)])}
 
 
 def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:

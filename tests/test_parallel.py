@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from jointlimits.service.core.parallel import Sharing, run_all
+from jointlimits.service.core.parallel import run_all
 
 
 def test_results_in_task_order() -> None:
@@ -38,59 +38,19 @@ def test_tasks_keep_the_callers_error_state() -> None:
             run_all([lambda: None, lambda: np.divide(1.0, np.zeros(1))], 2)
 
 
-def _shared(work: list[tuple[float, list[float]]], threads: int) -> tuple[list, dict[int, set[int]], dict[int, tuple[float, float]]]:
-    """Tasks (one per entry of `work`: a delay, then chunks sleeping the given seconds) through one
-    `Sharing`: each task's results, the threads that ran each task's chunks, each task's start and end."""
-    share = Sharing(len(work))
-    ran: dict[int, set[int]] = {t: set() for t in range(len(work))}
-    spans: dict[int, tuple[float, float]] = {}
+def test_one_batch_holding_most_joints_takes_its_chunks_on_the_threads() -> None:
+    """A batch of 3000 beside one of 2 (prepared.SIDE_BY_SIDE): one batch after another, the large one's
+    derivative chunks on both threads; bitwise the answers of one thread, both modes."""
+    from bench.scenes import make_scene
+    from jointlimits.service.core import evaluate, prepare
 
-    def chunk(t: int, s: float) -> float:
-        time.sleep(s)
-        ran[t].add(threading.get_ident())
-        return s
-
-    def task(t: int, delay: float, chunks: list[float]) -> list[float]:
-        start = time.monotonic()
-        time.sleep(delay)
-        out = share.run([lambda s=s: chunk(t, s) for s in chunks])
-        spans[t] = (start, time.monotonic())
-        return out
-
-    results = run_all([share.task(lambda t=t, w=w: task(t, *w)) for t, w in enumerate(work)], threads)
-    return results, ran, spans
-
-
-def test_shared_chunks_keep_both_threads_busy() -> None:
-    """Task 1 ends before task 0 hands its chunks over; its thread waits for them and takes its share."""
-    results, ran, _ = _shared([(0.05, [0.02] * 10), (0.0, [])], 2)
-    assert results == [[0.02] * 10, []]
-    assert len(ran[0]) == 2  # task 0's chunks ran on both threads
-
-
-def test_shared_chunks_leave_a_thread_to_a_waiting_task() -> None:
-    """Three tasks on two threads: the thread whose task ends first starts the third task rather than
-    waiting for the first one's chunks; every task ends."""
-    done: list = []
-    runner = threading.Thread(target=lambda: done.append(_shared([(0.05, [0.02] * 5), (0.0, []), (0.0, [0.01] * 2)], 2)), daemon=True)
-    runner.start()
-    runner.join(10.0)
-    assert done, "the tasks did not end"
-    results, _, spans = done[0]
-    assert results == [[0.02] * 5, [], [0.01] * 2]
-    assert spans[2][0] < spans[0][1]  # the third task started before the first ended
-
-
-def test_shared_chunks_raise_the_first_error_in_order() -> None:
-    share = Sharing(1)
-    order: list[int] = []
-
-    def chunk(k: int) -> int:
-        order.append(k)
-        if k in (1, 3):
-            raise ValueError(f"chunk {k}")
-        return k
-
-    with pytest.raises(ValueError, match="chunk 1"):
-        run_all([share.task(lambda: share.run([lambda k=k: chunk(k) for k in range(5)])), lambda: None], 2)
-    assert sorted(order) == list(range(5))  # every chunk ran before the error was raised
+    bodies, batches = make_scene(3000, outside=1.0, seed=5)
+    _, few = make_scene(4, outside=1.0, seed=5)  # bodies 0..3 exist in the large scene too
+    scene = [batches[0], few[1]]
+    for mode in ("exact", "psd"):
+        one = evaluate(bodies, scene, hessian_mode=mode)
+        for two in (evaluate(bodies, scene, hessian_mode=mode, threads=2),
+                    prepare(bodies, scene, threads=2).evaluate(bodies.q, hessian_mode=mode)):
+            for a, b in zip(one.batches, two.batches):
+                for f in ("x", "energy", "gradient", "hessian"):
+                    assert getattr(a, f).tobytes() == getattr(b, f).tobytes()

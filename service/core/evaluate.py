@@ -13,7 +13,7 @@ from jointlimits.service.core import assembly, penalty
 from jointlimits.service.core.constitution import Array, Constitution, Curvature
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, check_deadline
 from jointlimits.service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames, take_joints
-from jointlimits.service.core.parallel import Sharing, run_all
+from jointlimits.service.core.parallel import run_all
 from jointlimits.service.core.validate import nonfinite_rows, raise_if
 
 CHUNK = 8192
@@ -44,7 +44,6 @@ def differentiate(
     threads: int,
     deadline: float | None = None,
     compact: bool = False,
-    share: Sharing | None = None,
 ) -> dict:
     """Energy (N,) of batch `b` at its frames `F` (N, 4, 3) and coordinate `x` (N,), and the asked-for
     derivatives of its active joints: the fields of a `BatchResult`, plus `all_energy` (N,) and the
@@ -54,8 +53,8 @@ def differentiate(
     Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
     past `deadline` (a `time.monotonic()` value), checked before each derivative chunk. `compact`:
     derivative rows for the active joints only (as `active_only`) while index, x, energy keep every
-    joint; `active` (A,) says which (`layout="bodies"` sums those rows alone). `share`: the derivative
-    chunks go to the batches' shared runner (`threads` its threads), else to `threads` threads.
+    joint; `active` (A,) says which (`layout="bodies"` sums those rows alone). The derivative
+    chunks run on `threads` threads.
     """
     dtype = F.dtype
     g = penalty.distance(x, lo, up)  # one gap for the energy and the active joints
@@ -123,7 +122,7 @@ def differentiate(
         _, dE, d2E = penalty.derivatives(*at_active)
         shift = penalty.scale_up(dE, d2E, *at_active)
         chunks = [partial(chunk, start) for start in range(0, active.shape[0], size)]
-        for bad in run_all(chunks, threads) if share is None else share.run(chunks):
+        for bad in run_all(chunks, threads):
             overflow += bad
     _raise_overflow(b, overflow)
     return dict(

@@ -41,7 +41,7 @@ from jointlimits.service.core.kinematics import (
     state_frames,
 )
 from jointlimits.service.core.geometry import axis_and_anchors
-from jointlimits.service.core.parallel import Sharing, run_all
+from jointlimits.service.core.parallel import run_all
 from jointlimits.service.core.registry import CONSTITUTIONS
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
 from jointlimits.service.core.validate import (
@@ -99,6 +99,12 @@ class _Batch:
     faults: list[Fault]  # the stateless call's collapsed frames at q_ref, q_prev: reported with those at q
     progress: dict[str, Progress]  # the coordinate's progress over the steps that do not depend on q ("whole":
     # from starts[0] over `fixed`; "last": from starts[-1]; "ref": from F_ref), kept until `starts` change
+
+
+SIDE_BY_SIDE = 2 / 3
+"""On threads, batches run side by side (a batch per thread) unless one holds more than this share of the
+joints: then one after another, each's derivative chunks on the threads (measured, 1e5 joints all active,
+2 threads: a 5e4 batch beside 10 joints side by side was 1.12x slower on E+G+H than its chunks shared)."""
 
 
 @dataclass
@@ -196,18 +202,19 @@ class PreparedScene:
             self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
             self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row, jb.absolute)])
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
-        threads = self._threads
-        # One batch: its derivative chunks on the pool. Several: each batch on a thread, their chunks
-        # shared, so that the thread whose batch ends first takes the others' (a pool never waits on itself).
-        share = Sharing(len(self._batches)) if threads > 1 and len(self._batches) > 1 else None
+        # Several batches of comparable size: a batch per thread, its derivative chunks on that thread.
+        # Else (one batch, or one holding most joints) one batch after another, each's chunks on the threads.
+        sizes = self.batch_sizes
+        side_by_side = self._threads > 1 and len(sizes) > 1 and max(sizes) <= SIDE_BY_SIDE * sum(sizes)
+        threads, chunk_threads = (self._threads, 1) if side_by_side else (1, self._threads)
         psd = hessian_mode == "psd"
         # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
-        rest = (want_g, want_h, psd, active_only, threads, deadline, layout == "bodies", share)
+        rest = (want_g, want_h, psd, active_only, chunk_threads, deadline, layout == "bodies")
         if pending is None:
             tasks = [partial(self._evaluate_batch, b, jb, *rest) for b, jb in enumerate(self._batches)]
         else:
             tasks = [partial(self._prepare_and_evaluate, b, p, *rest) for b, p in enumerate(pending)]
-        results = run_all(tasks if share is None else [share.task(t) for t in tasks], threads)
+        results = run_all(tasks, threads)
         total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
         if not np.isfinite(total):
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
@@ -319,14 +326,13 @@ class PreparedScene:
         threads: int,
         deadline: float | None = None,
         compact: bool = False,
-        share: Sharing | None = None,
     ) -> dict:
         check_deadline(deadline)
         x, F, careful, known = self._x(jb, *self._step(jb, jb.row, jb.r_start))
         bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
         raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound))[:MAX_FAULTS])
         r = differentiate(
-            b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact, share
+            b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact
         )
         r["coordinate"] = _plus_offset(r["x"], jb.offset, r["index"] if active_only else None)
         return r
@@ -676,8 +682,8 @@ def evaluate(
     Infinity. Only the outputs asked for are computed, and only joints outside their range are
     differentiated. `dtype` np.float32 runs everything after validation and the polar factors in
     single precision (a benchmark variant: ~1e-5 relative error; the wire is float64). `threads`
-    > 1 runs the body table, the polar factors and the gathers, then the batches, a batch per thread,
-    their derivative chunks shared (one batch: its chunks) on that many threads, with bitwise the same
+    > 1 runs the body table, the polar factors and the gathers, then the batches, a batch per thread
+    (one batch, or one holding most joints: its derivative chunks) on that many threads, with bitwise the same
     results; the HTTP service keeps 1, its worker processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
     `DeadlineExceeded` (checked between batches and derivative chunks). `layout` "bodies" answers
     the gradient and Hessian summed per body (`jointlimits.service.core.assembled`) instead of per joint: only

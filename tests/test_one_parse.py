@@ -47,3 +47,19 @@ def test_an_array_fault_is_worded_from_the_one_parse(parses):
 def test_a_clean_body_is_parsed_once(parses):
     kwargs = convert.decode(json.dumps(_json()).encode(), 10**6)
     assert len(parses) == 1 and kwargs["batches"]
+
+
+def test_a_session_message_is_parsed_once(parses):
+    """A later message of a session: its faults are worded from its one parse (issue 28, step 4)."""
+    from jointlimits.service.http import session_codec
+
+    q = [[0.0] * 11, [0.0] * 11]  # rows of 11: the core names the shape later, as for msgpack
+    message = session_codec.decode(json.dumps({"kind": "evaluate", "id": 7, "q": q}))
+    assert message.q.shape == (2, 11) and message.id == 7 and len(parses) == 1
+    with pytest.raises(InputError) as e:
+        session_codec.decode(json.dumps({"kind": "evaluate", "q": [[0.0, "x"]]}))
+    assert [(f.loc, f.type) for f in e.value.faults] == [(("q", 0, 1), "float_type")] and len(parses) == 2
+    with pytest.raises(InputError) as e:
+        session_codec.decode("[1]")
+    assert [(f.loc, f.msg, f.type) for f in e.value.faults] == [((), "Input should be an object", "dict_type")]
+    assert len(parses) == 3

@@ -78,16 +78,16 @@ BAD_KIND = (literal_msg(tuple(proto.KEYS)), "union_tag_invalid")
 
 
 def _decode_json(frame: str) -> Message:
+    doc = convert.load(frame)  # parsed once: pydantic checks the document, the faults are worded from it
     try:
-        m = proto.CLIENT_MESSAGE.validate_json(frame)
+        m = proto.CLIENT_MESSAGE.validate_python(doc)
     except ValidationError as e:
-        err = from_validation(e)
         # The discriminated union puts the kind in front of each loc: ("evaluate", "q", 3) -> ("q", 3).
-        tag = _json_kind(frame)
-        faults = [_untagged(f, tag) for f in err.faults]
+        tag = doc.get("kind") if isinstance(doc, dict) and isinstance(doc.get("kind"), str) else None
+        faults = [_untagged(convert.json_words(f), tag) for f in from_validation(e).faults]
         if not any(_in_array(f) for f in faults):
             raise InputError(faults) from None
-        return _arrays_in_core_words(frame, tag, faults)
+        return _arrays_in_core_words(doc, tag, faults)
     out = Message(kind=m.kind, id=m.id)
     if m.kind in (proto.EVALUATE, proto.COMMIT):
         out.q = np.asarray(m.q, dtype=np.float64).reshape(len(m.q), 12)
@@ -99,11 +99,10 @@ def _decode_json(frame: str) -> Message:
     return out
 
 
-def _arrays_in_core_words(frame: str, kind: str | None, faults: list[Fault]) -> Message:
+def _arrays_in_core_words(doc: dict[str, Any], kind: str | None, faults: list[Fault]) -> Message:
     """A JSON message whose only faults are inside its arrays (a row of 11 numbers): its arrays as they are,
     whatever their shape, for the core to name as it names msgpack's; a non-number is named here, in the
     same words (`validate.as_array`). Any other fault is raised with them."""
-    doc = orjson.loads(frame)
     others = [f for f in faults if not _in_array(f)]
     arrays: dict[str, np.ndarray] = {}
     found: list[Fault] = []
@@ -128,14 +127,6 @@ def _in_array(f: Fault) -> bool:
     """A fault inside one of the message's arrays (not its absence, "Field required", nor another kind's array,
     "Extra inputs are not permitted": pydantic's to name)."""
     return bool(f.loc[:1]) and f.loc[0] in MESSAGE_ARRAYS and f.type not in ("missing", "extra_forbidden")
-
-
-def _json_kind(frame: str) -> str | None:
-    try:
-        doc = orjson.loads(frame)
-    except orjson.JSONDecodeError:
-        return None
-    return doc.get("kind") if isinstance(doc, dict) and isinstance(doc.get("kind"), str) else None
 
 
 def _untagged(f: Fault, tag: str | None) -> Fault:

@@ -32,6 +32,8 @@ EDGE_SHAPES = {"edges": (2, 3), "local_edges": (2, 2, 3)}
 
 
 def _where(mask: np.ndarray) -> list[int]:
+    if not mask.any():  # the common case: one flat reduction, no index array
+        return []
     return [int(i) for i in np.flatnonzero(mask)[:MAX_FAULTS]]
 
 

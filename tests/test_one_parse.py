@@ -63,3 +63,21 @@ def test_a_session_message_is_parsed_once(parses):
         session_codec.decode("[1]")
     assert [(f.loc, f.msg, f.type) for f in e.value.faults] == [((), "Input should be an object", "dict_type")]
     assert len(parses) == 3
+
+
+@pytest.mark.parametrize("active_only", [False, True])
+def test_a_boolean_among_numbers_is_not_a_number(active_only):
+    """NumPy would read `true` among numbers as 1: the arrays are read item by item when the body holds one."""
+    doc = _json()
+    doc["active_only"] = active_only
+    assert convert.decode(json.dumps(doc).encode(), 10**6)["active_only"] is active_only
+    doc["batches"][0]["lower"][1] = True
+    assert _faults(doc) == [(("batches", 0, "lower", 1), "Input should be a valid number", "float_type")]
+    doc = _json()
+    doc["batches"][1]["body_ids"][0][1] = False
+    assert _faults(doc) == [(("batches", 1, "body_ids", 0, 1), "Input should be a valid integer", "int_type")]
+
+
+def test_the_request_holds_its_arrays_once_built(parses):
+    req = convert.parse(json.dumps(_json()).encode())
+    assert req.bodies.q.dtype == "float64" and req.batches[0].body_ids.dtype == "int64" and len(parses) == 1

@@ -13,8 +13,9 @@ from jointlimits.schemas import OUTPUTS, EvaluateRequest
 from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
 from jointlimits.schemas.session import OpeningRequest
 from jointlimits.service.core import CONSTITUTIONS, Bodies, Evaluation, Fault, InputError, Joints
-from jointlimits.service.core.errors import MAX_FAULTS
+from jointlimits.service.core.errors import MAX_FAULTS, Loc
 from jointlimits.service.core.prepared import input_faults
+from jointlimits.service.core.validate import _element_faults as element_faults
 from jointlimits.service.core.validate import as_array
 from jointlimits.service.http import jsonkeys, limits
 from jointlimits.service.http.errors import from_validation
@@ -39,10 +40,11 @@ def parse(body: bytes, opening: bool = False) -> EvaluateRequest:
 
     Keys first, on the bytes (`jsonkeys`): repeated ones, which pydantic would let through
     (last wins), and unknown and missing ones; at the cap pydantic never runs. Then the body is
-    parsed once (`load`) and pydantic checks the document, whose lists are `FailFast` (a list's
-    first bad item ends its checks): its error list is bounded too, as long as unknown keys (the
-    one error it lists without bound) are. Faults inside numeric arrays are named from the same
-    document in the core's words (`in_core_words`).
+    parsed once (`load`) and pydantic checks the document but its numeric arrays; its lists are
+    `FailFast` (a list's first bad item ends its checks): its error list is bounded too, as long as
+    unknown keys (the one error it lists without bound) are. Each array is built once from the same
+    document (`validate.as_array`, in pydantic's words for an item that is not a number), and a wrong
+    shape is named in the core's words. The request holds the arrays, of the schema's shapes.
     """
     keys = jsonkeys.scan(body, opening=opening)
     key_faults = keys.faults
@@ -56,17 +58,29 @@ def parse(body: bytes, opening: bool = False) -> EvaluateRequest:
             key_faults = [*key_faults, Fault(loc, "holds an object, where a request has numbers or lists", "model_type")]
         raise InputError(key_faults)
     doc = load(body)  # a broken document: the scan's findings mean nothing
+    # The numeric arrays are set aside: pydantic checks the rest (no list of numbers walked or copied), each
+    # array is built once from the parsed lists, and what is wrong inside one is the core's to name.
+    raw = _set_aside(doc)
     try:
         req = (OpeningRequest if opening else EvaluateRequest).model_validate(doc)
+        faults = []
     except ValidationError as e:
-        faults = [json_words(f) for f in from_validation(e).faults]
-        if any(in_array(f) for f in faults):
-            faults = in_core_words(doc, faults)
+        req, faults = None, [json_words(f) for f in from_validation(e).faults]
+    booleans = body.count(b"true") + body.count(b"false") > (isinstance(doc, dict) and isinstance(doc.get("active_only"), bool))
+    built, found = _arrays(raw, booleans)
+    faults = (faults + found)[:MAX_FAULTS]
+    misshapen = [loc for loc, a in built.items() if not _well_shaped(loc[-1], a)]
+    if misshapen and not faults:  # a row of 11 numbers, a pair of 3 indices: named as the core names them
+        faults = _in_core_words(doc, built) or [Fault(misshapen[0], f"has shape {built[misshapen[0]].shape}")]
+    if faults:
         seen = {(f.loc, f.type) for f in key_faults}
-        raise InputError([*key_faults, *(f for f in faults if (f.loc, f.type) not in seen)]) from None
+        raise InputError([*key_faults, *(f for f in faults if (f.loc, f.type) not in seen)])
     repeated = [f for f in key_faults if f.type == "duplicate_key"]
     if repeated:
         raise InputError(repeated)  # pydantic let them through (the last one wins)
+    assert req is not None  # no fault, so pydantic passed
+    for loc, a in built.items():  # the arrays into the request, whatever their shape (the core checks it)
+        setattr(req.bodies if loc[0] == "bodies" else req.batches[loc[1]], loc[-1], a)
     return req
 
 
@@ -98,50 +112,63 @@ BATCH_ARRAYS = {"body_ids": True, "edges": False, "local_edges": False, "lower":
 """The numeric arrays of a request (True: of integers), whose faults the core names on every path."""
 
 
-def in_array(f: Fault) -> bool:
-    """`f` lies inside one of the request's numeric arrays (pydantic names the element, e.g. a 13th number);
-    a missing array is pydantic's fault to name ("Field required")."""
-    loc = f.loc
-    if f.type == "missing":
-        return False
-    if loc[:1] == ("bodies",):
-        return len(loc) >= 2 and loc[1] in BODY_ARRAYS
-    return len(loc) >= 3 and loc[0] == "batches" and loc[2] in BATCH_ARRAYS
+_ROW_SHAPES = {"q": (12,), "q_prev": (12,), "q_ref": (12,), "body_ids": (2,), "edges": (2, 3), "local_edges": (2, 2, 3)}
+"""The shape of one row of the arrays whose rows are lists (the others are lists of numbers)."""
 
 
-def in_core_words(doc: Any, faults: list[Fault]) -> list[Fault]:
-    """pydantic's faults inside numeric arrays (a row of 11 numbers, a list where a number belongs) replaced
-    by what the core says of the same arrays, as msgpack and the SDK get them: each array of the parsed
-    document built whatever its shape (`validate.as_array`), then the one validator runs."""
-    others = [f for f in faults if not in_array(f)]
-    arrays: list[Fault] = []
+def _well_shaped(name: str, a: np.ndarray) -> bool:
+    """`a` has the shape the wire schema gives array `name` (any number of rows; an empty list is none)."""
+    row = _ROW_SHAPES.get(name, ())
+    return a.shape[1:] == row or (row != () and a.shape == (0,))
+
+
+def _set_aside(doc: Any) -> dict[Loc, Any]:
+    """The numeric arrays of the request's objects in `doc`, each replaced there by an empty list (a null too:
+    named at the array, as msgpack's nil; a missing one stays missing, pydantic's to name)."""
+    raw: dict[Loc, Any] = {}
     bodies = doc.get("bodies") if isinstance(doc, dict) else None
-    built: dict[str, Any] = {}
-    for name in BODY_ARRAYS:
-        if isinstance(bodies, dict) and name in bodies:
-            built[name], found = as_array(bodies[name], ("bodies", name))
-            arrays += found
+    if isinstance(bodies, dict):
+        for name in BODY_ARRAYS:
+            if name in bodies:
+                raw["bodies", name], bodies[name] = bodies[name], []
     batches = doc.get("batches") if isinstance(doc, dict) else None
-    joints = []
-    for b, raw in enumerate(batches if isinstance(batches, list) else []):
-        fields = {}
-        for name, integer in BATCH_ARRAYS.items():
-            if isinstance(raw, dict) and name in raw:  # a null too: named at the array, as msgpack's nil
-                fields[name], found = as_array(raw[name], ("batches", b, name), integer)
-                arrays += found
-        joints.append((raw, fields))
-    if arrays or others or any(built.get(n) is None for n in BODY_ARRAYS):
-        return (others + arrays)[:MAX_FAULTS] or faults
-    try:
-        kwargs = dict(
-            bodies=Bodies(built["q"], built["q_prev"], built["q_ref"]),
-            batches=[_joints(raw, fields) for raw, fields in joints],
-            outputs=doc.get("outputs", list(OUTPUTS)), hessian_mode=doc.get("hessian_mode", "exact"),
-            layout=doc.get("layout", "joints"),
-        )
-    except (KeyError, TypeError, ValueError):  # a field pydantic accepted but this reading cannot use
-        return faults
-    return input_faults(**kwargs) or faults
+    for b, batch in enumerate(batches if isinstance(batches, list) else []):
+        if isinstance(batch, dict):
+            for name in BATCH_ARRAYS:
+                if name in batch:
+                    raw["batches", b, name], batch[name] = batch[name], []
+    return raw
+
+
+def _arrays(raw: dict[Loc, Any], booleans: bool) -> tuple[dict[Loc, np.ndarray], list[Fault]]:
+    """Each array built whatever its shape (`validate.as_array`), or the faults inside it, in pydantic's words.
+
+    `booleans`: the body may hold `true` or `false` in an array, which NumPy would read as 1 and 0 among
+    numbers: then every array's items are read one by one first (`validate.element_faults`)."""
+    built: dict[Loc, np.ndarray] = {}
+    faults: list[Fault] = []
+    for loc, value in raw.items():
+        integer = BATCH_ARRAYS.get(loc[-1], False)
+        found = element_faults(value, loc, integer) if booleans else []
+        a, found = (None, found) if found else as_array(value, loc, integer)
+        faults += found
+        if a is not None:
+            built[loc] = a
+    return built, faults
+
+
+def _in_core_words(doc: dict[str, Any], built: dict[Loc, np.ndarray]) -> list[Fault]:
+    """The core's faults of a request whose arrays have the wrong shapes, as msgpack and the SDK get them."""
+    fields: list[dict[str, np.ndarray]] = [{} for _ in doc["batches"]]
+    for loc, a in built.items():
+        if loc[0] == "batches":
+            fields[loc[1]][loc[2]] = a
+    return input_faults(
+        bodies=Bodies(*(built["bodies", name] for name in BODY_ARRAYS)),
+        batches=[_joints(raw, f) for raw, f in zip(doc["batches"], fields)],
+        outputs=doc.get("outputs", list(OUTPUTS)), hessian_mode=doc.get("hessian_mode", "exact"),
+        layout=doc.get("layout", "joints"),
+    )
 
 
 def _joints(raw: dict[str, Any], fields: dict[str, np.ndarray]) -> Joints:

@@ -168,12 +168,12 @@ class PreparedScene:
         deadline: float | None = None,
         layout: str = "joints",
     ) -> Evaluation:
-        log = FaultLog()
-        log.add(check_options(outputs, hessian_mode))
-        log.add(assembled.check_layout(layout))
-        if not checked:
+        if not checked:  # `evaluate` (the stateless call) has checked them all
+            log = FaultLog()
+            log.add(check_options(outputs, hessian_mode))
+            log.add(assembled.check_layout(layout))
             log.add(check_dofs("q", q, self.n_bodies))
-        log.raise_if_any()
+            log.raise_if_any()
         # Overflow is expected with hostile numbers: every overflow becomes an `InputError` naming the
         # joint. The PSD projection (an eigensolver) fails outright on a non-finite curvature; the
         # exact mode then locates the joints.

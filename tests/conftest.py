@@ -68,6 +68,9 @@ SLOW = (
     "test_degenerate_scales.py",  # 1e-300..1e300 scales (~4 s)
     "test_v12_properties.py",  # v1.2 over random scenes (~3 s)
     "test_hard_cases.py",  # the hard cases against mpmath (~2 s)
+    "test_revolute_psd_scales.py::test_psd_hessian_at_the_issues_scales",  # a fresh 50-digit reference per scale (~6 s)
+    "test_prismatic_scales.py",  # 50- and 700-digit references at extreme scales
+    "test_session_bounds.py::test_a_message_over_the_limit_is_read_as_1009_with_its_reason_every_time",  # ~330 MiB over loopback a try (~8 s)
 )
 
 

@@ -1,8 +1,9 @@
 """What a joint-limit constitution contributes: its coordinate `x` through the frame quantities `F`.
 
 Everything else (the penalty, the chain rule to DOFs, Hessian modes, validation)
-is shared, so a new joint type is one small module implementing this protocol
-and one line in `jointlimits.service.core.registry`.
+is shared, so a new joint type's numbers are one module implementing this protocol and one line in
+`jointlimits.service.core.registry`. Its UIDs are also named on the wire and in the SDK today:
+docs/maintainers.md, "Adding a constitution", lists every file.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Checks that need arithmetic, vectorised over joints; each fault names batch, field and joint.
 
-Shapes of wire requests are already enforced by `schemas`; they are checked
-again here because the in-process API takes arbitrary arrays. The checks are
+The numeric arrays of every path (JSON, msgpack, sessions, the in-process API) are checked here:
+their shapes too, since the decoders hand them over unchecked and the in-process API takes any array. The checks are
 leaves: they return faults and evaluate nothing; the pipeline (`jointlimits.service.core.prepared`)
 calls them in order and caps the faults of a request (`errors.FaultLog`).
 """

@@ -95,7 +95,7 @@ class AsyncClient(BaseClient):
             except transport.RETRYABLE as e:
                 await asyncio.sleep(retry.pause(e))
                 continue
-            pause = retry.busy(response)  # None: the answer; else a busy 503 to retry
+            pause = retry.again(response)  # None: the answer; else a busy 503 or a proxy's 502/503/504 to retry
             if pause is None:
                 return response
             await asyncio.sleep(pause)

@@ -64,14 +64,24 @@ class TooLarge(ServiceError):
 
 
 class Unreachable(ServiceError):
-    """No answer at all: the connection was refused, timed out, or dropped before an answer, on
-    every attempt (`attempts` = 1 + the retries). `url` is what was asked; `status` is 0."""
+    """No answer from the service: the connection was refused, timed out, or dropped before an answer,
+    or a proxy in front of the service answered for it (a 502, 503 or 504 that is not the service's
+    own error: an HTML page saying no upstream answered), on every attempt (`attempts` = 1 + the
+    retries). `url` is what was asked; `status` is 0, or the proxy's status when a proxy answered
+    the last attempt (`proxy`: its page in a few words)."""
 
-    def __init__(self, url: str, attempts: int, cause: Exception) -> None:
-        self.url, self.attempts = url, attempts
-        why = f"{type(cause).__name__}: {cause}" if str(cause) else type(cause).__name__
-        msg = f"cannot reach {url} ({why}) after {attempts} attempt{'s' * (attempts != 1)}; is the service running there?"
-        super().__init__(0, [Fault((), msg, "unreachable")], where="unreachable")
+    def __init__(
+        self, url: str, attempts: int, cause: Exception | None = None, *, status: int = 0, proxy: str | None = None
+    ) -> None:
+        self.url, self.attempts, self.proxy = url, attempts, proxy
+        tries = f"{attempts} attempt{'s' * (attempts != 1)}"
+        if cause is None:
+            msg = (f"cannot reach the service at {url}: a proxy answered HTTP {status} in its stead ({proxy}) "
+                   f"after {tries}; is the service running behind the proxy?")
+        else:
+            why = f"{type(cause).__name__}: {cause}" if str(cause) else type(cause).__name__
+            msg = f"cannot reach {url} ({why}) after {tries}; is the service running there?"
+        super().__init__(status, [Fault((), msg, "unreachable")], where="unreachable")
 
 
 class WrongURL(ServiceError):

@@ -27,12 +27,14 @@ class Client(BaseClient):
     return bit-identical numbers. Requests larger than the server's limits (or
     `max_joints_per_request`) are split and their answers merged; `progress=True` shows
     a stderr bar while they run, or pass a callback `(done, total)`.
-    Connection failures are retried `retries` times with exponential `backoff` (seconds);
-    so is a busy 503 (the server had no room and computed nothing), after its `Retry-After`
-    (at least the backoff step; a server asking more than `max_retry_after` seconds raises
-    `Busy` at once), all from the one `retries` budget. No other status is retried (not the
-    deadline's 503 either); a 4xx/5xx raises `ServiceError` (`InvalidInput` for 422) carrying
-    the server's `loc`s, `Busy` for a 503 still busy when the retries are spent.
+    Connection failures (refused, reset, dropped) are retried `retries` times with exponential
+    `backoff` (seconds); so is a busy 503 (the server had no room and computed nothing), after its
+    `Retry-After` (at least the backoff step; a server asking more than `max_retry_after` seconds
+    raises `Busy` at once), and a proxy's 502/503/504 (not the service's JSON error: no upstream
+    answered), all from the one `retries` budget. No other status is retried (not the deadline's
+    503 either); a 4xx/5xx raises `ServiceError` (`InvalidInput` for 422) carrying the server's
+    `loc`s, `Busy` for a 503 still busy when the retries are spent, `Unreachable` (the proxy's
+    `status`) for a proxy still answering for the service.
     `token` goes as `Authorization: Bearer <token>` (sessions too); none given, `$JOINTLIMITS_TOKEN` (the
     server's setting of that name) when set and not empty; `token=""` sends none.
     """
@@ -93,8 +95,8 @@ class Client(BaseClient):
 
         Raises `InvalidInput` (422: `e.loc` like `("body", "batches", 1, "lower", 2)`, `e.faults`),
         `TooLarge` (413), `Busy` (503 "busy" after the retries, or a `Retry-After` over
-        `max_retry_after`), `ServiceError` (any other 4xx/5xx), `Unreachable` (no connection after
-        the retries), `WrongURL` (`base_url` is not the service), `TypeError` (not a request).
+        `max_retry_after`), `ServiceError` (any other 4xx/5xx), `Unreachable` (no connection, or only
+        a proxy's 502/503/504, after the retries), `WrongURL` (`base_url` is not the service), `TypeError` (not a request).
         Requests over the server's limits are split and merged; `progress` overrides the client's.
 
         >>> scene = Scene()
@@ -127,7 +129,7 @@ class Client(BaseClient):
             except transport.RETRYABLE as e:
                 time.sleep(retry.pause(e))
                 continue
-            pause = retry.busy(response)  # None: the answer; else a busy 503 to retry
+            pause = retry.again(response)  # None: the answer; else a busy 503 or a proxy's 502/503/504 to retry
             if pause is None:
                 return response
             time.sleep(pause)

@@ -7,16 +7,29 @@ import re
 from collections.abc import Sequence
 
 import httpx
+import orjson
 
 from jointlimits.client import codec
 from jointlimits.client.errors import Busy, Fault, Unreachable, WrongURL
 from jointlimits.client.model import Evaluation
 from jointlimits.schemas import OUTPUTS, ConstitutionsResponse, answer
 
-RETRYABLE = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError)
-"""Connection failures: the request never reached the server or the connection dropped before
-any answer (evaluation is idempotent). Besides these only a busy 503 is retried (`Retry.busy`);
-timeouts while the server computes, and every other HTTP status, are never retried."""
+RETRYABLE = (
+    httpx.ConnectError,
+    httpx.ConnectTimeout,
+    httpx.RemoteProtocolError,
+    httpx.ReadError,
+    httpx.WriteError,
+)
+"""Connection failures: the request never reached the server, or the connection was dropped or
+reset before an answer (the clients' calls, `GET /v1/constitutions` and `POST /v1/evaluate`, are
+idempotent: sending one again is safe). Besides these, a busy 503 and a proxy's 502/503/504 are
+retried (`Retry.again`); timeouts while the server computes, and every other answer, are never
+retried."""
+
+PROXY_STATUSES = frozenset({502, 503, 504})
+"""What a proxy or load balancer answers in the service's stead (no upstream, upstream reset or
+timed out): retried when the body is not the service's own error (`from_proxy`)."""
 
 MAX_RETRY_AFTER = 30.0
 """Longest `Retry-After` (seconds) the clients sleep for; a server asking more raises `Busy` at once."""
@@ -72,11 +85,33 @@ def retry_after(response: httpx.Response) -> float | None:
     return float(value) if _SECONDS.fullmatch(value) else None
 
 
+def from_proxy(response: httpx.Response) -> bool:
+    """True for a 502/503/504 that is not the service's own answer: its body is not the service's
+    error (a JSON object with `detail`, as every error of the service is), e.g. an HTML page of
+    HAProxy, nginx, Envoy or a cloud load balancer that had no upstream to hand the request to."""
+    if response.status_code not in PROXY_STATUSES:
+        return False
+    try:
+        body = orjson.loads(response.content)
+    except orjson.JSONDecodeError:
+        return True
+    return not (isinstance(body, dict) and "detail" in body)
+
+
+def proxy_page(content: bytes) -> str:
+    """A proxy's error page in a few words: its `<title>`, else its text without tags (at most 120 characters)."""
+    text = content[:4096].decode("utf-8", "replace")
+    title = re.search(r"<title[^>]*>(.*?)</title>", text, re.IGNORECASE | re.DOTALL)
+    text = title.group(1) if title else re.sub(r"<[^>]*>", " ", text)
+    text = " ".join(text.split())
+    return (text[:117] + "...") if len(text) > 120 else (text or "an empty body")
+
+
 class Retry:
     """The retries of one request: the pause before each next try, until `retries` are spent.
 
-    Connection errors and busy 503s draw on the same budget and the same backoff steps: each
-    retry, whatever its cause, spends the next step.
+    Connection errors, busy 503s and a proxy's 502/503/504 draw on the same budget and the same
+    backoff steps: each retry, whatever its cause, spends the next step.
     """
 
     def __init__(self, retries: int, backoff: float, url: str, max_retry_after: float = MAX_RETRY_AFTER) -> None:
@@ -93,20 +128,28 @@ class Retry:
             raise Unreachable(self.url, self.attempts, error) from error
         return pause
 
-    def busy(self, response: httpx.Response) -> float | None:
-        """None if `response` is an answer to hand on; else (a busy 503) seconds to sleep before
-        the next try: its `Retry-After`, at least the backoff step. `Busy` if no retry is left or
-        the server asks for more than `max_retry_after` seconds."""
-        if response.status_code != 503:
-            return None
-        error = codec.error(response.status_code, response.content)
-        if not isinstance(error, Busy):  # the deadline's 503 ran for the whole timeout: not retried
+    def again(self, response: httpx.Response) -> float | None:
+        """None if `response` is an answer to hand on; else (a busy 503, or a proxy's 502/503/504:
+        nothing was computed) seconds to sleep before the next try: its `Retry-After`, at least the
+        backoff step. When no retry is left, or the answer asks to wait more than `max_retry_after`
+        seconds: `Busy` for the service's busy 503, `Unreachable` (with the proxy's `status`) for a
+        proxy's answer."""
+        if from_proxy(response):
+            error = None
+        elif response.status_code == 503:
+            error = codec.error(response.status_code, response.content)
+            if not isinstance(error, Busy):  # the deadline's 503 ran for the whole timeout: not retried
+                return None
+        else:
             return None
         self.attempts += 1
         after = retry_after(response)
         too_long = after is not None and after > self.max_retry_after
         step = None if too_long else next(self._pauses, None)
         if step is None:
+            if error is None:
+                raise Unreachable(self.url, self.attempts, status=response.status_code,
+                                  proxy=proxy_page(response.content))
             raise Busy(error.status, error.faults, retry_after=after, attempts=self.attempts,
                        max_retry_after=self.max_retry_after if too_long else None)
         return max(step, after or 0.0)

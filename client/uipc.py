@@ -1,9 +1,11 @@
 """Read a libuipc scene (`uipc.core.Scene`, the `pyuipc` package) into a request, and write committed angles back.
 
     from jointlimits.client import LocalClient
-    from jointlimits.client.uipc import request_from_scene, write_back
+    from jointlimits.client.uipc import reference, request_from_scene, write_back
 
-    req, joints = request_from_scene(scene)             # every #670 / #669 joint edge of the scene
+    snapshot = reference(scene)                          # where you call world.init(): the engine's q_ref
+    ...                                                  # time steps
+    req, joints = request_from_scene(scene, reference=snapshot)   # every #670 / #669 joint edge
     ev = LocalClient().evaluate(req)                     # or Client / AsyncClient / .session(req)
     write_back(scene, [b.coordinate for b in ev.batches], joints)
 
@@ -12,8 +14,15 @@ scene's geometries and attributes only (CONTRACT v1.2, "Reading an engine scene"
 
 - Bodies: every affine-body geometry's instances, numbered as the engine numbers them: geometries
   in slot (id) order, stable-sorted by constitution UID, instances consecutive. `q` is each
-  instance's current `transform`, `q_ref` the rest geometry's (the transforms at `world.init()`),
-  `q_prev` is `q_ref` unless given. A body geometry that carries the engine's
+  instance's current `transform`. `q_ref` is what the engine builds its joint frames from: the
+  transforms at `world.init()` (`AffineBodyRevoluteJoint::do_init` / `AffineBodyPrismaticJoint::do_init`
+  read the scene's current transforms then). Take them with `snapshot = reference(scene)` where you
+  call `world.init()` and pass `reference=snapshot` to every later read; without one the rest
+  geometries' transforms stand in, and a scene where they can only be a guess (every rest transform
+  the identity while a current one is not, or a `UrdfIO` link posed after it was created) raises
+  `SceneError` (`reference="rest"` takes them as they are). `q_prev` is the transforms the
+  published `angle` belongs to, the current ones, when `angle` is read (the engine's next step
+  takes them as `q_prev`), else `q_ref`. A body geometry that carries the engine's
   `backend_abd_body_offset` must agree with that numbering.
 - Joints: one per edge of every joint geometry (meta `constitution_uid` 18 / 20) whose
   `extra_constitution_uids` holds 670 / 669; world edges (vertex positions) or local edges
@@ -125,6 +134,32 @@ def _transforms_to_q(T: ArrayLike) -> Array:
     return np.concatenate([T[:, :3, 3], T[:, :3, :3].reshape(-1, 9)], axis=1)
 
 
+IDENTITY = np.eye(4)
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The affine bodies' transforms at one moment, by body geometry id (`transforms[id]` (I, 4, 4), a
+    copy): made by `reference(scene)` where `world.init()` is called, the transforms the engine builds
+    its joint frames from (`q_ref`)."""
+
+    transforms: dict[int, Array]
+
+
+def reference(scene: Any) -> Reference:
+    """A snapshot of every affine-body instance's current `transform`: take it where you call
+    `world.init()` (the engine builds its joint frames from the transforms then, not from the rest
+    geometries, which e.g. `UrdfIO` leaves at the identity) and pass it to every later
+    `request_from_scene(scene, reference=snapshot)` as the bodies' `q_ref`."""
+    _uipc()
+    out = {}
+    for gid, slot, _ in _slots(scene):
+        geo = slot.geometry()
+        if _is_affine_body(_meta_uid(geo)):
+            out[gid] = np.array(geo.transforms().view(), dtype=np.float64).reshape(-1, 4, 4)
+    return Reference(out)
+
+
 @dataclass
 class _Bodies:
     """The engine's body numbering: `offset[geo id]`, `count[geo id]`; `q`, `q_ref` (B, 12); `published`
@@ -136,19 +171,36 @@ class _Bodies:
     q_ref: Array
     published: int
     n_geometries: int
+    guess: str = ""
+    """Why the rest transforms can only be a guess for the transforms at `world.init()` ("": no sign)."""
 
 
-def _bodies(slots: list[tuple[int, Any, Any]]) -> _Bodies:
+def _bodies(slots: list[tuple[int, Any, Any]], snapshot: Reference | None = None) -> _Bodies:
     geos = [(gid, slot, rest, _meta_uid(slot.geometry())) for gid, slot, rest in slots]
     geos = [g for g in geos if _is_affine_body(g[3])]
     geos.sort(key=lambda g: g[3])  # stable: slot order within a constitution UID
     offset, count, qs, q_refs, published, at = {}, {}, [], [], 0, 0
+    all_identity, moved, urdf_posed = True, False, []
     for gid, slot, rest, _ in geos:
         geo = slot.geometry()
-        T = np.asarray(geo.transforms().view(), dtype=np.float64)
-        T_ref = np.asarray(rest.geometry().transforms().view(), dtype=np.float64) if rest is not None else T
-        if T_ref.shape != T.shape:
-            raise SceneError(f"body geometry has {T.shape[0]} instances but its rest geometry {T_ref.shape[0]}", gid)
+        T = np.asarray(geo.transforms().view(), dtype=np.float64).reshape(-1, 4, 4)
+        if snapshot is not None:
+            if gid not in snapshot.transforms:
+                raise SceneError("the body geometry is not in the reference snapshot", gid,
+                                 hint="created after reference(scene) was taken? take it again where world.init() is called")
+            T_ref = snapshot.transforms[gid]
+            if T_ref.shape != T.shape:
+                raise SceneError(f"body geometry has {T.shape[0]} instances but {T_ref.shape[0]} in the reference snapshot", gid)
+        else:
+            T_ref = np.asarray(rest.geometry().transforms().view(), dtype=np.float64).reshape(-1, 4, 4) if rest is not None else T
+            if T_ref.shape != T.shape:
+                raise SceneError(f"body geometry has {T.shape[0]} instances but its rest geometry {T_ref.shape[0]}", gid)
+            identity = bool(np.all(T_ref == IDENTITY))
+            all_identity &= identity
+            moved |= not np.array_equal(T, T_ref)
+            link = geo.meta().find("urdf/type")
+            if identity and not np.array_equal(T, T_ref) and link is not None and list(link.view()) == ["link"]:
+                urdf_posed.append(gid)
         mine = geo.meta().find(BODY_OFFSET)
         if mine is not None:
             published += 1
@@ -161,9 +213,16 @@ def _bodies(slots: list[tuple[int, Any, Any]]) -> _Bodies:
         qs.append(_transforms_to_q(T))
         q_refs.append(_transforms_to_q(T_ref))
         at += T.shape[0]
+    guess = ""
+    if snapshot is None and urdf_posed:
+        guess = (f"the UrdfIO link geometries {urdf_posed} were posed after they were created: their rest "
+                 "transforms are the identity, not the transforms the engine builds the joints from at world.init()")
+    elif snapshot is None and geos and all_identity and moved:
+        guess = ("every body's rest transform is the identity and some current transform is not: the rest "
+                 "transforms may not be the transforms the engine builds the joints from at world.init()")
     empty = np.zeros((0, 12))
     return _Bodies(offset, count, np.concatenate(qs or [empty]), np.concatenate(q_refs or [empty]),
-                   published, len(geos))
+                   published, len(geos), guess)
 
 
 def _edge_attr(geo: Any, name: str, gid: int, required: bool = True) -> NDArray[Any] | None:
@@ -280,16 +339,25 @@ def request_from_scene(
     q_ref: ArrayLike | None = None,
     committed: bool | None = None,
     outputs: Sequence[str] = ("energy", "gradient", "hessian"),
+    *,
+    reference: Reference | str | None = None,
 ) -> tuple[Request, list[list[JointRef]]]:
     """The request that evaluates every #670 / #669 joint of a `uipc.core.Scene` as the engine does,
     and `joints`: `joints[k][r]` = (joint geometry id, edge index) of batch `k`'s row `r`.
 
     `q`, `q_prev`, `q_ref` (B, 12) override the bodies' DOFs (B = the scene's affine bodies, in the
-    engine's numbering); by default `q` = the instances' current transforms, `q_ref` = the rest
-    geometries' transforms, `q_prev` = `q_ref`. `committed` says whether the edges' `angle` is the
-    engine's committed angle at `q_prev` (`prev_coordinate`): True: yes; False: no (the service
-    measures from `q_ref`); None: yes once the engine has published it (the body geometries carry
-    `backend_abd_body_offset`, which `world.init()` of a simulating backend writes).
+    engine's numbering); by default `q` = the instances' current transforms and `q_ref` = the
+    transforms at `world.init()`, which the engine builds its joint frames from: `reference`, a
+    snapshot `reference(scene)` taken where `world.init()` is called (every body geometry must be in
+    it); without one (None) the rest geometries' transforms, refused with a `SceneError` when they
+    can only be a guess (every rest transform the identity while a current one is not, or a `UrdfIO`
+    link posed after it was created: its rest transform stays the identity); `reference="rest"`
+    takes the rest transforms as they are. `committed` says whether the edges' `angle` is the
+    engine's committed angle (`prev_coordinate`): True: yes; False: no (the service measures from
+    `q_ref`); None: yes once the engine has published it (the body geometries carry
+    `backend_abd_body_offset`, which `world.init()` of a simulating backend writes). The engine
+    publishes `angle` for the transforms it writes back, which its next step takes as `q_prev`: so
+    `q_prev` defaults to the scene's current transforms when `angle` is read, else to `q_ref`.
 
     One batch per constitution and edge variant (world edges, local edges): 670's first, each
     constitution's variants in the order their first geometry comes; rows in slot order, then edge
@@ -298,8 +366,17 @@ def request_from_scene(
     that cannot be read, and ImportError without pyuipc.
     """
     _uipc()
+    if isinstance(reference, str) and reference != "rest":
+        raise SceneError(f"`reference` is a snapshot from reference(scene), \"rest\" or None, got {reference!r}")
+    if reference is not None and not isinstance(reference, (Reference, str)):
+        raise SceneError(f"`reference` is a snapshot from reference(scene), \"rest\" or None, got {type(reference).__name__}")
+    if reference is not None and q_ref is not None:
+        raise SceneError("give the transforms at world.init() once: `reference` or `q_ref`, not both")
     slots = _slots(scene)
-    bodies = _bodies(slots)
+    bodies = _bodies(slots, reference if isinstance(reference, Reference) else None)
+    if reference is None and q_ref is None and bodies.guess:
+        raise SceneError(bodies.guess, hint="take snapshot = reference(scene) where you call world.init() and pass "
+                         "reference=snapshot; or pass q_ref=, or reference=\"rest\" to take the rest transforms as they are")
     if committed is None:
         if 0 < bodies.published < bodies.n_geometries:
             raise SceneError(f"{bodies.published} of {bodies.n_geometries} body geometries carry `{BODY_OFFSET}`: "
@@ -350,7 +427,9 @@ def request_from_scene(
         return a
     q_ref_ = dofs(q_ref, bodies.q_ref, "q_ref")
     q_ = dofs(q, bodies.q, "q")
-    q_prev_ = dofs(q_prev, q_ref_, "q_prev")
+    # The engine's `angle` belongs to the transforms it wrote back, its next step's q_prev
+    # (affine_body_revolute_joint.cu: the limit reads current_angles as the frame-start angle).
+    q_prev_ = dofs(q_prev, bodies.q if use_angle else q_ref_, "q_prev")
 
     batches, joints = [], []
     for (uid, local), r in rows.items():

@@ -157,8 +157,12 @@ def reference(scene, joints_of_batch, *, committed: bool, q_prev_of=None, q_ref_
               origin: str = "absolute") -> ref.Result:
     """The engine's numbers for the rows `[(geometry id, edge), ...]` of one batch, read straight
     from the scene's attributes: each side's body is its geometry's instance transform (current for
-    `q`, rest for `q_ref`, unless `q_ref_of(gid, inst)` says; `q_prev_of(gid, inst)` or `q_ref` for `q_prev`)."""
+    `q`, rest for `q_ref`, unless `q_ref_of(gid, inst)` says; `q_prev_of(gid, inst)`, else the
+    current transform when the committed `angle` is read (the engine publishes it for the transforms
+    its next step takes as q_prev), else `q_ref`, for `q_prev`)."""
     rest = q_ref_of or (lambda g, i: q_of(scene, g, i, rest=True))
+    if q_prev_of is None and committed:
+        q_prev_of = lambda g, i: q_of(scene, g, i)  # noqa: E731
     rows = {k: [] for k in ("qi", "qj", "pi", "pj", "ri", "rj", "lo", "up", "s", "off", "angle", "e", "le")}
     uid = None
     for gid, e in joints_of_batch:

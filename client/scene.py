@@ -62,8 +62,9 @@ class Scene:
         self._q: list[np.ndarray] = []
         self._q_prev: list[np.ndarray] = []
         self._q_ref: list[np.ndarray] = []
-        # One batch per (constitution, "edges" or "local_edges", origin), in the order first used.
-        self._joints: dict[tuple[int, str, str], list[tuple]] = {}
+        # One batch per (constitution, "edges" or "local_edges", origin, whether `prev_coordinate` is
+        # given), in the order first used: the wire's `prev_coordinate` is all of a batch's joints or none.
+        self._joints: dict[tuple[int, str, str, bool], list[tuple]] = {}
 
     def add_body(self, pose: Pose, *, prev: Pose | None = None, ref: Pose | None = None) -> int:
         """A body at `pose` now; `prev` (last time step) defaults to `ref`, `ref` (when the joints
@@ -90,13 +91,20 @@ class Scene:
         offset: float = 0.0,
         local_edge: ArrayLike | None = None,
         origin: str = "q_ref",
+        prev_coordinate: float | None = None,
     ) -> Joint:
         """#670 on the revolute joint of bodies `i`, `j` about the edge `p0 -> p1` (world, at ref); angles in rad.
         Or, instead of `p0`, `p1`, `local_edge` `[[l0, l1], [r0, r1]]`: the edge in body i's and body j's own
         coordinates (v1.2). `origin` "absolute" measures x from the reference engine's zero (v1.2).
         `offset` is the spec's `init_angle`: the reported coordinate is x + offset, which `lower` and
-        `upper` bound. Returns the joint's handle: its row in its batch, for `result.joint(handle)`."""
-        return self._add(REVOLUTE_LIMIT, i, j, p0, p1, local_edge, origin, lower, upper, strength, offset)
+        `upper` bound. `prev_coordinate` (v1.1) is the joint's known coordinate at the bodies' `prev`
+        poses (the committed, unwrapped angle, any number of turns): then x = (prev_coordinate - offset)
+        + DeltaTheta(q, q_prev), exact past +-pi. Without it x = DeltaTheta(q_prev, q_ref) +
+        DeltaTheta(q, q_prev) (plus the engine's zero under "absolute"), each term wrapped into (-pi, pi]:
+        a joint turned past +-pi from `ref` (with `prev` = `ref`) reads 2 pi off. Joints given it go into a
+        batch of their own. Returns the joint's handle: its row in its batch, for `result.joint(handle)`."""
+        return self._add(REVOLUTE_LIMIT, i, j, p0, p1, local_edge, origin, lower, upper, strength, offset,
+                         prev=prev_coordinate)
 
     def add_prismatic_limit(
         self,
@@ -119,7 +127,7 @@ class Scene:
 
     def _add(
         self, uid: int, i: int, j: int, p0: ArrayLike | None, p1: ArrayLike | None, local_edge: ArrayLike | None,
-        origin: str, lower: float | None, upper: float | None, *rest: float,
+        origin: str, lower: float | None, upper: float | None, *rest: float, prev: float | None = None,
     ) -> Joint:
         if lower is None or upper is None:
             raise TypeError("a joint limit needs lower and upper")
@@ -127,26 +135,29 @@ class Scene:
             raise TypeError("give the joint's edge either as p0, p1 (world, at ref) or as local_edge, not both")
         kind, edge = ("edges", self._edge(p0, p1)) if local_edge is None else ("local_edges", self._local_edge(local_edge))
         ids = (int(i), int(j))
-        lower, upper, *rest = self._check(uid, ids, kind, edge, origin, (lower, upper, *rest))
-        key = (uid, kind, origin)
+        lower, upper, *rest = self._check(uid, ids, kind, edge, origin, (lower, upper, *rest), prev)
+        key = (uid, kind, origin, prev is not None)
         rows = self._joints.setdefault(key, [])
         rows.append((ids, edge, lower, upper, *rest))
         return Joint(len(rows) - 1, uid, list(self._joints).index(key))
 
     def _check(self, uid: int, ids: tuple[int, int], kind: str, edge: np.ndarray, origin: str,
-               numbers: tuple[ArrayLike, ...]) -> list[float]:
-        """`lower`, `upper`, `strength`, `offset` as floats, once the service's checks of this one joint pass
-        (its bodies added and two, finite numbers, `lower <= upper`, `strength >= 0`, its edge, `origin`):
-        else `InvalidInput` naming the argument, in the service's words, at the call that made the mistake."""
+               numbers: tuple[ArrayLike, ...], prev: ArrayLike | None = None) -> list[float]:
+        """`lower`, `upper`, `strength`, `offset` (and `prev_coordinate` when given) as floats, once the
+        service's checks of this one joint pass (its bodies added and two, finite numbers, `lower <= upper`,
+        `strength >= 0`, its edge, `origin`): else `InvalidInput` naming the argument, in the service's
+        words, at the call that made the mistake."""
         where = f"Scene.add_{'revolute' if uid == REVOLUTE_LIMIT else 'prismatic'}_limit"
         faults: list[CoreFault] = []
-        values = {name: _array(v, name, faults) for name, v in zip(("lower", "upper", "strength", "offset"), numbers)}
+        named = ("lower", "upper", "strength", "offset") + ("prev_coordinate",) * (prev is not None)
+        values = {name: _array(v, name, faults) for name, v in zip(named, (*numbers, prev))}
         faults += [CoreFault((name,), f"must be one number, got shape {a.shape}")
                    for name, a in values.items() if a is not None and a.size != 1]
         if faults:
             raise invalid(faults, where)
         one = {name: a.reshape(1).astype(np.float64) for name, a in values.items()}  # type: ignore[union-attr]
-        lo, up, strength, offset = nums = [float(a[0]) for a in one.values()]
+        nums = [float(a[0]) for a in one.values()]
+        lo, up, strength, offset = nums[:4]
         n_bodies = len(self._q)
         g = edge if kind == "edges" else edge[0]  # p0 -> p1, or l0 -> l1: the vector the service normalises
         with np.errstate(over="ignore", invalid="ignore"):
@@ -157,7 +168,7 @@ class Scene:
             return nums
         joint = Joints(constitution_uid=uid, base_uid=BASE_UID[uid], body_ids=np.array([ids], dtype=np.int64),
                        edges=edge[None] if kind == "edges" else None, origin=origin,
-                       local_edges=edge[None] if kind == "local_edges" else None, **one)
+                       local_edges=edge[None] if kind == "local_edges" else None, **one)  # prev_coordinate too
 
         def argument(loc: tuple) -> tuple:  # ("batches", 0, field, 0, *rest) -> the argument that holds it
             field, rest = loc[2], tuple(loc[4:])
@@ -197,17 +208,18 @@ class Scene:
         self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False,
         layout: str = "joints",
     ) -> Request:
-        """The request: one batch per constitution, in the order first used; bodies in the order added.
+        """The request: one batch per constitution (and per edge kind, origin, and whether the joints were
+        given `prev_coordinate`), in the order first used; bodies in the order added.
 
         `layout="bodies"` asks for the gradient and Hessian summed per body (`Evaluation.assembled`)."""
         batches = []
-        for (uid, kind, origin), rows in self._joints.items():
-            ids, edges, lower, upper, strength, offset = zip(*rows)
+        for (uid, kind, origin, stated), rows in self._joints.items():
+            ids, edges, lower, upper, strength, offset, *prev = zip(*rows)
             # v1.1's offsets only where one is set: a scene without them makes a v1 request.
             off = offset if any(o != 0.0 for o in offset) else None
             geometry = {kind: np.stack(edges)}
             batches.append(JointBatch.of(uid, ids, geometry.pop("edges", None), lower, upper, strength, offset=off,
-                                         origin=origin, **geometry))
+                                         prev_coordinate=prev[0] if stated else None, origin=origin, **geometry))
         stack = lambda rows: np.array(rows, dtype=np.float64).reshape(-1, 12)  # noqa: E731
         return Request(
             q=stack(self._q),

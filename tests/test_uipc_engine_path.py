@@ -286,3 +286,64 @@ def test_a_multi_turn_published_angle_pairs_with_the_current_transforms():
     _, _, ev = check_scene(scene, committed=True, reference=snap, q_ref_of=snapshot_q(snap), min_active=0)
     np.testing.assert_allclose(ev.batches[0].x, [turned], rtol=1e-15)
     assert ev.batches[0].energy[0] == 0.0
+
+
+# ------------------------------------------------- the SDK's Scene: a joint's known coordinate (issue 29)
+
+
+def test_scene_a_joint_past_pi_given_its_known_coordinate_is_exact():
+    """Scene.add_revolute_limit(prev_coordinate=) is the wire's prev_coordinate: the joint's committed
+    angle at the bodies' `prev` poses. Past +-pi (and turns away) x is exact; without it each
+    increment wraps into (-pi, pi] and the joint reads 2 pi off, as the docstring says."""
+    from jointlimits.client import Scene as SdkScene
+
+    at = lambda a: transform(rot([0, 0, 1], a), [0, 0, 0])  # noqa: E731
+    for turns in (0, 2):
+        scene = SdkScene()
+        a = scene.add_body(np.eye(4))
+        b = scene.add_body(at(3.5), prev=at(3.4), ref=np.eye(4))
+        j = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-3.45, upper=3.45 + 2 * np.pi * turns,
+                                     strength=100.0, prev_coordinate=3.4 + 2 * np.pi * turns)
+        req = scene.request()
+        np.testing.assert_array_equal(req.batches[0].prev_coordinate, [3.4 + 2 * np.pi * turns])
+        r = LocalClient().evaluate(req).joint(j)
+        assert abs(r.x - (3.5 + 2 * np.pi * turns)) < 1e-13 and r.energy > 0
+    scene = SdkScene()
+    a = scene.add_body(np.eye(4))
+    b = scene.add_body(at(3.5), ref=np.eye(4))                       # prev = ref: one increment, wrapped
+    j = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-3.45, upper=3.45, strength=100.0)
+    assert scene.request().batches[0].prev_coordinate is None
+    assert abs(LocalClient().evaluate(scene.request()).joint(j).x - (3.5 - 2 * np.pi)) < 1e-13
+
+
+def test_scene_prev_coordinate_with_an_offset_and_beside_joints_without_it():
+    """The known coordinate is in the reported frame (x + offset); joints given it make a batch of their
+    own (the wire's prev_coordinate is all of a batch or none), handles still find their rows."""
+    from jointlimits.client import Scene as SdkScene
+
+    at = lambda a: transform(rot([0, 0, 1], a), [0, 0, 0])  # noqa: E731
+    scene = SdkScene()
+    a = scene.add_body(np.eye(4))
+    b = scene.add_body(at(0.3), prev=at(0.2), ref=np.eye(4))
+    plain = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.1, upper=0.1, strength=10.0)
+    known = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.1, upper=0.1, strength=10.0,
+                                     offset=0.5, prev_coordinate=0.5 + 0.2 + 2 * np.pi)
+    req = scene.request()
+    assert [b_.prev_coordinate is None for b_ in req.batches] == [True, False]
+    ev = LocalClient().evaluate(req)
+    assert abs(ev.joint(plain).x - 0.3) < 1e-14
+    r = ev.joint(known)
+    assert abs(r.x - (0.3 + 2 * np.pi)) < 1e-13 and abs(r.coordinate - (0.8 + 2 * np.pi)) < 1e-13
+
+
+def test_scene_prev_coordinate_is_checked_where_given_and_revolute_only():
+    from jointlimits.client import InvalidInput, Scene as SdkScene
+
+    scene = SdkScene()
+    a, b = scene.add_body(np.eye(4)), scene.add_body(np.eye(4))
+    with pytest.raises(InvalidInput, match="prev_coordinate") as e:
+        scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-1, upper=1, prev_coordinate=np.nan)
+    assert e.value.faults[0].loc[0] == "prev_coordinate"
+    assert scene.request().batches == []
+    with pytest.raises(TypeError):  # the wire refuses it on 669: its slide is absolute, it has no state
+        scene.add_prismatic_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-1, upper=1, prev_coordinate=0.0)

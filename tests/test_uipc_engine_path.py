@@ -228,6 +228,24 @@ def test_a_body_created_at_a_pose_and_initialised_elsewhere_measures_from_the_sn
     assert abs(LocalClient().evaluate(rest).batches[0].x[0] - ev.batches[0].x[0]) > 0.2
 
 
+@pytest.mark.parametrize("local", [False, True], ids=["world", "local"])
+def test_hinges_and_sliders_initialised_at_a_moved_pose_measure_from_the_snapshot(local):
+    """Both constitutions (the prismatic limit's `ref_qs` are the transforms at world.init() too):
+    the scene of tests/test_uipc.py, world.init() after its move, then every body moved again."""
+    from tests.test_uipc import hinge_and_slider_scene
+
+    scene, (a, b), _ = hinge_and_slider_scene(local)
+    snap = cu.reference(scene)
+    for slot, n in ((a, 3), (b, 2)):
+        for i in range(n):
+            T = np.asarray(slot.geometry().transforms().view())[i]
+            set_transform(slot, i, transform(rot([1.0, 0.2 * i, 0.5], 0.3) @ T[:3, :3], T[:3, 3] + [0.1, 0.05 * i, -0.2]))
+    req, _, ev = check_scene(scene, reference=snap, q_ref_of=snapshot_q(snap), min_active=2)
+    assert [b_.constitution_uid for b_ in req.batches] == [670, 669]
+    rest, _ = request_from_scene(scene)  # the rest transforms (creation): other numbers
+    assert all(np.max(np.abs(g.x - w.x)) > 1e-2 for g, w in zip(LocalClient().evaluate(rest).batches, ev.batches))
+
+
 def test_a_snapshot_must_cover_every_body_and_comes_alone():
     scene, bodies, _ = door()
     snap = cu.reference(scene)

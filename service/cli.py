@@ -15,8 +15,12 @@ The supervisor kills a worker whose health ping goes unanswered for `--healthche
 seconds; the answer needs the GIL, so the timeout must exceed the longest step that holds it
 (a JSON parse at `--max-json-values`, docs/deployment.md, "Limits and sizing a pod").
 
-SIGTERM / SIGINT shut down gracefully: stop accepting, finish in-flight requests (for at most
-`--graceful-timeout` seconds), exit 0.
+SIGTERM drains first: each worker's `/readyz` answers 503 "draining" at once while the worker goes on
+accepting and answering for `--shutdown-delay` seconds (load balancers and Kubernetes endpoints stop
+sending meanwhile; the supervisor passes SIGTERM on to every worker, and the application's lifespan puts
+the delay before uvicorn's own handler in each: `jointlimits.service.app.drain_on_sigterm`). Then, as
+SIGINT does at once: stop accepting, finish in-flight requests (for at most `--graceful-timeout`
+seconds), exit 0.
 """
 
 from __future__ import annotations

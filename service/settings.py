@@ -35,6 +35,14 @@ def positive_float(text: str) -> float:
     return x
 
 
+def seconds(text: str) -> float:
+    """A duration that may be 0 (nothing to wait)."""
+    x = float(text)
+    if not (0 <= x < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be 0 or a positive number of seconds, got {text!r}")
+    return x
+
+
 def boolean(text: str) -> bool:
     v = text.strip().lower()
     if v in ("1", "true", "yes", "on"):
@@ -109,6 +117,13 @@ class Settings:
         30.0, positive_float,
         "seconds a connection's write buffer may stay full (the client not reading its answer, session "
         "replies or pongs); then the connection is dropped and what it held freed",
+    )
+    # The drain on SIGTERM (service/app.py): each worker's /readyz answers 503 "draining" at once and the worker
+    # goes on accepting and answering for this long, then stops accepting and finishes what it holds.
+    shutdown_delay: float = _setting(
+        5.0, seconds,
+        "seconds each worker keeps accepting and answering after SIGTERM, /readyz answering 503 draining, "
+        "before it stops accepting (load balancers and Kubernetes endpoints stop sending meanwhile); 0: at once",
     )
     keep_heap: bool = _setting(  # service/core/heap.py
         True, boolean,

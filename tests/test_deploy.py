@@ -28,10 +28,11 @@ def test_kinds():
     assert (DEPLOYMENT["kind"], SERVICE["kind"], HPA["kind"]) == ("Deployment", "Service", "HorizontalPodAutoscaler")
 
 
-def test_probes_on_healthz():
-    for probe in ("readinessProbe", "livenessProbe"):
+def test_readiness_on_readyz_liveness_on_healthz():
+    """Separate endpoints (issue 30): a draining pod's /readyz answers 503 while its /healthz stays 200."""
+    for probe, path in (("readinessProbe", "/readyz"), ("livenessProbe", "/healthz")):
         get = CONTAINER[probe]["httpGet"]
-        assert get["path"] == "/healthz" and get["port"] in ("http", int(ENV["JOINTLIMITS_PORT"]))
+        assert get["path"] == path and get["port"] in ("http", int(ENV["JOINTLIMITS_PORT"]))
 
 
 def test_ports_line_up():
@@ -56,9 +57,14 @@ def test_workers_match_the_cpu_request():
 
 
 def test_graceful_shutdown_fits_the_grace_period():
-    pre_stop = CONTAINER["lifecycle"]["preStop"]["exec"]["command"]
-    assert pre_stop[0] == "sleep"
-    assert int(pre_stop[1]) + float(ENV["JOINTLIMITS_GRACEFUL_TIMEOUT"]) < POD["terminationGracePeriodSeconds"]
+    """SIGTERM comes at once (no preStop: the drain is the server's, JOINTLIMITS_SHUTDOWN_DELAY), then the
+    graceful timeout; both fit before SIGKILL."""
+    from jointlimits.service.settings import TABLE
+
+    assert "preStop" not in CONTAINER.get("lifecycle", {})  # it would add to the delay, /readyz still 200
+    delay = float(ENV.get("JOINTLIMITS_SHUTDOWN_DELAY") or next(s.default for s in TABLE if s.name == "shutdown_delay"))
+    assert delay > 0
+    assert delay + float(ENV["JOINTLIMITS_GRACEFUL_TIMEOUT"]) < POD["terminationGracePeriodSeconds"]
 
 
 def test_runs_as_the_images_non_root_user():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 from fastapi import APIRouter, FastAPI, Request
-from fastapi.responses import RedirectResponse, Response
+from fastapi.responses import JSONResponse, RedirectResponse, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
@@ -14,7 +14,7 @@ from jointlimits.service.core import InputError, evaluate
 from jointlimits.service.core.errors import DeadlineExceeded, check_deadline
 from jointlimits.service import sizing
 from jointlimits.service.http import binary, budget, convert, discovery, limits, negotiate, openapi
-from jointlimits.service.http.errors import HttpError, client_gone, deadline_handler, http_error_handler, input_error_handler
+from jointlimits.service.http.errors import FaultList, HttpError, client_gone, deadline_handler, http_error_handler, input_error_handler
 from jointlimits.service.settings import Settings
 
 router = APIRouter()
@@ -28,9 +28,33 @@ def root(request: Request) -> RedirectResponse:
     return RedirectResponse(request.scope.get("root_path", "").rstrip("/") + "/docs")
 
 
-@router.get("/healthz")
+@router.get("/healthz", summary="Liveness: the worker answers")
 def healthz() -> dict[str, str]:
+    """200 `{"status": "ok"}` while the worker answers at all, draining or not: a liveness probe (a worker
+    that does not answer is restarted). Not for load balancing: that is `/readyz`."""
     return {"status": "ok"}
+
+
+DRAINING = ("this worker is draining (SIGTERM): it goes on answering for {delay:g} s after the signal "
+            "(JOINTLIMITS_SHUTDOWN_DELAY), then stops accepting; send new requests elsewhere")
+
+
+@router.get(
+    "/readyz",
+    summary="Readiness: the worker takes new requests",
+    responses={503: {"description": "Draining after SIGTERM: it still answers, send new requests elsewhere",
+                     "content": {"application/json": {"example": {"detail": [
+                         {"loc": [], "msg": DRAINING.format(delay=5), "type": "draining"}]}}}}},
+)
+def readyz(request: Request) -> Response:
+    """200 `{"status": "ready"}`; from SIGTERM on, a 503 fault of type `draining`, for the
+    `JOINTLIMITS_SHUTDOWN_DELAY` seconds the worker still accepts and answers before it stops
+    accepting: a readiness probe, or a load balancer's health check, takes the worker out of rotation
+    meanwhile (docs/deployment.md, "Stopping without a failed request")."""
+    if request.app.state.draining:
+        delay = request.app.state.settings.shutdown_delay
+        return FaultList({"detail": [{"loc": [], "msg": DRAINING.format(delay=delay), "type": "draining"}]}, status_code=503)
+    return JSONResponse({"status": "ready"})
 
 
 @router.get("/v1/constitutions", response_model=ConstitutionsResponse, summary="Supported constitutions")

@@ -98,8 +98,8 @@ class Scene:
         coordinates (v1.2). `origin` "absolute" measures x from the reference engine's zero (v1.2).
         `offset` is the spec's `init_angle`: the reported coordinate is x + offset, which `lower` and
         `upper` bound. `prev_coordinate` (v1.1) is the joint's known coordinate at the bodies' `prev`
-        poses (the committed, unwrapped angle, any number of turns): then x = (prev_coordinate - offset)
-        + DeltaTheta(q, q_prev), exact past +-pi. Without it x = DeltaTheta(q_prev, q_ref) +
+        poses (the committed, unwrapped angle, any number of turns): then x = (prev_coordinate - offset) plus
+        DeltaTheta(q, q_prev), exact past +-pi. Without it x = DeltaTheta(q_prev, q_ref) plus
         DeltaTheta(q, q_prev) (plus the engine's zero under "absolute"), each term wrapped into (-pi, pi]:
         a joint turned past +-pi from `ref` (with `prev` = `ref`) reads 2 pi off. Joints given it go into a
         batch of their own. Returns the joint's handle: its row in its batch, for `result.joint(handle)`."""

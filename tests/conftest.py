@@ -62,6 +62,8 @@ SLOW = (
     "test_cli.py::test_serve_passes_limits_logs_json_and_stops_gracefully",  # `jointlimits serve` subprocesses
     "test_cli.py::test_token_file_and_cors",
     "test_cli.py::test_an_app_that_does_not_import_fails_fast",
+    "test_drain.py::test_sigterm_drains_then_stops",  # `jointlimits serve` with 1 and 2 workers, a 1.5 s drain (~4.6 s)
+    "test_drain.py::test_a_second_sigterm_changes_nothing_and_sigint_stops_at_once",  # (~2 s)
     # Property tests over random scenes and the 50-digit reference (the golden cases stay in the fast subset):
     "test_reference.py",  # mpmath over random scenes (~10 s)
     "test_properties.py",  # derivatives by finite differences over random scenes (~8 s)

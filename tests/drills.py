@@ -447,7 +447,8 @@ class Server:
             args,
             stdout=self._log,
             stderr=subprocess.STDOUT,
-            env={**os.environ, **(env or {})},
+            # No drain phase unless a drill asks for one (the default 5 s would add 5 s to every stop).
+            env={**os.environ, "JOINTLIMITS_SHUTDOWN_DELAY": "0", **(env or {})},
             start_new_session=True,
         )
 

@@ -202,8 +202,9 @@ def test_the_deadlines_503_is_not_retried(app, mode, pauses):
 
 
 def test_other_statuses_are_not_retried(app, mode, pauses):
-    """A 503 with no JSON body, and a 500, raise at once (only "busy" says that nothing ran)."""
-    for status, body in ((503, b"Service Unavailable"), (500, b'{"detail": "boom"}')):
+    """A 503 of the service's own that is not "busy" (its JSON `detail`), and a 500, raise at once (only "busy"
+    says that nothing ran; a proxy's 503, a body that is not the service's, is retried: tests/test_proxy_retries.py)."""
+    for status, body in ((503, b'{"detail": "maintenance"}'), (500, b'{"detail": "boom"}')):
         server = Server(app, lambda r, s=status, b=body: httpx.Response(s, headers={"Retry-After": "1"}, content=b))
         with pytest.raises(ServiceError) as err:
             evaluate(mode, server, readme_scene().request())

@@ -387,14 +387,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def rss_kib(pid: int) -> int | None:
+def _status_kib(pid: int, field: str) -> int | None:
+    """One `kB` field of a process's /proc status (None if it is gone)."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1])
     except OSError:
         return None
     return None
+
+
+def rss_kib(pid: int) -> int | None:
+    """A process's resident set (`VmRSS`), KiB."""
+    return _status_kib(pid, "VmRSS")
 
 
 def cpu_seconds(pid: int) -> float | None:
@@ -846,13 +852,7 @@ def short_values_json(n_bodies: int) -> bytes:
 
 def peak_kib(pid: int) -> int | None:
     """A process's peak resident set (`VmHWM`), KiB."""
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1])
-    except OSError:
-        return None
-    return None
+    return _status_kib(pid, "VmHWM")
 
 
 def _one(port: int, body: bytes, content_type: str, accept: str, timeout: float = 300.0) -> tuple[int, float, int]:

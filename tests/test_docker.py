@@ -287,7 +287,12 @@ def test_the_image_serves_checks_health_and_stops_on_sigterm(built: Built):
         with urllib.request.urlopen(req, timeout=10) as r:
             answer = json.loads(r.read())
         assert abs(answer["total_energy"] - 0.8) < 1e-9
-        status, metrics = get(port, "/metrics")
+        # A request is counted once its answer has gone out: the scrape may come first (on the other worker).
+        deadline = time.monotonic() + 10
+        while (got := get(port, "/metrics"))[0] == 200 and b"jointlimits_joints_evaluated_total" not in got[1]:
+            assert time.monotonic() < deadline, got
+            time.sleep(0.1)
+        status, metrics = got
         assert status == 200 and b"jointlimits_joints_evaluated_total" in metrics
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(30) == 0, log.read_text()

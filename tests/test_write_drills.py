@@ -53,7 +53,10 @@ def test_a_ping_flood_moves_rss_by_a_bounded_amount():
     """Only the latest ping of each read is answered (one pong per 256 KiB of pings), and none while writes are
     paused: the flood is parsed and forgotten (before: every pong queued, 301 MB of pings took a worker from
     72 to 344 MB)."""
-    # A flood of a given size, however fast this machine parses it (a loaded CI machine took 13 MB in 4 s).
+    # A flood of a given size, however fast this machine parses it (a loaded CI machine took 13 MB in 4 s). The
+    # precondition is what makes the RSS bound able to fail: queued pongs cost ~0.9 MB per MB of pings (272 MB for
+    # 301), so the old server would exceed 8 MiB from ~9 MiB of pings on; 10 MiB stands. (Idle, 24 MiB go out in
+    # under 2 s; in two full-suite runs on 2026-11-26 the server read no more than 13.4 MB in 20 s, unexplained.)
     r = lt.scenario_pingflood(20.0, ENV, ["--write-timeout", "2"], max_bytes=24 * MiB)
-    assert r["ping_bytes_sent"] > 20 * MiB, r
+    assert r["ping_bytes_sent"] > 10 * MiB, r
     assert r["rss_after_mib"] - r["rss_before_mib"] <= 8, r

@@ -1104,7 +1104,7 @@ def scenario_stalled(copies: int, env: dict[str, str] | None = None, extra_args:
     from jointlimits.service import sizing
     from jointlimits.service.settings import Settings
 
-    rule_mib = round(sizing.worker_bytes(Settings(**_settings_env(env))) / 2**20)
+    rule_mib = round(sizing.worker_bytes(_with_env(env, Settings)) / 2**20)
     body, content_type, accept, joints = _with_env(env, lambda: peak_cases()["answer_bound_msgpack"]())
     with Server(workers=1, env=env, extra_args=extra_args) as server:
         pid = server.worker_pids()[0]
@@ -1162,26 +1162,8 @@ def _status_line(s: socket.socket) -> str:
     return head.split(b" ", 2)[1].decode() if head.startswith(b"HTTP/1.1 ") else "nothing"
 
 
-def _settings_env(env: dict[str, str] | None) -> dict[str, Any]:
-    """`Settings` fields from `JOINTLIMITS_*` variables in `env` (the spawned server's), as the server reads them."""
-    from dataclasses import fields
-
-    from jointlimits.service.settings import Settings
-
-    saved = {k: os.environ.get(k) for k in (env or {})}
-    try:
-        os.environ.update(env or {})
-        s = Settings()
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-    return {f.name: getattr(s, f.name) for f in fields(s)}
-
-
 def _with_env(env: dict[str, str] | None, fn: Callable[[], Any]) -> Any:
+    """`fn()` with the variables of `env` set in this process's environment, then put back as they were."""
     saved = {k: os.environ.get(k) for k in (env or {})}
     try:
         os.environ.update(env or {})

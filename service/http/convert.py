@@ -57,7 +57,8 @@ def load(body: bytes) -> Any:
         doc = from_json(body)
     except ValueError as e:
         raise InputError([Fault((), f"Invalid JSON: {e}", "json_invalid")]) from None
-    if isinstance(doc, dict) and body.count(b":") != _keys(doc):
+    if isinstance(doc, dict) and (colons := body.count(b":")) != (keys := sum(map(len, _objects(doc)))) \
+            and colons != keys + _string_colons(doc):
         try:
             doc = json.loads(body, object_pairs_hook=document.pairs)
         except ValueError:
@@ -65,17 +66,17 @@ def load(body: bytes) -> Any:
     return doc
 
 
-def _keys(doc: dict[str, Any]) -> int:
-    """The keys of `doc` and of the objects in its values (`bodies`, each batch), and the colons in their strings."""
-    n = 0
-    for k, v in doc.items():
-        n += 1 + k.count(":")
-        for o in [v] if isinstance(v, (dict, str)) else v if isinstance(v, list) else ():
-            if isinstance(o, str):
-                n += o.count(":")
-            elif isinstance(o, dict):
-                n += sum(1 + k2.count(":") + (v2.count(":") if isinstance(v2, str) else 0) for k2, v2 in o.items())
-    return n
+def _objects(doc: dict[str, Any]) -> list[dict[str, Any]]:
+    """`doc` and the objects in its values: `bodies` and each batch of a request."""
+    return [doc, *(v for v in doc.values() if isinstance(v, dict)),
+            *(o for v in doc.values() if isinstance(v, list) for o in v if isinstance(o, dict))]
+
+
+def _string_colons(doc: dict[str, Any]) -> int:
+    """The colons inside the strings of `doc`'s objects (keys and values) and of the lists in its values."""
+    strings = [x for o in _objects(doc) for kv in o.items() for x in kv if isinstance(x, str)]
+    strings += [x for v in doc.values() if isinstance(v, list) for x in v if isinstance(x, str)]
+    return sum(x.count(":") for x in strings)
 
 
 def to_wire(ev: Evaluation) -> dict[str, Any]:

@@ -179,29 +179,26 @@ class Checker:
     def array(self, value: Any, loc: Loc, integer: bool = False) -> np.ndarray:
         """A numeric array of whatever shape it has (the core judges the shape): nested lists of numbers (JSON), an
         array map as a view of its bytes (msgpack), or a NumPy array; else its faults and an empty array."""
-        empty = np.zeros(0, np.int64 if integer else np.float64)
+        a: np.ndarray | None = None
         if value is None or isinstance(value, (bool, int, float, str)):  # null or a scalar
             self.fault(loc, *NOT_A_LIST)
-            return empty
-        if self.binary:
-            if isinstance(value, dict) and self.repeated_keys(value, loc):
-                return empty
-            try:
-                a = wire.unpack_array(value, wire.INT64 if integer else wire.FLOAT64, None)
-            except ValueError as e:
-                self.fault(loc, str(e))
-                return empty
-            if a.ndim == 0:  # a number in an array map of shape []
-                self.fault(loc, *NOT_A_LIST)
-                return empty
-            return a
-        found = element_faults(value, loc, integer) if self.booleans else []
-        a, found = (None, found) if found else as_array(value, loc, integer)
-        for f in found:
-            self.fault(f.loc, f.msg, f.type)
-        if a is None:
-            return empty
-        return a.reshape(0, *ROWS[loc[-1]]) if a.shape == (0,) and loc[-1] in ROWS else a
+        elif self.binary:
+            if not (isinstance(value, dict) and self.repeated_keys(value, loc)):
+                try:
+                    a = wire.unpack_array(value, wire.INT64 if integer else wire.FLOAT64, None)
+                except ValueError as e:
+                    self.fault(loc, str(e))
+                if a is not None and a.ndim == 0:  # a number in an array map of shape []
+                    self.fault(loc, *NOT_A_LIST)
+                    a = None
+        else:
+            found = element_faults(value, loc, integer) if self.booleans else []
+            a, found = (None, found) if found else as_array(value, loc, integer)
+            for f in found:
+                self.fault(f.loc, f.msg, f.type)
+            if a is not None and a.shape == (0,) and loc[-1] in ROWS:
+                a = a.reshape(0, *ROWS[loc[-1]])
+        return np.zeros(0, np.int64 if integer else np.float64) if a is None else a
 
     def options(self, top: dict[str, Any]) -> dict[str, Any]:
         """The evaluate options `top` gives, checked (the core checks them again for the in-process arrays)."""

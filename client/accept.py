@@ -32,13 +32,20 @@ def as_request(request: Any) -> Request:
             raise TypeError(f"evaluate(): the dict is not wire JSON ({e})") from None
         # The service's own JSON reader (imported here: HTTP alone never loads it): the same faults, in the same words.
         from jointlimits.service.core import InputError
-        from jointlimits.service.http.convert import parse
+        from jointlimits.service.http.convert import read
 
         try:
-            return _from_wire(parse(body))
+            kw = read(body)
         except InputError as e:
             raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults], where="invalid input") from None
+        b = kw["bodies"]
+        batches = [JointBatch(**{f: getattr(j, f) for f in _JOINT_FIELDS}) for j in kw["batches"]]
+        return Request(b.q, b.q_prev, b.q_ref, batches, tuple(kw["outputs"]), kw["hessian_mode"], kw["active_only"], kw["layout"])
     raise TypeError(f"evaluate() takes {ACCEPTED}; got {type(request).__module__}.{type(request).__qualname__}")
+
+
+_JOINT_FIELDS = ("constitution_uid", "body_ids", "edges", "local_edges", "origin", "lower", "upper", "strength", "base_uid",
+                 "offset", "prev_coordinate")
 
 
 def _from_wire(req: EvaluateRequest) -> Request:

@@ -98,10 +98,11 @@ def _bin_header(n: int) -> bytes:
     return b"\xc6" + n.to_bytes(4, "big")
 
 
-def loads(body: bytes) -> Any:
-    """Decode a msgpack document; `ValueError` for anything that is not exactly one valid document."""
+def loads(body: bytes, object_pairs_hook: Any = None) -> Any:
+    """Decode a msgpack document (each map through `object_pairs_hook` if given, as a list of its pairs);
+    `ValueError` for anything that is not exactly one valid document."""
     try:
         # strict_map_key: keys are strings; raw=False: strings are UTF-8.
-        return msgpack.unpackb(body, raw=False, strict_map_key=True)
+        return msgpack.unpackb(body, raw=False, strict_map_key=True, object_pairs_hook=object_pairs_hook)
     except Exception as e:  # msgpack raises several unrelated types for malformed input
         raise ValueError(f"body is not a valid msgpack document ({type(e).__name__}: {e})") from None

@@ -1,9 +1,10 @@
 """Pydantic models of `POST /v1/evaluate` (CONTRACT.md, wire contract v1, v1.1 and v1.2).
 
 The models describe the document (fields, literals, shapes: row lengths, pairs, triples) for OpenAPI and
-for a request built from them directly. The service's decoders set the numeric arrays aside and hand
-them to the core's validator (`service/http/convert.py`, `binary.py`), which checks shapes and
-everything that needs arithmetic (finiteness, ranges, singular frames), so that every path, the
+for a request built from them directly (the SDK takes one). The service does not validate with them: its one
+validator (`service/http/document.py`) reads their fields' names and which are required, checks a decoded
+document in their words, and hands the numeric arrays to the core (`service/core/validate.py`), which checks
+shapes and everything that needs arithmetic (finiteness, ranges, singular frames), so that every path, the
 in-process SDK included, gets the same faults.
 """
 
@@ -57,7 +58,7 @@ class JointBatch(_Wire):
     """Joints of one constitution; all per-joint lists have one entry per joint."""
 
     constitution_uid: Int64
-    # Optional on the wire (absent, never null): the decoder fills them in (service/http/convert.py: base_uid_of and the defaults).
+    # Optional on the wire (absent, never null): the validator fills them in (service/http/document.py: base_uid_of and the defaults).
     base_uid: Int64 = Field(None, json_schema_extra=_no_default)
     body_ids: Annotated[list[BodyPair], FailFast()]
     # Exactly one of `edges` and `local_edges` (the core names the batch otherwise, on every path).

@@ -22,7 +22,7 @@ from jointlimits.service.core import BatchResult, Evaluation, evaluate
 from jointlimits.service.core.errors import DeadlineExceeded
 from jointlimits.service.core.evaluate import CHUNK
 from jointlimits.service.core import evaluate as checked_evaluate
-from jointlimits.service.http import binary, convert, limits, routes
+from jointlimits.service.http import binary, convert, document, limits, routes
 from jointlimits.service.settings import Settings
 from tests import drills as lt
 
@@ -369,7 +369,7 @@ def test_batches_are_counted_before_they_are_read(no_work, monkeypatch):
     def no_batch(*a, **kw):
         raise AssertionError("a batch was read")
 
-    monkeypatch.setattr(binary, "_batch", no_batch)
+    monkeypatch.setattr(document.Checker, "batch", no_batch)
     r = post(client(max_batches=8), req, True)
     assert r.status_code == 413 and "has 9 batches" in r.json()["detail"][0]["msg"]
     monkeypatch.setattr(convert, "from_json", no_batch)

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 from fastapi.testclient import TestClient
 
-from jointlimits.schemas import EvaluateRequest
 from jointlimits.service.app import app
 from jointlimits.service.core import evaluate
-from jointlimits.service.http.convert import to_core
+import orjson
+
+from jointlimits.service.http.convert import read
 from tests.conftest import relerr
 
 TOL = 1e-12  # every golden case is in the well-conditioned family
@@ -16,7 +17,7 @@ FIELDS = ("x", "energy", "gradient", "hessian")
 
 
 def test_golden_in_process(golden_case):
-    ev = evaluate(**to_core(EvaluateRequest.model_validate(golden_case["request"])))
+    ev = evaluate(**read(orjson.dumps(golden_case["request"])))
     assert len(ev.batches) == len(golden_case["expect"])
     for got, want in zip(ev.batches, golden_case["expect"]):
         for f in FIELDS:
@@ -37,6 +38,6 @@ def test_golden_over_http(golden_case):
 
 
 def test_golden_hessians_are_symmetric(golden_case):
-    ev = evaluate(**to_core(EvaluateRequest.model_validate(golden_case["request"])))
+    ev = evaluate(**read(orjson.dumps(golden_case["request"])))
     for r in ev.batches:
         np.testing.assert_array_equal(r.hessian, r.hessian.transpose(0, 2, 1))

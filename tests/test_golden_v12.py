@@ -14,11 +14,12 @@ from fastapi.testclient import TestClient
 from jointlimits.client import Client, InvalidInput, LocalClient
 from jointlimits.client import codec
 from jointlimits.client.accept import as_request
-from jointlimits.schemas import EvaluateRequest
 from jointlimits.schemas import binary as wire
 from jointlimits.service.app import app
 from jointlimits.service.core import InputError, evaluate
-from jointlimits.service.http.convert import to_core
+import orjson
+
+from jointlimits.service.http.convert import read
 from tests.conftest import relerr
 from tests.test_golden_state import _check as check_state_case
 from tests.test_contract_live import serve
@@ -44,7 +45,7 @@ def _check(batches, case) -> None:
 
 
 def test_v12_case_in_process(case):
-    _check(evaluate(**to_core(EvaluateRequest.model_validate(case["request"]))).batches, case)
+    _check(evaluate(**read(orjson.dumps(case["request"]))).batches, case)
 
 
 def test_v12_case_over_json_and_msgpack(case):
@@ -90,7 +91,7 @@ def test_v1_prismatic_psd_case_is_the_engines_projection():
     from tests.conftest import GOLDEN
 
     case = next(c for c in GOLDEN if c["name"] == "prismatic_psd")
-    ev = evaluate(**to_core(EvaluateRequest.model_validate(case["request"])))
+    ev = evaluate(**read(orjson.dumps(case["request"])))
     assert relerr(ev.batches[0].hessian, case["expect"][0]["hessian"]) <= 1e-13
 
 
@@ -149,7 +150,7 @@ def test_v12_faults_are_the_same_on_every_path(name):
 
 
 def test_core_refuses_an_unknown_origin_in_process():
-    kw = to_core(EvaluateRequest.model_validate(_request(_batch(edges=EDGE))))
+    kw = read(orjson.dumps(_request(_batch(edges=EDGE))))
     kw["batches"][0] = type(kw["batches"][0])(**{**kw["batches"][0].__dict__, "origin": "engine"})
     with pytest.raises(InputError) as e:
         evaluate(**kw)

@@ -15,10 +15,14 @@ from dataclasses import fields
 import httpx
 import msgpack
 import pytest
+from pydantic import ValidationError
 
-from jointlimits.service.core import InputError
+from jointlimits.schemas import EvaluateRequest
+from jointlimits.schemas.session import OpeningRequest
+
+from jointlimits.service.core import InputError, evaluate
 from jointlimits.service.core.errors import MAX_FAULTS
-from jointlimits.service.http import binary, convert, jsonkeys
+from jointlimits.service.http import binary, convert
 from jointlimits.service.http.errors import MAX_KEY_CHARS, render
 from jointlimits.service.settings import Settings
 from tests.test_contract_live import serve
@@ -178,42 +182,47 @@ def test_every_flood_of_bad_items_is_capped_in_both_decoders(doc, monkeypatch):
     built = pydantic_error_counts(monkeypatch)
     for decode, body in ((convert.decode, json.dumps(doc).encode()), (binary.decode, msgpack.packb(doc))):
         with pytest.raises(InputError) as e:
-            decode(body, 10**6)
+            evaluate(**decode(body, 10**6))  # a shape is the core's to name (short rows), as on the service's path
         assert 0 < len(e.value.faults) <= MAX_FAULTS, (decode.__module__, len(e.value.faults))
     # Not only the answer: pydantic itself listed a handful of errors, if it ran at all.
     assert all(n <= 2 * MAX_FAULTS for n in built), built
 
 
 def pydantic_error_counts(monkeypatch) -> list[int]:
-    """Records how many errors pydantic built each time the JSON decoder turns them into faults."""
+    """Records each time pydantic validates a request document (the decoders never do: the one validator,
+    service/http/document.py, reads the plain document), and how many errors it built."""
     counts: list[int] = []
-    real = convert.from_validation
+    for model in (EvaluateRequest, OpeningRequest):
+        real = model.model_validate
 
-    def counting(e):
-        counts.append(e.error_count())
-        return real(e)
+        def counting(*args, real=real, **kwargs):
+            try:
+                return real(*args, **kwargs)
+            except ValidationError as e:
+                counts.append(e.error_count())
+                raise
 
-    monkeypatch.setattr(convert, "from_validation", counting)
+        monkeypatch.setattr(model, "model_validate", counting)
     return counts
 
 
-def test_key_scan_names_keys_and_stops_at_the_cap():
-    s = jsonkeys.scan(json.dumps(HOSTILE).encode())
-    assert len(s.faults) == MAX_FAULTS and not s.complete
-    s = jsonkeys.scan(json.dumps(_json()).encode())
-    assert s.faults == [] and s.complete
-    # Braces and colons inside strings are not structure.
-    s = jsonkeys.scan(b'{"bodies": {"q": [], "q_prev": [], "q_ref": []}, "batches": [], "outputs": ["{\\"a\\": 1}", "}"]}')
-    assert s.faults == [] and s.complete
+def test_keys_are_named_from_the_parsed_document_up_to_the_cap():
+    with pytest.raises(InputError) as e:
+        convert.read(json.dumps(HOSTILE).encode())
+    assert len(e.value.faults) == MAX_FAULTS and ("batches", 0, "constitution_uid") in [f.loc for f in e.value.faults]
+    convert.read(json.dumps(_json()).encode())  # no fault
+    # Braces and colons inside strings are not structure (no key repeats, none is unknown).
+    kwargs = convert.read(b'{"bodies": {"q": [], "q_prev": [], "q_ref": []}, "batches": [], "id": "{\\"a\\": 1} }"}', opening=True)
+    assert kwargs["id"] == '{"a": 1} }'
 
 
 @pytest.mark.parametrize(
     ("stray", "loc"),
-    [(b'"x": {"a": 1}', ["body", "x"]), (b'"outputs": [{"a": 1}]', ["body", "outputs"])],
+    [(b'"x": {"a": 1}', ["body", "x"]), (b'"outputs": [{"a": 1}]', ["body", "outputs", 0])],
     ids=["under_an_unknown_key", "under_a_known_key"],
 )
 def test_extra_keys_after_a_stray_object_are_capped(stray, loc, monkeypatch):
-    """The scan stops at an object no request holds; 100k unknown keys after it must not reach pydantic."""
+    """An object no request holds is named, and 100k unknown keys after it cost 20 faults (pydantic never runs)."""
     built = pydantic_error_counts(monkeypatch)
     extras = ", ".join(f'"k{i}": 0' for i in range(100_000)).encode()
     body = b"{" + stray + b', "bodies": {"q": [], "q_prev": [], "q_ref": [], ' + extras + b'}, "batches": []}'

@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from jointlimits.service.core import InputError
+from jointlimits.service.core import InputError, evaluate
 from jointlimits.service.http import convert
 from tests.test_errors_http import _json
 
@@ -27,8 +27,8 @@ def parses(monkeypatch) -> list[bytes]:
 
 
 def _faults(doc: dict) -> list[tuple]:
-    with pytest.raises(InputError) as e:
-        convert.decode(json.dumps(doc).encode(), 10**6)
+    with pytest.raises(InputError) as e:  # a shape is the core's to name, as on the service's path
+        evaluate(**convert.decode(json.dumps(doc).encode(), 10**6))
     return [(f.loc, f.msg, f.type) for f in e.value.faults]
 
 
@@ -79,5 +79,5 @@ def test_a_boolean_among_numbers_is_not_a_number(active_only):
 
 
 def test_the_request_holds_its_arrays_once_built(parses):
-    req = convert.parse(json.dumps(_json()).encode())
-    assert req.bodies.q.dtype == "float64" and req.batches[0].body_ids.dtype == "int64" and len(parses) == 1
+    kwargs = convert.read(json.dumps(_json()).encode())
+    assert kwargs["bodies"].q.dtype == "float64" and kwargs["batches"][0].body_ids.dtype == "int64" and len(parses) == 1

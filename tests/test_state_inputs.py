@@ -11,8 +11,9 @@ from fastapi.testclient import TestClient
 from jointlimits.client import InvalidInput, LocalClient, codec
 from jointlimits.service.app import app
 from jointlimits.service.core import InputError, evaluate
-from jointlimits.service.http.convert import to_core
-from jointlimits.schemas import EvaluateRequest
+import orjson
+
+from jointlimits.service.http.convert import read
 from tests.test_golden_state import CASES, _sdk_request
 
 REVOLUTE = next(c["request"] for c in CASES if c["name"] == "revolute_turns_1_above")
@@ -59,7 +60,7 @@ def test_offset_that_overflows_the_bounds_is_a_422_naming_the_joint():
 
 @pytest.mark.parametrize("field", ["offset", "prev_coordinate"])
 def test_non_finite_state_in_process_names_the_joint(field):
-    args = to_core(EvaluateRequest.model_validate(REVOLUTE))
+    args = read(orjson.dumps(REVOLUTE))
     j = args["batches"][0]
     bad = np.array([np.nan])
     args["batches"] = [type(j)(**{**j.__dict__, field: bad})]

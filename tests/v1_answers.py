@@ -22,9 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from bench.scenes import make_scene
-from jointlimits.schemas import EvaluateRequest
 from jointlimits.service.core import Bodies, Evaluation, Joints, evaluate
-from jointlimits.service.http.convert import to_core
+import orjson
+
+from jointlimits.service.http.convert import read
 
 PATH = Path(__file__).with_name("v1_answers.npz")
 GOLDEN = json.loads(Path(__file__).with_name("golden_cases.json").read_text())["cases"]
@@ -38,7 +39,7 @@ def cases() -> Iterator[tuple[str, Bodies, list[Joints], dict]]:
     """(name, bodies, batches, options): the golden cases in both Hessian modes, with and without
     active_only, and two synthetic scenes (both constitutions, a tenth of the joints outside)."""
     for c in GOLDEN:
-        args = to_core(EvaluateRequest.model_validate(c["request"]))
+        args = read(orjson.dumps(c["request"]))
         for mode in ("exact", "psd"):
             for active_only in (False, True):
                 yield (

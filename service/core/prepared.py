@@ -700,19 +700,3 @@ def evaluate(
     arrays = [_as_arrays(j) for j in batches]
     scene = _prepare(bodies, arrays, threads, dtype, own=False)
     return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True, deadline=deadline, layout=layout)
-
-
-def input_faults(bodies: Bodies, batches: Sequence[Joints], outputs: Sequence[str], hessian_mode: str, layout: str) -> list[Fault]:
-    """The input faults `evaluate` would name before computing (options, bodies, joints), or []: the one
-    validator, for a decoder that met a fault of its own and needs the core's words for it."""
-    log = FaultLog()
-    log.add(check_options(tuple(outputs), hessian_mode))
-    log.add(assembled.check_layout(layout))
-    log.add(check_bodies(Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))))
-    if log.faults:
-        return log.faults
-    try:
-        _prepare(bodies, [_as_arrays(j) for j in batches], 1, np.float64, own=False)
-    except InputError as e:
-        return e.faults
-    return []

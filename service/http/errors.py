@@ -13,11 +13,9 @@ from collections.abc import Sequence
 
 from fastapi import Request
 from fastapi.responses import JSONResponse, Response
-from pydantic import ValidationError
 from starlette.types import Message, Receive, Scope, Send
 
 from jointlimits.service.core import Fault, InputError
-from jointlimits.schemas.errors import validation_items
 from jointlimits.service.core.errors import MAX_FAULTS, DeadlineExceeded
 from jointlimits.service.http.refusals import FAULT_LIST
 
@@ -111,8 +109,3 @@ async def deadline_handler(request: Request, exc: Exception) -> FaultList:
     )
     detail = [{"loc": ["body"], "msg": msg, "type": "timeout"}]
     return FaultList({"detail": detail}, status_code=503, headers={"Retry-After": str(RETRY_AFTER_SECONDS)})
-
-
-def from_validation(e: ValidationError) -> InputError:
-    """Pydantic's errors as core faults (same loc, same msg; `null` for a number reads as non-finite)."""
-    return InputError([Fault(*item) for item in validation_items(e, MAX_FAULTS)])

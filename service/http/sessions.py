@@ -188,7 +188,7 @@ async def _messages(
         except (InputError, HttpError) as e:
             outcome = "fault"
             if mid is None:  # the opening document's too
-                mid = codec.message_id(frame)
+                mid = codec.message_id(e)
             reply = codec.encode(codec.error(e, mid), binary_frame)
             if kind == "open" and isinstance(e, HttpError) and e.status == 413:
                 await _send(websocket, reply, settings)

@@ -42,7 +42,7 @@ from jointlimits.service.core.kinematics import (
 )
 from jointlimits.service.core.geometry import axis_and_anchors
 from jointlimits.service.core.parallel import run_all
-from jointlimits.service.core.registry import CONSTITUTIONS
+from jointlimits.service.core.registry import CONSTITUTIONS, numerics
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
 from jointlimits.service.core.validate import (
     body_checks,
@@ -262,7 +262,7 @@ class PreparedScene:
         idx = np.flatnonzero(~self._table.plain_joints(jb.pairs, self._plain))
         careful = None
         if idx.shape[0]:
-            careful = careful_frames(self._table, jb.pairs, rows, jb.c.alpha, jb.v, idx)
+            careful = careful_frames(self._table, jb.pairs, rows, jb.c.facts.alpha, jb.v, idx)
             states = [F.copy() for F in states[:-1]] + states[-1:]  # the cached starts stay as they are
             for k, F in enumerate(states):
                 F[idx] = careful.unscaled(k)
@@ -290,13 +290,13 @@ class PreparedScene:
         t = self._table
         if r_start is not None and jb.absolute:
             r_q = relative_position(t.positions_of(jb.pairs, 2))
-            return None, frame_quantities(r_q, t.linear_at(jb.pairs, 2), jb.c.alpha, jb.v)
-        dF = frame_quantities(None, t.linear_of(jb.pairs, row), jb.c.alpha, jb.v)  # A's increment times v
+            return None, frame_quantities(r_q, t.linear_at(jb.pairs, 2), jb.c.facts.alpha, jb.v)
+        dF = frame_quantities(None, t.linear_of(jb.pairs, row), jb.c.facts.alpha, jb.v)  # A's increment times v
         if r_start is None:
             return dF, None
         r_q = relative_position(t.positions_of(jb.pairs, 2))
-        F_q = add_positions(jb.held + dF, r_q, jb.c.alpha)
-        return add_positions(dF, r_q - r_start, jb.c.alpha), F_q
+        F_q = add_positions(jb.held + dF, r_q, jb.c.facts.alpha)
+        return add_positions(dF, r_q - r_start, jb.c.facts.alpha), F_q
 
     def _x(self, jb: _Batch, dF: Array | None, F_q: Array | None) -> tuple[Array, Array, CarefulFrames | None, object]:
         """The joint coordinate `x` (N,) and the frames (N, 4, 3) at `q` from the last step `dF` (and
@@ -329,7 +329,7 @@ class PreparedScene:
     ) -> dict:
         check_deadline(deadline)
         x, F, careful, known = self._x(jb, *self._step(jb, jb.row, jb.r_start))
-        bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
+        bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
         raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound))[:MAX_FAULTS])
         r = differentiate(
             b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact
@@ -353,15 +353,15 @@ class PreparedScene:
             log, new = FaultLog(), []
             for b, jb in enumerate(self._batches):
                 F_q, x, careful, known = self._from_ref(jb)
-                bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
+                bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
                 log.add(collapsed_faults(b, jb.c, ("q",), [F_q], careful, [known], bound))
-                if not jb.c.telescopes:
+                if jb.c.facts.stateful:
                     r = self._angle(jb)
                     x = r + rem(x - r)
                 new.append((F_q, x))
             log.raise_if_any()
             for jb, (F_q, x) in zip(self._batches, new):
-                if not jb.c.telescopes:
+                if jb.c.facts.stateful:
                     jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (state 1)
                     jb.progress = {"ref": jb.progress["ref"]} if "ref" in jb.progress else {}
             self._table.load(1, self._table.dofs[2].T)
@@ -372,7 +372,7 @@ class PreparedScene:
         step (DeltaTheta(q, q_ref), or the slide), the careful frames at `q` and what the coordinate
         formed there."""
         r_ref = None
-        if jb.c.alpha.any():
+        if jb.c.facts.points:
             r_ref = jb.r_start if jb.start == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
         dF, F_q = self._step(jb, TOTAL_STEP, r_ref)
         states, careful, x, known = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), dF, "ref", F_q)
@@ -382,14 +382,17 @@ class PreparedScene:
         """The committed angle at q_prev: `theta`, or DeltaTheta(q_prev, q_ref) (from the batch's origin) before any commit."""
         if jb.theta is not None:
             return jb.theta
-        return _from_origin(jb.c.coordinate(jb.starts[:1], jb.fixed[:1], jb.prev_careful), jb)
+        x = _progress(jb.c, {}, "", jb.starts[:1], jb.fixed[:1]).x  # fresh: the kept progress stays as it is
+        if jb.prev_careful is not None:
+            x[jb.prev_careful.idx] = jb.c.careful_coordinate(jb.prev_careful)
+        return _from_origin(x, jb)
 
     def coordinates(self) -> list[Array]:
         """The committed coordinates at `q_prev`, one (N,) per batch (`x(q_prev) + offset`)."""
         out = []
         with np.errstate(all="ignore"):
             for jb in self._batches:
-                if jb.c.telescopes:
+                if not jb.c.facts.stateful:
                     self._load(self._table.dofs[1].T, (TOTAL_STEP,), (TOTAL_STEP,))
                     x = self._from_ref(jb)[1]
                 else:
@@ -488,12 +491,12 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     nothing it does not need (every fresh array here is page faults of its own), and whose table
     takes `bodies.q` and the steps to it at once (the one evaluation's `_load`, on the same threads), and
     whose batches are prepared by the tasks that evaluate them (`_Pending`)."""
-    constitutions = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
+    constitutions = [numerics(j.constitution_uid) for j in batches if j.constitution_uid in CONSTITUTIONS]
     # q_prev is always in the table: the state a commit replaces.
     rows = {PREV_STEP} | {row for c in constitutions for row in _increments(c)[:-1]}
     later = () if own else {_increments(c)[-1] for c in constitutions}
     # The stateless call's steps to q, whose `plain_over` its table takes with the rows (`_Pending.x_rows`).
-    x_rows = [_x_rows(_increments(CONSTITUTIONS[j.constitution_uid]), j.prev_coordinate is not None)
+    x_rows = [_x_rows(_increments(numerics(j.constitution_uid)), j.prev_coordinate is not None)
               for j in batches if j.constitution_uid in CONSTITUTIONS]
     plains = () if own else [{r for rs in x_rows for r in rs}]
     n_bodies = bodies.q_ref.shape[0]
@@ -505,7 +508,7 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
                    + [partial(_bodies_used, [joints], n_bodies) for joints in batches], threads)
     checks, used = done[: len(batches)], reduce(np.logical_or, done[len(batches) :], np.zeros(n_bodies, dtype=bool))
     pairs = [np.ascontiguousarray(j.body_ids.T) for j in batches]  # (2, N): contiguous indices gather 30% faster
-    gathers = [] if any(checks) else [w for j, p in zip(batches, pairs) for w in _gathers(CONSTITUTIONS[j.constitution_uid], p, own, j.origin == "absolute")]
+    gathers = [] if any(checks) else [w for j, p in zip(batches, pairs) for w in _gathers(numerics(j.constitution_uid), p, own, j.origin == "absolute")]
     with np.errstate(all="ignore"):
         table.rotate(used, also=table.prefetch_tasks(gathers))
     log = FaultLog()
@@ -544,9 +547,9 @@ def _gathers(c: Constitution, pairs: NDArray[np.intp], own: bool, absolute: bool
     rows = _increments(c)
     wanted = [("linear", REF)] + [("linear", row) for row in rows[:-1]]  # the rotations are gathered by the batch's
     # own thread: they wait for the polar factors, which these gathers run beside
-    if c.alpha.any():
+    if c.facts.points:
         wanted += [("positions", s) for s in sorted(_states(rows))]
-    if c.unit_frames:
+    if c.facts.unit_frames:
         wanted += [("size", s) for s in range(len(rows))]  # q_ref and the start of each fixed step
     if not own:
         wanted += _evaluation_gathers(c, rows[-1], absolute)
@@ -562,17 +565,17 @@ def _states(rows: tuple[int, ...]) -> set[int]:
 def _evaluation_gathers(c: Constitution, row: int, absolute: bool) -> list[tuple[str, int]]:
     """What an evaluation of a batch of `c` whose last step is the table's `row` gathers: `_step` (A's step, or
     with points and the `absolute` origin A at q itself), the collapse test at q."""
-    points = bool(c.alpha.any())
+    points = c.facts.points
     step = ("state", 2) if points and absolute else ("linear", row)
-    return [step] + [("positions", 2)] * points + [("size", 2)] * c.unit_frames
+    return [step] + [("positions", 2)] * points + [("size", 2)] * c.facts.unit_frames
 
 
 def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: NDArray[np.intp]) -> _Batch:
     """Batch `b`'s frames at its states, from `table` (read only: batches are prepared on threads); `pairs`
     (2, N) its bodies i and j, contiguous."""
-    c = CONSTITUTIONS[joints.constitution_uid]
+    c = numerics(joints.constitution_uid)
     dtype = table.dtype
-    points = bool(c.alpha.any())
+    points = c.facts.points
     rows = _increments(c)
     A_ref = table.linear_of(pairs, REF)
     start = STEPS[rows[-1]][0]
@@ -582,24 +585,24 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     R_ref = table.rotations(pairs)
     t, anchors = axis_and_anchors(c, cast(joints.edges), cast(joints.local_edges), p.get(0), A_ref, R_ref)
     v = c.local_vectors(t, anchors, R_ref)
-    F_ref = frame_quantities(None, A_ref, c.alpha, v)
+    F_ref = frame_quantities(None, A_ref, c.facts.alpha, v)
     absolute = joints.origin == "absolute"
     held = None
     if points and not absolute:  # x's last step starts at q_ref (points telescope): `_step` forms the frames at q from `A_ref v`
         held = F_ref.copy(order="K")  # component-major, as F_ref
     if points:
-        add_positions(F_ref, r[0], c.alpha)
-    x0 = _absolute_zero(c, A_ref, v) if absolute and not c.telescopes else None
+        add_positions(F_ref, r[0], c.facts.alpha)
+    x0 = _absolute_zero(c, A_ref, v) if absolute and not c.facts.telescopes else None
     # The steps before the last one (q_ref -> q_prev) and where each starts.
     fixed = []
     for row in rows[:-1]:
         s0, s1 = STEPS[row]
-        fixed.append(frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.alpha, v))
-    starts, prev_careful = state_frames(table, pairs, rows[:-1], c.alpha, v, F_ref, fixed) if fixed else ([F_ref], None)
+        fixed.append(frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.facts.alpha, v))
+    starts, prev_careful = state_frames(table, pairs, rows[:-1], c.facts.alpha, v, F_ref, fixed) if fixed else ([F_ref], None)
     progress: dict[str, Progress] = {}
     # The fixed steps' progress now: the collapse tests at q_ref and q_prev read what it formed there.
     known = _progress(c, progress, "whole", starts, fixed).known
-    bounds = [table.size_bound(pairs, s) for s in range(len(starts))] if c.unit_frames else None
+    bounds = [table.size_bound(pairs, s) for s in range(len(starts))] if c.facts.unit_frames else None
     faults = collapsed_faults(b, c, ("q_ref", "q_prev")[: len(starts)], starts, prev_careful, known, bounds)
     n = pairs.shape[1]
     offset = joints.offset if joints.offset is not None or not own else np.zeros(n)
@@ -644,7 +647,7 @@ def _absolute_zero(c: Constitution, A_ref: Array, v: Array) -> Array:
     The directions are read from `A_ref` scaled per body by a power of two (exact): frames at the edge
     of float64 keep every digit of their angle.
     """
-    return c.value(scaled_frames(None, A_ref, exponents(A_ref), c.alpha, v))
+    return c.value(scaled_frames(None, A_ref, exponents(A_ref), c.facts.alpha, v))
 
 
 def _as_arrays(j: Joints, copy: bool = False) -> Joints:

@@ -22,9 +22,6 @@ from jointlimits.service.core.polar import SINGULAR_RATIO
 from jointlimits.service.core.registry import CONSTITUTIONS
 from jointlimits.service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
 
-REVOLUTE_UID = 670
-"""The one constitution with a state (`prev_coordinate`): its angle leaves (-pi, pi] over time steps."""
-
 HESSIAN_MODES = ("exact", "psd")
 ORIGINS = ("q_ref", "absolute")
 EDGE_SHAPES = {"edges": (2, 3), "local_edges": (2, 2, 3)}
@@ -206,7 +203,7 @@ def _check_kind(b: int, joints: Joints) -> list[Fault]:
     faults: list[Fault] = []
     c = CONSTITUTIONS.get(joints.constitution_uid)
     if c is None:
-        known = ", ".join(str(u) for u in CONSTITUTIONS)
+        known = ", ".join(str(f.uid) for f in CONSTITUTIONS.values())
         faults.append(Fault(at("constitution_uid"), f"unknown constitution {joints.constitution_uid}; supported: {known}"))
     elif joints.base_uid != c.base_uid:
         msg = f"constitution {c.uid} ({c.name}) needs base_uid {c.base_uid}, got {joints.base_uid}"
@@ -217,8 +214,9 @@ def _check_kind(b: int, joints: Joints) -> list[Fault]:
         faults.append(Fault(at(), f"give exactly one of edges and local_edges (world edges (N, 2, 3) at q_ref, or body-local (N, 2, 2, 3)); got {said}"))
     if joints.origin not in ORIGINS:
         faults.append(Fault(at("origin"), "Input should be 'q_ref' or 'absolute'", "literal_error"))
-    if joints.prev_coordinate is not None and c is not None and c.uid != REVOLUTE_UID:
-        msg = f"applies to revolute joints ({REVOLUTE_UID}) only: the {c.name} coordinate is absolute and has no state"
+    if joints.prev_coordinate is not None and c is not None and not c.stateful:
+        which = ", ".join(f"{f.kind} joints ({f.uid})" for f in CONSTITUTIONS.values() if f.stateful)
+        msg = f"applies to {which} only: the {c.name} coordinate is absolute and has no state"
         faults.append(Fault(at("prev_coordinate"), msg))
     return faults
 

@@ -14,9 +14,8 @@ depends on `q` and `q_ref` alone and has no state.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from functools import partial, reduce
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -41,11 +40,9 @@ from jointlimits.service.core.kinematics import (
     state_frames,
 )
 from jointlimits.service.core.geometry import axis_and_anchors
-from jointlimits.service.core.parallel import run_all
 from jointlimits.service.core.registry import CONSTITUTIONS, numerics
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
 from jointlimits.service.core.validate import (
-    body_checks,
     check_bodies,
     check_dofs,
     check_evaluation,
@@ -101,40 +98,21 @@ class _Batch:
     # from starts[0] over `fixed`; "last": from starts[-1]; "ref": from F_ref), kept until `starts` change
 
 
-SIDE_BY_SIDE = 2 / 3
-"""On threads, batches run side by side (a batch per thread) unless one holds more than this share of the
-joints: then one after another, each's derivative chunks on the threads (measured, 1e5 joints all active,
-2 threads: a 5e4 batch beside 10 joints side by side was 1.12x slower on E+G+H than its chunks shared)."""
-
-
-@dataclass
-class _Pending:
-    """A batch of the stateless call, prepared when its evaluation starts."""
-
-    prepare: Callable[[], _Batch]  # `_prepare_batch` of the batch
-    size: int  # its joints
-    x_rows: tuple[int, ...]  # the body table's increment rows its coordinate takes (`PreparedScene._x_rows`)
-
-
 class PreparedScene:
     """A scene prepared once (`prepare`): evaluate any `q`, commit time steps, update limits.
 
     Not thread-safe: one scene serves one caller at a time (a session, a solver loop).
     """
 
-    def __init__(
-        self, table: BodyTable, batches: list[_Batch], threads: int, pending: list[_Pending] | None = None
-    ) -> None:
+    def __init__(self, table: BodyTable, batches: list[_Batch], threads: int, loaded: bool = False) -> None:
         self._table = table
-        # The stateless call's one evaluation: the table already holds q, its steps and their gathers, and
-        # each batch is prepared on the thread that then evaluates it (no wait between the two for the other batch).
-        self._pending = pending
-        self._batches: list[_Batch] = batches if pending is None else [None] * len(pending)  # type: ignore[list-item]
-        self._threads = threads
+        self._loaded = loaded  # the stateless call's one evaluation: the table already holds q and its steps
+        self._batches = batches
+        self._threads = threads  # each batch's derivative chunks on that many threads
         self._dtype = table.dtype
         self._plain = table.plain  # the bodies the frames' common path serves over the steps to q (`_load`)
         self.n_bodies: int = table.dofs.shape[2]
-        self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches] if pending is None else [p.size for p in pending]
+        self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches]
 
     # ---------------------------------------------------------------- evaluate
 
@@ -195,26 +173,15 @@ class PreparedScene:
         deadline: float | None = None,
         layout: str = "joints",
     ) -> Evaluation:
-        pending, self._pending = self._pending, None
-        if pending is not None:  # loaded and gathered with the table, on its threads (`_prepare`)
-            self._plain = self._table.plain_over({r for p in pending for r in p.x_rows})
+        steps = {r for jb in self._batches for r in self._x_rows(jb)}
+        if self._loaded:  # the stateless call: its table took q and the steps to it (`_prepare`)
+            self._loaded, self._plain = False, self._table.plain_over(steps)
         else:
-            self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
-            self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row, jb.absolute)])
+            self._load(q, {jb.row for jb in self._batches}, steps)
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
-        # Several batches of comparable size: a batch per thread, its derivative chunks on that thread.
-        # Else (one batch, or one holding most joints) one batch after another, each's chunks on the threads.
-        sizes = self.batch_sizes
-        side_by_side = self._threads > 1 and len(sizes) > 1 and max(sizes) <= SIDE_BY_SIDE * sum(sizes)
-        threads, chunk_threads = (self._threads, 1) if side_by_side else (1, self._threads)
-        psd = hessian_mode == "psd"
         # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
-        rest = (want_g, want_h, psd, active_only, chunk_threads, deadline, layout == "bodies")
-        if pending is None:
-            tasks = [partial(self._evaluate_batch, b, jb, *rest) for b, jb in enumerate(self._batches)]
-        else:
-            tasks = [partial(self._prepare_and_evaluate, b, p, *rest) for b, p in enumerate(pending)]
-        results = run_all(tasks, threads)
+        rest = (want_g, want_h, hessian_mode == "psd", active_only, self._threads, deadline, layout == "bodies")
+        results = [self._evaluate_batch(b, jb, *rest) for b, jb in enumerate(self._batches)]
         total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
         if not np.isfinite(total):
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
@@ -309,11 +276,6 @@ class PreparedScene:
             states, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF, "last", F_q)
             x = jb.theta + x
         return x, states[-1], _last_state(careful), known
-
-    def _prepare_and_evaluate(self, b: int, pending: _Pending, *rest: object) -> dict:
-        """The stateless call's batch `b`: prepared (`pending`), then evaluated, on one thread."""
-        self._batches[b] = jb = pending.prepare()
-        return self._evaluate_batch(b, jb, *rest)  # type: ignore[arg-type]
 
     def _evaluate_batch(
         self,
@@ -436,8 +398,8 @@ def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtyp
     """A scene prepared for evaluating many `q`: `bodies.q_prev`, `bodies.q_ref` (B, 12) and the joints.
 
     Raises `InputError` naming every fault of the static data. `bodies.q` is not used.
-    `threads` > 1 takes the polar factors, each batch's frames and later evaluations on that many
-    threads (bitwise the same numbers). `dtype` np.float32 is the benchmark's single-precision variant.
+    `threads` > 1 takes each evaluation's derivative chunks on that many threads (bitwise the same numbers).
+    `dtype` np.float32 is the benchmark's single-precision variant.
     """
     q_prev, q_ref = (np.array(a, dtype=np.float64) for a in (bodies.q_prev, bodies.q_ref))
     log = FaultLog()
@@ -488,44 +450,38 @@ def _plus_offset(x: Array, offset: Array | None, index: NDArray[np.int64] | None
 def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, own: bool) -> PreparedScene:
     """`prepare` of bodies whose states are already checked, and joints as arrays. `own`: the scene's
     limits are its own arrays (`update` writes them); else the stateless call's, which allocates
-    nothing it does not need (every fresh array here is page faults of its own), and whose table
-    takes `bodies.q` and the steps to it at once (the one evaluation's `_load`, on the same threads), and
-    whose batches are prepared by the tasks that evaluate them (`_Pending`)."""
+    nothing it does not need (every fresh array here is page faults of its own), whose table takes
+    `bodies.q` and the steps to it at once (the one evaluation's `_load`), and whose collapsed frames
+    at q_ref and q_prev are named with those at q."""
     constitutions = [numerics(j.constitution_uid) for j in batches if j.constitution_uid in CONSTITUTIONS]
     # q_prev is always in the table: the state a commit replaces.
     rows = {PREV_STEP} | {row for c in constitutions for row in _increments(c)[:-1]}
     later = () if own else {_increments(c)[-1] for c in constitutions}
-    # The stateless call's steps to q, whose `plain_over` its table takes with the rows (`_Pending.x_rows`).
+    # The stateless call's steps to q, whose `plain_over` its table takes with the rows.
     x_rows = [_x_rows(_increments(numerics(j.constitution_uid)), j.prev_coordinate is not None)
               for j in batches if j.constitution_uid in CONSTITUTIONS]
     plains = () if own else [{r for rs in x_rows for r in rs}]
     n_bodies = bodies.q_ref.shape[0]
     with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
-        table = BodyTable(bodies, dtype, threads, rows=rows, later=later, rotate=False, plains=plains)
-    # The batches' checks on the threads; then, if they pass, the batches' gathers beside the polar factors.
-    # Beside them, which bodies each batch reads (for the polar factors), a mask per batch.
-    done = run_all([partial(check_joints, b, joints, n_bodies) for b, joints in enumerate(batches)]
-                   + [partial(_bodies_used, [joints], n_bodies) for joints in batches], threads)
-    checks, used = done[: len(batches)], reduce(np.logical_or, done[len(batches) :], np.zeros(n_bodies, dtype=bool))
-    pairs = [np.ascontiguousarray(j.body_ids.T) for j in batches]  # (2, N): contiguous indices gather 30% faster
-    gathers = [] if any(checks) else [w for j, p in zip(batches, pairs) for w in _gathers(numerics(j.constitution_uid), p, own, j.origin == "absolute")]
+        table = BodyTable(bodies, dtype, rows=rows, later=later, rotate=False, plains=plains)
+    checks = [check_joints(b, joints, n_bodies) for b, joints in enumerate(batches)]
+    used = _bodies_used(batches, n_bodies)
     with np.errstate(all="ignore"):
-        table.rotate(used, also=table.prefetch_tasks(gathers))
+        table.rotate(used)  # the polar factors of the bodies some joint reads
     log = FaultLog()
     log.add(check_rotations(table.ratio))
     for faults in checks:  # in batch order (the log keeps the first)
         log.add(faults)
     log.raise_if_any()
-    tasks = [partial(_prepare_batch, b, j, table, own, p) for b, (j, p) in enumerate(zip(batches, pairs))]
-    if not own:  # each batch prepared by the task that evaluates it; its collapsed frames named with those at q
-        return PreparedScene(table, [], threads, [_Pending(t, p.shape[1], r) for t, p, r in zip(tasks, pairs, x_rows)])
-    with np.errstate(all="ignore"):  # run_all carries the state into its threads
-        prepared = run_all(tasks, threads)
-    for jb in prepared:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
-        log.add(jb.faults)
-        jb.faults = []
-    log.raise_if_any()
-    return PreparedScene(table, prepared, threads)
+    pairs = [np.ascontiguousarray(j.body_ids.T) for j in batches]  # (2, N): contiguous indices gather 30% faster
+    with np.errstate(all="ignore"):
+        prepared = [_prepare_batch(b, j, table, own, p) for b, (j, p) in enumerate(zip(batches, pairs))]
+    if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
+        for jb in prepared:
+            log.add(jb.faults)
+            jb.faults = []
+        log.raise_if_any()
+    return PreparedScene(table, prepared, threads, loaded=not own)
 
 
 def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
@@ -540,39 +496,14 @@ def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
     return used
 
 
-def _gathers(c: Constitution, pairs: NDArray[np.intp], own: bool, absolute: bool) -> list[tuple[str, int, NDArray[np.intp]]]:
-    """What `_prepare_batch` gathers from the table for a batch of `c` on `pairs` (`BodyTable.prefetch`),
-    and unless `own` (the stateless call, its table already holding q) what its evaluation gathers
-    (`absolute`: its origin)."""
-    rows = _increments(c)
-    wanted = [("linear", REF)] + [("linear", row) for row in rows[:-1]]  # the rotations are gathered by the batch's
-    # own thread: they wait for the polar factors, which these gathers run beside
-    if c.facts.points:
-        wanted += [("positions", s) for s in sorted(_states(rows))]
-    if c.facts.unit_frames:
-        wanted += [("size", s) for s in range(len(rows))]  # q_ref and the start of each fixed step
-    if not own:
-        wanted += _evaluation_gathers(c, rows[-1], absolute)
-    return [(kind, key, pairs) for kind, key in wanted]
-
-
 def _states(rows: tuple[int, ...]) -> set[int]:
     """The states a batch whose steps are the table's `rows` reads when prepared: q_ref, where the last
     step starts, and those the fixed steps span."""
     return {0, STEPS[rows[-1]][0]} | {s for row in rows[:-1] for s in STEPS[row]}
 
 
-def _evaluation_gathers(c: Constitution, row: int, absolute: bool) -> list[tuple[str, int]]:
-    """What an evaluation of a batch of `c` whose last step is the table's `row` gathers: `_step` (A's step, or
-    with points and the `absolute` origin A at q itself), the collapse test at q."""
-    points = c.facts.points
-    step = ("state", 2) if points and absolute else ("linear", row)
-    return [step] + [("positions", 2)] * points + [("size", 2)] * c.facts.unit_frames
-
-
 def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: NDArray[np.intp]) -> _Batch:
-    """Batch `b`'s frames at its states, from `table` (read only: batches are prepared on threads); `pairs`
-    (2, N) its bodies i and j, contiguous."""
+    """Batch `b`'s frames at its states, from `table`; `pairs` (2, N) its bodies i and j, contiguous."""
     c = numerics(joints.constitution_uid)
     dtype = table.dtype
     points = c.facts.points
@@ -685,9 +616,8 @@ def evaluate(
     Infinity. Only the outputs asked for are computed, and only joints outside their range are
     differentiated. `dtype` np.float32 runs everything after validation and the polar factors in
     single precision (a benchmark variant: ~1e-5 relative error; the wire is float64). `threads`
-    > 1 runs the body table, the polar factors and the gathers, then the batches, a batch per thread
-    (one batch, or one holding most joints: its derivative chunks) on that many threads, with bitwise the same
-    results; the HTTP service keeps 1, its worker processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
+    > 1 runs each batch's derivative chunks on that many threads, with bitwise the same results; the HTTP
+    service keeps 1, its worker processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
     `DeadlineExceeded` (checked between batches and derivative chunks). `layout` "bodies" answers
     the gradient and Hessian summed per body (`jointlimits.service.core.assembled`) instead of per joint: only
     the joints outside their range are differentiated and stored, then summed.
@@ -697,8 +627,7 @@ def evaluate(
     log = FaultLog()
     log.add(check_options(outputs, hessian_mode))
     log.add(assembled.check_layout(layout))
-    for faults in run_all(body_checks(bodies), threads):  # each state read once, on the threads
-        log.add(faults)
+    log.add(check_bodies(bodies))
     log.raise_if_any()
     arrays = [_as_arrays(j) for j in batches]
     scene = _prepare(bodies, arrays, threads, dtype, own=False)

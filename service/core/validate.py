@@ -9,8 +9,7 @@ calls them in order and caps the faults of a request (`errors.FaultLog`).
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Sequence
-from functools import partial
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -149,14 +148,9 @@ def check_options(outputs: Sequence[str], hessian_mode: str) -> list[Fault]:
 
 def check_bodies(bodies: Bodies, names: Sequence[str] = ("q", "q_prev", "q_ref")) -> list[Fault]:
     """Shape (B, 12) and finiteness of the states `names`; B is the first named state's row count."""
-    return [f for check in body_checks(bodies, names) for f in check()]
-
-
-def body_checks(bodies: Bodies, names: Sequence[str] = ("q", "q_prev", "q_ref")) -> list[Callable[[], list[Fault]]]:
-    """`check_bodies` as one check per state, in order (to run on threads: each reads a state once)."""
     first = getattr(bodies, names[0])
     n = np.shape(first)[0] if np.ndim(first) else 0
-    return [partial(check_dofs, name, getattr(bodies, name), n) for name in names]
+    return [f for name in names for f in check_dofs(name, getattr(bodies, name), n)]
 
 
 def check_dofs(name: str, a: np.ndarray, n: int) -> list[Fault]:

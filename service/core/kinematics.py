@@ -129,19 +129,14 @@ class BodyTable:
         dtype: type = np.float64,
         rows: Iterable[int] = STEPS,
         used: NDArray[np.bool_] | None = None,
-        later: Iterable[int] = (),
         rotate: bool = True,
-        plains: Iterable[Iterable[int]] = (),
     ) -> None:
         """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage);
-        `plain` is taken over `rows`. `later`: increment rows filled too (a stateless call's steps to
-        `q`), for a `plain_over` of their own later. `used` (B,): the bodies some joint reads; only theirs
-        are sure to have a polar factor, every body has its conditioning ratio (`polar_rotation`). `rotate`
-        False: the polar factors wait for `rotate`. `plains`: sets of filled rows whose `plain_over` is taken
-        now too, while the rows are in cache (kept until a `load` or `increments`)."""
+        `plain` is taken over `rows`. `used` (B,): the bodies some joint reads; only theirs are sure to have
+        a polar factor, every body has its conditioning ratio (`polar_rotation`). `rotate` False: the polar
+        factors wait for `rotate`."""
         n = bodies.q.shape[0]
-        rows = tuple(rows)
-        filled = tuple(sorted({*rows, *later}))
+        filled = tuple(sorted(set(rows)))
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
         dofs = np.empty((3, 12, n), dtype=dtype)  # (q_ref, q_prev, q; DOF; body): one transposed copy per state
         self.dofs = dofs  # (state; DOF; body), the unfilled states garbage
@@ -158,10 +153,9 @@ class BodyTable:
             **{("state", s): squared_norms(self.states[s]) for s in spanned},
             **{("row", row): squared_norms(self.linear[row]) for row in filled},
         }
-        # `plain_over` of each set of rows, taken while the rows are in cache; kept until they change.
-        self._plains = {key: _plain_bodies(self.states, self.linear, key, self._norms) for key in {frozenset(r) for r in (rows, *plains)}}
+        self._plains: dict[frozenset[int], NDArray[np.bool_]] = {}  # `plain_over`'s, until the rows change
         self.dtype = np.dtype(dtype)
-        self.plain = self.plain_over(rows)
+        self.plain = self.plain_over(filled)
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         self._A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
         if rotate:

@@ -104,9 +104,8 @@ class PreparedScene:
     Not thread-safe: one scene serves one caller at a time (a session, a solver loop).
     """
 
-    def __init__(self, table: BodyTable, batches: list[_Batch], threads: int, loaded: bool = False) -> None:
+    def __init__(self, table: BodyTable, batches: list[_Batch], threads: int) -> None:
         self._table = table
-        self._loaded = loaded  # the stateless call's one evaluation: the table already holds q and its steps
         self._batches = batches
         self._threads = threads  # each batch's derivative chunks on that many threads
         self._dtype = table.dtype
@@ -173,11 +172,7 @@ class PreparedScene:
         deadline: float | None = None,
         layout: str = "joints",
     ) -> Evaluation:
-        steps = {r for jb in self._batches for r in self._x_rows(jb)}
-        if self._loaded:  # the stateless call: its table took q and the steps to it (`_prepare`)
-            self._loaded, self._plain = False, self._table.plain_over(steps)
-        else:
-            self._load(q, {jb.row for jb in self._batches}, steps)
+        self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
         # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
         rest = (want_g, want_h, hessian_mode == "psd", active_only, self._threads, deadline, layout == "bodies")
@@ -203,7 +198,9 @@ class PreparedScene:
 
     @staticmethod
     def _x_rows(jb: _Batch) -> tuple[int, ...]:
-        return _x_rows(jb.rows, jb.theta is not None)
+        """The increment rows of the batch's steps that its coordinate takes at q: all of them (v1), or the
+        last one alone once the angle is a state (a `prev_coordinate` or a commit)."""
+        return jb.rows[-1:] if jb.theta is not None else jb.rows
 
     def _to_q(
         self,
@@ -420,12 +417,6 @@ def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: lis
     return p
 
 
-def _x_rows(rows: tuple[int, ...], stated: bool) -> tuple[int, ...]:
-    """The increment rows of a batch's steps `rows` that its coordinate takes at q: all of them (v1), or
-    the last one alone once the angle is a state (`stated`: a `prev_coordinate` or a commit)."""
-    return rows[-1:] if stated else rows
-
-
 def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:
     """`careful` reduced to its last state (the frames at q), for the collapse test there."""
     if careful is None:
@@ -450,20 +441,14 @@ def _plus_offset(x: Array, offset: Array | None, index: NDArray[np.int64] | None
 def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, own: bool) -> PreparedScene:
     """`prepare` of bodies whose states are already checked, and joints as arrays. `own`: the scene's
     limits are its own arrays (`update` writes them); else the stateless call's, which allocates
-    nothing it does not need (every fresh array here is page faults of its own), whose table takes
-    `bodies.q` and the steps to it at once (the one evaluation's `_load`), and whose collapsed frames
-    at q_ref and q_prev are named with those at q."""
-    constitutions = [numerics(j.constitution_uid) for j in batches if j.constitution_uid in CONSTITUTIONS]
+    nothing it does not need (every fresh array here is page faults of its own), and whose collapsed
+    frames at q_ref and q_prev are named with those at q."""
     # q_prev is always in the table: the state a commit replaces.
-    rows = {PREV_STEP} | {row for c in constitutions for row in _increments(c)[:-1]}
-    later = () if own else {_increments(c)[-1] for c in constitutions}
-    # The stateless call's steps to q, whose `plain_over` its table takes with the rows.
-    x_rows = [_x_rows(_increments(numerics(j.constitution_uid)), j.prev_coordinate is not None)
-              for j in batches if j.constitution_uid in CONSTITUTIONS]
-    plains = () if own else [{r for rs in x_rows for r in rs}]
+    rows = {PREV_STEP} | {row for j in batches if j.constitution_uid in CONSTITUTIONS
+                          for row in _increments(numerics(j.constitution_uid))[:-1]}
     n_bodies = bodies.q_ref.shape[0]
     with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
-        table = BodyTable(bodies, dtype, rows=rows, later=later, rotate=False, plains=plains)
+        table = BodyTable(bodies, dtype, rows=rows, rotate=False)
     checks = [check_joints(b, joints, n_bodies) for b, joints in enumerate(batches)]
     used = _bodies_used(batches, n_bodies)
     with np.errstate(all="ignore"):
@@ -481,7 +466,7 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
             log.add(jb.faults)
             jb.faults = []
         log.raise_if_any()
-    return PreparedScene(table, prepared, threads, loaded=not own)
+    return PreparedScene(table, prepared, threads)
 
 
 def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:

@@ -255,3 +255,6 @@ def test_unregistered_it_is_refused_again():
         LocalClient().evaluate(req)
     assert [(f.loc, f.msg) for f in e.value.faults] == [
         (("body", "batches", 0, "constitution_uid"), f"unknown constitution {UID}; supported: 670, 669")]
+    with pytest.raises(InvalidInput) as e:
+        scene()
+    assert [(f.loc, f.msg) for f in e.value.faults] == [(("uid",), f"unknown constitution {UID}; supported: 670, 669")]

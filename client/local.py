@@ -14,6 +14,7 @@ from jointlimits.client.progress import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from jointlimits.schemas.constitutions import describe
 from jointlimits.service import core
+from jointlimits.service.core import registry
 
 
 HTTP_OPTIONS = frozenset(
@@ -86,7 +87,7 @@ class LocalClient:
         self.threads = threads
 
     def constitutions(self) -> ConstitutionsResponse:
-        infos = [describe(uid, c.name, c.base_uid) for uid, c in sorted(core.CONSTITUTIONS.items(), reverse=True)]
+        infos = [describe(f) for f in sorted(registry.CONSTITUTIONS.values(), key=lambda f: -f.uid)]
         return ConstitutionsResponse(constitutions=infos, limits=Limits(max_body_bytes=2**63 - 1, max_joints=2**63 - 1))
 
     def evaluate(

@@ -9,6 +9,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from jointlimits.client.errors import Fault, InvalidInput
 from jointlimits.schemas import OUTPUTS
+from jointlimits.service.core import prismatic, registry, revolute
 from jointlimits.service.core.assembled import Assembled  # noqa: F401 (re-exported: Evaluation.assembled)
 from jointlimits.service.core.errors import MAX_FAULTS
 from jointlimits.service.core.errors import Fault as CoreFault
@@ -35,8 +36,7 @@ def _array(value: ArrayLike, name: str, faults: list[CoreFault], integer: bool =
 def _wrong_shape(name: str, a: np.ndarray, want: tuple[int, ...], faults: list[CoreFault]) -> None:
     faults.append(CoreFault((name,), f"must have shape {want} (one row per joint of body_ids), got {a.shape}"))
     return None
-REVOLUTE_LIMIT, PRISMATIC_LIMIT = 670, 669
-BASE_UID = {REVOLUTE_LIMIT: 18, PRISMATIC_LIMIT: 20}
+REVOLUTE_LIMIT, PRISMATIC_LIMIT = revolute.FACTS.uid, prismatic.FACTS.uid
 
 
 @dataclass
@@ -54,7 +54,7 @@ class JointBatch:
     upper: Array
     strength: Array
     base_uid: int | None = None
-    """Defaults to the constitution's base joint (18 for 670, 20 for 669)."""
+    """Defaults to the constitution's base joint (its registered `base_uid`: 18 for 670, 20 for 669)."""
     offset: Array | None = None
     prev_coordinate: Array | None = None
     local_edges: Array | None = None
@@ -63,7 +63,8 @@ class JointBatch:
 
     def __post_init__(self) -> None:
         if self.base_uid is None:
-            self.base_uid = BASE_UID.get(self.constitution_uid, -1)
+            facts = registry.CONSTITUTIONS.get(self.constitution_uid)
+            self.base_uid = -1 if facts is None else facts.base_uid  # -1: an unknown constitution, refused
 
     @classmethod
     def of(

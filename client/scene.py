@@ -13,7 +13,8 @@ from typing import Union
 import numpy as np
 from numpy.typing import ArrayLike
 
-from jointlimits.client.model import BASE_UID, PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request, _array, invalid
+from jointlimits.client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request, _array, invalid
+from jointlimits.service.core import registry
 from jointlimits.service.core.errors import Fault as CoreFault
 from jointlimits.service.core.scene import Bodies, Joints
 from jointlimits.service.core.validate import ORIGINS, check_bodies, check_joints
@@ -78,6 +79,27 @@ class Scene:
         self._q_prev.append(q_prev)
         return len(self._q) - 1
 
+    def add_limit(
+        self,
+        uid: int,
+        i: int,
+        j: int,
+        p0: ArrayLike | None = None,
+        p1: ArrayLike | None = None,
+        lower: float | None = None,
+        upper: float | None = None,
+        strength: float = STRENGTH_DEFAULT,
+        *,
+        offset: float = 0.0,
+        local_edge: ArrayLike | None = None,
+        origin: str = "q_ref",
+        prev_coordinate: float | None = None,
+    ) -> Joint:
+        """A limit of the constitution `uid` (any registered one, `LocalClient().constitutions()`) on the joint of
+        bodies `i`, `j`, as `add_revolute_limit` describes; `prev_coordinate` for a stateful one only."""
+        return self._add(uid, "Scene.add_limit", i, j, p0, p1, local_edge, origin, lower, upper, strength, offset,
+                         prev=prev_coordinate)
+
     def add_revolute_limit(
         self,
         i: int,
@@ -103,8 +125,8 @@ class Scene:
         DeltaTheta(q, q_prev) (plus the engine's zero under "absolute"), each term wrapped into (-pi, pi]:
         a joint turned past +-pi from `ref` (with `prev` = `ref`) reads 2 pi off. Joints given it go into a
         batch of their own. Returns the joint's handle: its row in its batch, for `result.joint(handle)`."""
-        return self._add(REVOLUTE_LIMIT, i, j, p0, p1, local_edge, origin, lower, upper, strength, offset,
-                         prev=prev_coordinate)
+        return self._add(REVOLUTE_LIMIT, "Scene.add_revolute_limit", i, j, p0, p1, local_edge, origin, lower, upper,
+                         strength, offset, prev=prev_coordinate)
 
     def add_prismatic_limit(
         self,
@@ -123,11 +145,13 @@ class Scene:
         """#669 on the prismatic joint of bodies `i`, `j` sliding along `p0 -> p1`, or along `local_edge`
         (anchors `l0` on body i, `r0` on body j); `offset` is the spec's `init_distance` (as for
         `add_revolute_limit`). Returns its handle (its row in its batch)."""
-        return self._add(PRISMATIC_LIMIT, i, j, p0, p1, local_edge, origin, lower, upper, strength, offset)
+        return self._add(PRISMATIC_LIMIT, "Scene.add_prismatic_limit", i, j, p0, p1, local_edge, origin, lower, upper,
+                         strength, offset)
 
     def _add(
-        self, uid: int, i: int, j: int, p0: ArrayLike | None, p1: ArrayLike | None, local_edge: ArrayLike | None,
-        origin: str, lower: float | None, upper: float | None, *rest: float, prev: float | None = None,
+        self, uid: int, where: str, i: int, j: int, p0: ArrayLike | None, p1: ArrayLike | None,
+        local_edge: ArrayLike | None, origin: str, lower: float | None, upper: float | None, *rest: float,
+        prev: float | None = None,
     ) -> Joint:
         if lower is None or upper is None:
             raise TypeError("a joint limit needs lower and upper")
@@ -135,19 +159,19 @@ class Scene:
             raise TypeError("give the joint's edge either as p0, p1 (world, at ref) or as local_edge, not both")
         kind, edge = ("edges", self._edge(p0, p1)) if local_edge is None else ("local_edges", self._local_edge(local_edge))
         ids = (int(i), int(j))
-        lower, upper, *rest = self._check(uid, ids, kind, edge, origin, (lower, upper, *rest), prev)
+        lower, upper, *rest = self._check(uid, where, ids, kind, edge, origin, (lower, upper, *rest), prev)
         key = (uid, kind, origin, prev is not None)
         rows = self._joints.setdefault(key, [])
         rows.append((ids, edge, lower, upper, *rest))
         return Joint(len(rows) - 1, uid, list(self._joints).index(key))
 
-    def _check(self, uid: int, ids: tuple[int, int], kind: str, edge: np.ndarray, origin: str,
+    def _check(self, uid: int, where: str, ids: tuple[int, int], kind: str, edge: np.ndarray, origin: str,
                numbers: tuple[ArrayLike, ...], prev: ArrayLike | None = None) -> list[float]:
         """`lower`, `upper`, `strength`, `offset` (and `prev_coordinate` when given) as floats, once the
         service's checks of this one joint pass (its bodies added and two, finite numbers, `lower <= upper`,
-        `strength >= 0`, its edge, `origin`): else `InvalidInput` naming the argument, in the service's
-        words, at the call that made the mistake."""
-        where = f"Scene.add_{'revolute' if uid == REVOLUTE_LIMIT else 'prismatic'}_limit"
+        `strength >= 0`, its edge, `origin`, its constitution and state): else `InvalidInput` naming the argument,
+        in the service's words, at the call that made the mistake."""
+        facts = registry.CONSTITUTIONS.get(uid)
         faults: list[CoreFault] = []
         named = ("lower", "upper", "strength", "offset") + ("prev_coordinate",) * (prev is not None)
         values = {name: _array(v, name, faults) for name, v in zip(named, (*numbers, prev))}
@@ -161,12 +185,13 @@ class Scene:
         n_bodies = len(self._q)
         g = edge if kind == "edges" else edge[0]  # p0 -> p1, or l0 -> l1: the vector the service normalises
         with np.errstate(over="ignore", invalid="ignore"):
-            plain = (0 <= min(ids) and max(ids) < n_bodies and ids[0] != ids[1] and origin in ORIGINS
+            plain = (facts is not None and (prev is None or facts.stateful)
+                     and 0 <= min(ids) and max(ids) < n_bodies and ids[0] != ids[1] and origin in ORIGINS
                      and all(map(math.isfinite, (*nums, lo - offset, up - offset))) and lo <= up and strength >= 0
                      and bool(np.isfinite(edge).all() and np.isfinite(g[1] - g[0]).all() and (g[1] != g[0]).any()))
         if plain:  # nothing the service would name (the common case): its checks, 3x this call's cost, are skipped
             return nums
-        joint = Joints(constitution_uid=uid, base_uid=BASE_UID[uid], body_ids=np.array([ids], dtype=np.int64),
+        joint = Joints(constitution_uid=uid, base_uid=-1 if facts is None else facts.base_uid, body_ids=np.array([ids], dtype=np.int64),
                        edges=edge[None] if kind == "edges" else None, origin=origin,
                        local_edges=edge[None] if kind == "local_edges" else None, **one)  # prev_coordinate too
 
@@ -174,6 +199,8 @@ class Scene:
             field, rest = loc[2], tuple(loc[4:])
             if field == "body_ids":  # out of range (the first body outside) or both the same
                 return ("i",) if not 0 <= ids[0] < n_bodies else ("j",)
+            if field == "constitution_uid":
+                return ("uid",)
             if field == "edges":  # an element of p0 or p1, or the edge as a whole
                 return (("p0", "p1")[rest[0]], *rest[1:]) if rest else ("p1",)
             return ("local_edge" if field == "local_edges" else field, *rest)

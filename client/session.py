@@ -19,9 +19,10 @@ from numpy.typing import ArrayLike
 from jointlimits.client import codec
 from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, InvalidInput, ServiceError
-from jointlimits.client.model import REVOLUTE_LIMIT, Array, Evaluation, Request
+from jointlimits.client.model import Array, Evaluation, Request
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
+from jointlimits.service.core import registry
 from jointlimits.service.core.errors import Fault as CoreFault
 from jointlimits.service.core.validate import NOT_AN_INTEGER, as_array
 
@@ -175,11 +176,13 @@ class SessionState:
 
     def request_for_reopen(self) -> Request:
         """A request that opens a session in this one's committed state: `q_prev` and `q` the last committed
-        `q`, the scene as updated, the committed angles of revolute joints as `prev_coordinate` (contract v1.1)."""
+        `q`, the scene as updated, the committed coordinates of stateful joints (the revolute's angles) as
+        `prev_coordinate` (contract v1.1)."""
         batches = []
         for b, coords in zip(self.request.batches, self.coordinates or [None] * len(self.request.batches)):
             nb = copy.deepcopy(b)
-            if coords is not None and nb.constitution_uid == REVOLUTE_LIMIT:  # a slide is absolute: no state
+            facts = registry.CONSTITUTIONS.get(nb.constitution_uid)
+            if coords is not None and facts is not None and facts.stateful:  # a slide is absolute: no state
                 nb.prev_coordinate = coords.copy()
             batches.append(nb)
         q = self.q_prev.copy()

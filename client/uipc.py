@@ -46,13 +46,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from jointlimits.client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Array, BatchResult, Evaluation, JointBatch, Request
+from jointlimits.client.model import Array, BatchResult, Evaluation, JointBatch, Request
+from jointlimits.service.core import registry
+from jointlimits.service.core.constitution import Facts
 
-REVOLUTE_JOINT, PRISMATIC_JOINT = 18, 20
-LIMIT_OF = {REVOLUTE_JOINT: REVOLUTE_LIMIT, PRISMATIC_JOINT: PRISMATIC_LIMIT}
-OFFSET_ATTR = {REVOLUTE_LIMIT: "init_angle", PRISMATIC_LIMIT: "init_distance"}
-STATE_ATTR = {REVOLUTE_LIMIT: "angle", PRISMATIC_LIMIT: "distance"}
-"""The engine's published coordinate per edge: the committed unwrapped angle (670), the slide (669)."""
 LOCAL_ATTRS = ("l_position0", "l_position1", "r_position0", "r_position1")
 BODY_OFFSET = "backend_abd_body_offset"
 
@@ -135,6 +132,13 @@ def _transforms_to_q(T: ArrayLike) -> Array:
 
 
 IDENTITY = np.eye(4)
+
+
+def _limits_by_base() -> dict[int, Facts]:
+    """The registered constitutions by the UID of the base joint they limit (a joint geometry's meta
+    `constitution_uid`), in the order registered; each names the engine's edge attributes (`offset_name`,
+    `state_name`: the committed coordinate it publishes, the angle of 670, the slide of 669)."""
+    return {f.base_uid: f for f in registry.CONSTITUTIONS.values()}
 
 
 @dataclass(frozen=True)
@@ -275,7 +279,7 @@ def _bad_number(v: NDArray[Any]) -> str:
     return ("is NaN" if nan else "is not finite") + ("" if nan and v.ndim == 0 else f" ({v.tolist()})")
 
 
-def _read_joints(gid: int, geo: Any, uid: int, bodies: _Bodies, use_angle: bool) -> tuple[bool, dict[str, Any]]:
+def _read_joints(gid: int, geo: Any, limit: Facts, bodies: _Bodies, use_angle: bool) -> tuple[bool, dict[str, Any]]:
     """One limited joint geometry's edges, as arrays (E rows), with the engine's checks and the service's:
     a fault is named here by geometry and edge, not later by batch row. A value written after `apply_to`
     skips its checks, so they are all redone here."""
@@ -291,9 +295,9 @@ def _read_joints(gid: int, geo: Any, uid: int, bodies: _Bodies, use_angle: bool)
         raise SceneError(f"`l_geo_id`, `l_inst_id` = `r_geo_id`, `r_inst_id`: body (geometry {l_geo[e]}, "
                          f"instance {l_inst[e]}) is jointed to itself", gid, e)
     lim = {n: floats(f"limit/{n}") for n in ("lower", "upper", "strength")}
-    offset = _edge_attr(geo, OFFSET_ATTR[uid], gid, required=False)
+    offset = _edge_attr(geo, limit.offset_name, gid, required=False)
     offset = np.zeros(E) if offset is None else np.asarray(offset, dtype=np.float64).reshape(E)
-    prev = floats("angle") if uid == REVOLUTE_LIMIT and use_angle else None
+    prev = floats(limit.state_name) if limit.stateful and use_angle else None
     if local:
         edges = np.stack([floats(n, 3) for n in LOCAL_ATTRS], axis=1).reshape(E, 2, 2, 3)  # [[l0, l1], [r0, r1]]
         axis = edges[:, 0, 1] - edges[:, 0, 0]
@@ -307,8 +311,8 @@ def _read_joints(gid: int, geo: Any, uid: int, bodies: _Bodies, use_angle: bool)
             e, k = (int(i) for i in np.argwhere(bad)[0])
             raise SceneError(f"`position` of vertex {topo[e, k]} {_bad_number(edges[e, k])}", gid, e)
         named = {}
-    named |= {f"limit/{n}": v for n, v in lim.items()} | {OFFSET_ATTR[uid]: offset}
-    named |= {} if prev is None else {"angle": prev}
+    named |= {f"limit/{n}": v for n, v in lim.items()} | {limit.offset_name: offset}
+    named |= {} if prev is None else {limit.state_name: prev}
     for name, v in named.items():
         if np.any(bad := ~np.isfinite(v).all(axis=tuple(range(1, v.ndim)))):  # per edge, also of 0 edges
             e = int(np.argmax(bad))
@@ -323,7 +327,7 @@ def _read_joints(gid: int, geo: Any, uid: int, bodies: _Bodies, use_angle: bool)
         raise SceneError(f"`limit/strength`: negative strength {float(s[e])!r}", gid, e)
     # The engine refuses a zero axis at world.init() (revolute: |t|^2 <= 1e-24, prismatic: P0 == P1);
     # a local axis turns by R_i (670) or A_ref_i (669), both invertible, so l1 - l0 decides.
-    short = ~(np.einsum("ek,ek->e", axis, axis) > (1e-24 if uid == REVOLUTE_LIMIT else 0.0))
+    short = ~(np.einsum("ek,ek->e", axis, axis) > limit.engine_zero_axis)
     if np.any(short):
         raise SceneError("the joint's axis has zero length (the engine refuses it at world.init())",
                          gid, int(np.argmax(short)))
@@ -387,26 +391,27 @@ def request_from_scene(
 
     # Joint geometries per base UID; the engine indexes a limit by its base joint's rows, so a limit
     # on only some of the base joint's geometries is refused at world.init() (joint count mismatch).
-    limited: dict[int, list[tuple[int, Any]]] = {REVOLUTE_JOINT: [], PRISMATIC_JOINT: []}
-    bare: dict[int, list[int]] = {REVOLUTE_JOINT: [], PRISMATIC_JOINT: []}
+    limit_of = _limits_by_base()
+    limited: dict[int, list[tuple[int, Any]]] = {base: [] for base in limit_of}
+    bare: dict[int, list[int]] = {base: [] for base in limit_of}
     for gid, slot, _ in slots:
         geo = slot.geometry()
         base = _meta_uid(geo)
-        if base in LIMIT_OF:
-            (limited[base].append((gid, geo)) if LIMIT_OF[base] in _extra_uids(geo) else bare[base].append(gid))
+        if base in limit_of:
+            (limited[base].append((gid, geo)) if limit_of[base].uid in _extra_uids(geo) else bare[base].append(gid))
     for base, with_limit in limited.items():
         if with_limit and bare[base]:
             raise SceneError(
-                f"#{LIMIT_OF[base]} is on joint geometries {[g for g, _ in with_limit]} but not on their siblings "
+                f"#{limit_of[base].uid} is on joint geometries {[g for g, _ in with_limit]} but not on their siblings "
                 f"{bare[base]} (base joint UID {base}): the engine aligns the limit with every base joint row and "
                 "refuses this scene at world.init()", bare[base][0],
                 hint=f"apply the limit to every UID-{base} joint geometry (a wide range leaves a joint free)")
 
     rows: dict[tuple[int, bool], _Rows] = {}
-    for base in (REVOLUTE_JOINT, PRISMATIC_JOINT):
-        uid = LIMIT_OF[base]
+    for base, limit in limit_of.items():
+        uid = limit.uid
         for gid, geo in limited[base]:
-            local, arrays = _read_joints(gid, geo, uid, bodies, use_angle)
+            local, arrays = _read_joints(gid, geo, limit, bodies, use_angle)
             r = rows.setdefault((uid, local), _Rows(uid, local))
             r.refs += arrays["refs"]
             for name in ("body_ids", "edges", "lower", "upper", "strength", "offset"):
@@ -415,7 +420,8 @@ def request_from_scene(
                 r.prev.append(arrays["prev"])
     rows = {k: r for k, r in rows.items() if r.refs}
     if not rows:
-        raise SceneError("the scene has no joint edge with a #670 or #669 limit (zero edges to evaluate)")
+        which = " or ".join(f"#{f.uid}" for f in limit_of.values())
+        raise SceneError(f"the scene has no joint edge with a {which} limit (zero edges to evaluate)")
 
     B = bodies.q.shape[0]
     def dofs(a: ArrayLike | None, default: Array, name: str) -> Array:
@@ -466,6 +472,7 @@ def write_back(
         coordinates = coordinates.batches
     if len(coordinates) != len(joints):
         raise SceneError(f"{len(coordinates)} batches of coordinates for {len(joints)} batches of joints")
+    limit_of = _limits_by_base()
     writes: dict[int, tuple[Any, str, list[int], list[float]]] = {}
     for k, (c, refs) in enumerate(zip(coordinates, joints)):
         values = _batch_values(c, len(refs), k)
@@ -476,9 +483,10 @@ def write_back(
                     raise SceneError("the joint geometry is not in the scene", int(gid))
                 geo = slot.geometry()
                 base = _meta_uid(geo)
-                if base not in LIMIT_OF:
-                    raise SceneError(f"not a revolute or prismatic joint geometry (constitution UID {base})", int(gid))
-                name = STATE_ATTR[LIMIT_OF[base]]
+                if base not in limit_of:
+                    kinds = " or ".join(f.kind for f in limit_of.values())
+                    raise SceneError(f"not a {kinds} joint geometry (constitution UID {base})", int(gid))
+                name = limit_of[base].state_name
                 if geo.edges().find(name) is None:
                     raise SceneError(f"the joint edges have no `{name}` attribute", int(gid))
                 writes[gid] = (geo, name, [], [])

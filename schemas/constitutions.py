@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from pydantic import BaseModel
 
 
@@ -47,29 +49,21 @@ class ConstitutionsResponse(BaseModel):
     limits: Limits
 
 
-# What the specs say of each constitution (UIDs, names and base UIDs come from the core's registry).
-_BASE_NAMES = {18: "AffineBodyRevoluteJoint", 20: "AffineBodyPrismaticJoint"}
-_COORDINATES = {
-    670: ("rad", "relative angle of body j about the edge axis +t (right-hand rule), incremental"),
-    669: ("length unit of the DOFs", "relative slide of body j along the edge axis +t"),
-}
-# v1.1: the spec attributes of the joint's state, by constitution (CONTRACT.md, "Contract v1.1").
-_OFFSET_NAMES = {670: "init_angle", 669: "init_distance"}
-_STATEFUL = {670: "angle"}
 STRENGTH_DEFAULT = 1.0
 """The reference engine's default `limit/strength` (`apply_to(sc, lower, upper, strength = 1)`)."""
 
 
-def describe(uid: int, name: str, base_uid: int) -> ConstitutionInfo:
-    """The discovery entry of one constitution, in the specs' attribute names and units."""
-    unit, meaning = _COORDINATES.get(uid, ("", ""))
+def describe(facts: Any) -> ConstitutionInfo:
+    """The discovery entry of one constitution, in the specs' attribute names and units, from its facts (the
+    core's `Facts`, read here by attribute: the wire imports nothing of the service)."""
+    unit = facts.unit
     return ConstitutionInfo(
-        uid=uid,
-        name=name,
-        base_uid=base_uid,
-        base_name=_BASE_NAMES.get(base_uid, ""),
-        coordinate=f"{meaning} [{unit}]" if unit else meaning,
-        origin=_ORIGINS.get(uid, ""),
+        uid=facts.uid,
+        name=facts.name,
+        base_uid=facts.base_uid,
+        base_name=facts.base_name,
+        coordinate=f"{facts.coordinate} [{unit}]",
+        origin=facts.origin,
         attributes=[
             *_geometry_attributes(),
             Attribute(
@@ -90,17 +84,9 @@ def describe(uid: int, name: str, base_uid: int) -> ConstitutionInfo:
                 description="penalty strength s >= 0 of E = s (gap / (u - l))^3 (s |x - l|^3 when u == l), "
                 "l = lower - offset, u = upper - offset",
             ),
-            *_state_attributes(uid, unit),
+            *_state_attributes(facts),
         ],
     )
-
-
-_ORIGINS = {
-    670: 'batch field origin: "q_ref" (default): x = 0 at q_ref; "absolute" (the engine): x = atan2(sin, cos) of the '
-    "frames at q_ref plus the turn since (not 0 where the bodies' A_ref stretch differently) (v1.2)",
-    669: 'batch field origin: "q_ref" (default): x = 0 at q_ref; "absolute" (the engine): x = theta(q), the signed '
-    "distance between the anchors along the axis (not 0 at q_ref where the anchors do not meet) (v1.2)",
-}
 
 
 def _geometry_attributes() -> list[Attribute]:
@@ -125,25 +111,24 @@ def _geometry_attributes() -> list[Attribute]:
     ]
 
 
-def _state_attributes(uid: int, unit: str) -> list[Attribute]:
-    """v1.1: the offset (`init_angle` / `init_distance`) and, for the revolute joint, its unwrapped `angle`."""
-    out = []
-    if uid in _OFFSET_NAMES:
-        out.append(
-            Attribute(
-                name=_OFFSET_NAMES[uid],
-                field="offset",
-                unit=unit,
-                default=0.0,
-                description="the coordinate at q_ref: the reported coordinate is x + offset (v1.1)",
-            )
+def _state_attributes(facts: Any) -> list[Attribute]:
+    """v1.1: the offset (`init_angle` / `init_distance`) and, for a stateful joint (the revolute), its unwrapped
+    committed coordinate (`angle`)."""
+    out = [
+        Attribute(
+            name=facts.offset_name,
+            field="offset",
+            unit=facts.unit,
+            default=0.0,
+            description="the coordinate at q_ref: the reported coordinate is x + offset (v1.1)",
         )
-    if uid in _STATEFUL:
+    ]
+    if facts.stateful:
         out.append(
             Attribute(
-                name=_STATEFUL[uid],
+                name=facts.state_name,
                 field="prev_coordinate",
-                unit=unit,
+                unit=facts.unit,
                 default=None,
                 description="optional: the committed, continuously unwrapped coordinate at q_prev (any number of "
                 "turns); x = (prev_coordinate - offset) + DeltaTheta(q, q_prev). Without it x starts from "

@@ -15,6 +15,7 @@ from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 from starlette.datastructures import State
 
+from jointlimits.service.core import registry
 from jointlimits.service.core.heap import keep_heap
 from jointlimits.service.http import sessions
 from jointlimits.service.http.routes import install
@@ -105,8 +106,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=_lifespan,
         title="Joint-limit constitution service",
         version="1.0.0",
-        description="Energy, gradient and Hessian of #670 AffineBodyRevoluteJointLimit "
-        "and #669 AffineBodyPrismaticJointLimit (wire contract v1.2).",
+        description="Energy, gradient and Hessian of "
+        + " and ".join(f"#{f.uid} {f.name}" for f in registry.CONSTITUTIONS.values()) + " (wire contract v1.2).",
     )
     app.state.settings = settings
     app.state.draining = False  # True from SIGTERM on (drain_on_sigterm): /readyz answers 503

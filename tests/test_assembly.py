@@ -48,7 +48,7 @@ def inputs(c, n: int, seed: int, spread: float = 2.0):
 def test_factors_match_the_dense_chain_rule(c, psd: bool, seed: int):
     n = 700
     v, dx, curvature, dE, d2E = inputs(c, n, seed)
-    J = dense_J(c.alpha, v)
+    J = dense_J(c.facts.alpha, v)
     dxv = dx.reshape(n, 12)
     if psd:
         curvature = c.projected_curvature(dE, curvature)
@@ -60,7 +60,7 @@ def test_factors_match_the_dense_chain_rule(c, psd: bool, seed: int):
     M = M + d2E[:, None, None] * dxv[:, :, None] * dxv[:, None, :]
     want = np.einsum("nai,nab,nbj->nij", J, M, J)
     out = np.empty((n, 24, 24))
-    Jdx, finite = assembly.hessian(c.alpha, v, curvature, dE_used, d2E, out, dx=dx)
+    Jdx, finite = assembly.hessian(c.facts.alpha, v, curvature, dE_used, d2E, out, dx=dx)
     assert finite
     assert np.array_equal(out, out.transpose(0, 2, 1))  # bitwise
     err = np.abs(out - want).max(axis=(1, 2)) / np.abs(want).max(axis=(1, 2))
@@ -81,7 +81,7 @@ def test_symmetric_at_extreme_magnitudes():
         v, dx, curvature, dE, d2E = inputs(c, n, 4)
         v = v * 10.0 ** rng.uniform(-25, 25, size=(n, 4, 1))  # blocks of one joint at very different scales
         out = np.empty((n, 24, 24))
-        assembly.hessian(c.alpha, v, curvature, dE * 10.0 ** rng.uniform(-40, 40, size=n), d2E, out)
+        assembly.hessian(c.facts.alpha, v, curvature, dE * 10.0 ** rng.uniform(-40, 40, size=n), d2E, out)
         assert np.isfinite(out).all()
         assert np.array_equal(out, out.transpose(0, 2, 1))
 
@@ -91,17 +91,17 @@ def test_gradient_matches_the_dense_chain_rule():
     for c in (REVOLUTE, PRISMATIC):
         v = rng.normal(size=(50, 4, 3))
         dF = rng.normal(size=(50, 3, 4, 3))  # a leading axis of several vectors per joint
-        want = np.einsum("nai,nka->nki", dense_J(c.alpha, v), dF.reshape(50, 3, 12))
-        np.testing.assert_allclose(assembly.chain(c.alpha, v, dF), want, rtol=0, atol=1e-14 * np.abs(want).max())
+        want = np.einsum("nai,nka->nki", dense_J(c.facts.alpha, v), dF.reshape(50, 3, 12))
+        np.testing.assert_allclose(assembly.chain(c.facts.alpha, v, dF), want, rtol=0, atol=1e-14 * np.abs(want).max())
 
 
 def test_finite_flag_is_false_when_products_may_overflow():
     """Factors above sqrt(max / 64) may overflow in the product: the flag sends the caller to check `out`."""
     v, dx, curvature, dE, d2E = inputs(PRISMATIC, 20, 6)
     out = np.empty((20, 24, 24))
-    _, finite = assembly.hessian(PRISMATIC.alpha, v * 1e160, curvature, dE, d2E, out)
+    _, finite = assembly.hessian(PRISMATIC.facts.alpha, v * 1e160, curvature, dE, d2E, out)
     assert not finite and not np.isfinite(out).all()
-    _, finite = assembly.hessian(PRISMATIC.alpha, v, curvature, dE, d2E, out)
+    _, finite = assembly.hessian(PRISMATIC.facts.alpha, v, curvature, dE, d2E, out)
     assert finite and np.isfinite(out).all()
 
 
@@ -115,9 +115,9 @@ def test_finite_flag_of_the_revolute_route():
     v, dx, curvature, dE, d2E = inputs(REVOLUTE, 20, 7)
     out = np.empty((20, 24, 24))
     with np.errstate(all="ignore"):  # the overflow this test provokes
-        _, finite = assembly.hessian(REVOLUTE.alpha, v * 1e160, curvature, dE, d2E, out)
+        _, finite = assembly.hessian(REVOLUTE.facts.alpha, v * 1e160, curvature, dE, d2E, out)
     assert not finite and not np.isfinite(out).all()
-    _, finite = assembly.hessian(REVOLUTE.alpha, v, curvature, dE, d2E, out)
+    _, finite = assembly.hessian(REVOLUTE.facts.alpha, v, curvature, dE, d2E, out)
     assert finite and np.isfinite(out).all()
 
 
@@ -136,8 +136,8 @@ def test_component_major_inputs_give_the_same_bits(c):
     vc[...] = v
     dxc, curvature_c = c.derivatives(Fc, second=True)
     a, b = np.empty((n, 24, 24)), np.empty((n, 24, 24))
-    ga, _ = assembly.hessian(c.alpha, v, curvature, dE, d2E, a, dx=dx)
-    gb, _ = assembly.hessian(c.alpha, vc, curvature_c, dE, d2E, b, dx=dxc)
+    ga, _ = assembly.hessian(c.facts.alpha, v, curvature, dE, d2E, a, dx=dx)
+    gb, _ = assembly.hessian(c.facts.alpha, vc, curvature_c, dE, d2E, b, dx=dxc)
     assert np.array_equal(a, b) and np.array_equal(ga, gb)
 
 

@@ -1,5 +1,5 @@
-"""`kinematics.BodyTable`: which bodies the frames' common path serves (`plain_over`), taken with the
-rows on the threads and kept until the rows change."""
+"""`kinematics.BodyTable`: which bodies the frames' common path serves (`plain_over`), taken after the
+rows are filled and kept until the rows change."""
 
 from __future__ import annotations
 
@@ -25,15 +25,14 @@ def _fresh(table: BodyTable, rows: set[int]) -> np.ndarray:
     return _plain_bodies(table.states, table.linear, rows)
 
 
-@pytest.mark.parametrize("threads", [1, 2, 3])
 @pytest.mark.parametrize("seed", range(4))
-def test_plains_taken_with_the_rows_are_those_taken_after(seed: int, threads: int) -> None:
+def test_plains_taken_with_the_rows_are_those_taken_after(seed: int) -> None:
     bodies = _bodies(seed)
-    table = BodyTable(bodies, threads=threads, rows={PREV_STEP}, later={STEP, TOTAL_STEP}, plains=[{PREV_STEP, STEP}, {TOTAL_STEP}])
+    table = BodyTable(bodies, rows={PREV_STEP, STEP, TOTAL_STEP})
     for rows in ({PREV_STEP}, {PREV_STEP, STEP}, {TOTAL_STEP}, {STEP}):
         got = table.plain_over(rows)
         np.testing.assert_array_equal(got, _fresh(table, rows))
-    np.testing.assert_array_equal(table.plain, _fresh(table, {PREV_STEP}))
+    np.testing.assert_array_equal(table.plain, _fresh(table, {PREV_STEP, STEP, TOTAL_STEP}))
     assert not table.plain_over({PREV_STEP, STEP})[0] and not table.plain_over({TOTAL_STEP})[1]
 
 
@@ -41,7 +40,7 @@ def test_plains_follow_a_new_q() -> None:
     """After `load` and `increments` the kept masks are dropped: the shrunk body is plain again at a q
     of its own size."""
     bodies = _bodies(0)
-    table = BodyTable(bodies, threads=2, rows={PREV_STEP}, later={STEP}, plains=[{PREV_STEP, STEP}])
+    table = BodyTable(bodies, rows={PREV_STEP, STEP})
     assert not table.plain_over({PREV_STEP, STEP})[0]
     table.load(2, bodies.q_prev)
     table.increments((STEP,))

@@ -4,8 +4,9 @@
   `client/` is named on it: a module added or removed without the page changing fails here.
 - Every `path.py:name` it names (the request's walk, the map) is defined in that module: a top-level function,
   class or constant, or `Class.member`.
-- What it says of the structure: who imports whom, the members of the `Constitution` protocol, and every module
-  that names a constitution's UID is in "Adding a constitution today".
+- What it says of the structure: who imports whom, the members of the `Constitution` protocol and the fields of
+  `Facts`, a UID written in its constitution's module alone, and every module that names a constitution is in
+  "Adding a constitution".
 """
 
 from __future__ import annotations
@@ -143,33 +144,39 @@ def test_who_imports_whom(folder, may_not, except_):
     assert {k: v for k, v in bad.items() if v} == {}
 
 
-def test_the_protocol_members_are_listed():
-    """"Adding a constitution today" lists every member of `Constitution` a new joint type implements."""
-    tree = ast.parse((ROOT / "service" / "core" / "constitution.py").read_text())
-    members = _defined(tree)["Constitution"]
+def test_the_protocol_members_and_the_facts_are_listed():
+    """"Adding a constitution" lists every member of `Constitution` a new joint type implements, and every fact."""
+    defined = _defined(ast.parse((ROOT / "service" / "core" / "constitution.py").read_text()))
+    members, facts = defined["Constitution"], defined["Facts"]
     section = _section(_text(), "Adding a constitution")
-    assert len(members) >= 10
-    assert sorted(m for m in members if f"`{m}`" not in section) == []
+    assert {"facts", "derivatives", "advance"} <= members and {"uid", "base_uid", "alpha", "telescopes"} <= facts
+    assert sorted(m for m in members | facts if f"`{m}`" not in section) == []
 
 
-UID_NAMES = {"REVOLUTE_UID", "REVOLUTE_LIMIT", "PRISMATIC_LIMIT", "REVOLUTE", "PRISMATIC"}
+UID_NAMES = {"REVOLUTE_LIMIT", "PRISMATIC_LIMIT", "REVOLUTE", "PRISMATIC"}
+
+
+def _holds_a_uid(path: Path) -> bool:
+    """The module's code (not its docstrings) holds the UID 670 or 669."""
+    return any(isinstance(n, ast.Constant) and type(n.value) is int and n.value in (669, 670)
+               for n in ast.walk(ast.parse(path.read_text())))
 
 
 def _names_a_constitution(path: Path) -> bool:
-    """The module's code (not its docstrings) holds the UID 670 or 669, or a name standing for one."""
+    """The module's code holds the UID 670 or 669, or a name standing for one."""
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Constant) and type(node.value) is int and node.value in (669, 670):
-            return True
         if isinstance(node, ast.Name) and node.id in UID_NAMES:
             return True
         if isinstance(node, ast.alias) and (node.asname or node.name) in UID_NAMES:
             return True
-    return False
+    return _holds_a_uid(path)
 
 
-def test_every_module_that_names_a_constitution_is_in_the_how_to():
-    """A third joint type touches every module that knows the two by their UID: each is listed."""
+def test_a_uid_is_written_in_its_constitution_module_alone():
+    """Each constitution in one place: its UIDs appear in the code of its own module only; every other module
+    reads the registry, or the SDK's names for the two (read from their facts), and is listed in the how-to."""
+    assert [m for m in _modules() if _holds_a_uid(ROOT / m)] == ["service/core/prismatic.py", "service/core/revolute.py"]
     section = _section(_text(), "Adding a constitution")
     knowing = [m for m in _modules() if _names_a_constitution(ROOT / m)]
-    assert "service/core/validate.py" in knowing and "client/model.py" in knowing
+    assert "client/model.py" in knowing
     assert [m for m in knowing if f"`{m}" not in section] == []

@@ -38,9 +38,9 @@ def test_tasks_keep_the_callers_error_state() -> None:
             run_all([lambda: None, lambda: np.divide(1.0, np.zeros(1))], 2)
 
 
-def test_one_batch_holding_most_joints_takes_its_chunks_on_the_threads() -> None:
-    """A batch of 3000 beside one of 2 (prepared.SIDE_BY_SIDE): one batch after another, the large one's
-    derivative chunks on both threads; bitwise the answers of one thread, both modes."""
+def test_the_batches_derivative_chunks_take_the_threads() -> None:
+    """A batch of 3000 beside one of 2: one batch after another, each's derivative chunks on both threads;
+    bitwise the answers of one thread, both modes."""
     from bench.scenes import make_scene
     from jointlimits.service.core import evaluate, prepare
 

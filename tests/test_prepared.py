@@ -54,9 +54,9 @@ def test_prepared_evaluate_with_threads_is_bitwise_the_same() -> None:
 
 
 def test_prepared_scene_on_threads_gathers_every_q_afresh() -> None:
-    """On threads the evaluation's gathers run before the batches (`BodyTable.prefetch`): each q gets its
-    own, and an evaluation stopped after gathering (a deadline already past) leaves none for the next
-    load to read (a commit's step from q_ref would otherwise take the stopped call's increments)."""
+    """On threads each q gets its own gathers, and an evaluation stopped early (a deadline already past)
+    leaves nothing for the next load to read (a commit's step from q_ref would otherwise take the stopped
+    call's increments)."""
     import time
 
     from jointlimits.service.core.errors import DeadlineExceeded

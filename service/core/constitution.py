@@ -1,9 +1,10 @@
-"""What a joint-limit constitution contributes: its coordinate `x` through the frame quantities `F`.
+"""What a joint-limit constitution contributes: its facts (`Facts`) and its coordinate `x` through the frame
+quantities `F` (`Constitution`).
 
-Everything else (the penalty, the chain rule to DOFs, Hessian modes, validation)
-is shared, so a new joint type's numbers are one module implementing this protocol and one line in
-`jointlimits.service.core.registry`. Its UIDs are also named on the wire and in the SDK today:
-docs/maintainers.md, "Adding a constitution", lists every file.
+Everything else (the penalty, the chain rule to DOFs, Hessian modes, validation, the wire, discovery, the SDK)
+is shared and reads the facts from the registry, so a new joint type is one module: its `Facts`, an object
+implementing `Constitution`, and `jointlimits.service.core.registry.register` (docs/maintainers.md,
+"Adding a constitution").
 """
 
 from __future__ import annotations
@@ -72,21 +73,57 @@ class Progress:
     known: list
 
 
-class Constitution(Protocol):
+@dataclass(frozen=True, eq=False)
+class Facts:
+    """A constitution's facts, declared once next to its numerics; validation, discovery and OpenAPI, the
+    SDK's `Scene` and the libuipc adapter read them through the registry."""
+
     uid: int
+    """The limit's UID, the wire's `constitution_uid`."""
     base_uid: int
+    """The UID of the base joint it limits, the wire's `base_uid` (an absent one is this)."""
     name: str
+    base_name: str
+    """The specs' names of the limit and of its base joint."""
+    kind: str
+    """The joint in one word ("revolute"): the SDK's `Scene.add_<kind>_limit`, the faults' words."""
+    unit: str
+    coordinate: str
+    """The unit of the coordinate `x` and what it measures."""
+    origin: str
+    """Where `x = 0` for each value of a batch's `origin` (discovery)."""
+    offset_name: str
+    state_name: str
+    """The spec's (and the engine's edge attribute) names of the offset (`init_angle`) and of the committed
+    coordinate (`angle`), which a `stateful` constitution takes as `prev_coordinate`."""
     alpha: Array
     """(4,): 1 where `F_k` is a point that follows the body's translation, 0 for a direction."""
     telescopes: bool
-    """True when the incremental `x` telescopes to a function of `q` and `q_ref`: `q_prev` is not needed."""
-
+    """True when the incremental `x` telescopes to a function of `q` and `q_ref`: `q_prev` is not needed, and
+    the coordinate carries no state over time steps."""
     axis_by_rotation: bool
+    """How a body-local edge (`local_edges`) gives the world axis: by body i's rotation `R_i` (True) or
+    its `A_ref_i` (False), as the reference engine does for this constitution (`jointlimits.service.core.geometry`)."""
     unit_frames: bool
     """Every body-local vector `v_k` is a unit vector (directions only): then `|F_k| <= |A|_F` of its body,
     and `collapsed` may take a bound on the frames' sizes from the bodies' norms (`size_bound`)."""
-    """How a body-local edge (`local_edges`) gives the world axis: by body i's rotation `R_i` (True) or
-    its `A_ref_i` (False), as the reference engine does for this constitution (`jointlimits.service.core.geometry`)."""
+    engine_zero_axis: float = 0.0
+    """The reference engine refuses an edge whose `|p1 - p0|^2` is at most this (the libuipc adapter checks it)."""
+
+    @property
+    def stateful(self) -> bool:
+        """The coordinate carries a state over time steps (the committed coordinate, `prev_coordinate`; a commit
+        unwraps it): it does not telescope."""
+        return not self.telescopes
+
+    @property
+    def points(self) -> bool:
+        """Some `F_k` is a point (the coordinate depends on the bodies' positions)."""
+        return bool(self.alpha.any())
+
+
+class Constitution(Protocol):
+    facts: Facts
 
     def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
         """Body-local `v` (N, 4, 3) from the unit world axis `t` (N, 3) at `q_ref`, the body-local
@@ -98,29 +135,21 @@ class Constitution(Protocol):
         reference engine's): `origin: "absolute"` adds it at `q_ref` to `x`."""
         ...
 
-    def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:
-        """Joint coordinate `x` (N,) in incremental form, from the frames' steps.
-
-        `steps` are the increments `F(q_prev - q_ref), F(q - q_prev)`, or `[F(q - q_ref)]` when
-        `telescopes`; `starts` the frames where each step starts (`F` at `q_ref`, then at
-        `q_prev`); all (N, 4, 3). Taking `x` as increments of bilinear forms keeps its error
-        relative to the step, not to the size of the scene. The joints `careful.idx` (steps as
-        large as the frames, or frames at the edge of float64) take `x` from `careful` instead,
-        in whichever form rounds better there.
-        """
-        ...
-
     def begin(self, F: Array) -> Progress:
         """No step taken yet, from frames `F` (N, 4, 3)."""
         ...
 
     def advance(self, progress: Progress, F: Array, dF: Array) -> Progress:
-        """`progress` one step further: from the frames `F` by their increment `dF` (N, 4, 3). Over the
-        steps of `coordinate`, `begin` then `advance` give its `x` bit for bit (joints not `careful`)."""
+        """`progress` one step further: from the frames `F` by their increment `dF` (N, 4, 3).
+
+        The steps are the increments `F(q_prev - q_ref), F(q - q_prev)`, or `F(q - q_ref)` alone when
+        `telescopes`, each from the frames where it starts (`F` at `q_ref`, then at `q_prev`). Taking `x` as
+        increments of bilinear forms keeps its error relative to the step, not to the size of the scene."""
         ...
 
     def careful_coordinate(self, careful: CarefulFrames) -> Array:
-        """x (M,) of the joints `careful.idx`, from the careful frames (see `coordinate`)."""
+        """x (M,) of the joints `careful.idx` (steps as large as the frames, or frames at the edge of float64),
+        from their careful frames, in whichever form rounds better there (instead of `advance`'s)."""
         ...
 
     def collapsed(self, F: Array, known: object = None, size_bound: Array | None = None) -> NDArray[np.bool_]:

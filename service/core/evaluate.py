@@ -25,7 +25,7 @@ SCATTER_CHUNK = 2048
 
 def _increments(c: Constitution) -> tuple[int, ...]:
     """The body table's rows of `A` increments that `c.coordinate` takes, in its order."""
-    return (TOTAL_STEP,) if c.telescopes else (PREV_STEP, STEP)
+    return (TOTAL_STEP,) if c.facts.telescopes else (PREV_STEP, STEP)
 
 
 def differentiate(
@@ -64,7 +64,7 @@ def differentiate(
         # Energy alone, every row: which joints are active is not asked (`active` None).
         _raise_overflow(b, nonfinite_rows(energy))
         n = x.shape[0]
-        return dict(constitution_uid=c.uid, index=np.arange(n), x=x, energy=energy, gradient=None, hessian=None,
+        return dict(constitution_uid=c.facts.uid, index=np.arange(n), x=x, energy=energy, gradient=None, hessian=None,
                     all_energy=energy, active=None)
 
     active = np.flatnonzero((g > 0) & (s > 0))
@@ -126,7 +126,7 @@ def differentiate(
             overflow += bad
     _raise_overflow(b, overflow)
     return dict(
-        constitution_uid=c.uid,
+        constitution_uid=c.facts.uid,
         index=active if active_only else np.arange(x.shape[0]),
         x=x[active] if active_only else x,
         energy=energy[active] if active_only else energy,
@@ -165,7 +165,7 @@ def _derivatives(
     derivatives in x."""
     dx, curvature = c.derivatives(F, second=h_out is not None)
     if h_out is None:
-        _gradient(dE, assembly.chain(c.alpha, v, dx[:, None])[:, 0], g_out)
+        _gradient(dE, assembly.chain(c.facts.alpha, v, dx[:, None])[:, 0], g_out)
         return True
     dE_h, dx_h = dE, None
     if psd:
@@ -177,7 +177,7 @@ def _derivatives(
                                   kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)), diagonal=True)
         # The projection already carries E': the chain rule sees E' = 1 (E'' dx dx^T beside it, PSD as it is).
         curvature, dE_h, dx_h = projected, np.ones_like(dE), dx
-    Jdx, finite = assembly.hessian(c.alpha, v, curvature, dE_h, d2E, h_out, dx=dx_h)
+    Jdx, finite = assembly.hessian(c.facts.alpha, v, curvature, dE_h, d2E, h_out, dx=dx_h)
     _gradient(dE, Jdx, g_out)  # J^T dx comes with the Hessian's factors
     return finite
 

@@ -7,7 +7,7 @@ constitution turns `(t, anchors)` into its body-local vectors (`Constitution.loc
   anchors `c_k = A_ref_k^{-1} (p0 - p_ref_k)`.
 - `local_edges` (N, 2, 2, 3), `[[l0, l1], [r0, r1]]` in body i's and body j's coordinates (the
   reference engine's local variant): `t` is `l1 - l0` carried to the world by body i at `q_ref`,
-  by its rotation `R_i` or by `A_ref_i` itself (`Constitution.axis_by_rotation`, as the engine
+  by its rotation `R_i` or by `A_ref_i` itself (`Facts.axis_by_rotation`, as the engine
   does for each), anchors `c_i = l0`, `c_j = r0` as given.
 """
 
@@ -24,13 +24,13 @@ def axis_and_anchors(
 ) -> tuple[Array, Array | None]:
     """The unit world axis `t` (N, 3) and, for a constitution with points, the body-local anchors (N, 2, 3)
     (else None), both component-major. `p_ref` (N, 2, 3), `A_ref` and `R_ref` (N, 2, 3, 3) of bodies i, j."""
-    points = bool(c.alpha.any())
+    points = c.facts.points
     if local_edges is None:
         return edge_axis(edges), (_world_anchors(edges, p_ref, A_ref) if points else None)
     d = edge_vector(local_edges[:, 0])  # l1 - l0, in body i's coordinates
     # Both factors scaled by powers of two (exact; the direction is all that counts): `M d` then
     # neither overflows nor underflows for any finite, nonzero `d` and a nonsingular `A_ref`.
-    M = R_ref[:, 0] if c.axis_by_rotation else _unit_scaled(A_ref[:, 0])
+    M = R_ref[:, 0] if c.facts.axis_by_rotation else _unit_scaled(A_ref[:, 0])
     t = axis(from_local(M, _unit_scaled(d)))
     if not points:
         return t, None

@@ -15,14 +15,12 @@ from the origin from losing digits to its translation.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
 
-from jointlimits.service.core.parallel import run_all
 from jointlimits.service.core.polar import polar_rotation
 from jointlimits.service.core.scene import Bodies
 
@@ -129,24 +127,16 @@ class BodyTable:
         self,
         bodies: Bodies,
         dtype: type = np.float64,
-        threads: int = 1,
         rows: Iterable[int] = STEPS,
         used: NDArray[np.bool_] | None = None,
-        later: Iterable[int] = (),
         rotate: bool = True,
-        plains: Iterable[Iterable[int]] = (),
     ) -> None:
         """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage);
-        `plain` is taken over `rows`. `later`: increment rows filled too (a stateless call's steps to
-        `q`, on the same threads), for a `plain_over` of their own later. `used` (B,): the bodies some
-        joint reads; only theirs are sure to have a polar factor, every body has its conditioning
-        ratio (`polar_rotation`). `rotate` False: the polar factors wait for `rotate`. `plains`: sets of
-        filled rows whose `plain_over` is taken now too, with the rows, on the threads (kept until a
-        `load` or `increments`)."""
+        `plain` is taken over `rows`. `used` (B,): the bodies some joint reads; only theirs are sure to have
+        a polar factor, every body has its conditioning ratio (`polar_rotation`). `rotate` False: the polar
+        factors wait for `rotate`."""
         n = bodies.q.shape[0]
-        rows = tuple(rows)
-        filled = tuple(sorted({*rows, *later}))
-        self.threads = threads
+        filled = tuple(sorted(set(rows)))
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
         dofs = np.empty((3, 12, n), dtype=dtype)  # (q_ref, q_prev, q; DOF; body): one transposed copy per state
         self.dofs = dofs  # (state; DOF; body), the unfilled states garbage
@@ -155,83 +145,45 @@ class BodyTable:
         # (REF..TOTAL_STEP)[A[r, c]; body]: A_ref is the state's own rows (no copy), then the increments.
         self.linear = [dofs[0, 3:], *np.empty((3, 9, n), dtype=dtype)]
         spanned = sorted({0, *(s for row in filled for s in STEPS[row])})
-
-        self._fetched: dict[tuple[str, int, int], tuple[NDArray[np.intp], Array]] = {}  # `prefetch`
+        for s in spanned:
+            transpose_into(dofs[s], q[s])
+        self._subtract(filled)
         # `_plain_bodies`' squared norms, kept until their rows change: taken here with the rows, while in cache.
         self._norms: dict[tuple[str, int], Array] = {
-            **{("state", s): np.empty(n, dtype=dtype) for s in spanned},
-            **{("row", row): np.empty(n, dtype=dtype) for row in filled},
+            **{("state", s): squared_norms(self.states[s]) for s in spanned},
+            **{("row", row): squared_norms(self.linear[row]) for row in filled},
         }
-
-        # `plain_over` of each set of rows, taken while the rows are in cache; kept until they change.
-        self._plains = {frozenset(r): np.empty(n, dtype=bool) for r in (rows, *plains)}
-
-        def fill(cols: slice) -> None:
-            for s in spanned:
-                transpose_into(dofs[s][:, cols], q[s][cols])
-            self._subtract(filled, cols)
-            for (kind, k), out in self._norms.items():
-                a = self.states[k] if kind == "state" else self.linear[k]
-                squared_norms(a[:, cols], out=out[cols])
-            norms = {key: a[cols] for key, a in self._norms.items()}
-            for key, out in self._plains.items():
-                out[cols] = _plain_bodies(self.states[:, :, cols], [a[:, cols] for a in self.linear], key, norms)
-
-        self._over_bodies(fill)
+        self._plains: dict[frozenset[int], NDArray[np.bool_]] = {}  # `plain_over`'s, until the rows change
         self.dtype = np.dtype(dtype)
-        self.plain = self.plain_over(rows)
+        self.plain = self.plain_over(filled)
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         self._A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
         if rotate:
             self.rotate(used)
 
-    def rotate(self, used: NDArray[np.bool_] | None = None, also: Sequence[Callable[[], object]] = ()) -> None:
-        """The polar factors `rotation` (9, B) and conditioning `ratio` (B,) (see `__init__`), a range of
-        bodies per thread, the tasks `also` beside them on the same threads (`prefetch_tasks`)."""
-        if self.threads <= 1:
-            R, self.ratio = polar_rotation(self._A_ref, used)
-            run_all(also, 1)
-        else:
-            n = self._A_ref.shape[1]
-            R, self.ratio = np.empty((9, n)), np.empty(n)
-            run_all([*(partial(self._rotate_part, R, cols, used) for cols in self._ranges()), *also], self.threads)
+    def rotate(self, used: NDArray[np.bool_] | None = None) -> None:
+        """The polar factors `rotation` (9, B) and conditioning `ratio` (B,) (see `__init__`)."""
+        R, self.ratio = polar_rotation(self._A_ref, used)
         self.rotation = R.astype(self.dtype, copy=False)  # (9, B)
-
-    def _rotate_part(self, R: Array, cols: slice, used: NDArray[np.bool_] | None) -> None:
-        """The polar factors of the bodies `cols` into `R` (9, B) and `ratio`, on the thread that took them."""
-        R[:, cols], self.ratio[cols] = polar_rotation(self._A_ref[:, cols], None if used is None else used[cols])
 
     def load(self, state: int, q: Array) -> None:
         """Bodies' DOFs `q` (B, 12) into `state` (the rows of A's increments from or to it keep their old values)."""
-        self._fetched = {}  # gathers of the old numbers
         self._plains = {}
-        self._over_bodies(lambda cols: transpose_into(self.dofs[state][:, cols], q[cols]))
+        transpose_into(self.dofs[state], q)
         self._norms.pop(("state", state), None)
 
     def increments(self, rows: Iterable[int]) -> None:
         """The increment `rows` of `A` from the states they span, as loaded."""
         rows = tuple(rows)
-        self._fetched = {}
         self._plains = {}
-        self._over_bodies(lambda cols: self._subtract(rows, cols))
+        self._subtract(rows)
         for row in rows:
             self._norms.pop(("row", row), None)
 
-    def _subtract(self, rows: tuple[int, ...], cols: slice) -> None:
-        """The increment `rows` of `A` for the bodies `cols`."""
+    def _subtract(self, rows: tuple[int, ...]) -> None:
         for row in rows:
             a, b = STEPS[row]
-            np.subtract(self.dofs[b, 3:, cols], self.dofs[a, 3:, cols], out=self.linear[row][:, cols])
-
-    def _over_bodies(self, task: Callable[[slice], None]) -> None:
-        """`task` on `threads` contiguous ranges of bodies at once (a range per thread: each writes its own columns)."""
-        run_all([partial(task, cols) for cols in self._ranges()], self.threads)
-
-    def _ranges(self) -> list[slice]:
-        """The bodies in `threads` contiguous ranges of (nearly) equal size."""
-        n = self.dofs.shape[2]
-        cuts = [n * k // self.threads for k in range(self.threads + 1)]
-        return [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+            np.subtract(self.dofs[b, 3:], self.dofs[a, 3:], out=self.linear[row])
 
     def plain_over(self, rows: Iterable[int]) -> NDArray[np.bool_]:
         """`_plain_bodies` over the increment `rows` (the norms of states and rows that did not change since are kept)."""
@@ -240,53 +192,14 @@ class BodyTable:
             self._plains[rows] = _plain_bodies(self.states, self.linear, rows, self._norms)
         return self._plains[rows]
 
-    def prefetch(self, wanted: Iterable[tuple[str, int, NDArray[np.intp]]]) -> None:
-        """Gather `wanted` now, for the next `linear_of`, `linear_at`, `rotations`, `positions_of` or `size_bound`
-        of the same `pairs` (the same object) to take, each once: (kind, key, pairs), kind "linear" (key a row
-        of `linear`), "rotation" (key 0), "state", "positions" or "size" (key a state).
-
-        Gathers read the table at random, a fifth to a quarter of an evaluation: left to each batch's own
-        thread they add to the batch of more work (the revolute one), and the other thread waits. Here
-        they run on the table's threads, a few rows per task, before the batches start. Bitwise the same
-        arrays. With one thread, nothing: the gathers are taken where they are used (and not kept alive).
-        """
-        run_all(self.prefetch_tasks(wanted), self.threads)
-
-    def prefetch_tasks(self, wanted: Iterable[tuple[str, int, NDArray[np.intp]]]) -> list[Callable[[], object]]:
-        """`prefetch`'s gathers as tasks, to run beside others (`rotate`); their arrays are `prefetch`'s
-        once the tasks have run. No tasks with one thread."""
-        self._fetched = {}  # a gather an error left unused is not kept
-        if self.threads <= 1:
-            return []
-        tasks: list[Callable[[], object]] = []
-        for kind, key, pairs in wanted:
-            if kind == "size":
-                out = np.empty(pairs.shape[1], dtype=self.dtype)
-                tasks.append(partial(self._size_bound, pairs, key, out))
-            else:
-                src = self.rotation if kind == "rotation" else {"linear": self.linear, "state": self.states, "positions": self.positions}[kind][key]
-                out = np.empty((src.shape[0], *pairs.shape), dtype=src.dtype)
-                tasks += [partial(np.take, src[r : r + 3], pairs, axis=1, mode=GATHER, out=out[r : r + 3]) for r in range(0, src.shape[0], 3)]
-            self._fetched[(kind, key, id(pairs))] = (pairs, out)  # the pairs held: their id is not reused meanwhile
-        return tasks
-
-    def _prefetched(self, kind: str, key: int, pairs: NDArray[np.intp]) -> Array | None:
-        """What `prefetch` gathered for (kind, key, pairs), once; else None."""
-        got = self._fetched.pop((kind, key, id(pairs)), None)
-        return got[1] if got is not None and got[0] is pairs else None
-
     def size_bound(self, pairs: NDArray[np.intp], state: int) -> Array:
         """`4 |A_i|_F^2 |A_j|_F^2` (N,) of joints `pairs` (2, N) in `state` (`Constitution.collapsed`), from
         the bodies' squared norms that `plain_over` took (or takes now)."""
-        got = self._prefetched("size", state, pairs)
-        return self._size_bound(pairs, state, np.empty(pairs.shape[1], dtype=self.dtype)) if got is None else got
-
-    def _size_bound(self, pairs: NDArray[np.intp], state: int, out: Array) -> Array:
         key = ("state", state)
         if key not in self._norms:
             self._norms[key] = squared_norms(self.states[state])
         n2 = np.take(self._norms[key], pairs, mode=GATHER)
-        np.multiply(4.0, n2[0], out=out)
+        out = np.multiply(4.0, n2[0])
         out *= n2[1]
         return out
 
@@ -295,9 +208,7 @@ class BodyTable:
 
         `pairs` (2, N) contiguous: each joint's bodies i and j (the transpose of `body_ids`).
         """
-        g = self._prefetched("positions", state, pairs)
-        g = np.take(self.positions[state], pairs, axis=1, mode=GATHER) if g is None else g
-        return g.transpose(2, 1, 0)
+        return np.take(self.positions[state], pairs, axis=1, mode=GATHER).transpose(2, 1, 0)
 
     def plain_joints(self, pairs: NDArray[np.intp], plain: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
         """(N,) True where both bodies of joints `pairs` (2, N) are `plain` (B,) (default `self.plain`, see `_plain_bodies`)."""
@@ -308,19 +219,19 @@ class BodyTable:
 
     def linear_at(self, pairs: NDArray[np.intp], state: int) -> Array:
         """`A` (N, 2, 3, 3) of joints `pairs` (2, N) in `state` (0: q_ref, 1: q_prev, 2: q; spanned states only)."""
-        return self._matrices(self.states[state], pairs, self._prefetched("state", state, pairs))
+        return self._matrices(self.states[state], pairs)
 
     def linear_of(self, pairs: NDArray[np.intp], row: int) -> Array:
         """`A` (N, 2, 3, 3) of joints `pairs` (2, N) at `q_ref` (`REF`) or its increment `row`."""
-        return self._matrices(self.linear[row], pairs, self._prefetched("linear", row, pairs))
+        return self._matrices(self.linear[row], pairs)
 
     def rotations(self, pairs: NDArray[np.intp]) -> Array:
         """`R_ref` (N, 2, 3, 3) of joints `pairs` (2, N)."""
-        return self._matrices(self.rotation, pairs, self._prefetched("rotation", 0, pairs))
+        return self._matrices(self.rotation, pairs)
 
     @staticmethod
-    def _matrices(rows: Array, pairs: NDArray[np.intp], g: Array | None = None) -> Array:
-        g = np.take(rows, pairs, axis=1, mode=GATHER) if g is None else g  # (9, 2, N)
+    def _matrices(rows: Array, pairs: NDArray[np.intp]) -> Array:
+        g = np.take(rows, pairs, axis=1, mode=GATHER)  # (9, 2, N)
         return g.reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
 
 

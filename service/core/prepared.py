@@ -14,9 +14,8 @@ depends on `q` and `q_ref` alone and has no state.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from functools import partial, reduce
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -41,11 +40,9 @@ from jointlimits.service.core.kinematics import (
     state_frames,
 )
 from jointlimits.service.core.geometry import axis_and_anchors
-from jointlimits.service.core.parallel import run_all
-from jointlimits.service.core.registry import CONSTITUTIONS
+from jointlimits.service.core.registry import CONSTITUTIONS, numerics
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
 from jointlimits.service.core.validate import (
-    body_checks,
     check_bodies,
     check_dofs,
     check_evaluation,
@@ -101,40 +98,20 @@ class _Batch:
     # from starts[0] over `fixed`; "last": from starts[-1]; "ref": from F_ref), kept until `starts` change
 
 
-SIDE_BY_SIDE = 2 / 3
-"""On threads, batches run side by side (a batch per thread) unless one holds more than this share of the
-joints: then one after another, each's derivative chunks on the threads (measured, 1e5 joints all active,
-2 threads: a 5e4 batch beside 10 joints side by side was 1.12x slower on E+G+H than its chunks shared)."""
-
-
-@dataclass
-class _Pending:
-    """A batch of the stateless call, prepared when its evaluation starts."""
-
-    prepare: Callable[[], _Batch]  # `_prepare_batch` of the batch
-    size: int  # its joints
-    x_rows: tuple[int, ...]  # the body table's increment rows its coordinate takes (`PreparedScene._x_rows`)
-
-
 class PreparedScene:
     """A scene prepared once (`prepare`): evaluate any `q`, commit time steps, update limits.
 
     Not thread-safe: one scene serves one caller at a time (a session, a solver loop).
     """
 
-    def __init__(
-        self, table: BodyTable, batches: list[_Batch], threads: int, pending: list[_Pending] | None = None
-    ) -> None:
+    def __init__(self, table: BodyTable, batches: list[_Batch], threads: int) -> None:
         self._table = table
-        # The stateless call's one evaluation: the table already holds q, its steps and their gathers, and
-        # each batch is prepared on the thread that then evaluates it (no wait between the two for the other batch).
-        self._pending = pending
-        self._batches: list[_Batch] = batches if pending is None else [None] * len(pending)  # type: ignore[list-item]
-        self._threads = threads
+        self._batches = batches
+        self._threads = threads  # each batch's derivative chunks on that many threads
         self._dtype = table.dtype
         self._plain = table.plain  # the bodies the frames' common path serves over the steps to q (`_load`)
         self.n_bodies: int = table.dofs.shape[2]
-        self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches] if pending is None else [p.size for p in pending]
+        self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches]
 
     # ---------------------------------------------------------------- evaluate
 
@@ -195,26 +172,11 @@ class PreparedScene:
         deadline: float | None = None,
         layout: str = "joints",
     ) -> Evaluation:
-        pending, self._pending = self._pending, None
-        if pending is not None:  # loaded and gathered with the table, on its threads (`_prepare`)
-            self._plain = self._table.plain_over({r for p in pending for r in p.x_rows})
-        else:
-            self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
-            self._table.prefetch([(kind, key, jb.pairs) for jb in self._batches for kind, key in _evaluation_gathers(jb.c, jb.row, jb.absolute)])
+        self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
         want_g, want_h = "gradient" in outputs, "hessian" in outputs
-        # Several batches of comparable size: a batch per thread, its derivative chunks on that thread.
-        # Else (one batch, or one holding most joints) one batch after another, each's chunks on the threads.
-        sizes = self.batch_sizes
-        side_by_side = self._threads > 1 and len(sizes) > 1 and max(sizes) <= SIDE_BY_SIDE * sum(sizes)
-        threads, chunk_threads = (self._threads, 1) if side_by_side else (1, self._threads)
-        psd = hessian_mode == "psd"
         # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
-        rest = (want_g, want_h, psd, active_only, chunk_threads, deadline, layout == "bodies")
-        if pending is None:
-            tasks = [partial(self._evaluate_batch, b, jb, *rest) for b, jb in enumerate(self._batches)]
-        else:
-            tasks = [partial(self._prepare_and_evaluate, b, p, *rest) for b, p in enumerate(pending)]
-        results = run_all(tasks, threads)
+        rest = (want_g, want_h, hessian_mode == "psd", active_only, self._threads, deadline, layout == "bodies")
+        results = [self._evaluate_batch(b, jb, *rest) for b, jb in enumerate(self._batches)]
         total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
         if not np.isfinite(total):
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
@@ -236,7 +198,9 @@ class PreparedScene:
 
     @staticmethod
     def _x_rows(jb: _Batch) -> tuple[int, ...]:
-        return _x_rows(jb.rows, jb.theta is not None)
+        """The increment rows of the batch's steps that its coordinate takes at q: all of them (v1), or the
+        last one alone once the angle is a state (a `prev_coordinate` or a commit)."""
+        return jb.rows[-1:] if jb.theta is not None else jb.rows
 
     def _to_q(
         self,
@@ -262,7 +226,7 @@ class PreparedScene:
         idx = np.flatnonzero(~self._table.plain_joints(jb.pairs, self._plain))
         careful = None
         if idx.shape[0]:
-            careful = careful_frames(self._table, jb.pairs, rows, jb.c.alpha, jb.v, idx)
+            careful = careful_frames(self._table, jb.pairs, rows, jb.c.facts.alpha, jb.v, idx)
             states = [F.copy() for F in states[:-1]] + states[-1:]  # the cached starts stay as they are
             for k, F in enumerate(states):
                 F[idx] = careful.unscaled(k)
@@ -290,13 +254,13 @@ class PreparedScene:
         t = self._table
         if r_start is not None and jb.absolute:
             r_q = relative_position(t.positions_of(jb.pairs, 2))
-            return None, frame_quantities(r_q, t.linear_at(jb.pairs, 2), jb.c.alpha, jb.v)
-        dF = frame_quantities(None, t.linear_of(jb.pairs, row), jb.c.alpha, jb.v)  # A's increment times v
+            return None, frame_quantities(r_q, t.linear_at(jb.pairs, 2), jb.c.facts.alpha, jb.v)
+        dF = frame_quantities(None, t.linear_of(jb.pairs, row), jb.c.facts.alpha, jb.v)  # A's increment times v
         if r_start is None:
             return dF, None
         r_q = relative_position(t.positions_of(jb.pairs, 2))
-        F_q = add_positions(jb.held + dF, r_q, jb.c.alpha)
-        return add_positions(dF, r_q - r_start, jb.c.alpha), F_q
+        F_q = add_positions(jb.held + dF, r_q, jb.c.facts.alpha)
+        return add_positions(dF, r_q - r_start, jb.c.facts.alpha), F_q
 
     def _x(self, jb: _Batch, dF: Array | None, F_q: Array | None) -> tuple[Array, Array, CarefulFrames | None, object]:
         """The joint coordinate `x` (N,) and the frames (N, 4, 3) at `q` from the last step `dF` (and
@@ -309,11 +273,6 @@ class PreparedScene:
             states, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF, "last", F_q)
             x = jb.theta + x
         return x, states[-1], _last_state(careful), known
-
-    def _prepare_and_evaluate(self, b: int, pending: _Pending, *rest: object) -> dict:
-        """The stateless call's batch `b`: prepared (`pending`), then evaluated, on one thread."""
-        self._batches[b] = jb = pending.prepare()
-        return self._evaluate_batch(b, jb, *rest)  # type: ignore[arg-type]
 
     def _evaluate_batch(
         self,
@@ -329,7 +288,7 @@ class PreparedScene:
     ) -> dict:
         check_deadline(deadline)
         x, F, careful, known = self._x(jb, *self._step(jb, jb.row, jb.r_start))
-        bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
+        bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
         raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound))[:MAX_FAULTS])
         r = differentiate(
             b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact
@@ -353,15 +312,15 @@ class PreparedScene:
             log, new = FaultLog(), []
             for b, jb in enumerate(self._batches):
                 F_q, x, careful, known = self._from_ref(jb)
-                bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.unit_frames else None
+                bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
                 log.add(collapsed_faults(b, jb.c, ("q",), [F_q], careful, [known], bound))
-                if not jb.c.telescopes:
+                if jb.c.facts.stateful:
                     r = self._angle(jb)
                     x = r + rem(x - r)
                 new.append((F_q, x))
             log.raise_if_any()
             for jb, (F_q, x) in zip(self._batches, new):
-                if not jb.c.telescopes:
+                if jb.c.facts.stateful:
                     jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (state 1)
                     jb.progress = {"ref": jb.progress["ref"]} if "ref" in jb.progress else {}
             self._table.load(1, self._table.dofs[2].T)
@@ -372,7 +331,7 @@ class PreparedScene:
         step (DeltaTheta(q, q_ref), or the slide), the careful frames at `q` and what the coordinate
         formed there."""
         r_ref = None
-        if jb.c.alpha.any():
+        if jb.c.facts.points:
             r_ref = jb.r_start if jb.start == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
         dF, F_q = self._step(jb, TOTAL_STEP, r_ref)
         states, careful, x, known = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), dF, "ref", F_q)
@@ -382,14 +341,17 @@ class PreparedScene:
         """The committed angle at q_prev: `theta`, or DeltaTheta(q_prev, q_ref) (from the batch's origin) before any commit."""
         if jb.theta is not None:
             return jb.theta
-        return _from_origin(jb.c.coordinate(jb.starts[:1], jb.fixed[:1], jb.prev_careful), jb)
+        x = _progress(jb.c, {}, "", jb.starts[:1], jb.fixed[:1]).x  # fresh: the kept progress stays as it is
+        if jb.prev_careful is not None:
+            x[jb.prev_careful.idx] = jb.c.careful_coordinate(jb.prev_careful)
+        return _from_origin(x, jb)
 
     def coordinates(self) -> list[Array]:
         """The committed coordinates at `q_prev`, one (N,) per batch (`x(q_prev) + offset`)."""
         out = []
         with np.errstate(all="ignore"):
             for jb in self._batches:
-                if jb.c.telescopes:
+                if not jb.c.facts.stateful:
                     self._load(self._table.dofs[1].T, (TOTAL_STEP,), (TOTAL_STEP,))
                     x = self._from_ref(jb)[1]
                 else:
@@ -433,8 +395,8 @@ def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtyp
     """A scene prepared for evaluating many `q`: `bodies.q_prev`, `bodies.q_ref` (B, 12) and the joints.
 
     Raises `InputError` naming every fault of the static data. `bodies.q` is not used.
-    `threads` > 1 takes the polar factors, each batch's frames and later evaluations on that many
-    threads (bitwise the same numbers). `dtype` np.float32 is the benchmark's single-precision variant.
+    `threads` > 1 takes each evaluation's derivative chunks on that many threads (bitwise the same numbers).
+    `dtype` np.float32 is the benchmark's single-precision variant.
     """
     q_prev, q_ref = (np.array(a, dtype=np.float64) for a in (bodies.q_prev, bodies.q_ref))
     log = FaultLog()
@@ -453,12 +415,6 @@ def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: lis
             p = c.advance(p, F, dF)
         kept[path] = p
     return p
-
-
-def _x_rows(rows: tuple[int, ...], stated: bool) -> tuple[int, ...]:
-    """The increment rows of a batch's steps `rows` that its coordinate takes at q: all of them (v1), or
-    the last one alone once the angle is a state (`stated`: a `prev_coordinate` or a commit)."""
-    return rows[-1:] if stated else rows
 
 
 def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:
@@ -485,43 +441,31 @@ def _plus_offset(x: Array, offset: Array | None, index: NDArray[np.int64] | None
 def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, own: bool) -> PreparedScene:
     """`prepare` of bodies whose states are already checked, and joints as arrays. `own`: the scene's
     limits are its own arrays (`update` writes them); else the stateless call's, which allocates
-    nothing it does not need (every fresh array here is page faults of its own), and whose table
-    takes `bodies.q` and the steps to it at once (the one evaluation's `_load`, on the same threads), and
-    whose batches are prepared by the tasks that evaluate them (`_Pending`)."""
-    constitutions = [CONSTITUTIONS[j.constitution_uid] for j in batches if j.constitution_uid in CONSTITUTIONS]
+    nothing it does not need (every fresh array here is page faults of its own), and whose collapsed
+    frames at q_ref and q_prev are named with those at q."""
     # q_prev is always in the table: the state a commit replaces.
-    rows = {PREV_STEP} | {row for c in constitutions for row in _increments(c)[:-1]}
-    later = () if own else {_increments(c)[-1] for c in constitutions}
-    # The stateless call's steps to q, whose `plain_over` its table takes with the rows (`_Pending.x_rows`).
-    x_rows = [_x_rows(_increments(CONSTITUTIONS[j.constitution_uid]), j.prev_coordinate is not None)
-              for j in batches if j.constitution_uid in CONSTITUTIONS]
-    plains = () if own else [{r for rs in x_rows for r in rs}]
+    rows = {PREV_STEP} | {row for j in batches if j.constitution_uid in CONSTITUTIONS
+                          for row in _increments(numerics(j.constitution_uid))[:-1]}
     n_bodies = bodies.q_ref.shape[0]
     with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
-        table = BodyTable(bodies, dtype, threads, rows=rows, later=later, rotate=False, plains=plains)
-    # The batches' checks on the threads; then, if they pass, the batches' gathers beside the polar factors.
-    # Beside them, which bodies each batch reads (for the polar factors), a mask per batch.
-    done = run_all([partial(check_joints, b, joints, n_bodies) for b, joints in enumerate(batches)]
-                   + [partial(_bodies_used, [joints], n_bodies) for joints in batches], threads)
-    checks, used = done[: len(batches)], reduce(np.logical_or, done[len(batches) :], np.zeros(n_bodies, dtype=bool))
-    pairs = [np.ascontiguousarray(j.body_ids.T) for j in batches]  # (2, N): contiguous indices gather 30% faster
-    gathers = [] if any(checks) else [w for j, p in zip(batches, pairs) for w in _gathers(CONSTITUTIONS[j.constitution_uid], p, own, j.origin == "absolute")]
+        table = BodyTable(bodies, dtype, rows=rows, rotate=False)
+    checks = [check_joints(b, joints, n_bodies) for b, joints in enumerate(batches)]
+    used = _bodies_used(batches, n_bodies)
     with np.errstate(all="ignore"):
-        table.rotate(used, also=table.prefetch_tasks(gathers))
+        table.rotate(used)  # the polar factors of the bodies some joint reads
     log = FaultLog()
     log.add(check_rotations(table.ratio))
     for faults in checks:  # in batch order (the log keeps the first)
         log.add(faults)
     log.raise_if_any()
-    tasks = [partial(_prepare_batch, b, j, table, own, p) for b, (j, p) in enumerate(zip(batches, pairs))]
-    if not own:  # each batch prepared by the task that evaluates it; its collapsed frames named with those at q
-        return PreparedScene(table, [], threads, [_Pending(t, p.shape[1], r) for t, p, r in zip(tasks, pairs, x_rows)])
-    with np.errstate(all="ignore"):  # run_all carries the state into its threads
-        prepared = run_all(tasks, threads)
-    for jb in prepared:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
-        log.add(jb.faults)
-        jb.faults = []
-    log.raise_if_any()
+    pairs = [np.ascontiguousarray(j.body_ids.T) for j in batches]  # (2, N): contiguous indices gather 30% faster
+    with np.errstate(all="ignore"):
+        prepared = [_prepare_batch(b, j, table, own, p) for b, (j, p) in enumerate(zip(batches, pairs))]
+    if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
+        for jb in prepared:
+            log.add(jb.faults)
+            jb.faults = []
+        log.raise_if_any()
     return PreparedScene(table, prepared, threads)
 
 
@@ -537,42 +481,17 @@ def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
     return used
 
 
-def _gathers(c: Constitution, pairs: NDArray[np.intp], own: bool, absolute: bool) -> list[tuple[str, int, NDArray[np.intp]]]:
-    """What `_prepare_batch` gathers from the table for a batch of `c` on `pairs` (`BodyTable.prefetch`),
-    and unless `own` (the stateless call, its table already holding q) what its evaluation gathers
-    (`absolute`: its origin)."""
-    rows = _increments(c)
-    wanted = [("linear", REF)] + [("linear", row) for row in rows[:-1]]  # the rotations are gathered by the batch's
-    # own thread: they wait for the polar factors, which these gathers run beside
-    if c.alpha.any():
-        wanted += [("positions", s) for s in sorted(_states(rows))]
-    if c.unit_frames:
-        wanted += [("size", s) for s in range(len(rows))]  # q_ref and the start of each fixed step
-    if not own:
-        wanted += _evaluation_gathers(c, rows[-1], absolute)
-    return [(kind, key, pairs) for kind, key in wanted]
-
-
 def _states(rows: tuple[int, ...]) -> set[int]:
     """The states a batch whose steps are the table's `rows` reads when prepared: q_ref, where the last
     step starts, and those the fixed steps span."""
     return {0, STEPS[rows[-1]][0]} | {s for row in rows[:-1] for s in STEPS[row]}
 
 
-def _evaluation_gathers(c: Constitution, row: int, absolute: bool) -> list[tuple[str, int]]:
-    """What an evaluation of a batch of `c` whose last step is the table's `row` gathers: `_step` (A's step, or
-    with points and the `absolute` origin A at q itself), the collapse test at q."""
-    points = bool(c.alpha.any())
-    step = ("state", 2) if points and absolute else ("linear", row)
-    return [step] + [("positions", 2)] * points + [("size", 2)] * c.unit_frames
-
-
 def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: NDArray[np.intp]) -> _Batch:
-    """Batch `b`'s frames at its states, from `table` (read only: batches are prepared on threads); `pairs`
-    (2, N) its bodies i and j, contiguous."""
-    c = CONSTITUTIONS[joints.constitution_uid]
+    """Batch `b`'s frames at its states, from `table`; `pairs` (2, N) its bodies i and j, contiguous."""
+    c = numerics(joints.constitution_uid)
     dtype = table.dtype
-    points = bool(c.alpha.any())
+    points = c.facts.points
     rows = _increments(c)
     A_ref = table.linear_of(pairs, REF)
     start = STEPS[rows[-1]][0]
@@ -582,24 +501,24 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     R_ref = table.rotations(pairs)
     t, anchors = axis_and_anchors(c, cast(joints.edges), cast(joints.local_edges), p.get(0), A_ref, R_ref)
     v = c.local_vectors(t, anchors, R_ref)
-    F_ref = frame_quantities(None, A_ref, c.alpha, v)
+    F_ref = frame_quantities(None, A_ref, c.facts.alpha, v)
     absolute = joints.origin == "absolute"
     held = None
     if points and not absolute:  # x's last step starts at q_ref (points telescope): `_step` forms the frames at q from `A_ref v`
         held = F_ref.copy(order="K")  # component-major, as F_ref
     if points:
-        add_positions(F_ref, r[0], c.alpha)
-    x0 = _absolute_zero(c, A_ref, v) if absolute and not c.telescopes else None
+        add_positions(F_ref, r[0], c.facts.alpha)
+    x0 = _absolute_zero(c, A_ref, v) if absolute and not c.facts.telescopes else None
     # The steps before the last one (q_ref -> q_prev) and where each starts.
     fixed = []
     for row in rows[:-1]:
         s0, s1 = STEPS[row]
-        fixed.append(frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.alpha, v))
-    starts, prev_careful = state_frames(table, pairs, rows[:-1], c.alpha, v, F_ref, fixed) if fixed else ([F_ref], None)
+        fixed.append(frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.facts.alpha, v))
+    starts, prev_careful = state_frames(table, pairs, rows[:-1], c.facts.alpha, v, F_ref, fixed) if fixed else ([F_ref], None)
     progress: dict[str, Progress] = {}
     # The fixed steps' progress now: the collapse tests at q_ref and q_prev read what it formed there.
     known = _progress(c, progress, "whole", starts, fixed).known
-    bounds = [table.size_bound(pairs, s) for s in range(len(starts))] if c.unit_frames else None
+    bounds = [table.size_bound(pairs, s) for s in range(len(starts))] if c.facts.unit_frames else None
     faults = collapsed_faults(b, c, ("q_ref", "q_prev")[: len(starts)], starts, prev_careful, known, bounds)
     n = pairs.shape[1]
     offset = joints.offset if joints.offset is not None or not own else np.zeros(n)
@@ -644,7 +563,7 @@ def _absolute_zero(c: Constitution, A_ref: Array, v: Array) -> Array:
     The directions are read from `A_ref` scaled per body by a power of two (exact): frames at the edge
     of float64 keep every digit of their angle.
     """
-    return c.value(scaled_frames(None, A_ref, exponents(A_ref), c.alpha, v))
+    return c.value(scaled_frames(None, A_ref, exponents(A_ref), c.facts.alpha, v))
 
 
 def _as_arrays(j: Joints, copy: bool = False) -> Joints:
@@ -682,9 +601,8 @@ def evaluate(
     Infinity. Only the outputs asked for are computed, and only joints outside their range are
     differentiated. `dtype` np.float32 runs everything after validation and the polar factors in
     single precision (a benchmark variant: ~1e-5 relative error; the wire is float64). `threads`
-    > 1 runs the body table, the polar factors and the gathers, then the batches, a batch per thread
-    (one batch, or one holding most joints: its derivative chunks) on that many threads, with bitwise the same
-    results; the HTTP service keeps 1, its worker processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
+    > 1 runs each batch's derivative chunks on that many threads, with bitwise the same results; the HTTP
+    service keeps 1, its worker processes already fill the cores. `deadline` (a `time.monotonic()` value): past it,
     `DeadlineExceeded` (checked between batches and derivative chunks). `layout` "bodies" answers
     the gradient and Hessian summed per body (`jointlimits.service.core.assembled`) instead of per joint: only
     the joints outside their range are differentiated and stored, then summed.
@@ -694,8 +612,7 @@ def evaluate(
     log = FaultLog()
     log.add(check_options(outputs, hessian_mode))
     log.add(assembled.check_layout(layout))
-    for faults in run_all(body_checks(bodies), threads):  # each state read once, on the threads
-        log.add(faults)
+    log.add(check_bodies(bodies))
     log.raise_if_any()
     arrays = [_as_arrays(j) for j in batches]
     scene = _prepare(bodies, arrays, threads, dtype, own=False)

@@ -15,8 +15,27 @@ from __future__ import annotations
 
 import numpy as np
 
-from jointlimits.service.core.constitution import Array, Curvature, Progress
+from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
 from jointlimits.service.core.kinematics import CarefulFrames, component_major, dot, to_local
+from jointlimits.service.core.registry import register
+
+FACTS = Facts(
+    uid=669,
+    base_uid=20,
+    name="AffineBodyPrismaticJointLimit",
+    base_name="AffineBodyPrismaticJoint",
+    kind="prismatic",
+    unit="length unit of the DOFs",
+    coordinate="relative slide of body j along the edge axis +t",
+    origin='batch field origin: "q_ref" (default): x = 0 at q_ref; "absolute" (the engine): x = theta(q), the signed '
+    "distance between the anchors along the axis (not 0 at q_ref where the anchors do not meet) (v1.2)",
+    offset_name="init_distance",
+    state_name="distance",  # the engine's published slide: written back, never an input (the slide telescopes)
+    alpha=np.array([1.0, 0.0, 1.0, 0.0]),
+    telescopes=True,
+    axis_by_rotation=False,
+    unit_frames=False,
+)
 
 # theta = D.S / 2 with D = C_j - C_i, S = T_i + T_j: coefficients of D and S per block.
 _D = np.array([-1.0, 0.0, 1.0, 0.0])
@@ -39,14 +58,7 @@ def _theta2(F: Array) -> Array:
 
 
 class Prismatic:
-    uid = 669
-    base_uid = 20
-    name = "AffineBodyPrismaticJointLimit"
-    alpha = np.array([1.0, 0.0, 1.0, 0.0])
-    telescopes = True
-
-    axis_by_rotation = False
-    unit_frames = False
+    facts = FACTS
 
     def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
         v = component_major(t.shape[0], (4, 3), t.dtype)
@@ -57,13 +69,6 @@ class Prismatic:
 
     def value(self, F: Array) -> Array:
         return 0.5 * _theta2(F)
-
-    def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:
-        (F_ref,), (dF,) = starts, steps
-        x = self.advance(self.begin(F_ref), F_ref, dF).x
-        if careful is not None:
-            x[careful.idx] = self.careful_coordinate(careful)
-        return x
 
     def begin(self, F: Array) -> Progress:
         return Progress(None, (F[:, 2] - F[:, 0], F[:, 1] + F[:, 3]), [None])
@@ -120,4 +125,4 @@ class Prismatic:
                          kron_factors=(w[:, None], f[:, None]))
 
 
-PRISMATIC = Prismatic()
+PRISMATIC = register(Prismatic())

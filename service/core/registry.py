@@ -1,9 +1,36 @@
-"""The supported constitutions, by limit UID."""
+"""The constitutions the service evaluates, by limit UID: each module registers itself (`register`).
+
+Everything that knows a constitution reads its facts here (`CONSTITUTIONS`): validation (`core/validate.py`),
+discovery and OpenAPI, the SDK's `Scene`, `LocalClient` and sessions, the libuipc adapter; the pipeline
+(`core/prepared.py`) takes its numerics (`numerics`). The two of the specs register when
+`jointlimits.service.core` is imported (670, then 669); a module of anyone's, inside the package or not, adds
+another with `register` (and takes it away with `unregister`).
+"""
 
 from __future__ import annotations
 
-from jointlimits.service.core.constitution import Constitution
-from jointlimits.service.core.prismatic import PRISMATIC
-from jointlimits.service.core.revolute import REVOLUTE
+from jointlimits.service.core.constitution import Constitution, Facts
 
-CONSTITUTIONS: dict[int, Constitution] = {c.uid: c for c in (REVOLUTE, PRISMATIC)}
+CONSTITUTIONS: dict[int, Facts] = {}
+"""Each served constitution's facts by its limit UID, in the order registered (the order a fault lists them in)."""
+_NUMERICS: dict[int, Constitution] = {}
+
+
+def register(c: Constitution) -> Constitution:
+    """Serve `c` under its limit UID (`c.facts.uid`) from now on, on every path; returns `c`. A UID already
+    served is refused."""
+    uid = c.facts.uid
+    if uid in CONSTITUTIONS:
+        raise ValueError(f"constitution {uid} is already registered ({CONSTITUTIONS[uid].name})")
+    CONSTITUTIONS[uid], _NUMERICS[uid] = c.facts, c
+    return c
+
+
+def unregister(uid: int) -> None:
+    """Stop serving the constitution `uid` (KeyError if none is registered)."""
+    del CONSTITUTIONS[uid], _NUMERICS[uid]
+
+
+def numerics(uid: int) -> Constitution:
+    """The registered constitution `uid` (KeyError if none is: validation refuses it first)."""
+    return _NUMERICS[uid]

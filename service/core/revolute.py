@@ -46,8 +46,28 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from jointlimits.service.core.constitution import Array, Curvature, Progress
+from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
 from jointlimits.service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot, to_local, unit
+from jointlimits.service.core.registry import register
+
+FACTS = Facts(
+    uid=670,
+    base_uid=18,
+    name="AffineBodyRevoluteJointLimit",
+    base_name="AffineBodyRevoluteJoint",
+    kind="revolute",
+    unit="rad",
+    coordinate="relative angle of body j about the edge axis +t (right-hand rule), incremental",
+    origin='batch field origin: "q_ref" (default): x = 0 at q_ref; "absolute" (the engine): x = atan2(sin, cos) of the '
+    "frames at q_ref plus the turn since (not 0 where the bodies' A_ref stretch differently) (v1.2)",
+    offset_name="init_angle",
+    state_name="angle",
+    alpha=np.zeros(4),
+    telescopes=False,  # the angle leaves (-pi, pi] over time steps: its state is the committed angle
+    axis_by_rotation=True,
+    unit_frames=True,
+    engine_zero_axis=1e-24,  # AffineBodyRevoluteJoint refuses |t|^2 <= 1e-24
+)
 
 # Constant second derivatives of the bilinear cos and sin in the (4 x 4) block
 # layout of F; each block is a multiple of the 3 x 3 identity.
@@ -186,14 +206,7 @@ def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = 
 
 
 class Revolute:
-    uid = 670
-    base_uid = 18
-    name = "AffineBodyRevoluteJointLimit"
-    alpha = np.zeros(4)
-    telescopes = False
-
-    axis_by_rotation = True
-    unit_frames = True
+    facts = FACTS
 
     def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
         # n = t x test with test = e_y where |t . e_x| > 0.9, else e_x; written out, both cases at once.
@@ -211,15 +224,6 @@ class Revolute:
 
     def value(self, F: Array) -> Array:
         return np.arctan2(*_cos_sin(F)[::-1])
-
-    def coordinate(self, starts: list[Array], steps: list[Array], careful: CarefulFrames | None = None) -> Array:
-        p = self.begin(starts[0])
-        for F, dF in zip(starts, steps):
-            p = self.advance(p, F, dF)
-        x = p.x
-        if careful is not None:
-            x[careful.idx] = _careful_angle(careful)
-        return x
 
     def begin(self, F: Array) -> Progress:
         cs = _cos_sin(F)
@@ -373,4 +377,4 @@ def _rescaled_projection(dE: Array, scaled: _Scaled) -> tuple[Array, Array, Arra
     return np.ldexp(kron, ij[:, None, None]), basis, coef
 
 
-REVOLUTE = Revolute()
+REVOLUTE = register(Revolute())

@@ -9,8 +9,7 @@ calls them in order and caps the faults of a request (`errors.FaultLog`).
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Sequence
-from functools import partial
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -21,9 +20,6 @@ from jointlimits.service.core.kinematics import edge_vector, max_abs
 from jointlimits.service.core.polar import SINGULAR_RATIO
 from jointlimits.service.core.registry import CONSTITUTIONS
 from jointlimits.service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
-
-REVOLUTE_UID = 670
-"""The one constitution with a state (`prev_coordinate`): its angle leaves (-pi, pi] over time steps."""
 
 HESSIAN_MODES = ("exact", "psd")
 ORIGINS = ("q_ref", "absolute")
@@ -152,14 +148,9 @@ def check_options(outputs: Sequence[str], hessian_mode: str) -> list[Fault]:
 
 def check_bodies(bodies: Bodies, names: Sequence[str] = ("q", "q_prev", "q_ref")) -> list[Fault]:
     """Shape (B, 12) and finiteness of the states `names`; B is the first named state's row count."""
-    return [f for check in body_checks(bodies, names) for f in check()]
-
-
-def body_checks(bodies: Bodies, names: Sequence[str] = ("q", "q_prev", "q_ref")) -> list[Callable[[], list[Fault]]]:
-    """`check_bodies` as one check per state, in order (to run on threads: each reads a state once)."""
     first = getattr(bodies, names[0])
     n = np.shape(first)[0] if np.ndim(first) else 0
-    return [partial(check_dofs, name, getattr(bodies, name), n) for name in names]
+    return [f for name in names for f in check_dofs(name, getattr(bodies, name), n)]
 
 
 def check_dofs(name: str, a: np.ndarray, n: int) -> list[Fault]:
@@ -206,7 +197,7 @@ def _check_kind(b: int, joints: Joints) -> list[Fault]:
     faults: list[Fault] = []
     c = CONSTITUTIONS.get(joints.constitution_uid)
     if c is None:
-        known = ", ".join(str(u) for u in CONSTITUTIONS)
+        known = ", ".join(str(f.uid) for f in CONSTITUTIONS.values())
         faults.append(Fault(at("constitution_uid"), f"unknown constitution {joints.constitution_uid}; supported: {known}"))
     elif joints.base_uid != c.base_uid:
         msg = f"constitution {c.uid} ({c.name}) needs base_uid {c.base_uid}, got {joints.base_uid}"
@@ -217,8 +208,9 @@ def _check_kind(b: int, joints: Joints) -> list[Fault]:
         faults.append(Fault(at(), f"give exactly one of edges and local_edges (world edges (N, 2, 3) at q_ref, or body-local (N, 2, 2, 3)); got {said}"))
     if joints.origin not in ORIGINS:
         faults.append(Fault(at("origin"), "Input should be 'q_ref' or 'absolute'", "literal_error"))
-    if joints.prev_coordinate is not None and c is not None and c.uid != REVOLUTE_UID:
-        msg = f"applies to revolute joints ({REVOLUTE_UID}) only: the {c.name} coordinate is absolute and has no state"
+    if joints.prev_coordinate is not None and c is not None and not c.stateful:
+        which = ", ".join(f"{f.kind} joints ({f.uid})" for f in CONSTITUTIONS.values() if f.stateful)
+        msg = f"applies to {which} only: the {c.name} coordinate is absolute and has no state"
         faults.append(Fault(at("prev_coordinate"), msg))
     return faults
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from jointlimits.schemas import ConstitutionsResponse, Limits
 from jointlimits.schemas.constitutions import describe
-from jointlimits.service.core import CONSTITUTIONS
+from jointlimits.service.core import registry
 from jointlimits.service.settings import Settings
 
 
 def constitutions(settings: Settings) -> ConstitutionsResponse:
-    infos = [describe(uid, c.name, c.base_uid) for uid, c in sorted(CONSTITUTIONS.items(), reverse=True)]
+    infos = [describe(f) for f in sorted(registry.CONSTITUTIONS.values(), key=lambda f: -f.uid)]
     limits = Limits(
         max_body_bytes=settings.max_body_bytes,
         max_joints=settings.max_joints,

@@ -69,12 +69,13 @@ def add_components(openapi: dict[str, Any]) -> dict[str, Any]:
 def _document(openapi: dict[str, Any]) -> dict[str, Any]:
     """Field descriptions and UID values, the example answer, bearer auth and its 401, X-Request-ID."""
     schemas = openapi["components"]["schemas"]
-    for model, fields in text.FIELDS.items():
+    uid_words, uid_values = text.registered()
+    for model, fields in [*text.FIELDS.items(), *uid_words.items()]:
         props = schemas.get(model, {}).get("properties", {})
         for name, words in fields.items():
             if name in props:
                 props[name]["description"] = words
-    for (model, name), values in text.ENUMS.items():
+    for (model, name), values in uid_values.items():
         prop = schemas.get(model, {}).get("properties", {}).get(name)
         if prop is not None:
             prop["enum"] = values

@@ -9,6 +9,9 @@ from __future__ import annotations
 
 from typing import Any
 
+from jointlimits.service.core import registry
+from jointlimits.service.core.revolute import FACTS as HINGE
+
 DOFS = (
     "12 DOFs of an affine body, [p (3), A row 0 (3), A row 1 (3), A row 2 (3)]: a body-local point X "
     "sits at p + A X in the world"
@@ -38,10 +41,6 @@ FIELDS: dict[str, dict[str, str]] = {
         "Edges are given in world space at q_ref; A_ref must not be singular.",
     },
     "JointBatch": {
-        "constitution_uid": "670 (AffineBodyRevoluteJointLimit) or 669 (AffineBodyPrismaticJointLimit).",
-        "base_uid": "The base joint the limit applies to: 18 (AffineBodyRevoluteJoint) with 670, 20 "
-        "(AffineBodyPrismaticJoint) with 669; any other pairing is refused. Optional: absent, it follows "
-        "from constitution_uid (never null).",
         "body_ids": f"(N, 2) body rows [i, j] of each joint, i != j, 0 <= i, j < B. {ROWS}",
         "edges": "(N, 2, 3) each joint's edge [p0, p1] in world space at q_ref: the axis t = (p1 - p0) / "
         "|p1 - p0| is the revolute axis (670) or the sliding direction (669), p0 the prismatic anchor. "
@@ -83,7 +82,6 @@ FIELDS: dict[str, dict[str, str]] = {
         "plus the transposes of the off-diagonal ones (rows != cols).",
     },
     "BatchResult": {
-        "constitution_uid": "The request batch's constitution (670 or 669).",
         "index": "(M,) which joints of the request batch the rows describe: 0..N-1 in order, or with "
         "active_only only the joints outside their range (ascending).",
         "x": "(M,) joint coordinate: 670 the relative angle of body j about +t (radians, right-hand rule, "
@@ -131,11 +129,29 @@ FIELDS: dict[str, dict[str, str]] = {
     },
 }
 
-ENUMS: dict[tuple[str, str], list[int]] = {
-    ("JointBatch", "constitution_uid"): [670, 669],
-    ("JointBatch", "base_uid"): [18, 20],
-    ("BatchResult", "constitution_uid"): [670, 669],
-}
+
+
+def registered() -> tuple[dict[str, dict[str, str]], dict[tuple[str, str], list[int]]]:
+    """The descriptions and values of the UID fields, from the constitutions registered now."""
+    facts = registry.CONSTITUTIONS.values()
+    names = " or ".join(f"{f.uid} ({f.name})" for f in facts)
+    pairs = ", ".join(f"{f.base_uid} ({f.base_name}) with {f.uid}" for f in facts)
+    uids = [f.uid for f in facts]
+    words = {
+        "JointBatch": {
+            "constitution_uid": f"{names}.",
+            "base_uid": f"The base joint the limit applies to: {pairs}; any other pairing is refused. Optional: "
+            "absent, it follows from constitution_uid (never null).",
+        },
+        "BatchResult": {"constitution_uid": f"The request batch's constitution ({' or '.join(map(str, uids))})."},
+    }
+    enums = {
+        ("JointBatch", "constitution_uid"): uids,
+        ("JointBatch", "base_uid"): [f.base_uid for f in facts],
+        ("BatchResult", "constitution_uid"): uids,
+    }
+    return words, enums
+
 
 # The README's example: body 1 turned 0.7 rad about +z, 0.2 rad past the upper limit of 0.5.
 _C, _S = 0.7648421872844885, 0.644217687237691
@@ -147,7 +163,7 @@ EXAMPLE_REQUEST: dict[str, Any] = {
         "q_ref": [_I, _I],
     },
     "batches": [
-        {"constitution_uid": 670, "base_uid": 18, "body_ids": [[0, 1]], "edges": [[[0, 0, 0], [0, 0, 1]]],
+        {"constitution_uid": HINGE.uid, "base_uid": HINGE.base_uid, "body_ids": [[0, 1]], "edges": [[[0, 0, 0], [0, 0, 1]]],
          "lower": [-0.5], "upper": [0.5], "strength": [100.0]}
     ],
     "outputs": ["energy", "gradient"],
@@ -156,7 +172,7 @@ EXAMPLE_RESPONSE: dict[str, Any] = {
     "total_energy": 0.7999999999999995,
     "batches": [
         {
-            "constitution_uid": 670,
+            "constitution_uid": HINGE.uid,
             "index": [0],
             "x": [0.7],
             "coordinate": [0.7],

@@ -112,7 +112,7 @@ class Robot:
                 self.joints.append(RobotJoint(jt.name, jt.type, lo, up, (i, j), np.array(edge, dtype=np.float64)))
         if self.unmodelled:
             warnings.warn(f"{urdf.robot.name}: not modelled by the joint limits: " + "; ".join(self.unmodelled),
-                          stacklevel=2)
+                          stacklevel=3)  # the caller of `Robot.load`
         _, self.handles = self.scene(np.zeros(len(self.names)))  # checks every limit once, by name
 
     @classmethod
@@ -199,37 +199,36 @@ class Robot:
 
 
 def plot(readings: Sequence[Reading], path: str | Path | None = None, title: str = "") -> Any:
-    """Each joint's position inside its range (the range drawn as [0, 1]), active ones in red; a joint
-    without a limit is listed with its position. Saved to `path` when given; returns the matplotlib figure.
-    Needs matplotlib (the `plot` extra)."""
+    """Each joint's position inside its range (drawn from `lower` to `upper`), outside ones (active, penalised)
+    in red, with its numbers beside; a joint without a limit is listed. Saved to `path` when given; returns
+    the matplotlib `Figure` (no pyplot: no window, no backend chosen). Needs matplotlib (the `plot` extra)."""
     try:
-        import matplotlib
-
-        if path is not None:
-            matplotlib.use("Agg")  # a file, no window
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
     except ImportError as e:  # pragma: no cover (the `plot` extra)
         raise ImportError("the picture needs matplotlib: pip install 'jointlimits[plot]'") from e
-    fig, ax = plt.subplots(figsize=(8, 0.45 * len(readings) + 1.2))
+    fig = Figure(figsize=(10, 0.45 * len(readings) + 1.2))
+    ax = fig.subplots()
+    beside = ax.get_yaxis_transform()  # x in the axes' fraction, y in rows: the numbers' column right of the plot
     spans = [0.0, 1.0]
     for row, r in enumerate(reversed(readings)):
         unit = "rad" if r.type != "prismatic" else "m"
         if r.lower is None:
-            ax.text(0.5, row, f"{r.position:.4g} {unit} (no limit)", ha="center", va="center", color="0.4")
+            ax.text(1.03, row, f"{r.position:.4g} {unit}, no limit", transform=beside, va="center", color="0.4")
             continue
         width = r.upper - r.lower  # type: ignore[operator]
-        at = 0.5 if width == 0 else (r.position - r.lower) / width
+        at = 0.5 if width == 0 else (r.position - r.lower) / width  # the range is [0, 1] on every row
         spans.append(at)
-        ax.barh(row, 1.0, height=0.5, color="0.88", edgecolor="0.6")
         color = "tab:red" if r.active else "tab:blue"
+        ax.barh(row, 1.0, height=0.5, color="0.9", edgecolor="0.6")
         ax.plot([at], [row], marker="D", color=color, markersize=7)
-        ax.text(1.02 if at <= 1 else at + 0.03, row, f"{r.position:.4g} in [{r.lower:.4g}, {r.upper:.4g}] {unit}"
-                + (f"  E = {r.energy:.3g}" if r.active else ""), va="center", fontsize=8, color=color)
+        ax.text(1.03, row, f"{r.position:.4g} in [{r.lower:.4g}, {r.upper:.4g}] {unit}"
+                + (f", E = {r.energy:.3g}" if r.active else ""), transform=beside, va="center", color=color)
     ax.set_yticks(range(len(readings)), [r.name for r in reversed(readings)])
-    ax.set_xlim(min(spans) - 0.15, max(spans) + 0.9)  # room for the labels right of a marker
+    ax.set_ylim(-0.6, len(readings) - 0.4)
+    ax.set_xlim(min(spans) - 0.1, max(spans) + 0.1)
     ax.set_xticks([0, 1], ["lower", "upper"])
     ax.set_title(title or "joint positions in their ranges (red: outside, penalised)")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.12, right=0.6, top=0.9, bottom=0.12)
     if path is not None:
-        fig.savefig(path, dpi=110)
+        fig.savefig(path, dpi=100)
     return fig

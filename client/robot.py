@@ -122,7 +122,11 @@ class Robot:
             import yourdfpy
         except ImportError as e:  # pragma: no cover (the `robot` extra)
             raise ImportError("reading a URDF needs yourdfpy: pip install 'jointlimits[robot]'") from e
-        return cls(yourdfpy.URDF.load(str(path), load_meshes=False, build_collision_scene_graph=False))
+        try:
+            urdf = yourdfpy.URDF.load(str(path), load_meshes=False, build_collision_scene_graph=False)
+        except Exception as e:  # yourdfpy's own exceptions (ValueError, KeyError, lxml's), said with the file's name
+            raise ValueError(f"{path}: not a URDF yourdfpy reads ({type(e).__name__}: {e})") from e
+        return cls(urdf)
 
     def vector(self, q: JointVector | None, name: str = "q") -> np.ndarray:
         """`q` as positions (n,) in `names` order (None: zeros); `ValueError` naming what is wrong."""

@@ -149,6 +149,14 @@ def test_a_bad_limit_in_the_file_is_named_at_load(tmp_path):
         Robot.load(urdf)
 
 
+def test_a_file_yourdfpy_cannot_read_is_named(tmp_path):
+    urdf = tmp_path / "xacro.urdf"  # a xacro leftover, as some published robots ship
+    urdf.write_text("""<robot name="x"><link name="a"/><link name="b"/><joint name="j" type="revolute">
+      <parent link="a"/><child link="b"/><origin xyz="$(optenv X 0) 0 0"/><limit lower="-1" upper="1"/></joint></robot>""")
+    with pytest.raises(ValueError, match=r"xacro.urdf: not a URDF yourdfpy reads \(ValueError: could not convert"):
+        Robot.load(urdf)
+
+
 def test_a_joint_vector_of_the_wrong_size_or_names_is_refused(arm):
     with pytest.raises(ValueError, match=r"q: 9 positions, one per joint of \['wheel'"):
         arm.request([0.0, 1.0])

@@ -18,6 +18,7 @@ coordinate at the previous pose (the wire's `prev_coordinate`), so nothing is wr
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -37,7 +38,8 @@ MOVING = ("revolute", "prismatic", "continuous")  # the joints a position in `q`
 
 @dataclass(frozen=True)
 class RobotJoint:
-    """A joint `q` moves: `type` one of `MOVING`; `lower`, `upper` None when it carries no limit;
+    """A joint `q` moves: `type` one of `MOVING`; `lower`, `upper` from its `<limit>` (an attribute left out
+    is 0, as the URDF spec says), None when it carries no limit (continuous, or no `<limit>`);
     `body_ids` (parent body, child body); `local_edge` (2, 2, 3) `[[l0, l1], [r0, r1]]`: the joint's
     origin and a unit step along its axis, in the parent body's and in the child body's frame."""
 
@@ -79,8 +81,11 @@ class Robot:
         kids: dict[str, list[Any]] = {}
         for jt in urdf.robot.joints:
             kids.setdefault(jt.parent, []).append(jt)
-            if jt.axis is not None and jt.type in MOVING:  # yourdfpy moves a prismatic joint by q * axis: make it unit
-                jt.axis = jt.axis / np.linalg.norm(jt.axis)
+            if jt.type in MOVING:  # yourdfpy moves a prismatic joint by q * axis: make it unit
+                length = float(np.linalg.norm(jt.axis))
+                if not 0 < length < math.inf:
+                    raise ValueError(f"joint {jt.name}: its axis {jt.axis.tolist()} has no direction")
+                jt.axis = jt.axis / length
         frame, order, todo = {root: root}, [root], [root]  # frame: a link's body frame; order: the bodies' frames
         while todo:
             for jt in kids.get(todo.pop(0), []):

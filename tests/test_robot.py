@@ -149,6 +149,15 @@ def test_a_bad_limit_in_the_file_is_named_at_load(tmp_path):
         Robot.load(urdf)
 
 
+@pytest.mark.filterwarnings("ignore:invalid value encountered in divide")  # yourdfpy's scene graph, built at load
+def test_a_joint_without_a_direction_is_named(tmp_path):
+    urdf = tmp_path / "flat.urdf"
+    urdf.write_text("""<robot name="flat"><link name="a"/><link name="b"/><joint name="wrist" type="continuous">
+      <parent link="a"/><child link="b"/><axis xyz="0 0 0"/></joint></robot>""")
+    with pytest.raises(ValueError, match=r"joint wrist: its axis \[0.0, 0.0, 0.0\] has no direction"):
+        Robot.load(urdf)
+
+
 def test_a_file_yourdfpy_cannot_read_is_named(tmp_path):
     urdf = tmp_path / "xacro.urdf"  # a xacro leftover, as some published robots ship
     urdf.write_text("""<robot name="x"><link name="a"/><link name="b"/><joint name="j" type="revolute">

@@ -15,6 +15,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 from dataclasses import asdict
+from pathlib import Path
 from typing import Any
 
 
@@ -33,14 +34,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from jointlimits.client import Client, LocalClient
+    from jointlimits.client import Client, LocalClient, ServiceError
     from jointlimits.client.robot import Robot, plot
 
     try:
         with warnings.catch_warnings():  # what is not modelled is printed below, with the readings
             warnings.simplefilter("ignore")
             robot = Robot.load(args.robot)
-        given: dict[str, Any] = json.loads(open(args.request).read()) if args.request else {}
+        given: dict[str, Any] = json.loads(Path(args.request).read_text()) if args.request else {}
+        if not isinstance(given, dict):
+            raise ValueError(f"{args.request}: a JSON object is expected, got {type(given).__name__}")
         if not args.q and not given:
             print(f"{args.robot}: {len(robot.names)} moving joints, give one position each: {' '.join(robot.names)}"
                   + "".join(f"\nnot modelled: {note}" for note in robot.unmodelled))
@@ -57,8 +60,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (OSError, ValueError) as e:  # a file that does not read, positions that do not fit: said, not traced
         print(f"jointlimits evaluate: {e}", file=sys.stderr)
         return 2
-    with Client(args.url) if args.url else LocalClient() as client:
-        readings = robot.readings(client.evaluate(request), q)
+    try:
+        with Client(args.url) if args.url else LocalClient() as client:
+            readings = robot.readings(client.evaluate(request), q)
+    except ServiceError as e:  # a server that is not there, busy, or refuses: its words, not a traceback
+        print(f"jointlimits evaluate: {e}", file=sys.stderr)
+        return 1
     if args.plot:
         plot(readings, args.plot, title=f"{robot.urdf.robot.name} at the given joint vector")
     if args.json:

@@ -103,6 +103,15 @@ def test_mistakes_are_said_in_one_line(capsys, argv, words):
     assert code == 2 and out == "" and words in err and err.count("\n") == 1
 
 
+def test_a_request_file_that_is_not_an_object_and_a_server_that_is_not_there(capsys, tmp_path):
+    f = tmp_path / "q.json"
+    f.write_text("[1, 2]")
+    code, out, err = run(capsys, ARM, "--request", str(f))
+    assert code == 2 and "a JSON object is expected, got list" in err
+    code, out, err = run(capsys, ARM, *map(str, Q), "--url", "http://127.0.0.1:9")  # the discard port: refused
+    assert code == 1 and out == "" and err.startswith("jointlimits evaluate: ") and "Traceback" not in err
+
+
 def test_the_picture(capsys, tmp_path):
     pytest.importorskip("matplotlib")
     png = tmp_path / "joints.png"

@@ -9,6 +9,7 @@ core in-process with the same API. Server faults raise `ServiceError` / `Invalid
 `client.session(request)` on any of the three keeps the scene prepared (a WebSocket session,
 or in-process) for a solver loop: `evaluate(q)`, `commit(q)`, `update(...)`; a lost connection
 raises `SessionClosed` and `reopen()` continues from the last commit.
+`Robot.load("arm.urdf")` reads a URDF (the `robot` extra): `robot.request(q)` poses it by its joint vector.
 """
 
 from jointlimits.client.aio import AsyncClient
@@ -24,6 +25,7 @@ from jointlimits.client.model import (
     JointResult,
     Request,
 )
+from jointlimits.client.robot import Reading, Robot
 from jointlimits.client.scene import Scene, dofs, request_from_arrays
 from jointlimits.client.session import SessionClosed
 from jointlimits.client.sync import Client
@@ -42,7 +44,9 @@ __all__ = [
     "JointBatch",
     "JointResult",
     "LocalClient",
+    "Reading",
     "Request",
+    "Robot",
     "Scene",
     "ServiceError",
     "SessionClosed",

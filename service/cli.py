@@ -121,6 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
     _option(s, "backlog", 2048, "listen backlog", type=positive_int)
     _option(s, "log_level", "info", "log level", choices=["critical", "error", "warning", "info", "debug"])
     _option(s, "access_log", True, "one JSON line per request on stdout", type=boolean)
+    # The SDK's command, run by the `jointlimits` entry point (jointlimits/cli.py): listed here for --help only.
+    sub.add_parser("evaluate", help="a URDF robot's joints against their limits (jointlimits evaluate --help)")
     return parser
 
 
@@ -204,6 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "serve":
         return serve(args)
+    print("jointlimits evaluate: run it as the `jointlimits` command (jointlimits/cli.py)", file=sys.stderr)
     return 2  # pragma: no cover (argparse requires a command)
 
 

@@ -47,7 +47,7 @@ def test_pyproject_declares_the_console_script():
     import tomllib
 
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
-    assert scripts["jointlimits"] == "jointlimits.service.cli:main"
+    assert scripts["jointlimits"] == "jointlimits.cli:main"
 
 
 def parse(argv: list[str]):

@@ -40,7 +40,7 @@ def test_the_wheel_installs_one_top_level_name(wheel: Path) -> None:
     # The load and fault drills are a test module (tests/drills.py, `python -m tests.drills`), not the product's.
     assert [n for n in names if "drills" in n or "loadtest" in n] == []
     entry = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("entry_points.txt"))).decode()
-    assert "jointlimits = jointlimits.service.cli:main" in entry
+    assert "jointlimits = jointlimits.cli:main" in entry
 
 
 def test_the_readme_example_runs_from_the_wheel(wheel: Path, tmp_path: Path) -> None:

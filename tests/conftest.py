@@ -63,6 +63,8 @@ SLOW = (
     "test_cli.py::test_serve_passes_limits_logs_json_and_stops_gracefully",  # `jointlimits serve` subprocesses
     "test_cli.py::test_token_file_and_cors",
     "test_cli.py::test_an_app_that_does_not_import_fails_fast",
+    "test_lb_drill.py::test_the_load_balancer_drill_fails_no_request",  # HAProxy, three replicas, restarts (~40 s)
+    "test_lb_drill.py::test_the_docs_nginx_configuration_passes_requests_and_sessions",  # nginx in front (~1 s)
     "test_drain.py::test_sigterm_drains_then_stops",  # `jointlimits serve` with 1 and 2 workers, a 1.5 s drain (~4.6 s)
     "test_drain.py::test_a_second_sigterm_changes_nothing_and_sigint_stops_at_once",  # (~2 s)
     # Property tests over random scenes and the 50-digit reference (the golden cases stay in the fast subset):

@@ -20,6 +20,7 @@ from jointlimits.client import codec
 from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, InvalidInput, ServiceError, Unreachable
 from jointlimits.client.model import REVOLUTE_LIMIT, Array, Evaluation, Request
+from jointlimits.client.transport import delays
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core.errors import Fault as CoreFault
@@ -57,6 +58,25 @@ def resumable(e: Exception) -> bool:
     if isinstance(e, SessionClosed):
         return e.resumable
     return isinstance(e, Unreachable) or (isinstance(e, ServiceError) and e.status in (502, 503, 504))
+
+
+class Resume:
+    """The retries of one step of a session (an open, a message and its reply): `backoff` doubling, `retries` times."""
+
+    def __init__(self, retries: int, backoff: float, on: bool) -> None:
+        self._pauses = iter(delays(retries, backoff) if on else ())
+        self._first: ServiceError | None = None
+
+    def pause(self, e: ServiceError) -> float:
+        """Seconds to wait after `e` if another server can take over (`resumable`); past the retries, the first
+        failure (the last as its cause); a failure no server would mend (a fault, 401, 4408, ...) at once."""
+        self._first = first = self._first or e
+        pause = next(self._pauses, None) if resumable(e) else None
+        if pause is not None:
+            return pause
+        if first is e or not resumable(e):
+            raise e
+        raise first from e
 
 
 def connection_options(http_options: dict[str, Any]) -> dict[str, Any]:
@@ -229,7 +249,7 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
     }
 
 
-__all__ = ["SessionClosed", "SessionState", "batch_number", "connection_options", "message_array", "options", "resumable", "ws_url"]
+__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "connection_options", "message_array", "options", "resumable", "ws_url"]
 
 
 class StateView:

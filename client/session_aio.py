@@ -17,8 +17,7 @@ from websockets.exceptions import ConnectionClosed
 
 from jointlimits.client.errors import ServiceError
 from jointlimits.client.model import Array, Evaluation, Request
-from jointlimits.client.session import Frame, SessionClosed, SessionState, StateView, resumable
-from jointlimits.client.transport import delays
+from jointlimits.client.session import Frame, Resume, SessionClosed, SessionState, StateView
 from jointlimits.client.session_sync import CONNECT_OPTIONS, closed_error, handshake_error
 
 T = TypeVar("T")
@@ -53,18 +52,12 @@ class AsyncSession(StateView):
 
     async def _resuming(self, step: Callable[[], Awaitable[T]]) -> T:
         """`Session._resuming`, awaited."""
-        pauses = iter(delays(self.retries, self.backoff) if self.resume else ())
-        first: Exception | None = None
+        resume = Resume(self.retries, self.backoff, self.resume)
         while True:
             try:
                 return await step()
             except ServiceError as e:
-                first, pause = first or e, next(pauses, None) if resumable(e) else None
-                if pause is None:
-                    if first is e or not resumable(e):
-                        raise
-                    raise first from e
-            await asyncio.sleep(pause)
+                await asyncio.sleep(resume.pause(e))
 
     async def _exchange(self, frame: Frame) -> Frame:
         async def attempt() -> Frame:

@@ -16,8 +16,8 @@ from websockets.sync.client import ClientConnection, connect
 from jointlimits.client import codec
 from jointlimits.client.errors import Fault, ServiceError, Unreachable, WrongURL
 from jointlimits.client.model import Array, Evaluation, Request
-from jointlimits.client.session import RESUMED_CLOSES, Frame, SessionClosed, SessionState, StateView, resumable
-from jointlimits.client.transport import PROXY_STATUSES, delays, proxy_page
+from jointlimits.client.session import RESUMED_CLOSES, Frame, Resume, SessionClosed, SessionState, StateView
+from jointlimits.client.transport import PROXY_STATUSES, proxy_page
 from jointlimits.schemas import session as proto
 
 T = TypeVar("T")
@@ -94,21 +94,13 @@ class Session(StateView):
         self._resuming(self._open)
 
     def _resuming(self, step: Callable[[], T]) -> T:
-        """`step()`; where it fails in a way another server can take over (`resumable`) and `resume` is on,
-        `step` runs again after each backoff step. Past them, the first failure is raised (the last as its
-        cause); a failure no other server would mend (a fault, 401, 413, ...) is raised as it is."""
-        pauses = iter(delays(self.retries, self.backoff) if self.resume else ())
-        first: Exception | None = None
+        """`step()`, tried again after a failure another server can take over (`Resume`)."""
+        resume = Resume(self.retries, self.backoff, self.resume)
         while True:
             try:
                 return step()
             except ServiceError as e:  # SessionClosed, Unreachable, a refused upgrade, a fault
-                first, pause = first or e, next(pauses, None) if resumable(e) else None
-                if pause is None:
-                    if first is e or not resumable(e):
-                        raise
-                    raise first from e
-            time.sleep(pause)
+                time.sleep(resume.pause(e))
 
     def _open(self) -> None:
         try:

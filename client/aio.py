@@ -86,7 +86,7 @@ class AsyncClient(BaseClient):
 
         o = connection_options(dict(self._http_options))
         return AsyncSession(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"],
-                       retries=self.retries, backoff=self.backoff, resume=resume)
+                            retries=self.retries, backoff=self.backoff, resume=resume)
 
     async def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry(request)

@@ -40,6 +40,7 @@ class AsyncSession(StateView):
         return self
 
     async def _open(self) -> None:
+        await self._drop()  # a connection whose opening was refused (a busy 503 reply) before trying again
         try:
             self._ws = await connect(self.url, additional_headers=self.headers, open_timeout=self.timeout,
                                      **CONNECT_OPTIONS)
@@ -101,7 +102,6 @@ class AsyncSession(StateView):
         await self._resuming(self._reopen)
 
     async def _reopen(self) -> None:
-        await self._drop()
         self._closed = False
         self.state.request = self.state.request_for_reopen()
         await self._open()

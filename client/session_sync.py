@@ -103,6 +103,7 @@ class Session(StateView):
                 time.sleep(resume.pause(e))
 
     def _open(self) -> None:
+        self._drop()  # a connection whose opening was refused (a busy 503 reply) before trying again
         try:
             # websockets 17 wants its connection used as a context manager: entered here, exited by `_drop`.
             self._stack = ExitStack()
@@ -157,7 +158,6 @@ class Session(StateView):
         self._resuming(self._reopen)
 
     def _reopen(self) -> None:
-        self._drop()
         self._closed = False
         self.state.request = self.state.request_for_reopen()
         self._open()

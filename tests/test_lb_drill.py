@@ -17,6 +17,7 @@ session through it; it is not drilled under restarts.
 from __future__ import annotations
 
 import difflib
+import time
 import shutil
 from pathlib import Path
 
@@ -79,3 +80,76 @@ def test_the_docs_nginx_configuration_passes_requests_and_sessions(tmp_path: Pat
                     assert s.evaluate(request.q).total_energy > 0 and len(s.commit(request.q)) == 1
         finally:
             proxy.stop()
+
+
+TCP_BALANCER = """
+defaults
+    mode tcp
+    timeout connect 1s
+    timeout client 30s
+    timeout server 30s
+
+frontend front
+    bind 127.0.0.1:{front}
+    default_backend replicas
+
+backend replicas
+    balance roundrobin
+    default-server check inter 100ms fall 1 rise 1
+    server a 127.0.0.1:{a}
+    server b 127.0.0.1:{b}
+"""
+"""An L4 balancer, as a Kubernetes Service is: it places connections, not requests."""
+
+
+@pytest.mark.skipif(shutil.which("haproxy") is None, reason="haproxy is not installed (.ci/run installs it)")
+@pytest.mark.parametrize("age", [1.0, 0.0])
+def test_keep_alive_clients_spread_again_onto_a_restarted_replica(age):
+    """Four keep-alive clients connect while replica b is down (restarting), so all land on a; b comes back.
+    With a connection age of 1 s the clients reconnect and the L4 balancer gives b its share; without one, b
+    gets nothing (the issue's "the last backend restarted got 0 of 8 connections")."""
+    import httpx
+    import uvicorn
+
+    from jointlimits.service.app import create_app
+    from jointlimits.service.http import timeouts
+    from jointlimits.service.settings import Settings
+    from tests.test_contract_live import running
+
+    hits = {"a": 0, "b": 0}
+
+    def replica(name: str, port: int = 0):
+        app = create_app(Settings(token=None, cors_origins=(), max_connection_age=age))
+
+        async def counted(scope, receive, send):
+            if scope["type"] == "http" and scope["path"] == "/v1/constitutions":
+                hits[name] += 1
+            await app(scope, receive, send)
+
+        return running(uvicorn.Config(counted, log_level="warning", lifespan="off", http=timeouts.http_protocol(5.0)), port)
+
+    b_port = drills.free_port()
+    with replica("a") as (_, a_port):
+        front = drills.free_port()
+        lb = drills.haproxy(TCP_BALANCER.format(front=front, a=a_port, b=b_port), front)
+        clients = [httpx.Client(base_url=f"http://127.0.0.1:{front}", trust_env=False) for _ in range(4)]
+        try:
+            for c in clients:
+                assert c.get("/v1/constitutions").status_code == 200  # b is down: every connection on a
+            with replica("b", b_port):
+                time.sleep(0.5)  # b's checks pass (rise 1, every 100 ms)
+                hits.update(a=0, b=0)
+                end = time.monotonic() + 3.0
+                while time.monotonic() < end:
+                    for c in clients:
+                        assert c.get("/v1/constitutions").status_code == 200
+                    time.sleep(0.05)
+        finally:
+            for c in clients:
+                c.close()
+            lb.stop()
+    print(f"age {age}: requests on a, b after b's return: {hits}")
+    if age:
+        assert hits["b"] >= 0.2 * (hits["a"] + hits["b"]), hits  # about half once every client reconnected
+    else:
+        assert hits["b"] == 0 and hits["a"] > 0, hits

@@ -188,3 +188,16 @@ def test_a_proxys_page_to_the_upgrade_is_unreachable_and_resumable():
                            (proto.TRY_AGAIN_LATER, False), (proto.INTERNAL_ERROR, False)):
         lost = ConnectionClosedError(None if code is None else Close(code, "why"), None)
         assert resumable(closed_error("ws://x", lost)) == expected, code
+
+
+def test_the_three_clients_take_the_same_session_arguments():
+    """`resume` is a keyword of every client's `session` (the local one has no connection to lose)."""
+    import inspect
+
+    from jointlimits.client import LocalClient
+
+    for client in (Client, AsyncClient, LocalClient):
+        assert inspect.signature(client.session).parameters["resume"].default is True, client
+    req, _ = chain(2)
+    with LocalClient().session(req, resume=False) as s:
+        assert s.evaluate(req.q).total_energy > 0

@@ -79,13 +79,14 @@ class AsyncClient(BaseClient):
 
         return job.merge(await asyncio.gather(*(run(part) for part in job.parts)))
 
-    def session(self, request: Request | dict | EvaluateRequest) -> AsyncSession:
+    def session(self, request: Request | dict | EvaluateRequest, *, resume: bool = True) -> AsyncSession:
         """`async with client.session(r) as s:` (or `s = await client.session(r)`): `Client.session`, awaitable."""
         from jointlimits.client.session import connection_options  # imported here: HTTP alone never loads websockets
         from jointlimits.client.session_aio import AsyncSession
 
         o = connection_options(dict(self._http_options))
-        return AsyncSession(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"])
+        return AsyncSession(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"],
+                            retries=self.retries, backoff=self.backoff, resume=resume)
 
     async def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry(request)

@@ -116,8 +116,9 @@ class LocalClient:
             progress(request.n_joints, request.n_joints)
         return result(ev).sized(request)
 
-    def session(self, request: Request | dict | EvaluateRequest) -> LocalSession:
-        """`Client.session`'s API in-process, on the core's prepared scene (bitwise the same numbers)."""
+    def session(self, request: Request | dict | EvaluateRequest, *, resume: bool = True) -> LocalSession:
+        """`Client.session`'s API in-process, on the core's prepared scene (bitwise the same numbers); `resume`
+        is taken for the same calls to work: there is no connection to lose."""
         from jointlimits.client.session_local import LocalSession
 
         return LocalSession(request, threads=self.threads)

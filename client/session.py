@@ -18,8 +18,9 @@ from numpy.typing import ArrayLike
 
 from jointlimits.client import codec
 from jointlimits.client.accept import as_request
-from jointlimits.client.errors import Fault, InvalidInput, ServiceError
+from jointlimits.client.errors import Fault, InvalidInput, ServiceError, Unreachable
 from jointlimits.client.model import Array, Evaluation, Request
+from jointlimits.client.transport import delays
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core import registry
@@ -35,14 +36,48 @@ class SessionClosed(ServiceError):
     """The session's connection is gone: closed by the server (a bound: `code`, `reason`), dropped, or never made.
 
     `status` is the WebSocket close code (None when there was none). The session object still
-    holds the committed state: `reopen()` continues where the last commit left off.
+    holds the committed state: `reopen()` continues where the last commit left off. `resumable`: the
+    server went away (1001, 1012) or the connection dropped, so another server (or this one, back) can
+    take the session over: a session with `resume` on (the default) has tried to already.
     """
 
-    def __init__(self, url: str, code: int | None, reason: str, cause: str = "") -> None:
-        self.url, self.code, self.reason = url, code, reason
+    def __init__(self, url: str, code: int | None, reason: str, cause: str = "", resumable: bool = False) -> None:
+        self.url, self.code, self.reason, self.resumable = url, code, reason, resumable
         self.status, self.faults = code or 0, [Fault((), reason or cause, "session_closed")]
         what = f"closed with code {code}" + (f" ({reason})" if reason else "") if code else f"dropped ({cause})"
         Exception.__init__(self, f"session at {url} {what}; reopen() continues from the last commit")
+
+
+RESUMED_CLOSES = (proto.GOING_AWAY, proto.SERVICE_RESTART)
+"""Close codes of a server that stops (a rollout, a scale-down): the session goes on elsewhere."""
+
+
+def resumable(e: Exception) -> bool:
+    """A failure another server can take over from (`resume`): a session closed by a server that stops or
+    dropped, no server reached, or a 502/503/504 to the upgrade (a proxy with no upstream, a worker that
+    drains after SIGTERM and refuses new sessions)."""
+    if isinstance(e, SessionClosed):
+        return e.resumable
+    return isinstance(e, Unreachable) or (isinstance(e, ServiceError) and e.status in (502, 503, 504))
+
+
+class Resume:
+    """The retries of one step of a session (an open, a message and its reply): `backoff` doubling, `retries` times."""
+
+    def __init__(self, retries: int, backoff: float, on: bool) -> None:
+        self._pauses = iter(delays(retries, backoff) if on else ())
+        self._first: ServiceError | None = None
+
+    def pause(self, e: ServiceError) -> float:
+        """Seconds to wait after `e` if another server can take over (`resumable`); past the retries, the first
+        failure (the last as its cause); a failure no server would mend (a fault, 401, 4408, ...) at once."""
+        self._first = first = self._first or e
+        pause = next(self._pauses, None) if resumable(e) else None
+        if pause is not None:
+            return pause
+        if first is e or not resumable(e):
+            raise e
+        raise first from e
 
 
 def connection_options(http_options: dict[str, Any]) -> dict[str, Any]:
@@ -217,7 +252,7 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
     }
 
 
-__all__ = ["SessionClosed", "SessionState", "batch_number", "connection_options", "message_array", "options", "ws_url"]
+__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "connection_options", "message_array", "options", "resumable", "ws_url"]
 
 
 class StateView:

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 from numpy.typing import ArrayLike
 import orjson
@@ -12,10 +14,13 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidMes
 from websockets.sync.client import ClientConnection, connect
 
 from jointlimits.client import codec
-from jointlimits.client.errors import Fault, Unreachable, WrongURL
+from jointlimits.client.errors import Fault, ServiceError, Unreachable, WrongURL
 from jointlimits.client.model import Array, Evaluation, Request
-from jointlimits.client.session import Frame, SessionClosed, SessionState, StateView
+from jointlimits.client.session import RESUMED_CLOSES, Frame, Resume, SessionClosed, SessionState, StateView
+from jointlimits.client.transport import PROXY_STATUSES, proxy_page
 from jointlimits.schemas import session as proto
+
+T = TypeVar("T")
 
 
 def handshake_error(url: str, e: Exception) -> Exception:
@@ -23,6 +28,8 @@ def handshake_error(url: str, e: Exception) -> Exception:
     or a server that is not this service), else the service's refusal (401, ...) as the `ServiceError` HTTP raises."""
     if isinstance(e, InvalidStatus):
         status, body = e.response.status_code, bytes(e.response.body or b"")
+        if status in PROXY_STATUSES and not _is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
+            return Unreachable(url, 1, status=status, proxy=proxy_page(body))
         if status == 404 or not _is_fault_list(body):
             return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade")
         return codec.error(status, body)
@@ -52,7 +59,9 @@ def wrong_url(url: str, what: str) -> WrongURL:
 
 def closed_error(url: str, e: ConnectionClosed) -> SessionClosed:
     frame = e.rcvd
-    return SessionClosed(url, frame.code if frame else None, frame.reason if frame else "", "no close frame")
+    if frame is None:  # dropped (no close frame): resumable
+        return SessionClosed(url, None, "", "no close frame", resumable=True)
+    return SessionClosed(url, frame.code, frame.reason, resumable=frame.code in RESUMED_CLOSES)
 
 
 CONNECT_OPTIONS: dict[str, Any] = dict(
@@ -67,18 +76,34 @@ class Session(StateView):
     `evaluate(q, ...)` answers as `Client.evaluate` does; `commit(q)` ends a time step and
     returns the committed coordinates (one (N,) array per batch); `update(batch, index, lower=...)`
     changes limits, strengths or offsets of some joints. A fault raises `InvalidInput` and the
-    session stays open; a lost connection raises `SessionClosed`, and `reopen()` continues.
+    session stays open. With `resume` (the default), a connection closed by a server that stops
+    (1012, 1001) or dropped is reopened in the committed state and the message in flight sent
+    again, `retries` times at most with `backoff` (behind a load balancer, on another server);
+    else, or past them, a lost connection raises `SessionClosed`, and `reopen()` continues.
     """
 
     def __init__(self, url: str, request: Request, *, binary: bool = True, timeout: float | None = 60.0,
-                 headers: dict[str, str] | None = None) -> None:
+                 headers: dict[str, str] | None = None, retries: int = 3, backoff: float = 0.2,
+                 resume: bool = True) -> None:
         self.state = SessionState(request, url, binary)
         self.timeout, self.headers = timeout, dict(headers or {})
+        self.retries, self.backoff, self.resume = retries, backoff, resume
         self._ws: ClientConnection | None = None
         self._stack = ExitStack()
-        self._open()
+        self._closed = False  # by `close()`: no more resuming
+        self._resuming(self._open)
+
+    def _resuming(self, step: Callable[[], T]) -> T:
+        """`step()`, tried again after a failure another server can take over (`Resume`)."""
+        resume = Resume(self.retries, self.backoff, self.resume)
+        while True:
+            try:
+                return step()
+            except ServiceError as e:  # SessionClosed, Unreachable, a refused upgrade, a fault
+                time.sleep(resume.pause(e))
 
     def _open(self) -> None:
+        self._drop()  # a connection whose opening was refused (a busy 503 reply) before trying again
         try:
             # websockets 17 wants its connection used as a context manager: entered here, exited by `_drop`.
             self._stack = ExitStack()
@@ -86,9 +111,18 @@ class Session(StateView):
                 connect(self.url, additional_headers=self.headers, open_timeout=self.timeout, **CONNECT_OPTIONS))
         except Exception as e:
             raise handshake_error(self.url, e) from None
-        self.state.opened(self._exchange(self.state.open_frame()))
+        self.state.opened(self._send(self.state.open_frame()))
 
     def _exchange(self, frame: Frame) -> Frame:
+        """`frame`'s reply; with `resume`, on a new connection in the committed state where the last one was lost."""
+        def attempt() -> Frame:
+            if self._ws is None and self.resume and not self._closed:
+                self._reopen()
+            return self._send(frame)
+
+        return self._resuming(attempt)
+
+    def _send(self, frame: Frame) -> Frame:
         if self._ws is None:
             raise SessionClosed(self.url, None, "", "the session is closed")
         try:
@@ -121,7 +155,10 @@ class Session(StateView):
 
     def reopen(self) -> None:
         """A new connection in the committed state (after a drop, or to move to another server)."""
-        self._drop()
+        self._resuming(self._reopen)
+
+    def _reopen(self) -> None:
+        self._closed = False
         self.state.request = self.state.request_for_reopen()
         self._open()
 
@@ -132,6 +169,7 @@ class Session(StateView):
 
     def close(self) -> None:
         """Ask the server to close (code 1000); closing a closed session does nothing."""
+        self._closed = True
         if self._ws is None:
             return
         try:

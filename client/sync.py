@@ -112,14 +112,17 @@ class Client(BaseClient):
         job = self._job(request, progress)
         return job.merge([job.receive(part, self._send(self._evaluate_request(part))) for part in job.parts])
 
-    def session(self, request: Request | dict | EvaluateRequest) -> Session:
+    def session(self, request: Request | dict | EvaluateRequest, *, resume: bool = True) -> Session:
         """A session on the server's prepared scene of `request` (what `evaluate` takes; docs/sessions.md,
-        "Sessions"): `with client.session(r) as s:`."""
+        "Sessions"): `with client.session(r) as s:`. `resume`: a session closed by a server that stops (1012,
+        1001) or dropped is reopened in its committed state and the message in flight sent again, and an
+        open that reaches no server, or one that drains, is tried again: `retries` times with `backoff`."""
         from jointlimits.client.session import connection_options  # imported here: HTTP alone never loads websockets
         from jointlimits.client.session_sync import Session
 
         o = connection_options(dict(self._http_options))
-        return Session(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"])
+        return Session(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"],
+                       retries=self.retries, backoff=self.backoff, resume=resume)
 
     def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry(request)

@@ -37,6 +37,7 @@ UPDATABLE = ("lower", "upper", "strength", "offset")
 # the same refusal would get).
 NORMAL = 1000  # the client sent `close` (or closed itself)
 GOING_AWAY = 1001  # the server is shutting down (uvicorn's)
+SERVICE_RESTART = 1012  # the server is restarting (`jointlimits serve` after SIGTERM): reopen, another one answers
 MESSAGE_TOO_BIG = 1009  # a message over the frame limit (uvicorn's own limit closes with it too)
 INTERNAL_ERROR = 1011  # a server failure (a bug: never for any input)
 TRY_AGAIN_LATER = 1013  # the worker's upload budget is full (service/http/ws_protocol.py): reopen later, as after 4429

@@ -7,6 +7,7 @@ import logging
 import os
 import signal
 import threading
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
 from contextlib import asynccontextmanager
 from typing import Any
@@ -19,6 +20,7 @@ from jointlimits.service.core import registry
 from jointlimits.service.core.heap import keep_heap
 from jointlimits.service.http import sessions
 from jointlimits.service.http.routes import install
+from jointlimits.service.http.timeouts import OPENED
 from jointlimits.service.http import middleware as ops
 from jointlimits.service.observability import LIFESPAN_METRICS
 from jointlimits.service.settings import Settings
@@ -75,16 +77,24 @@ Message = MutableMapping[str, Any]
 ASGIApp = Callable[[Scope, Callable[[], Awaitable[Message]], Callable[[Message], Awaitable[None]]], Awaitable[None]]
 
 
-class CloseWhileDraining:
-    """While the app drains, every HTTP answer says `Connection: close`: a client on a keep-alive connection
-    (a proxy's pool, the SDK) opens its next one anew, which the load balancer sends to a pod that stays."""
+class CloseConnections:
+    """`Connection: close` on every HTTP answer while the app drains, and on the first answer of a connection older
+    than `max_connection_age` (its age from `jointlimits serve`'s protocol, `timeouts.OPENED`): a client on a
+    keep-alive connection (a proxy's pool, the SDK) opens its next one anew, which the load balancer sends to a
+    pod that stays, or after a rollout to any pod, the restarted ones too."""
 
     def __init__(self, app: ASGIApp, state: State) -> None:
         self.app, self.state = app, state
 
+    def closing(self, scope: Scope) -> bool:
+        if scope["type"] != "http":
+            return False
+        opened, most = scope.get("extensions", {}).get(OPENED), self.state.settings.max_connection_age
+        return self.state.draining or (opened is not None and 0 < most <= time.monotonic() - opened)
+
     async def __call__(self, scope: Scope, receive: Callable[[], Awaitable[Message]],
                        send: Callable[[Message], Awaitable[None]]) -> None:
-        if scope["type"] != "http" or not self.state.draining:
+        if not self.closing(scope):
             return await self.app(scope, receive, send)
 
         async def closing(message: Message) -> None:
@@ -114,7 +124,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(sessions.router)  # /v1/sessions (WebSocket)
     install(app)  # routes, 4xx handlers (422, 413, 415, 406), OpenAPI of the raw-bodied route
     ops.install(app, settings)  # bearer auth, CORS, request ids, JSON access log, /metrics
-    app.add_middleware(CloseWhileDraining, state=app.state)  # outermost: every answer while draining
+    app.add_middleware(CloseConnections, state=app.state)  # outermost: every answer while draining, or aged
     return app
 
 

@@ -125,6 +125,13 @@ class Settings:
         "seconds each worker keeps accepting and answering after SIGTERM, /readyz answering 503 draining, "
         "before it stops accepting (load balancers and Kubernetes endpoints stop sending meanwhile); 0: at once",
     )
+    # Rebalancing after a rollout (service/app.py): a keep-alive connection this old is told `Connection: close`
+    # with its next answer, so the client's next one is balanced anew (an L4 balancer: onto a restarted pod too).
+    max_connection_age: float = _setting(
+        60.0, seconds,
+        "seconds a keep-alive connection serves requests; the first answer after it says Connection: close, "
+        "so the client reconnects (through a balancer, to any replica); 0: no limit. Not sessions",
+    )
     keep_heap: bool = _setting(  # service/core/heap.py
         True, boolean,
         "keep freed memory in each worker's heap: no page faults per request, holds the largest request's memory",

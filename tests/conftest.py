@@ -48,6 +48,7 @@ SLOW = (
     "test_budget.py",  # concurrent requests at the limits (~10 s)
     "test_worker_alive.py",  # the largest admitted bodies to a 2-worker server (~10 s)
     "test_read_timeouts.py",  # waits out header and body deadlines (~7 s)
+    "test_connection_age.py::test_clients_reconnect_without_an_error",  # waits out four connection ages (~2.3 s)
     "test_sessions_live.py",  # sessions over real WebSockets, the idle timer's waits (~22 s)
     "test_client_unreachable.py",  # connect timeouts, refused ports, unrelated servers (~4 s)
     "test_screw.py",  # a screw driven three turns in-process and over HTTP (~3 s)
@@ -63,8 +64,12 @@ SLOW = (
     "test_cli.py::test_serve_passes_limits_logs_json_and_stops_gracefully",  # `jointlimits serve` subprocesses
     "test_cli.py::test_token_file_and_cors",
     "test_cli.py::test_an_app_that_does_not_import_fails_fast",
+    "test_lb_drill.py::test_the_load_balancer_drill_fails_no_request",  # HAProxy, three replicas, restarts (~40 s)
+    "test_lb_drill.py::test_the_docs_nginx_configuration_passes_requests_and_sessions",  # nginx in front (~1 s)
+    "test_lb_drill.py::test_keep_alive_clients_spread_again_onto_a_restarted_replica",  # HAProxy in TCP mode (~8 s)
     "test_drain.py::test_sigterm_drains_then_stops",  # `jointlimits serve` with 1 and 2 workers, a 1.5 s drain (~4.6 s)
     "test_drain.py::test_a_second_sigterm_changes_nothing_and_sigint_stops_at_once",  # (~2 s)
+    "test_drain.py::test_a_draining_worker_serves_its_sessions_refuses_new_ones_then_closes_them_with_1012",  # (~3 s)
     # Property tests over random scenes and the 50-digit reference (the golden cases stay in the fast subset):
     "test_reference.py",  # mpmath over random scenes (~10 s)
     "test_properties.py",  # derivatives by finite differences over random scenes (~8 s)

@@ -36,6 +36,11 @@ without it, `--url` names a service already running on 127.0.0.1. Scenarios:
   `JOINTLIMITS_MAX_ANSWER_BYTES` (413 before any work) and one at that bound (200): the valid
   clients keep getting 200s and no worker is restarted (its pids are compared). Needs a server
   with the default limits (`--spawn` starts one).
+- `lb`: HAProxy (installed: Debian's `haproxy`) with docs/load-balancers.md's configuration in front of
+  three `jointlimits serve --workers 1` replicas it starts on loopback: steady load (`--duration`, at most
+  60 s), a rolling restart (SIGTERM one at a time, with a 1 s drain) with session loops (evaluate, commit),
+  a SIGKILL; an SDK client on keep-alive and one opening a connection per request (retrying nothing) at 2 and
+  1000 joints: the failed requests per scenario and client, and inexact committed coordinates.
 
 Plain exchanges (a GET, one request and its answer) go through httpx. The load loop (`Connection`, `run_load`)
 is a minimal HTTP/1.1 client on asyncio streams with pre-encoded requests, so that on a 2-core machine it takes
@@ -51,6 +56,8 @@ import json
 import math
 import os
 import random
+import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -440,8 +447,9 @@ class Server:
         extra_args: Sequence[str] = (),
         env: dict[str, str] | None = None,
         command: Sequence[str] = (sys.executable, "-m", "jointlimits.service.cli"),
+        port: int | None = None,
     ) -> None:
-        self.port = free_port()
+        self.port = port or free_port()
         self.workers = workers
         self.log_path = Path(os.environ.get("TMPDIR", "/tmp")) / f"jointlimits-serve-{self.port}.log"
         args = [
@@ -1280,12 +1288,289 @@ def scenario_pingflood(
 # --------------------------------------------------------------------------- command line
 
 
+# --------------------------------------------------------------------------- behind a load balancer (HAProxy)
+
+LB_PAGE = Path(__file__).resolve().parent.parent / "docs" / "load-balancers.md"
+LB_CHECK_MS = 100
+"""HAProxy's check interval in the drill (the docs' 1 s); with `fall 2` a draining replica is out within ~0.2 s."""
+LB_DELAY = 1.0
+"""The replicas' `--shutdown-delay` in the drill (the docs' 5 s): above check interval x fall, as the docs ask."""
+LB_SESSION_STEPS = 2000  # a bound on each session loop, whatever the duration
+
+
+def docs_block(lang: str, page: Path = LB_PAGE) -> str:
+    """The first block of `lang` of a docs page, as it is."""
+    return page.read_text().split(f"```{lang}\n", 1)[1].split("```", 1)[0]
+
+
+def _rewrite(text: str, pattern: str, new: Callable[[re.Match[str]], str], count: int) -> str:
+    text, n = re.subn(pattern, new, text, flags=re.MULTILINE)
+    if n != count:
+        raise ValueError(f"the docs' configuration changed: {n} matches of {pattern!r}, expected {count}")
+    return text
+
+
+def haproxy_config(front: int, backends: Sequence[int], check_ms: int = LB_CHECK_MS) -> str:
+    """docs/load-balancers.md's HAProxy configuration as it is, but for its addresses (the frontend and the
+    replicas on loopback ports) and its check interval."""
+    ports = iter(backends)
+    text = _rewrite(docs_block("haproxy"), r"^(\s*bind )\S+", lambda m: f"{m[1]}{LOOPBACK}:{front}", 1)
+    text = _rewrite(text, r"^(\s*server \S+ )\S+", lambda m: f"{m[1]}{LOOPBACK}:{next(ports)}", len(backends))
+    return _rewrite(text, r"\binter 1s\b", lambda m: f"inter {check_ms}ms", 1)
+
+
+def nginx_config(front: int, backends: Sequence[int]) -> str:
+    """docs/load-balancers.md's nginx configuration as it is, but for its addresses (loopback ports)."""
+    ports = iter(backends)
+    text = _rewrite(docs_block("nginx"), r"^(\s*listen )\d+", lambda m: f"{m[1]}{LOOPBACK}:{front}", 1)
+    return _rewrite(text, r"^(\s*server )[0-9.]+:\d+", lambda m: f"{m[1]}{LOOPBACK}:{next(ports)}", len(backends))
+
+
+class Proxy:
+    """A proxy (`haproxy`, `nginx`) in the foreground in its own process group, in front on `front`."""
+
+    def __init__(self, args: Sequence[str], front: int, check: Sequence[str]) -> None:
+        done = subprocess.run(list(check), capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"{' '.join(check)}: {done.stdout}{done.stderr}")
+        self.front = front
+        self.proc = subprocess.Popen(list(args), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+        deadline = time.monotonic() + 10
+        while get(front, "/readyz", timeout=1.0)[0] != 200:
+            if time.monotonic() > deadline or self.proc.poll() is not None:
+                self.stop()
+                raise RuntimeError(f"{args[0]} did not answer on {front}")
+            time.sleep(0.05)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(5)
+
+
+def haproxy(config: str, front: int) -> Proxy:
+    path = Path(os.environ.get("TMPDIR", "/tmp")) / f"jointlimits-haproxy-{front}.cfg"
+    path.write_text(config)
+    return Proxy(["haproxy", "-db", "-f", str(path)], front, ["haproxy", "-c", "-q", "-f", str(path)])
+
+
+@dataclass
+class Tally:
+    """One client kind's count: answered, and what failed (its kind -> times)."""
+
+    ok: int = 0
+    failed: Counter[str] = field(default_factory=Counter)
+    inexact: int = 0  # sessions: committed coordinates not the same bits as an uninterrupted session's
+    resumed: int = 0  # sessions: new connections the SDK opened by itself
+
+    def report(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"ok": self.ok, "failed": sum(self.failed.values())}
+        if self.failed:
+            out["what"] = dict(self.failed)
+        return out
+
+
+def _failure(e: Exception) -> str:
+    return f"{type(e).__name__}: {str(e)[:100]}"
+
+
+def fresh_post(port: int, raw: bytes) -> str | None:
+    """`raw` (asking `Connection: close`) on a connection of its own, read to its end: None for a whole 200,
+    else what failed (the status, or the connection's error); nothing is retried."""
+    try:
+        with socket.create_connection((LOOPBACK, port), timeout=60) as s:
+            s.sendall(raw)
+            data = b"".join(iter(lambda: s.recv(1 << 16), b""))
+    except OSError as e:
+        return type(e).__name__
+    head, _, body = data.partition(b"\r\n\r\n")
+    status = head[9:12].decode(errors="replace") or "no answer"
+    length = re.search(rb"(?im)^content-length: *(\d+)", head)
+    if status == "200" and length is not None and int(length[1]) != len(body):
+        return "truncated"
+    return None if status == "200" else status
+
+
+def lb_body(n: int) -> dict[str, Any]:
+    """`scene(n)` asking energy and gradient: at 1000 joints a 0.4 MB JSON body (over HAProxy's 16 KiB buffer)."""
+    return {**scene(n), "outputs": ["energy", "gradient"]}
+
+
+def session_request(n: int) -> tuple[Any, Callable[[int], Any]]:
+    """`n` revolute joints about z between consecutive bodies, limits +-0.5; `q_at(step)` turns every odd body
+    0.2 rad per step, so each joint passes pi after 16 steps (its committed angle is the unwrapped one)."""
+    import numpy as np
+
+    from jointlimits.client import JointBatch, request_from_arrays
+
+    def q_at(step: int) -> Any:
+        a = 0.2 * step * (np.arange(n + 1) % 2)
+        q = np.zeros((n + 1, 12))
+        q[:, 3], q[:, 4], q[:, 6], q[:, 7], q[:, 11] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a), 1.0
+        return q
+
+    ids = [[k, k + 1] for k in range(n)]
+    batch = JointBatch.of(670, ids, [[[0, 0, 0], [0, 0, 1]]] * n, -0.5, 0.5, 10.0)
+    return request_from_arrays(q_at(0), [batch], q_prev=q_at(0), q_ref=q_at(0)), q_at
+
+
+def _sdk_loop(front: int, n: int, stop: threading.Event, tally: Tally) -> None:
+    from jointlimits.client import Client
+    from jointlimits.client.accept import as_request
+
+    request = as_request(lb_body(n))
+    with Client(f"http://{LOOPBACK}:{front}") as client:
+        for _ in range(MAX_REQUESTS_PER_CLIENT):
+            if stop.is_set():
+                return
+            try:
+                client.evaluate(request)
+                tally.ok += 1
+            except Exception as e:
+                tally.failed[_failure(e)] += 1
+
+
+def _fresh_loop(front: int, n: int, stop: threading.Event, tally: Tally) -> None:
+    raw = http_request("POST", "/v1/evaluate", json.dumps(lb_body(n)).encode(), {"Connection": "close"})
+    for _ in range(MAX_REQUESTS_PER_CLIENT):
+        if stop.is_set():
+            return
+        what = fresh_post(front, raw)
+        if what is None:
+            tally.ok += 1
+        else:
+            tally.failed[what] += 1
+
+
+def _session_loop(front: int, n: int, stop: threading.Event, tally: Tally) -> None:
+    """evaluate, commit, step after step through the SDK's session (resuming by itself); then every committed
+    coordinate against an in-process session that never lost its connection, bitwise."""
+    from jointlimits.client import Client, LocalClient
+
+    request, q_at = session_request(n)
+    committed = []
+    try:
+        with Client(f"http://{LOOPBACK}:{front}") as client, client.session(request) as s:
+            connection = s._ws
+            for step in range(1, LB_SESSION_STEPS):
+                if stop.is_set():
+                    break
+                s.evaluate(q_at(step))
+                committed.append(s.commit(q_at(step))[0].tobytes())
+                tally.ok += 1
+                tally.resumed += s._ws is not connection
+                connection = s._ws
+    except Exception as e:  # the loop stops at its first error: the state after it is not the solver's
+        tally.failed[_failure(e)] += 1
+    with LocalClient().session(request) as ref:
+        tally.inexact = sum(ref.commit(q_at(step))[0].tobytes() != got for step, got in enumerate(committed, 1))
+
+
+def under_load(front: int, joints: Sequence[int], action: Callable[[], Any], sessions: bool = False,
+               warmup: float = 0.5, settle: float = 0.5) -> dict[str, Any]:
+    """One SDK client (keep-alive) and one fresh-connection client per size in `joints` (and a session loop per
+    size) while `action` runs: each kind's answered and failed requests, and what `action` returned."""
+    stop = threading.Event()
+    kinds: dict[str, Callable[[int, int, threading.Event, Tally], None]] = {"sdk": _sdk_loop, "fresh": _fresh_loop}
+    if sessions:
+        kinds["session"] = _session_loop
+    tallies = {(kind, n): Tally() for kind in kinds for n in joints}
+    threads = [threading.Thread(target=kinds[kind], args=(front, n, stop, t), daemon=True) for (kind, n), t in tallies.items()]
+    for t in threads:
+        t.start()
+    time.sleep(warmup)
+    try:
+        done = action()
+        time.sleep(settle)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(60)
+    out: dict[str, Any] = {f"{kind} {n} joints": t.report() for (kind, n), t in tallies.items()}
+    for (kind, n), t in tallies.items():
+        if kind == "session":
+            out[f"{kind} {n} joints"].update(inexact=t.inexact, resumed=t.resumed)
+    out["action"] = done
+    return out
+
+
+def _restart(replicas: list[Server], k: int, args: Sequence[str]) -> None:
+    old = replicas[k]
+    old.stop()  # already exited: its process group and log closed
+    replicas[k] = Server(workers=1, extra_args=args, port=old.port)
+    replicas[k].wait_ready()
+    time.sleep(3 * LB_CHECK_MS / 1000)  # `rise 2`: HAProxy takes it back
+
+
+def rolling_restart(replicas: list[Server], args: Sequence[str]) -> dict[str, Any]:
+    """SIGTERM each replica in turn, wait for its exit, start it again on its port: exit codes, seconds to exit."""
+    codes, seconds = [], []
+    for k in range(len(replicas)):
+        t0 = time.monotonic()
+        replicas[k].proc.send_signal(signal.SIGTERM)
+        codes.append(replicas[k].proc.wait(LB_DELAY + 30))
+        seconds.append(round(time.monotonic() - t0, 2))
+        _restart(replicas, k, args)
+    return {"exit_codes": codes, "seconds_to_exit": seconds}
+
+
+def kill_one(replicas: list[Server], args: Sequence[str], down: float = 1.0) -> dict[str, Any]:
+    """SIGKILL the first replica (its process group), `down` seconds under load, start it again."""
+    os.killpg(replicas[0].proc.pid, signal.SIGKILL)
+    code = replicas[0].proc.wait(10)
+    time.sleep(down)
+    _restart(replicas, 0, args)
+    return {"exit_code": code}
+
+
+def scenario_lb(joints: Sequence[int] = (2, 1000), steady: float = 3.0) -> dict[str, Any]:
+    """HAProxy (docs/load-balancers.md's configuration) in front of three `jointlimits serve --workers 1` replicas
+    on loopback: steady load, a rolling restart with session loops, a SIGKILL; per scenario and client kind
+    (SDK on keep-alive, a new connection per request retrying nothing, sessions) the answered and failed
+    requests. Bounded: each loop by MAX_REQUESTS_PER_CLIENT or LB_SESSION_STEPS, each scenario by its action."""
+    if shutil.which("haproxy") is None:
+        raise RuntimeError("haproxy is not installed (Debian: apt-get install haproxy)")
+    args = ["--shutdown-delay", str(LB_DELAY), "--access-log", "false"]
+    replicas = [Server(workers=1, extra_args=args) for _ in range(3)]
+    lb = None
+    try:
+        for r in replicas:
+            r.wait_ready()
+        front = free_port()
+        lb = haproxy(haproxy_config(front, [r.port for r in replicas]), front)
+        return {
+            "steady": under_load(front, joints, lambda: time.sleep(steady)),
+            "rolling restart": under_load(front, joints, lambda: rolling_restart(replicas, args), sessions=True),
+            "SIGKILL": under_load(front, joints, lambda: kill_one(replicas, args)),
+        }
+    finally:
+        if lb is not None:
+            lb.stop()
+        for r in replicas:
+            r.stop()
+            r.log_path.unlink(missing_ok=True)
+
+
+def print_lb(report: dict[str, Any]) -> None:
+    """Failed requests per scenario and client kind, one line each."""
+    for scenario, kinds in report.items():
+        for kind, t in kinds.items():
+            if kind != "action":
+                what = f"  {t['what']}" if t.get("what") else ""
+                exact = f", {t['inexact']} inexact, {t['resumed']} resumed" if "inexact" in t else ""
+                print(f"{scenario:16} {kind:22} {t['ok']:6} ok {t['failed']:4} failed{exact}{what}")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m tests.drills", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--scenario",
         choices=["mixed", "flood", "kill", "sigterm", "slowloris", "answer", "peak", "burst", "stalled", "stalled-sessions",
-                 "pingflood", "all"],
+                 "pingflood", "lb", "all"],
         default="mixed",
     )
     p.add_argument("--spawn", action="store_true", help="start `jointlimits serve` on a free loopback port")
@@ -1313,6 +1598,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return Server(a.workers, limits, env)
 
     report: dict[str, Any] = {"workers": a.workers, "clients": a.clients, "duration_s": a.duration}
+    if a.scenario == "lb":  # its own three replicas and HAProxy
+        result = scenario_lb(steady=min(a.duration, 60.0))
+        print_lb(result)
+        print(json.dumps({"lb": result}, indent=2))
+        return 0
     scenarios = ["mixed", "flood", "kill", "sigterm", "slowloris", "answer"] if a.scenario == "all" else [a.scenario]
     if a.scenario in ("peak", "burst", "stalled", "stalled-sessions", "pingflood"):
         # each on its own fresh 1-worker server, at this environment's limits

@@ -25,12 +25,12 @@ LIMITS = Settings(max_body_bytes=2_000_000, max_joints=400, token=None, cors_ori
 
 
 @contextmanager
-def running(config: uvicorn.Config) -> Iterator[tuple[uvicorn.Server, int]]:
-    """`config` served by uvicorn in a thread on a free loopback port: yields the server and the port once it
-    has started, stops it on exit (every in-process server of the tests runs so)."""
+def running(config: uvicorn.Config, port: int = 0) -> Iterator[tuple[uvicorn.Server, int]]:
+    """`config` served by uvicorn in a thread on a free loopback port (or `port`): yields the server and the port
+    once it has started, stops it on exit (every in-process server of the tests runs so)."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind(("127.0.0.1", 0))
+    sock.bind(("127.0.0.1", port))
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()

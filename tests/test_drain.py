@@ -97,6 +97,30 @@ def test_a_second_sigterm_changes_nothing_and_sigint_stops_at_once():
         assert time.monotonic() - signalled < 10  # not the 30 s delay
 
 
+def test_a_draining_worker_serves_its_sessions_refuses_new_ones_then_closes_them_with_1012():
+    """During the delay the open session is answered and a new one's upgrade gets 503 `draining` (a balancer's
+    retry lands elsewhere: tests/test_lb_drill.py); at its end the session is closed with 1012, which the SDK
+    resumes from (here `resume=False`, to see the close: one replica, nothing to resume on)."""
+    from jointlimits.client import Client, ServiceError, SessionClosed
+    from tests.test_client_sdk import readme_scene
+
+    request = readme_scene().request()
+    with Server(workers=1, extra_args=["--shutdown-delay", str(DELAY)]) as server:
+        url = f"http://{LOOPBACK}:{server.port}"
+        s = Client(url).session(request, resume=False)
+        server.proc.send_signal(signal.SIGTERM)
+        draining(server.port)
+        with pytest.raises(ServiceError) as refused:
+            Client(url, retries=0).session(request)
+        assert refused.value.status == 503 and refused.value.faults[0].type == "draining"
+        with pytest.raises(SessionClosed) as closed:
+            for _ in range(int(10 * DELAY / 0.05)):  # bounded: past the delay by far
+                assert s.evaluate(request.q).total_energy > 0
+                time.sleep(0.05)
+        assert closed.value.code == 1012 and closed.value.resumable and "shutting down" in closed.value.reason
+        assert server.proc.wait(10) == 0
+
+
 # --------------------------------------------------------------------------- in-process
 
 

@@ -174,7 +174,7 @@ def test_reopening_after_a_dropped_connection_loses_nothing(live):
     """Steps past a half turn, a drop, a reopen: the same numbers as a session that never dropped."""
     req, pose = chain(2)
     q = req.q.copy()
-    with Client(live).session(req) as s, LocalClient().session(req) as ref:
+    with Client(live).session(req, resume=False) as s, LocalClient().session(req) as ref:  # resumed: test_session_resume.py
         for k in range(1, 9):  # body 2 turns 0.5 rad per step to 4 rad: 3.3 rad from body 1, past pi
             q[2] = pose(0.5 * k)
             assert s.commit(q)[0].tobytes() == ref.commit(q)[0].tobytes()
@@ -219,7 +219,7 @@ def test_async_session_reopens_after_a_drop(live):
     q = req.q.copy()
 
     async def run():
-        async with AsyncClient(live).session(req) as s:
+        async with AsyncClient(live).session(req, resume=False) as s:
             for k in range(1, 9):
                 q[2] = pose(0.5 * k)
                 await s.commit(q)

@@ -52,9 +52,15 @@ def readyz(request: Request) -> Response:
     accepting: a readiness probe, or a load balancer's health check, takes the worker out of rotation
     meanwhile (docs/deployment.md, "Stopping without a failed request")."""
     if request.app.state.draining:
-        delay = request.app.state.settings.shutdown_delay
-        return FaultList({"detail": [{"loc": [], "msg": DRAINING.format(delay=delay), "type": "draining"}]}, status_code=503)
+        return draining(request.app.state.settings)
     return JSONResponse({"status": "ready"})
+
+
+def draining(settings: Settings) -> FaultList:
+    """The 503 of a worker that drains: to `/readyz`, and to the upgrade of a new session (which the worker
+    would close within the delay: the client's retry, through a balancer, opens it elsewhere)."""
+    fault = {"loc": [], "msg": DRAINING.format(delay=settings.shutdown_delay), "type": "draining"}
+    return FaultList({"detail": [fault]}, status_code=503)
 
 
 @router.get("/v1/constitutions", response_model=ConstitutionsResponse, summary="Supported constitutions")

@@ -25,7 +25,7 @@ from jointlimits.schemas import session as proto
 from jointlimits.service.core import Evaluation, Fault, InputError
 from jointlimits.service.core.prepared import PreparedScene, prepare
 from jointlimits.service import sizing
-from jointlimits.service.http import budget, limits
+from jointlimits.service.http import budget, limits, routes
 from jointlimits.service.http import session_codec as codec
 from jointlimits.service.http.budget import Reservation
 from jointlimits.service.http.errors import HttpError
@@ -67,7 +67,7 @@ DISCONNECT_REASONS = {
     proto.TRY_AGAIN_LATER: "uploads_full",  # the message's bytes did not fit in the worker's upload budget (ws_protocol.py)
     1007: "invalid_utf8",
     1002: "protocol_error",
-    1012: "shutdown",
+    proto.SERVICE_RESTART: "shutdown",
     1008: "slow_message",  # a message not all received within JOINTLIMITS_BODY_TIMEOUT (service/http/timeouts.py)
 }
 """The metric's `reason` of a connection the server layer ended (any other code: "disconnect")."""
@@ -98,6 +98,9 @@ async def sessions(websocket: WebSocket) -> None:
     if limit != settings.max_frame_bytes:
         settings = replace(settings, max_frame_bytes=limit)
     metrics: Metrics = app.state.metrics
+    if app.state.draining:  # after SIGTERM: a session opened here would be closed within the delay
+        await websocket.send_denial_response(routes.draining(settings))
+        return
     await websocket.accept()
     state = app.state
     open_now = getattr(state, "open_sessions", 0)

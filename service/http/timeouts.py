@@ -38,6 +38,7 @@ import asyncio
 import logging
 import socket
 import struct
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -52,6 +53,9 @@ from jointlimits.service.settings import Settings
 BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `client_gone`
 DRAIN = "jointlimits.drain"
 """Key in a connection's ASGI scope `extensions` of its `Drain` (absent in-process: TestClient, no transport)."""
+OPENED = "jointlimits.opened"
+"""Key in an HTTP request's scope `extensions` of its connection's `time.monotonic()` at accept (service/app.py:
+the connection's age)."""
 MESSAGE_TOO_SLOW = 1008  # policy violation: a session message not received within body_timeout
 _PONG = b"\x8a"  # the first byte of a server's pong frame (FIN, opcode 0xA; no extensions are negotiated)
 _408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"
@@ -204,7 +208,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
-        self.scope["extensions"] = {**self.scope.get("extensions", {}), DRAIN: self.drain}  # type: ignore[typeddict-unknown-key]
+        extensions = {**self.scope.get("extensions", {}), DRAIN: self.drain, OPENED: self.opened}
+        self.scope["extensions"] = extensions  # type: ignore[typeddict-item]
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
@@ -212,6 +217,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        self.opened = time.monotonic()
         self._arm()  # a connection that never sends a byte is closed too
 
     def data_received(self, data: bytes) -> None:

@@ -36,7 +36,11 @@ class AsyncSession(StateView):
         self._closed = False  # by `close()`: no more resuming
 
     async def open(self) -> AsyncSession:
-        await self._resuming(self._open)
+        try:
+            await self._resuming(self._open)
+        except BaseException:
+            await self._drop()  # a refused opening: the server lets go of it before the caller tries again
+            raise
         return self
 
     async def _open(self) -> None:

@@ -91,7 +91,13 @@ class Session(StateView):
         self._ws: ClientConnection | None = None
         self._stack = ExitStack()
         self._closed = False  # by `close()`: no more resuming
-        self._resuming(self._open)
+        try:
+            self._resuming(self._open)
+        except BaseException:
+            # A refused opening (a fault, 4429, ...): close the connection before raising, so that the server has
+            # let go of it (its session slot, its budget) by the time the caller tries again.
+            self._drop()
+            raise
 
     def _resuming(self, step: Callable[[], T]) -> T:
         """`step()`, tried again after a failure another server can take over (`Resume`)."""

@@ -92,6 +92,8 @@ class Checker:
     def __init__(self, binary: bool, booleans: int = 0) -> None:
         self.binary, self.booleans = binary, booleans
         self.faults: list[Fault] = []
+        self.values: int | None = None
+        """A JSON text's values (its commas + 1), counted before its parse: the request's cost (`sizing`)."""
         self.message_id: int | str | None = None
         """The document's `id` if it is a readable one (a session's fault reply repeats it), once it is read."""
 

@@ -66,9 +66,10 @@ def load(body: bytes) -> Any:
 
 
 def _objects(doc: dict[str, Any]) -> list[dict[str, Any]]:
-    """`doc` and the objects in its values: `bodies` and each batch of a request."""
+    """`doc` and the objects in its values: `bodies` and each batch of a request (a list that does not start with
+    an object, such as `q`'s rows, is not walked: keys left out only send a body to `json`'s careful read)."""
     return [doc, *(v for v in doc.values() if isinstance(v, dict)),
-            *(o for v in doc.values() if isinstance(v, list) for o in v if isinstance(o, dict))]
+            *(o for v in doc.values() if isinstance(v, list) and v and isinstance(v[0], dict) for o in v if isinstance(o, dict))]
 
 
 def _string_colons(doc: dict[str, Any]) -> int:

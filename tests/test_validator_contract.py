@@ -197,3 +197,71 @@ def test_the_validator_refuses_what_the_models_refuse_at_the_same_locations(case
         assert _pydantic_is_laxer(kind, service, who), (kind, where, service, who)
     else:
         assert _a_shape(pyd, service, who) or (who == "validator" and _same(pyd, service)), (kind, where, pyd, service, who)
+
+
+# ------------------------------------------------------------------ a session's later messages (schemas/session.py)
+
+from jointlimits.schemas import session as proto  # noqa: E402
+from jointlimits.service.http import session_codec  # noqa: E402
+
+WIRE_NDIM = {"q": 2, "index": 1, "lower": 1, "upper": 1, "strength": 1, "offset": 1}
+
+
+@st.composite
+def messages(draw: st.DrawFn) -> tuple[str, str]:
+    """A message after the opening one (its `kind` kept: the service names a bad kind at `kind`, pydantic's
+    tagged union at the document), valid or with one mutation."""
+    kind = draw(st.sampled_from([proto.EVALUATE, proto.COMMIT, proto.UPDATE, proto.CLOSE]))
+    doc: dict[str, Any] = {"kind": kind}
+    if draw(st.booleans()):
+        doc["id"] = draw(st.sampled_from([7, "a"]))
+    if kind in (proto.EVALUATE, proto.COMMIT):
+        doc["q"] = [list(ROW)] * draw(st.integers(0, 2))
+    if kind == proto.EVALUATE:
+        for k, v in {"outputs": ["gradient"], "hessian_mode": "psd", "active_only": True}.items():
+            if draw(st.booleans()):
+                doc[k] = v
+    if kind == proto.UPDATE:
+        doc |= {"batch": 0, "index": [0]} | {k: [0.5] for k in proto.UPDATABLE if draw(st.booleans())}
+    mutation = draw(st.sampled_from(["none", "missing", "unknown", "type", "null", "repeated"]))
+    keys = [k for k in doc if k != "kind"]
+    if mutation == "missing" and keys:
+        del doc[draw(st.sampled_from(keys))]
+    elif mutation == "unknown":
+        doc[draw(st.sampled_from(["zz", "bodies", "batches", "prev_coordinate"]))] = 1
+    elif mutation in ("type", "null") and _paths(doc)[1:]:
+        loc = draw(st.sampled_from([p for p in _paths(doc) if p != ("kind",)]))
+        new = None if mutation == "null" else draw(st.sampled_from(["x", {}, [], 1.5, True, 7, [1.0]]))
+        _at(doc, loc[:-1])[loc[-1]] = new
+    elif mutation == "repeated" and keys:
+        key = draw(st.sampled_from(keys))
+        return json.dumps(doc)[:-1] + f", {json.dumps(key)}: {json.dumps(doc[key])}}}", mutation
+    return json.dumps(doc), mutation
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(messages())
+def test_a_sessions_messages_are_refused_as_the_models_refuse_them(case: tuple[str, str]) -> None:
+    text, mutation = case
+    kind = json.loads(text)["kind"]
+    try:
+        proto.CLIENT_MESSAGE.validate_json(text)
+        pyd: dict[tuple, tuple[str, str]] = {}
+    except ValidationError as e:  # the tagged union puts the kind in front of each loc
+        pyd = {tuple(err["loc"])[1:]: (err["msg"], err["type"]) for err in e.errors()}
+    try:
+        message = session_codec.decode(text, 10**9)
+    except core.InputError as e:
+        service = {f.loc: (f.msg, f.type) for f in e.faults}
+        if mutation == "repeated":
+            assert all(t == "duplicate_key" for _, t in service.values()), service
+        else:
+            assert _same(pyd, service) or _a_shape(pyd, service, "validator"), (text, pyd, service)
+        return
+    assert mutation == "repeated" or not pyd or all(
+        # an array of another shape than the wire's: the session's core names it, as for msgpack's arrays
+        loc[0] in WIRE_NDIM and (a := message.q if loc[0] == "q" else message.index if loc[0] == "index"
+                                 else message.values[loc[0]]) is not None
+        and (a.ndim != WIRE_NDIM[loc[0]] or (loc[0] == "q" and a.shape[1:] != (12,)))
+        for loc in pyd
+    ), (text, pyd, kind)

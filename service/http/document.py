@@ -288,7 +288,7 @@ class Checker:
             out.options = self.options(fields)
         if kind == proto.UPDATE:
             out.batch = self.int64(fields.get("batch", 0), ("batch",))
-            out.index = self.array(fields.get("index"), ("index",), True)
+            out.index = self.array(fields["index"], ("index",), True) if "index" in fields else None  # else: missing
             out.values = {k: self.array(fields[k], (k,)) for k in proto.UPDATABLE if k in fields}
         self.raise_if_any()
         return out

@@ -9,7 +9,7 @@ A JSON value costs 24 (`0,`) to 96 (`[],`) bytes of Python objects once parsed (
 where the sizing rule charges a JSON body `JSON_BYTES_PER_VALUE` x `max_json_values` (192 MB at the defaults,
 service/sizing.py). Under that bound a parsed body holds at most `max_json_values / 11` joints, so its joints
 are counted once, parsed (`admit`). Its batches are bounded by its braces too: 2e6 empty batches, within the
-value bound, take ~0.8 s to parse and refuse, their braces 1 ms.
+value bound, take ~0.8 s to parse and refuse; their braces, one C count.
 """
 
 from __future__ import annotations
@@ -89,14 +89,14 @@ def check_batches(n_batches: int, max_batches: int, counted_by: str = "") -> Non
         )
 
 
-def check_json(text: bytes | str, max_values: int, max_batches: int | None = None) -> int:
+def check_json(text: bytes, max_values: int, max_batches: int | None = None) -> int:
     """Refuse a JSON text whose parse would cost too much, before parsing it (C-speed counts); returns the bound
     on its values (`commas + 1`: every value but the last of each list or object is followed by a comma).
 
     `max_batches` (a request document): each batch is an object, so it has a `{` (the document and `bodies` have
-    the two others; a `{` inside a string only overcounts a body refused anyway)."""
-    comma, brace = (",", "{") if isinstance(text, str) else (b",", b"{")
-    values = text.count(comma) + 1  # type: ignore[arg-type]
+    the two others; a `{` inside a string, which only a session opening's `id` may hold in a valid document,
+    overcounts)."""
+    values = text.count(b",") + 1
     if values > max_values:
         raise _too_large(
             ("body",),
@@ -105,5 +105,5 @@ def check_json(text: bytes | str, max_values: int, max_batches: int | None = Non
             "(Content-Type: application/msgpack, no per-value cost), or split the request",
         )
     if max_batches is not None:
-        check_batches(text.count(brace) - 2, max_batches, "counted by their braces")  # type: ignore[arg-type]
+        check_batches(text.count(b"{") - 2, max_batches, "counted by their braces")
     return values

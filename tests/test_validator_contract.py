@@ -8,7 +8,8 @@ between the validator (keys, structure, types) and the core (shapes, and what ne
 refuses" is the validator or, after it, the core's checks. The generated scenes are arithmetically sound (unit
 frames, ranges lower < upper, body ids in range), so a fault of the core's after a mutation is the mutation's.
 
-Where they differ, the service is right and the test says why (`_pydantic_is_laxer`).
+Where they differ, the service is right and the test says why (`_pydantic_is_laxer`, `_a_shape`). A session's
+later messages are held to `schemas/session.py`'s models the same way.
 """
 
 from __future__ import annotations
@@ -20,14 +21,14 @@ from typing import Any
 import hypothesis.strategies as st
 from hypothesis import HealthCheck, given, settings
 
-from jointlimits.schemas import EvaluateRequest
-from jointlimits.service import core
-from jointlimits.service.http import convert
 from pydantic import ValidationError
-from jointlimits.service.core.validate import DUPLICATE_KEY_MSG
+
+from jointlimits.schemas import EvaluateRequest
+from jointlimits.schemas import session as proto
+from jointlimits.service import core
+from jointlimits.service.http import convert, session_codec
 
 ROW = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]  # a body at the origin, unit frame
-LITERALS = {("hessian_mode",), ("layout",), ("origin",)}
 
 
 @st.composite
@@ -200,9 +201,6 @@ def test_the_validator_refuses_what_the_models_refuse_at_the_same_locations(case
 
 
 # ------------------------------------------------------------------ a session's later messages (schemas/session.py)
-
-from jointlimits.schemas import session as proto  # noqa: E402
-from jointlimits.service.http import session_codec  # noqa: E402
 
 WIRE_NDIM = {"q": 2, "index": 1, "lower": 1, "upper": 1, "strength": 1, "offset": 1}
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -21,6 +22,17 @@ Array = NDArray[np.float64]
 def invalid(faults: list[CoreFault], where: str) -> InvalidInput:
     """The validator's faults as the `InvalidInput` the service would answer (`where`: the constructor)."""
     return InvalidInput(422, [Fault(f.loc, f.msg, f.type) for f in faults[:MAX_FAULTS]], where=f"invalid input ({where})")
+
+
+def as_outputs(outputs: Any) -> tuple[str, ...]:
+    """`outputs` as the wire's list: a list, tuple or array of names, or one name alone (a bare string asks for that
+    output: `outputs="energy"`); anything else is the wire's fault for a value where a list belongs, on every path
+    (Client, LocalClient, sessions). The names themselves are checked where the service checks them."""
+    if isinstance(outputs, str):
+        return (outputs,)
+    if isinstance(outputs, (list, tuple, np.ndarray)):
+        return tuple(np.asarray(outputs).tolist() if isinstance(outputs, np.ndarray) else outputs)
+    raise InvalidInput(422, [Fault(("body", "outputs"), *NOT_A_LIST)], where="invalid input")
 
 
 def _array(value: ArrayLike, name: str, faults: list[CoreFault], integer: bool = False) -> np.ndarray | None:
@@ -138,10 +150,14 @@ class Request:
     q_ref: Array
     batches: list[JointBatch]
     outputs: tuple[str, ...] = OUTPUTS
+    """Names of `OUTPUTS`; one name alone (`"energy"`) asks for that output (`as_outputs`)."""
     hessian_mode: str = "exact"
     active_only: bool = False
     layout: str = "joints"
     """"bodies": `Evaluation.assembled` holds the gradient and Hessian summed per body; batches carry none."""
+
+    def __post_init__(self) -> None:
+        self.outputs = as_outputs(self.outputs)
 
     @property
     def n_joints(self) -> int:

@@ -253,7 +253,7 @@ class Scene:
             q_prev=stack(self._q_prev),
             q_ref=stack(self._q_ref),
             batches=batches,
-            outputs=tuple(outputs),
+            outputs=outputs,  # type: ignore[arg-type] (one name alone too: Request.outputs)
             hessian_mode=hessian_mode,
             active_only=active_only,
             layout=layout,
@@ -287,4 +287,4 @@ def request_from_arrays(
     shapes = [f for f in check_bodies(Bodies(a, a_prev, a_ref)) if f.type != "finite_number" and f.loc[1] in named]  # type: ignore[arg-type]
     if shapes:
         raise invalid(shapes, "request_from_arrays")
-    return Request(a, a_prev, a_ref, list(joints), tuple(outputs), hessian_mode, active_only, layout)  # type: ignore[arg-type]
+    return Request(a, a_prev, a_ref, list(joints), outputs, hessian_mode, active_only, layout)  # type: ignore[arg-type]

@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 from jointlimits.client import codec
 from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, InvalidInput, ServiceError, Unreachable
-from jointlimits.client.model import Array, Evaluation, Request
+from jointlimits.client.model import Array, Evaluation, Request, as_outputs
 from jointlimits.client.transport import delays
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
@@ -121,7 +121,7 @@ class SessionState:
     def evaluate_frame(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Frame:
         doc: dict[str, Any] = {"kind": proto.EVALUATE, "q": self._q(q)}
         if outputs is not None:
-            doc["outputs"] = list(outputs)
+            doc["outputs"] = list(as_outputs(outputs))
         if hessian_mode is not None:
             doc["hessian_mode"] = hessian_mode
         if active_only is not None:
@@ -245,7 +245,7 @@ def batch_number(batch: Any) -> int:
 def options(request: Request, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> dict[str, Any]:
     """The evaluate options of a call, the opening request's where not given (for the in-process session)."""
     return {
-        "outputs": tuple(request.outputs if outputs is None else outputs),
+        "outputs": request.outputs if outputs is None else as_outputs(outputs),
         "hessian_mode": request.hessian_mode if hessian_mode is None else hessian_mode,
         "active_only": request.active_only if active_only is None else bool(active_only),
         "layout": request.layout,  # the opening's, as the server keeps it (a message cannot change it)

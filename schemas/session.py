@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+from pydantic import BaseModel, ConfigDict, FailFast, Field, TypeAdapter
 
 from jointlimits.schemas.evaluate import Dof, EvaluateRequest, HessianMode, Int64, Output, Real
 
@@ -61,27 +61,28 @@ class OpeningRequest(EvaluateRequest):
 
 # An optional field is absent (the session's default, or unchanged), never null: a null is refused, as in a
 # request (`Field(None)`: None only as the default, which pydantic does not validate).
+# FailFast: a list's first bad item is named, as in a request (and by the service).
 class EvaluateMessage(_Message):
     kind: Literal["evaluate"]
-    q: list[Dof]
-    outputs: Annotated[list[Output], Field(min_length=1)] = Field(None)
+    q: Annotated[list[Dof], FailFast()]
+    outputs: Annotated[list[Output], Field(min_length=1), FailFast()] = Field(None)
     hessian_mode: HessianMode = Field(None)
     active_only: Annotated[bool, Field(strict=True)] = Field(None)
 
 
 class CommitMessage(_Message):
     kind: Literal["commit"]
-    q: list[Dof]
+    q: Annotated[list[Dof], FailFast()]
 
 
 class UpdateMessage(_Message):
     kind: Literal["update"]
     batch: Int64
-    index: list[Int64]
-    lower: list[Real] = Field(None)
-    upper: list[Real] = Field(None)
-    strength: list[Real] = Field(None)
-    offset: list[Real] = Field(None)
+    index: Annotated[list[Int64], FailFast()]
+    lower: Annotated[list[Real], FailFast()] = Field(None)
+    upper: Annotated[list[Real], FailFast()] = Field(None)
+    strength: Annotated[list[Real], FailFast()] = Field(None)
+    offset: Annotated[list[Real], FailFast()] = Field(None)
 
 
 class CloseMessage(_Message):

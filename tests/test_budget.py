@@ -203,13 +203,14 @@ def test_a_request_is_charged_within_the_budget_and_its_parsed_cost_within_its_f
     if binary_request:
         from jointlimits.service.http import binary
 
-        kwargs = binary.decode(body, s.max_joints, max_batches=s.max_batches)
+        kwargs = binary.decode(body, max_batches=s.max_batches)
         values = None
     else:
-        from jointlimits.service.http import convert, limits
+        from jointlimits.service.http import convert, document
 
-        values = limits.check_json_values(body, s.max_json_values)
-        kwargs = convert.decode(body, s.max_joints)
+        checker = document.Checker(binary=False)
+        kwargs = convert.decode(body, s.max_json_values, s.max_batches, checker=checker)
+        values = checker.values
     batch_joints = [len(j.body_ids) for j in kwargs["batches"]]
     parsed = sizing.request_cost(
         len(body), values, batch_joints, kwargs["bodies"].q.shape[0], kwargs["outputs"], binary_answer, s

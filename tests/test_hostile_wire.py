@@ -180,10 +180,11 @@ def test_300k_empty_batches_get_at_most_max_faults_quickly(roomy, content_type):
 )
 def test_every_flood_of_bad_items_is_capped_in_both_decoders(doc, monkeypatch):
     built = pydantic_error_counts(monkeypatch)
-    for decode, body in ((convert.decode, json.dumps(doc).encode()), (binary.decode, msgpack.packb(doc))):
+    for decode, body in ((lambda b: convert.decode(b, 10**9, 10**6), json.dumps(doc).encode()),
+                         (lambda b: binary.decode(b, 10**6), msgpack.packb(doc))):
         with pytest.raises(InputError) as e:
-            evaluate(**decode(body, 10**6))  # a shape is the core's to name (short rows), as on the service's path
-        assert 0 < len(e.value.faults) <= MAX_FAULTS, (decode.__module__, len(e.value.faults))
+            evaluate(**decode(body))  # a shape is the core's to name (short rows), as on the service's path
+        assert 0 < len(e.value.faults) <= MAX_FAULTS, (body[:1], len(e.value.faults))
     # Not only the answer: pydantic itself listed a handful of errors, if it ran at all.
     assert all(n <= 2 * MAX_FAULTS for n in built), built
 
@@ -227,7 +228,7 @@ def test_extra_keys_after_a_stray_object_are_capped(stray, loc, monkeypatch):
     extras = ", ".join(f'"k{i}": 0' for i in range(100_000)).encode()
     body = b"{" + stray + b', "bodies": {"q": [], "q_prev": [], "q_ref": [], ' + extras + b'}, "batches": []}'
     with pytest.raises(InputError) as e:
-        convert.decode(body, 10)
+        convert.decode(body, 10**9, 10)
     assert 0 < len(e.value.faults) <= MAX_FAULTS and built == []
     assert tuple(loc[1:]) in [f.loc for f in e.value.faults]
 

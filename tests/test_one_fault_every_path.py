@@ -281,7 +281,8 @@ def test_joint_batch_of_names_the_field_in_the_services_words(app):
         (("body_ids",), "must have shape (N, 2), one [i, j] per joint, got (1, 3)", "value_error")]
     assert _raised(lambda: JointBatch.of(670, [[0, 1], [1, 2]], [edge, edge], [0.0, 1.0, 2.0], 1)) == [
         (("lower",), "must have shape (2,) (one row per joint of body_ids), got (3,)", "value_error")]
-    assert _raised(lambda: JointBatch.of(670, [[0, 1]], [edge], -1, [["x"]])) == [(("upper", 0, 0), "Input should be a valid number", "float_type")]
+    # `upper` holds numbers: a list in it is the item at fault, as the wire's schema says (tests/test_validator_contract.py)
+    assert _raised(lambda: JointBatch.of(670, [[0, 1]], [edge], -1, [["x"]])) == [(("upper", 0), "Input should be a valid number", "float_type")]
     assert _raised(lambda: JointBatch.of(670, [[0, 1.5]], [edge], -1, 1)) == [(("body_ids", 0, 1), "Input should be a valid integer", "int_type")]
 
 

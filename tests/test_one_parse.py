@@ -28,7 +28,7 @@ def parses(monkeypatch) -> list[bytes]:
 
 def _faults(doc: dict) -> list[tuple]:
     with pytest.raises(InputError) as e:  # a shape is the core's to name, as on the service's path
-        evaluate(**convert.decode(json.dumps(doc).encode(), 10**6))
+        evaluate(**convert.decode(json.dumps(doc).encode(), 10**9, 10**6))
     return [(f.loc, f.msg, f.type) for f in e.value.faults]
 
 
@@ -45,7 +45,7 @@ def test_an_array_fault_is_worded_from_the_one_parse(parses):
 
 
 def test_a_clean_body_is_parsed_once(parses):
-    kwargs = convert.decode(json.dumps(_json()).encode(), 10**6)
+    kwargs = convert.decode(json.dumps(_json()).encode(), 10**9, 10**6)
     assert len(parses) == 1 and kwargs["batches"]
 
 
@@ -54,13 +54,13 @@ def test_a_session_message_is_parsed_once(parses):
     from jointlimits.service.http import session_codec
 
     q = [[0.0] * 11, [0.0] * 11]  # rows of 11: the core names the shape later, as for msgpack
-    message = session_codec.decode(json.dumps({"kind": "evaluate", "id": 7, "q": q}))
+    message = session_codec.decode(json.dumps({"kind": "evaluate", "id": 7, "q": q}), 10**9)
     assert message.q.shape == (2, 11) and message.id == 7 and len(parses) == 1
     with pytest.raises(InputError) as e:
-        session_codec.decode(json.dumps({"kind": "evaluate", "q": [[0.0, "x"]]}))
+        session_codec.decode(json.dumps({"kind": "evaluate", "q": [[0.0, "x"]]}), 10**9)
     assert [(f.loc, f.type) for f in e.value.faults] == [(("q", 0, 1), "float_type")] and len(parses) == 2
     with pytest.raises(InputError) as e:
-        session_codec.decode("[1]")
+        session_codec.decode("[1]", 10**9)
     assert [(f.loc, f.msg, f.type) for f in e.value.faults] == [((), "Input should be an object", "dict_type")]
     assert len(parses) == 3
 
@@ -70,7 +70,7 @@ def test_a_boolean_among_numbers_is_not_a_number(active_only):
     """NumPy would read `true` among numbers as 1: the arrays are read item by item when the body holds one."""
     doc = _json()
     doc["active_only"] = active_only
-    assert convert.decode(json.dumps(doc).encode(), 10**6)["active_only"] is active_only
+    assert convert.decode(json.dumps(doc).encode(), 10**9, 10**6)["active_only"] is active_only
     doc["batches"][0]["lower"][1] = True
     assert _faults(doc) == [(("batches", 0, "lower", 1), "Input should be a valid number", "float_type")]
     doc = _json()

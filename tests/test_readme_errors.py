@@ -158,7 +158,7 @@ CASES: dict[str, Callable[[str], httpx.Response]] = {
     "invalid msgpack": _raw(b"\x81\xa6bodies", "application/msgpack"),
     "malformed binary array": _doc(_set("bodies", "q", "shape", value=[2, 12]), binary=True),
     "body over `JOINTLIMITS_MAX_BODY_BYTES` (by header or while streaming)": _declared_length(300_000_000),
-    "more joints than `JOINTLIMITS_MAX_JOINTS` (counted before parsing)": _joints(401),
+    "more joints than `JOINTLIMITS_MAX_JOINTS` (counted once parsed, before any work)": _joints(401),
     "`Content-Type` neither JSON nor msgpack": _raw(b"{}", "text/plain"),
     "`Accept` names neither": _doc(lambda doc: None, Accept="text/html"),
     "answer bound (joints x outputs x encoding) over `JOINTLIMITS_MAX_ANSWER_BYTES`, before any work": _joints(100),

@@ -75,3 +75,36 @@ def test_the_worker_rule_still_counts_sessions_by_the_bound():
     s = Settings(max_session_joints=1000)
     assert sizing.worker_bytes(s) - sizing.worker_bytes(Settings(max_session_joints=0)) == 768 * 1000
     assert json.dumps(sizing.session_weight(0, 3)) == "4"  # rounded up
+
+
+def test_a_sessions_json_messages_are_bounded_in_values_before_they_are_parsed(monkeypatch):
+    """JOINTLIMITS_MAX_JSON_VALUES bounds every JSON text the service parses, a session's messages too: the in-flight
+    budget charges an opening by it (`sizing.cost_before_body`), and without it a 63 MiB opening of empty batches
+    took +1.7 GB to parse and refuse, a 63 MiB `q` of zeros +0.7 GB. Its batches are counted by their braces,
+    as a request's."""
+    from jointlimits.service.http import convert
+
+    doc = scene(2, seed=5)
+    values = json.dumps(doc).count(",") + 1
+    c = app(max_json_values=values - 1, max_batches=len(doc["batches"]) - 1)
+    with c.websocket_connect(PATH) as ws:
+        monkeypatch.setattr(convert, "from_json", lambda *a: pytest.fail("parsed"))
+        reply = Json(ws).send({**doc, "id": 4})
+        assert reply["status"] == 413 and reply["detail"][0]["loc"] == ["body"] and "id" not in reply, reply
+        assert f"holds up to {values + 1} values" in reply["detail"][0]["msg"]  # the `id` adds one
+        assert closed(ws)["code"] == proto.SCENE_TOO_LARGE  # an opening over a request's bounds, as over its joints
+    c = app(max_json_values=values, max_batches=len(doc["batches"]) - 1)
+    with c.websocket_connect(PATH) as ws:
+        reply = Json(ws).send(doc)
+        assert reply["status"] == 413 and "(counted by their braces)" in reply["detail"][0]["msg"], reply
+    monkeypatch.undo()
+    c = app(max_json_values=values)
+    with c.websocket_connect(PATH) as ws:
+        s = Json(ws)
+        assert s.send(doc)["kind"] == "opened"
+        monkeypatch.setattr(convert, "from_json", lambda *a: pytest.fail("parsed"))
+        q = doc["bodies"]["q"]
+        reply = s.send({"kind": "evaluate", "q": q * (values // (12 * len(q)) + 1)})
+        assert reply["status"] == 413 and "JOINTLIMITS_MAX_JSON_VALUES" in reply["detail"][0]["msg"], reply
+        monkeypatch.undo()
+        assert s.send({"kind": "evaluate", "q": q, "id": 1})["kind"] == "evaluation"  # the session stays as it was

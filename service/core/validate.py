@@ -65,10 +65,21 @@ NOT_AN_INTEGER = ("Input should be a valid integer", "int_type")
 """pydantic's words for these mistakes in JSON: every path (msgpack, sessions, the SDK) says the same."""
 
 
+ROWS: dict[str | int, tuple[int, ...]] = {
+    "q": (12,), "q_prev": (12,), "q_ref": (12,), "body_ids": (2,), "edges": (2, 3), "local_edges": (2, 2, 3),
+    **dict.fromkeys(("lower", "upper", "strength", "offset", "prev_coordinate", "index"), ()),
+}
+"""The wire's shape of one item of each array (schemas/evaluate.py, schemas/session.py), by its name."""
+
+
 def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | None, list[Fault]]:
     """`value` (nested lists of numbers, or an array) as a float64 (int64) array of whatever shape it has,
     else the faults that prevent it, each at its element: not a list, not a number, rows of different
     lengths. The shape is then the validator's to judge (`check_dofs`, `check_joints`), on every path.
+    An array the wire names (`ROWS`, by the last key of `loc`): lists that make an array of another shape are
+    left to the shape checks, as an array map or a NumPy array of that shape is; among lists that make no
+    array, an item at another depth, or the first row of another shape, is named where the wire's schema
+    names it.
 
     JSON's `null` is NaN (named as non-finite later), as a NaN-less JSON writer means it."""
     if isinstance(value, (list, tuple)):
@@ -80,7 +91,7 @@ def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | 
             value = fast
     if isinstance(value, np.ndarray) and value.ndim >= 1 and value.dtype.kind in ("iu" if integer else "fiu"):
         return value.astype(np.int64 if integer else np.float64, copy=False), []
-    faults = _element_faults(value, loc, integer)
+    faults = _element_faults(value, loc, integer, ROWS.get(loc[-1]) if loc else None)
     if faults:
         return None, faults
     try:
@@ -89,13 +100,13 @@ def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | 
         return None, [Fault(loc, "Input should be a valid integer in int64 range", "int_type")]
 
 
-def _element_faults(value: Any, loc: Loc, integer: bool) -> list[Fault]:
+def _element_faults(value: Any, loc: Loc, integer: bool, row: tuple[int, ...] | None = None) -> list[Fault]:
     """The first element fault of each list of `value` (up to the cap), or the first mismatch of row shapes."""
     if isinstance(value, np.ndarray):
         value = value.tolist()
     if not isinstance(value, (list, tuple)):
         return [Fault(loc, *NOT_A_LIST)]
-    shape = _shape_of(value, loc, integer)
+    shape = _shape_of(value, loc, integer, row)
     return shape if isinstance(shape, list) else []
 
 
@@ -107,11 +118,12 @@ def _is_number(x: Any, integer: bool) -> bool:
     return x is None or isinstance(x, (int, float, np.integer, np.floating))
 
 
-def _shape_of(value: list | tuple, loc: Loc, integer: bool) -> tuple[int, ...] | list[Fault]:
-    """The shape of nested lists `value`, or a fault: an item not a number (or list), or ragged rows."""
+def _shape_of(value: list | tuple, loc: Loc, integer: bool, row: tuple[int, ...] | None = None) -> tuple[int, ...] | list[Fault]:
+    """The shape of nested lists `value` (of items of shape `row`, if given), or a fault: an item not a number
+    (or list), or ragged rows."""
     if not value:
         return (0,)
-    nested = isinstance(value[0], (list, tuple, np.ndarray))
+    nested = isinstance(value[0], (list, tuple, np.ndarray)) if row is None else len(row) > 0
     if not nested:
         for i, x in enumerate(value):
             if not _is_number(x, integer):
@@ -121,15 +133,16 @@ def _shape_of(value: list | tuple, loc: Loc, integer: bool) -> tuple[int, ...] |
                 return [Fault((*loc, i), f"Input should be {words[1]} {words[2]}", words[0])]
         return (len(value),)
     shapes = []
-    for i, row in enumerate(value):
-        if not isinstance(row, (list, tuple, np.ndarray)):
+    for i, item in enumerate(value):
+        if not isinstance(item, (list, tuple, np.ndarray)):
             return [Fault((*loc, i), *NOT_A_LIST)]
-        got = _shape_of(list(row), (*loc, i), integer)
+        got = _shape_of(list(item), (*loc, i), integer, None if row is None else row[1:])
         if isinstance(got, list):
             return got
         shapes.append(got)
-    counts = Counter(shapes)  # the odd row out is the one at fault (on a tie, not the first: dicts keep order)
-    usual = max(counts, key=counts.__getitem__)
+    counts = Counter(shapes)  # the odd row out is the one at fault (on a tie, not the first: dicts keep order),
+    # or the first not of the wire's shape when it is known
+    usual = row if row in counts else max(counts, key=counts.__getitem__)
     for i, got in enumerate(shapes):
         if got != usual:
             return [Fault((*loc, i), f"has shape {got} where the other rows have {usual}: the rows of an array are alike")]

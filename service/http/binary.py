@@ -116,17 +116,16 @@ def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None) ->
     return doc
 
 
-def decode(body: bytes, max_joints: int, max_batches: int | None = None, opening: bool = False,
+def decode(body: bytes, max_batches: int | None = None, opening: bool = False,
            checker: document.Checker | None = None) -> dict[str, Any]:
     """Keyword arguments of `jointlimits.service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`.
+    Its joints are counted once it is read (`limits.admit`).
 
     More batches than `max_batches` is a 413 before any batch is read (each costs Python work here).
     `opening`: a session's opening document, whose optional `id` is returned too, under "id".
     """
     r = checker or document.Checker(binary=True)
-    kwargs = r.request(_unpack(body, r, max_batches), opening)
-    limits.check_joints(sum(len(j.body_ids) for j in kwargs["batches"]), max_joints)
-    return kwargs
+    return r.request(_unpack(body, r, max_batches), opening)
 
 
 def encode(ev: Evaluation) -> bytes:

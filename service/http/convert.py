@@ -15,16 +15,15 @@ from jointlimits.service.http import document, limits
 MEDIA_TYPE = "application/json"
 
 
-def decode(body: bytes, max_joints: int, opening: bool = False, checker: document.Checker | None = None) -> dict[str, Any]:
+def decode(body: bytes, max_values: int, max_batches: int, opening: bool = False,
+           checker: document.Checker | None = None) -> dict[str, Any]:
     """Keyword arguments of `jointlimits.service.core.evaluate` for a JSON body (`opening`: a session's opening
-    document, whose `id` is returned too, under "id").
-
-    Raises `HttpError` (413) for too many joints, `InputError` (422) for a malformed body.
-    """
-    limits.check_joints(limits.json_joints_upper_bound(body), max_joints)
-    kwargs = read(body, opening, checker)
-    limits.check_joints(sum(len(j.body_ids) for j in kwargs["batches"]), max_joints)
-    return kwargs
+    document, whose `id` is returned too, under "id"): its values and batches bounded on its bytes
+    (`limits.check_json`: 413 `HttpError`, the bound kept in `checker.values`), then parsed once and checked
+    (`read`: `InputError`, 422)."""
+    checker = checker or document.Checker(binary=False)
+    checker.values = limits.check_json(body, max_values, max_batches)
+    return read(body, opening, checker)
 
 
 def read(body: bytes, opening: bool = False, checker: document.Checker | None = None) -> dict[str, Any]:
@@ -67,9 +66,10 @@ def load(body: bytes) -> Any:
 
 
 def _objects(doc: dict[str, Any]) -> list[dict[str, Any]]:
-    """`doc` and the objects in its values: `bodies` and each batch of a request."""
+    """`doc` and the objects in its values: `bodies` and each batch of a request (a list that does not start with
+    an object, such as `q`'s rows, is not walked: keys left out only send a body to `json`'s careful read)."""
     return [doc, *(v for v in doc.values() if isinstance(v, dict)),
-            *(o for v in doc.values() if isinstance(v, list) for o in v if isinstance(o, dict))]
+            *(o for v in doc.values() if isinstance(v, list) and v and isinstance(v[0], dict) for o in v if isinstance(o, dict))]
 
 
 def _string_colons(doc: dict[str, Any]) -> int:

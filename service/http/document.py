@@ -28,7 +28,7 @@ from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
 from jointlimits.service.core import CONSTITUTIONS, Bodies, Fault, InputError, Joints
 from jointlimits.service.core.errors import MAX_FAULTS, Loc
 from jointlimits.service.core.validate import _element_faults as element_faults
-from jointlimits.service.core.validate import DUPLICATE_KEY_MSG, HESSIAN_MODES, NOT_A_LIST, NOT_AN_INTEGER, ORIGINS, as_array, literal_msg
+from jointlimits.service.core.validate import DUPLICATE_KEY_MSG, HESSIAN_MODES, ROWS, NOT_A_LIST, NOT_AN_INTEGER, ORIGINS, as_array, literal_msg
 
 # Each object's keys (True: required), as the wire models define them.
 REQUEST, BODIES, BATCH = ({k: f.is_required() for k, f in m.model_fields.items()} for m in (models.EvaluateRequest, models.Bodies, models.JointBatch))
@@ -37,8 +37,6 @@ BODY_ARRAYS = ("q", "q_prev", "q_ref")
 BATCH_ARRAYS = {"body_ids": True, "edges": False, "local_edges": False, "lower": False, "upper": False,
                 "strength": False, "offset": False, "prev_coordinate": False}
 """The numeric arrays of a request (True: of integers)."""
-ROWS = {"q": (12,), "q_prev": (12,), "q_ref": (12,), "body_ids": (2,), "edges": (2, 3), "local_edges": (2, 2, 3)}
-"""The shape of one row of the arrays whose rows are lists: JSON's empty list is none of them."""
 
 OBJECT = "Input should be an object"
 MAP = "Input should be a map (a msgpack map, as a JSON object)"
@@ -94,6 +92,8 @@ class Checker:
     def __init__(self, binary: bool, booleans: int = 0) -> None:
         self.binary, self.booleans = binary, booleans
         self.faults: list[Fault] = []
+        self.values: int | None = None
+        """A JSON text's values (its commas + 1), counted before its parse: the request's cost (`sizing`)."""
         self.message_id: int | str | None = None
         """The document's `id` if it is a readable one (a session's fault reply repeats it), once it is read."""
 
@@ -192,11 +192,11 @@ class Checker:
                     self.fault(loc, *NOT_A_LIST)
                     a = None
         else:
-            found = element_faults(value, loc, integer) if self.booleans else []
+            found = element_faults(value, loc, integer, ROWS[loc[-1]]) if self.booleans else []
             a, found = (None, found) if found else as_array(value, loc, integer)
             for f in found:
                 self.fault(f.loc, f.msg, f.type)
-            if a is not None and a.shape == (0,) and loc[-1] in ROWS:
+            if a is not None and a.shape == (0,):
                 a = a.reshape(0, *ROWS[loc[-1]])
         return np.zeros(0, np.int64 if integer else np.float64) if a is None else a
 
@@ -288,7 +288,7 @@ class Checker:
             out.options = self.options(fields)
         if kind == proto.UPDATE:
             out.batch = self.int64(fields.get("batch", 0), ("batch",))
-            out.index = self.array(fields.get("index"), ("index",), True)
+            out.index = self.array(fields["index"], ("index",), True) if "index" in fields else None  # else: missing
             out.values = {k: self.array(fields[k], (k,)) for k in proto.UPDATABLE if k in fields}
         self.raise_if_any()
         return out

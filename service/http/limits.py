@@ -1,9 +1,19 @@
-"""Request limits: 413 before a body is parsed (bytes while it streams in, joints from the bytes), and
-admission by cost (joints, batches, the answer's size) before any evaluation."""
+"""Request limits, each checked once, in this module: the bytes while a body streams in (`read_body`); a JSON
+text's values (every JSON text) and batches (a request) on its bytes, before its parse (`check_json`); a msgpack
+request's batches from its header, before any is read (`check_batches`); the joints and the answer's size once
+parsed, before any evaluation (`admit`).
+
+Why values and JSON batches are counted on the bytes, not on the parsed document: parsing is what they bound.
+A JSON value costs 24 (`0,`) to 96 (`[],`) bytes of Python objects once parsed (measured: 2e6 `[]` in a list,
++197 MiB; 2e6 `{}` batches, +151 MiB): the largest body (256 MiB) of `0,` would take ~3 GB, of `{},` ~7 GB,
+where the sizing rule charges a JSON body `JSON_BYTES_PER_VALUE` x `max_json_values` (192 MB at the defaults,
+service/sizing.py). Under that bound a parsed body holds at most `max_json_values / 11` joints, so its joints
+are counted once, parsed (`admit`). Its batches are bounded by its braces too: 2e6 empty batches, within the
+value bound, take ~0.8 s to parse and refuse; their braces, one C count.
+"""
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable
 
 from fastapi import Request
@@ -12,10 +22,6 @@ from jointlimits.service.core import Fault
 from jointlimits.service.http.errors import HttpError
 from jointlimits.schemas.answer import BATCH_OVERHEAD_BYTES, FLOATS_PER_JOINT, answer_bytes  # noqa: F401 (re-exported)
 from jointlimits.service.settings import Settings
-
-# A per-joint list of the JSON body: `"lower": [ ... ]`. Its commas bound its length from above.
-_PER_JOINT_LIST = re.compile(rb'"(?:lower|upper|strength)"\s*:\s*\[([^\[\]]*)\]')
-
 
 def _too_large(loc: tuple[str, ...], msg: str) -> HttpError:
     return HttpError(413, [Fault(loc, msg, "too_large")])
@@ -43,59 +49,28 @@ async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool
     return None if chunks is None else b"".join(chunks)
 
 
-def json_joints_upper_bound(body: bytes) -> int:
-    """Joints in a JSON body, counted in its bytes without parsing it (C-speed regex and counts).
-
-    Each batch counts as its longest per-joint list. Only an estimate for hostile
-    bodies (a key spelt with escapes escapes it), so the exact count is checked again
-    after parsing; for every well-formed body it is exact.
-    """
-    counts = [_list_length(body, m) for m in _PER_JOINT_LIST.finditer(body)]
-    # Three equally long lists per well-formed batch; the longest list alone bounds a lopsided one.
-    return max(max(counts, default=0), -(-sum(counts) // 3))
-
-
-def _list_length(body: bytes, m: re.Match[bytes]) -> int:
-    commas = body.count(b",", m.start(1), m.end(1))
-    return commas + 1 if commas or m.group(1).strip() else 0
-
-
-def check_joints(n_joints: int, max_joints: int) -> None:
-    if n_joints > max_joints:
-        raise _too_large(
-            ("body", "batches"),
-            f"request has {n_joints} joint{'' if n_joints == 1 else 's'}; this service accepts at most {max_joints} per request "
-            "(split the batch; the Python SDK does it for you)",
-        )
-
-
 # ------------------------------------------------------------------ admission by cost, before any work
 
 
-def admit(
-    *,
-    joints: int | list[int],
-    batches: int,
-    outputs: list[str] | tuple[str, ...],
-    binary_answer: bool,
-    settings: Settings,
-) -> None:
-    """Refuse with 413 a request that would cost more than this service's bounds, before any work.
-
-    `joints`: joints per batch (a list) or their total alone (an int: then the answer is
-    bounded as if they were all in one batch, which is what a single count can say).
-    Raises `HttpError` (413) naming the bound, the figure and what to do.
-    """
-    per_batch = joints if isinstance(joints, list) else [joints]
-    check_joints(sum(per_batch), settings.max_joints)
-    check_batches(batches, settings.max_batches)
-    size = answer_bytes(per_batch, outputs, binary_answer)
+def admit(*, joints: list[int], outputs: list[str] | tuple[str, ...], binary_answer: bool, settings: Settings) -> None:
+    """Refuse with 413 a parsed request (or a session's scene and options) whose joints or answer would cost more
+    than this service's bounds, before any work. `joints`: joints per batch (their batches were counted before
+    they were parsed: `check_json`, `check_batches`). Raises `HttpError` (413) naming the bound, the figure and
+    what to do."""
+    n_joints = sum(joints)
+    if n_joints > settings.max_joints:
+        raise _too_large(
+            ("body", "batches"),
+            f"request has {n_joints} joint{'' if n_joints == 1 else 's'}; this service accepts at most {settings.max_joints} "
+            "per request (split the batch; the Python SDK does it for you)",
+        )
+    size = answer_bytes(joints, outputs, binary_answer)
     if size > settings.max_answer_bytes:
         encoding = "msgpack" if binary_answer else "JSON"
         hint = "" if binary_answer else ", or ask for msgpack (Accept: application/msgpack, a third of JSON's bound)"
         raise _too_large(
             ("body", "outputs"),
-            f"the answer to this request may reach {size} bytes in {encoding} ({sum(per_batch)} joints x "
+            f"the answer to this request may reach {size} bytes in {encoding} ({n_joints} joints x "
             f"{', '.join(o for o in FLOATS_PER_JOINT if o in outputs or o == 'energy')}); this service answers "
             f"at most {settings.max_answer_bytes} bytes (JOINTLIMITS_MAX_ANSWER_BYTES): split the batch, "
             f"ask for fewer outputs{hint}. active_only does not lower this bound: it is checked before knowing "
@@ -114,21 +89,14 @@ def check_batches(n_batches: int, max_batches: int, counted_by: str = "") -> Non
         )
 
 
-def json_batches_upper_bound(body: bytes) -> int:
-    """Batches of a valid JSON request, bounded from its bytes: each is an object, so it has a `{`
-    (the document and `bodies` have the two others; a `{` inside a string only overcounts junk)."""
-    return body.count(b"{") - 2
+def check_json(text: bytes, max_values: int, max_batches: int | None = None) -> int:
+    """Refuse a JSON text whose parse would cost too much, before parsing it (C-speed counts); returns the bound
+    on its values (`commas + 1`: every value but the last of each list or object is followed by a comma).
 
-
-def check_json_values(body: bytes, max_values: int) -> int:
-    """Refuse a JSON body whose parse would cost too much, before parsing it (one C-speed count).
-
-    Parsing costs time (0.2-2.5 us, more under load) and memory (~60-90 bytes as Python objects) per value,
-    whatever its length: `[0,0,...]` weighs 40 times its bytes, full-precision floats 3 times.
-    Every value but the last of each list or object is followed by a comma, so `commas + 1`
-    bounds the values from above for well-formed bodies. Returns that bound.
-    """
-    values = body.count(b",") + 1
+    `max_batches` (a request document): each batch is an object, so it has a `{` (the document and `bodies` have
+    the two others; a `{` inside a string, which only a session opening's `id` may hold in a valid document,
+    overcounts)."""
+    values = text.count(b",") + 1
     if values > max_values:
         raise _too_large(
             ("body",),
@@ -136,4 +104,6 @@ def check_json_values(body: bytes, max_values: int) -> int:
             f"{max_values} per JSON request (JOINTLIMITS_MAX_JSON_VALUES): send msgpack "
             "(Content-Type: application/msgpack, no per-value cost), or split the request",
         )
+    if max_batches is not None:
+        check_batches(text.count(b"{") - 2, max_batches, "counted by their braces")
     return values

@@ -13,7 +13,7 @@ from jointlimits.schemas import ConstitutionsResponse, EvaluateResponse
 from jointlimits.service.core import InputError, evaluate
 from jointlimits.service.core.errors import DeadlineExceeded, check_deadline
 from jointlimits.service import sizing
-from jointlimits.service.http import binary, budget, convert, discovery, limits, negotiate, openapi
+from jointlimits.service.http import binary, budget, convert, discovery, document, limits, negotiate, openapi
 from jointlimits.service.http.errors import FaultList, HttpError, client_gone, deadline_handler, http_error_handler, input_error_handler
 from jointlimits.service.settings import Settings
 
@@ -96,23 +96,17 @@ async def evaluate_joints(request: Request) -> Response:
 def _evaluate(  # noqa: ANN001 (codec modules)
     body: bytes, decoder, encoder, settings: Settings, state=None, deadline: float | None = None
 ) -> bytes:
-    json_values = None
-    if decoder is convert:  # the JSON parse costs per value, not per byte: bounded before it starts
-        json_values = limits.check_json_values(body, settings.max_json_values)
-        limits.check_batches(limits.json_batches_upper_bound(body), settings.max_batches, "counted by their braces")
-        kwargs = decoder.decode(body, settings.max_joints)
-    else:  # msgpack: batches counted before any of them is read
-        kwargs = decoder.decode(body, settings.max_joints, max_batches=settings.max_batches)
+    # Batches (and a JSON body's values) are counted before they are parsed (service/http/limits.py).
+    checker = document.Checker(binary=decoder is binary)
+    if decoder is convert:
+        kwargs = convert.decode(body, settings.max_json_values, settings.max_batches, checker=checker)
+    else:
+        kwargs = binary.decode(body, settings.max_batches, checker=checker)
+    json_values = checker.values  # None for msgpack
     check_deadline(deadline)
-    # Admission by cost, before any evaluation: joints, batches, the answer's size in its encoding.
+    # Admission by cost, before any evaluation: joints, the answer's size in its encoding.
     batch_joints = [len(j.body_ids) for j in kwargs["batches"]]
-    limits.admit(
-        joints=batch_joints,
-        batches=len(kwargs["batches"]),
-        outputs=kwargs["outputs"],
-        binary_answer=encoder is binary,
-        settings=settings,
-    )
+    limits.admit(joints=batch_joints, outputs=kwargs["outputs"], binary_answer=encoder is binary, settings=settings)
     # From the bound of its size to what it holds: room for the requests waiting.
     n_bodies, outputs = kwargs["bodies"].q.shape[0], kwargs["outputs"]
     cost = sizing.request_cost(len(body), json_values, batch_joints, n_bodies, outputs, encoder is binary, settings)

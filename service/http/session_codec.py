@@ -17,22 +17,23 @@ from jointlimits.schemas import session as proto
 from jointlimits.service.core import Evaluation, Fault, InputError
 from jointlimits.service.core.assembled import check_layout
 from jointlimits.service.core.validate import check_bodies, check_options, raise_if
-from jointlimits.service.http import binary, convert, document
+from jointlimits.service.http import binary, convert, document, limits
 from jointlimits.service.http.document import NOT_OPEN, Message  # noqa: F401 (the session's names)
 from jointlimits.service.http.errors import HttpError
 
 Frame = bytes | str
 
 
-def decode_open(frame: Frame, max_joints: int) -> dict[str, Any]:
+def decode_open(frame: Frame, max_values: int, max_batches: int) -> dict[str, Any]:
     """Keyword arguments of the core for the opening document, plus its `id` (under "id", None when absent);
-    `InputError` (422) or `HttpError` (413), carrying the document's readable `id` (`message_id`)."""
+    `InputError` (422) or `HttpError` (413: its JSON values or its batches, counted before they are parsed, as
+    in a request), carrying the document's readable `id` (`message_id`)."""
     checker = document.Checker(binary=isinstance(frame, bytes))
     try:
         if isinstance(frame, str):
-            kwargs = convert.decode(frame.encode(), max_joints, opening=True, checker=checker)
+            kwargs = convert.decode(frame.encode(), max_values, max_batches, opening=True, checker=checker)
         else:
-            kwargs = binary.decode(frame, max_joints, opening=True, checker=checker)
+            kwargs = binary.decode(frame, max_batches, opening=True, checker=checker)
         # The options become the session's defaults: checked now; `q` is part of the document, checked as
         # POST /v1/evaluate checks it (the scene is prepared at q_prev).
         raise_if(check_options(kwargs["outputs"], kwargs["hessian_mode"]) + check_layout(kwargs["layout"])
@@ -47,20 +48,23 @@ def decode_open(frame: Frame, max_joints: int) -> dict[str, Any]:
         raise _with_id(e, checker) from None
 
 
-def decode(frame: Frame) -> Message:
-    """A later message; `InputError` naming the key at fault, carrying the message's readable `id`."""
+def decode(frame: Frame, max_values: int) -> Message:
+    """A later message; `InputError` naming the key at fault, or `HttpError` (413) for a JSON text of more
+    values than `max_values` (before its parse), carrying the message's readable `id`."""
     checker = document.Checker(binary=isinstance(frame, bytes))
     try:
         if isinstance(frame, str):
-            doc = convert.load(frame.encode())
-            checker.booleans = convert.booleans(frame)
+            text = frame.encode()  # counts are faster on bytes than on str
+            limits.check_json(text, max_values)
+            doc = convert.load(text)
+            checker.booleans = convert.booleans(text)
         else:
             try:
                 doc = wire.loads(frame, document.pairs)
             except ValueError as e:
                 raise InputError([Fault((), str(e).replace("body is", "message is"), "msgpack_invalid")]) from None
         return checker.message(doc)
-    except InputError as e:
+    except (InputError, HttpError) as e:
         raise _with_id(e, checker) from None
 
 

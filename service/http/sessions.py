@@ -53,12 +53,9 @@ def admit(settings: Settings, batch_joints: list[int], outputs: Sequence[str], b
     """The one admission check of a session's work: the opening scene, then each `evaluate` (its outputs).
 
     Raises `HttpError` 413 (a fault reply; at open, then close 4413): the same cost bounds as
-    `POST /v1/evaluate` (`limits.admit`: joints, batches, the answer's size for these outputs).
+    `POST /v1/evaluate` (`limits.admit`: joints, the answer's size for these outputs).
     """
-    limits.admit(
-        joints=list(batch_joints), batches=len(batch_joints), outputs=list(outputs), binary_answer=binary_answer,
-        settings=settings,
-    )
+    limits.admit(joints=list(batch_joints), outputs=list(outputs), binary_answer=binary_answer, settings=settings)
 
 
 DISCONNECT_REASONS = {
@@ -181,7 +178,7 @@ async def _messages(
                 reservations.append(await budget.reserve(websocket.app.state.in_flight, cost, settings))
                 session, reply = await _open(frame, settings, websocket.app.state, held)
             else:
-                message = codec.decode(frame)
+                message = codec.decode(frame, settings.max_json_values)
                 kind, mid = message.kind, message.id
                 if kind == proto.CLOSE:
                     metrics.session_messages.labels(kind, outcome).inc()
@@ -273,7 +270,7 @@ def _reserve(state: Any, held: _Held, joints: int, most: int, bodies: int = 0) -
 
 async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held) -> tuple[Session, codec.Frame]:
     def work() -> tuple[Session, codec.Frame]:
-        kwargs = codec.decode_open(frame, settings.max_joints)
+        kwargs = codec.decode_open(frame, settings.max_json_values, settings.max_batches)
         opening_id = kwargs.pop("id")
         batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
         admit(settings, batch_joints, kwargs["outputs"], isinstance(frame, bytes))

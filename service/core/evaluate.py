@@ -57,8 +57,8 @@ def differentiate(
     chunks run on `threads` threads.
     """
     dtype = F.dtype
-    g = penalty.distance(x, lo, up)  # one gap for the energy and the active joints
-    energy = penalty.energy_of_gap(g, x, lo, up, s)
+    g = penalty.distance(x, lo, up)  # one gap for the energy, the active joints and their slopes
+    energy, r, w, wide = penalty.energy_and_relative(g, x, lo, up, s)
     compact = compact or active_only  # derivative rows: the active joints only, or every joint
     if not (want_g or want_h or compact):
         # Energy alone, every row: which joints are active is not asked (`active` None).
@@ -119,7 +119,10 @@ def differentiate(
         # Per-joint scalars for every active joint at once: per chunk they would be a dozen short
         # calls each (call overhead, and a GIL hand-off each on threads).
         at_active = [take_joints(a, active) for a in (x, lo, up, s)]
-        _, dE, d2E = penalty.derivatives(*at_active)
+        if wide:  # a gap or width overflowed: from halves
+            _, dE, d2E = penalty.derivatives(*at_active)
+        else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
+            dE, d2E = penalty.slopes(take_joints(r, active), take_joints(w, active), *at_active)
         shift = penalty.scale_up(dE, d2E, *at_active)
         chunks = [partial(chunk, start) for start in range(0, active.shape[0], size)]
         for bad in run_all(chunks, threads):

@@ -60,8 +60,23 @@ def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
 def energy_of_gap(g: Array, x: Array, lower: Array, upper: Array, strength: Array) -> Array:
     """`s (g / w)^3` (N,) of the gaps `g` (N,) (`distance`) of `x` (N,): one gap serves the energy and
     the choice of the active joints."""
-    r, _, _ = _relative(g, x, lower, upper)
-    return strength * (r * r * r)
+    return energy_and_relative(g, x, lower, upper, strength)[0]
+
+
+def energy_and_relative(g: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array, Array, bool]:
+    """`energy_of_gap` (N,), with the relative gap `g / w` and the width `w` (N,) it took, and whether
+    either overflowed somewhere (then `slopes` does not apply: `derivatives` forms them from halves)."""
+    r, w, (wide, _) = _relative(g, x, lower, upper)
+    return strength * (r * r * r), r, w, bool(wide.size)
+
+
+def slopes(r: Array, w: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array]:
+    """`derivatives`' `dE/dx`, `d2E/dx2` (N,) from the relative gap `r` and width `w` (N,) that
+    `energy_and_relative` took where nothing overflowed: the very operations, so the very bits."""
+    side = (x > upper).astype(np.float64) - (x < lower).astype(np.float64)
+    sw = strength / w
+    sww = sw / w
+    return side * 3.0 * sw * (r * r), 6.0 * sww * r
 
 
 def derivatives(

@@ -67,7 +67,7 @@ def differentiate(
         return dict(constitution_uid=c.facts.uid, index=np.arange(n), x=x, energy=energy, gradient=None, hessian=None,
                     all_energy=energy, active=None)
 
-    active = np.flatnonzero((g > 0) & (s > 0))
+    active = ((g > 0) & (s > 0)).nonzero()[0]
     n = active.shape[0] if compact else x.shape[0]
     # Inactive rows are exact zeros that were never differentiated (calloc: untouched pages stay free);
     # when every row is differentiated each is written once, with no zero-fill before.
@@ -99,7 +99,7 @@ def differentiate(
         h_finite = _derivatives(c, rows(F), rows(v), dE[part], d2E[part], g_out, h_out, psd)
         if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`): back by 2^-k
             k = shift[part]
-            lifted = np.flatnonzero(k)
+            lifted = k.nonzero()[0]
             for out in (g_out, h_out):
                 if out is not None and lifted.shape[0]:
                     out[lifted] = np.ldexp(out[lifted], -k[lifted].reshape(-1, *(1,) * (out.ndim - 1)))
@@ -217,6 +217,6 @@ def collapsed_faults(
                 ("batches", b, "body_ids", int(j)),
                 f"the joint frame collapses at {name} (cos and sin within rounding of 0): the angle and its derivatives do not exist",
             )
-            for j in np.flatnonzero(bad)[:MAX_FAULTS]
+            for j in bad.nonzero()[0][:MAX_FAULTS]
         ]
     return faults[:MAX_FAULTS]

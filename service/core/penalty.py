@@ -107,7 +107,7 @@ def scale_up(dE: Array, d2E: Array, x: Array, lower: Array, upper: Array, streng
     those back by 2^-k (exact, or one rounding where they are subnormal).
     """
     target = np.finfo(dE.dtype).minexp + 22
-    rows = np.flatnonzero((np.abs(dE) < 2.0**target) | (d2E < 2.0**target))
+    rows = ((np.abs(dE) < 2.0**target) | (d2E < 2.0**target)).nonzero()[0]
     if rows.shape[0] == 0:
         return None
     xs, lo, up, s = (np.broadcast_to(a, dE.shape)[rows] for a in (x, lower, upper, strength))

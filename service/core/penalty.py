@@ -54,18 +54,13 @@ def distance(x: Array, lower: Array, upper: Array) -> Array:
 
 
 def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
-    return energy_of_gap(distance(x, lower, upper), x, lower, upper, strength)
-
-
-def energy_of_gap(g: Array, x: Array, lower: Array, upper: Array, strength: Array) -> Array:
-    """`s (g / w)^3` (N,) of the gaps `g` (N,) (`distance`) of `x` (N,): one gap serves the energy and
-    the choice of the active joints."""
-    return energy_and_relative(g, x, lower, upper, strength)[0]
+    return energy_and_relative(distance(x, lower, upper), x, lower, upper, strength)[0]
 
 
 def energy_and_relative(g: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array, Array, bool]:
-    """`energy_of_gap` (N,), with the relative gap `g / w` and the width `w` (N,) it took, and whether
-    either overflowed somewhere (then `slopes` does not apply: `derivatives` forms them from halves)."""
+    """`s (g / w)^3` (N,) of the gaps `g` (N,) (`distance`) of `x` (N,), with the relative gap `g / w` and the
+    width `w` (N,) it took, and whether either overflowed somewhere (then `slopes` does not apply:
+    `derivatives` forms them from halves). One gap serves the energy, the active joints and their slopes."""
     r, w, (wide, _) = _relative(g, x, lower, upper)
     return strength * (r * r * r), r, w, bool(wide.size)
 

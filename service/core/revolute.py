@@ -87,10 +87,6 @@ allows: a few roundings times size / hypot(cos, sin), up to ~1e-3 rad right at t
 
 
 def _cos_sin(F: Array) -> tuple[Array, Array]:
-    if F.shape[0] <= SMALL:  # a few joints: the four dots in whole passes (the same products and sums, in order)
-        p = F[:, None, :2] * np.stack((F[:, 2:], F[:, 3:1:-1]), axis=1)  # [[B_i B_j, N_i N_j], [B_i N_j, N_i B_j]]
-        d = p[..., 0] + p[..., 1] + p[..., 2]
-        return 0.5 * (d[:, 0, 0] + d[:, 0, 1]), 0.5 * (d[:, 1, 0] - d[:, 1, 1])
     B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
     return 0.5 * (dot(B_i, B_j) + dot(N_i, N_j)), 0.5 * (dot(B_i, N_j) - dot(N_i, B_j))
 
@@ -102,15 +98,13 @@ def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Ar
     of the bilinear cos and sin taken term by term: no cancellation of two O(1) products.
     """
     if F.shape[0] <= SMALL:  # a few joints: the eight dots in whole passes (the same products and sums, in order)
-        # (N, 4, 3): [B_i2, dB_i, N_i2, dN_i] (body i after the step: F + dF) against [dB_j, B_j, dN_j, N_j] (dc)
-        # and [dN_j, N_j, dB_j, B_j] (ds)
-        left = np.stack((F[:, :2] + dF[:, :2], dF[:, :2]), axis=2).reshape(-1, 1, 4, 3)
-        right_c = np.stack((dF[:, 2:], F[:, 2:]), axis=2)
-        p = left * np.stack((right_c, right_c[:, ::-1]), axis=1).reshape(-1, 2, 4, 3)
-        d = p[..., 0] + p[..., 1] + p[..., 2]  # (N, 2, 4): dot(B_i2, dB_j), ... for dc, then for ds
-        t = d[:, :, 0] + d[:, :, 1]
-        dc = 0.5 * (t[:, 0] + d[:, 0, 2] + d[:, 0, 3])
-        ds = 0.5 * (t[:, 1] - d[:, 1, 2] - d[:, 1, 3])
+        i2, di, j, dj = F[:, :2] + dF[:, :2], dF[:, :2], F[:, 2:], dF[:, 2:]  # [B, N] of body i after the step, ...
+        p = np.empty((F.shape[0], 4, 2, 3), dtype=np.result_type(F, dF))
+        for k, (a, b) in enumerate(((i2, dj), (di, j), (i2, dj[:, ::-1]), (di, j[:, ::-1]))):
+            np.multiply(a, b, out=p[:, k])
+        d = p[..., 0] + p[..., 1] + p[..., 2]  # (N, 4, 2): [B_i2.dB_j, N_i2.dN_j], [dB_i.B_j, dN_i.N_j], [B_i2.dN_j, N_i2.dB_j], ...
+        dc = 0.5 * (d[:, 0, 0] + d[:, 1, 0] + d[:, 0, 1] + d[:, 1, 1])
+        ds = 0.5 * (d[:, 2, 0] + d[:, 3, 0] - d[:, 2, 1] - d[:, 3, 1])
     else:
         B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
         dB_i, dN_i, dB_j, dN_j = dF[:, 0], dF[:, 1], dF[:, 2], dF[:, 3]

@@ -50,17 +50,19 @@ def import_revision(rev: str, into: Path) -> Any:
     return importlib.import_module(f"{ALIAS}.core")
 
 
-def pairs(new: Callable[[], Any], old: Callable[[], Any], n: int) -> tuple[list[float], list[float]]:
-    """Seconds of `n` alternated calls of each (after one warm-up each); the pair's order alternates."""
+def pairs(
+    new: Callable[[], Any], old: Callable[[], Any], n: int, clock: Callable[[], float] = time.perf_counter
+) -> tuple[list[float], list[float]]:
+    """Seconds of `n` alternated calls of each (after one warm-up each) by `clock`; the pair's order alternates."""
     new(), old()
     t_new: list[float] = []
     t_old: list[float] = []
     for i in range(n):
         order = [(new, t_new), (old, t_old)] if i % 2 == 0 else [(old, t_old), (new, t_new)]
         for fn, out in order:
-            t = time.perf_counter()
+            t = clock()
             fn()
-            out.append(time.perf_counter() - t)
+            out.append(clock() - t)
     return t_new, t_old
 
 
@@ -81,6 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--uids", type=int, nargs="+", default=[670, 669], help="the constitutions' batches kept (default both)")
     ap.add_argument("--prepared", action="store_true",
                     help="time PreparedScene.evaluate(q) of a scene prepared once per tree (a session's evaluation)")
+    ap.add_argument("--cpu", action="store_true",
+                    help="the calling thread's CPU time (time.thread_time) instead of wall time: on a loaded machine the "
+                         "time a call waits for a core does not count (one thread only)")
     args = ap.parse_args(argv)
 
     from jointlimits.service.core import evaluate, prepare
@@ -104,9 +109,9 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 new_call = lambda t=threads: evaluate(*scene, **kw, threads=t)  # noqa: E731
                 old_call = lambda t=threads: old.evaluate(*scene, **kw, threads=t)  # noqa: E731
-            t_new, t_old = pairs(new_call, old_call, args.pairs)
+            t_new, t_old = pairs(new_call, old_call, args.pairs, time.thread_time if args.cpu else time.perf_counter)
             a, b, wins = medians(t_new, t_old)
-            print(f"threads {threads}: this tree {a * 1e3:.1f} ms, {args.rev} {b * 1e3:.1f} ms, "
+            print(f"threads {threads}: this tree {a * 1e3:.3f} ms{' CPU' if args.cpu else ''}, {args.rev} {b * 1e3:.3f} ms, "
                   f"ratio {a / b:.3f}, this tree faster in {wins} of {args.pairs} pairs")
     return 0
 

@@ -324,8 +324,14 @@ def test_ab_compares_this_tree_with_a_revision_in_one_process(tmp_path: Path):
     lines = run.stdout.strip().split("\n")
     assert lines[0] == "60 joints (670, 669), 100% outside, outputs energy,gradient,hessian, exact: this tree against HEAD"
     for threads, line in zip((1, 2), lines[1:], strict=True):
-        assert re.fullmatch(rf"threads {threads}: this tree \d+\.\d ms, HEAD \d+\.\d ms, ratio \d\.\d{{3}}, "
+        assert re.fullmatch(rf"threads {threads}: this tree \d+\.\d{{3}} ms, HEAD \d+\.\d{{3}} ms, ratio \d\.\d{{3}}, "
                             r"this tree faster in [0-3] of 3 pairs", line), line
+    # --cpu: the calling thread's CPU time (a loaded machine's waits do not count), said on the line
+    run = subprocess.run([sys.executable, "-m", "bench.ab", "HEAD", "--joints", "60", "--pairs", "3", "--threads", "1", "--cpu"],
+                         cwd=root, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert re.fullmatch(r"threads 1: this tree \d+\.\d{3} ms CPU, HEAD \d+\.\d{3} ms, ratio \d\.\d{3}, "
+                        r"this tree faster in [0-3] of 3 pairs", run.stdout.strip().split("\n")[1]), run.stdout
     import importlib.util
 
     assert importlib.util.find_spec("_ab_service") is None  # nothing left importable here

@@ -26,6 +26,7 @@ per joint.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
@@ -41,6 +42,7 @@ MAX_FACTORS = 64
 """At most this many factors per joint (7 for the prismatic joint): `finite_factor` relies on it."""
 
 
+@cache
 def finite_factor(dtype: type) -> float:
     """Below this bound on |X|, the sum of `MAX_FACTORS` products of two factors stays finite in `dtype`."""
     return float(np.sqrt(np.finfo(dtype).max / MAX_FACTORS))

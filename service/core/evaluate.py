@@ -57,8 +57,8 @@ def differentiate(
     chunks run on `threads` threads.
     """
     dtype = F.dtype
-    g = penalty.distance(x, lo, up)  # one gap for the energy and the active joints
-    energy = penalty.energy_of_gap(g, x, lo, up, s)
+    g = penalty.distance(x, lo, up)  # one gap for the energy, the active joints and their slopes
+    energy, r, w, wide = penalty.energy_and_relative(g, x, lo, up, s)
     compact = compact or active_only  # derivative rows: the active joints only, or every joint
     if not (want_g or want_h or compact):
         # Energy alone, every row: which joints are active is not asked (`active` None).
@@ -67,7 +67,7 @@ def differentiate(
         return dict(constitution_uid=c.facts.uid, index=np.arange(n), x=x, energy=energy, gradient=None, hessian=None,
                     all_energy=energy, active=None)
 
-    active = np.flatnonzero((g > 0) & (s > 0))
+    active = ((g > 0) & (s > 0)).nonzero()[0]
     n = active.shape[0] if compact else x.shape[0]
     # Inactive rows are exact zeros that were never differentiated (calloc: untouched pages stay free);
     # when every row is differentiated each is written once, with no zero-fill before.
@@ -99,7 +99,7 @@ def differentiate(
         h_finite = _derivatives(c, rows(F), rows(v), dE[part], d2E[part], g_out, h_out, psd)
         if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`): back by 2^-k
             k = shift[part]
-            lifted = np.flatnonzero(k)
+            lifted = k.nonzero()[0]
             for out in (g_out, h_out):
                 if out is not None and lifted.shape[0]:
                     out[lifted] = np.ldexp(out[lifted], -k[lifted].reshape(-1, *(1,) * (out.ndim - 1)))
@@ -119,7 +119,10 @@ def differentiate(
         # Per-joint scalars for every active joint at once: per chunk they would be a dozen short
         # calls each (call overhead, and a GIL hand-off each on threads).
         at_active = [take_joints(a, active) for a in (x, lo, up, s)]
-        _, dE, d2E = penalty.derivatives(*at_active)
+        if wide:  # a gap or width overflowed: from halves
+            _, dE, d2E = penalty.derivatives(*at_active)
+        else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
+            dE, d2E = penalty.slopes(take_joints(r, active), take_joints(w, active), *at_active)
         shift = penalty.scale_up(dE, d2E, *at_active)
         chunks = [partial(chunk, start) for start in range(0, active.shape[0], size)]
         for bad in run_all(chunks, threads):
@@ -214,6 +217,6 @@ def collapsed_faults(
                 ("batches", b, "body_ids", int(j)),
                 f"the joint frame collapses at {name} (cos and sin within rounding of 0): the angle and its derivatives do not exist",
             )
-            for j in np.flatnonzero(bad)[:MAX_FAULTS]
+            for j in bad.nonzero()[0][:MAX_FAULTS]
         ]
     return faults[:MAX_FAULTS]

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from jointlimits.service.core.constitution import Array, Constitution
-from jointlimits.service.core.kinematics import axis, component_major, edge_axis, edge_vector, from_local, solve3
+from jointlimits.service.core.kinematics import SMALL, axis, component_major, edge_axis, edge_vector, from_local, solve3
 
 
 def axis_and_anchors(
@@ -49,8 +49,11 @@ def _world_anchors(edges: Array, p_ref: Array, A_ref: Array) -> Array:
     """`c_k = A_ref_k^{-1} (p0 - p_ref_k)` (N, 2, 3): the difference first, then the solve."""
     n = edges.shape[0]
     d = component_major(n, (2, 3), edges.dtype)
-    for r in range(3):
-        np.subtract(edges[:, 0, r, None], p_ref[:, :, r], out=d[:, :, r])
+    if n <= SMALL:  # a few joints: one pass
+        np.subtract(edges[:, 0, None], p_ref, out=d)
+    else:
+        for r in range(3):
+            np.subtract(edges[:, 0, r, None], p_ref[:, :, r], out=d[:, :, r])
     anchors = component_major(n, (2, 3), edges.dtype)
     for r, c in enumerate(solve3(A_ref, d)):
         anchors[:, :, r] = c

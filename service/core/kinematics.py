@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -68,7 +69,20 @@ _DET_MIN, _DET_MAX = 2.0**-900, 2.0**900
 """`det` of a 3 x 3 `A` inside this range keeps its cofactors (~det^(2/3)) normal numbers."""
 
 
+# Cofactor (3 i' + k') of A (flat, row-major) = A[_CP] A[_CQ] - A[_CS] A[_CT], in `_solve3_cofactors`' order.
+_CP, _CQ, _CS, _CT = (np.array(e) for e in zip(*(
+    (3 * i + k, 3 * j + l, 3 * i + l, 3 * j + k) for i, j in ((1, 2), (2, 0), (0, 1)) for k, l in ((1, 2), (2, 0), (0, 1))
+)))
+
+
 def _solve3_cofactors(A: Array, b: Array) -> tuple[list[Array], Array]:
+    if b[..., 0].size <= SMALL:  # a few systems: the nine cofactors and three components in whole passes (the
+        # same products and sums, in the same order, as the entry-by-entry form below)
+        A9 = A.reshape(*A.shape[:-2], 9)
+        C9 = A9[..., _CP] * A9[..., _CQ] - A9[..., _CS] * A9[..., _CT]
+        det = A9[..., 0] * C9[..., 0] + A9[..., 1] * C9[..., 1] + A9[..., 2] * C9[..., 2]
+        x = (C9[..., 0:3] * b[..., 0, None] + C9[..., 3:6] * b[..., 1, None] + C9[..., 6:9] * b[..., 2, None]) / det[..., None]
+        return [x[..., 0], x[..., 1], x[..., 2]], det
     C = [
         [A[..., i, k] * A[..., j, l] - A[..., i, l] * A[..., j, k] for k, l in ((1, 2), (2, 0), (0, 1))]
         for i, j in ((1, 2), (2, 0), (0, 1))
@@ -90,7 +104,7 @@ def component_major(n: int, shape: tuple[int, ...], dtype: type = np.float64) ->
 
 GATHER = "wrap"
 """`np.take`'s mode for the gathers of bodies and joints, whose indices are in range (`validate.check_joints`
-refuses the others before any gather; joint positions come from `flatnonzero`): for such indices "wrap"
+refuses the others before any gather; joint positions come from `nonzero`): for such indices "wrap"
 reads the very same elements, without the default mode's per-index bounds check and error path, which
 made each gather about twice as slow (NumPy 2.x)."""
 
@@ -198,7 +212,7 @@ class BodyTable:
         key = ("state", state)
         if key not in self._norms:
             self._norms[key] = squared_norms(self.states[state])
-        n2 = np.take(self._norms[key], pairs, mode=GATHER)
+        n2 = self._norms[key].take(pairs, mode=GATHER)
         out = np.multiply(4.0, n2[0])
         out *= n2[1]
         return out
@@ -208,14 +222,14 @@ class BodyTable:
 
         `pairs` (2, N) contiguous: each joint's bodies i and j (the transpose of `body_ids`).
         """
-        return np.take(self.positions[state], pairs, axis=1, mode=GATHER).transpose(2, 1, 0)
+        return self.positions[state].take(pairs, axis=1, mode=GATHER).transpose(2, 1, 0)
 
     def plain_joints(self, pairs: NDArray[np.intp], plain: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
         """(N,) True where both bodies of joints `pairs` (2, N) are `plain` (B,) (default `self.plain`, see `_plain_bodies`)."""
         plain = self.plain if plain is None else plain
         if plain.all():  # the common case: no gather
             return np.ones(pairs.shape[1], dtype=bool)
-        return np.take(plain, pairs, mode=GATHER).all(axis=0)
+        return plain.take(pairs, mode=GATHER).all(axis=0)
 
     def linear_at(self, pairs: NDArray[np.intp], state: int) -> Array:
         """`A` (N, 2, 3, 3) of joints `pairs` (2, N) in `state` (0: q_ref, 1: q_prev, 2: q; spanned states only)."""
@@ -231,7 +245,7 @@ class BodyTable:
 
     @staticmethod
     def _matrices(rows: Array, pairs: NDArray[np.intp]) -> Array:
-        g = np.take(rows, pairs, axis=1, mode=GATHER)  # (9, 2, N)
+        g = rows.take(pairs, axis=1, mode=GATHER)  # (9, 2, N); the method: no Python wrapper
         return g.reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
 
 
@@ -240,6 +254,7 @@ def squared_norms(a: Array, out: Array | None = None) -> Array:
     return np.einsum("ij,ij->j", a, a, out=out)
 
 
+@cache  # per call it was a `finfo` lookup at every use
 def plain_range(dtype: type) -> tuple[float, float]:
     """`|A|` (Frobenius) of a body in every state inside this range keeps every product the joint
     coordinates and their collapse test form (up to ~|A|^4, with margin) a normal number:
@@ -365,7 +380,7 @@ def state_frames(
     with np.errstate(over="ignore", invalid="ignore"):  # only where `careful` replaces them below
         for dF in steps:
             states.append(states[-1] + dF)
-    idx = np.flatnonzero(~table.plain_joints(pairs))
+    idx = (~table.plain_joints(pairs)).nonzero()[0]
     if idx.shape[0] == 0:
         return states, None
     careful = careful_frames(table, pairs, rows, alpha, v, idx)
@@ -436,6 +451,9 @@ def to_local(R: Array, w: Array, out: Array | None = None) -> Array:
     """`R^T w` (N, 3), component-major (or into `out`, columns contiguous), for rotations `R` (N, 3, 3)
     and world vectors `w` (N, 3)."""
     out = component_major(w.shape[0], (3,), w.dtype) if out is None else out
+    if w.shape[0] <= SMALL:  # a few joints: the three columns at once (the same sums, in the same order)
+        np.add(R[:, 0] * w[:, 0, None] + R[:, 1] * w[:, 1, None], R[:, 2] * w[:, 2, None], out=out)
+        return out
     for c in range(3):
         np.add(R[:, 0, c] * w[:, 0] + R[:, 1, c] * w[:, 1], R[:, 2, c] * w[:, 2], out=out[:, c])
     return out
@@ -459,7 +477,7 @@ def axis(d: Array) -> Array:
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # the odd rows are redone below
         dd = dot(d, d)
         t = d / np.sqrt(dd)[:, None]
-        odd = np.flatnonzero(~((dd >= lo) & (dd <= hi)))  # rare: their dot(d, d) lost digits or overflowed
+        odd = (~((dd >= lo) & (dd <= hi))).nonzero()[0]  # rare: their dot(d, d) lost digits or overflowed
     if odd.shape[0]:
         _, e = np.frexp(max_abs(d[odd]))
         t[odd] = unit(np.ldexp(d[odd], -e[:, None]))
@@ -469,6 +487,9 @@ def axis(d: Array) -> Array:
 def from_local(M: Array, w: Array) -> Array:
     """`M w` (N, 3), component-major, for matrices `M` (N, 3, 3) and vectors `w` (N, 3)."""
     out = component_major(w.shape[0], (3,), w.dtype)
+    if w.shape[0] <= SMALL:  # a few joints: the three rows at once (the same sums, in the same order)
+        np.add(M[..., 0] * w[:, 0, None] + M[..., 1] * w[:, 1, None], M[..., 2] * w[:, 2, None], out=out)
+        return out
     for r in range(3):
         np.add(M[:, r, 0] * w[:, 0] + M[:, r, 1] * w[:, 1], M[:, r, 2] * w[:, 2], out=out[:, r])
     return out
@@ -480,6 +501,8 @@ def edge_vector(edges: Array) -> Array:
     One pass per component: a single (N, 3) subtraction into the transposed layout walks the
     C-order edges against their strides (4x slower)."""
     d = component_major(edges.shape[0], (3,), edges.dtype)
+    if edges.shape[0] <= SMALL:  # a few joints: one pass
+        return np.subtract(edges[:, 1], edges[:, 0], out=d)
     for c in range(3):
         np.subtract(edges[:, 1, c], edges[:, 0, c], out=d[:, c])
     return d

@@ -54,14 +54,24 @@ def distance(x: Array, lower: Array, upper: Array) -> Array:
 
 
 def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
-    return energy_of_gap(distance(x, lower, upper), x, lower, upper, strength)
+    return energy_and_relative(distance(x, lower, upper), x, lower, upper, strength)[0]
 
 
-def energy_of_gap(g: Array, x: Array, lower: Array, upper: Array, strength: Array) -> Array:
-    """`s (g / w)^3` (N,) of the gaps `g` (N,) (`distance`) of `x` (N,): one gap serves the energy and
-    the choice of the active joints."""
-    r, _, _ = _relative(g, x, lower, upper)
-    return strength * (r * r * r)
+def energy_and_relative(g: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array, Array, bool]:
+    """`s (g / w)^3` (N,) of the gaps `g` (N,) (`distance`) of `x` (N,), with the relative gap `g / w` and the
+    width `w` (N,) it took, and whether either overflowed somewhere (then `slopes` does not apply:
+    `derivatives` forms them from halves). One gap serves the energy, the active joints and their slopes."""
+    r, w, (wide, _) = _relative(g, x, lower, upper)
+    return strength * (r * r * r), r, w, bool(wide.size)
+
+
+def slopes(r: Array, w: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array]:
+    """`derivatives`' `dE/dx`, `d2E/dx2` (N,) from the relative gap `r` and width `w` (N,) that
+    `energy_and_relative` took where nothing overflowed: the very operations, so the very bits."""
+    side = (x > upper).astype(np.float64) - (x < lower).astype(np.float64)
+    sw = strength / w
+    sww = sw / w
+    return side * 3.0 * sw * (r * r), 6.0 * sww * r
 
 
 def derivatives(
@@ -92,7 +102,7 @@ def scale_up(dE: Array, d2E: Array, x: Array, lower: Array, upper: Array, streng
     those back by 2^-k (exact, or one rounding where they are subnormal).
     """
     target = np.finfo(dE.dtype).minexp + 22
-    rows = np.flatnonzero((np.abs(dE) < 2.0**target) | (d2E < 2.0**target))
+    rows = ((np.abs(dE) < 2.0**target) | (d2E < 2.0**target)).nonzero()[0]
     if rows.shape[0] == 0:
         return None
     xs, lo, up, s = (np.broadcast_to(a, dE.shape)[rows] for a in (x, lower, upper, strength))

@@ -97,7 +97,7 @@ def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Arr
     # A subset costs a gather and scatters (the common case hands a step over as R whole): worth it
     # only where most bodies are not read.
     subset = used is not None and np.count_nonzero(used) < _SUBSET_FRACTION * m
-    newton = np.flatnonzero(good & used if subset else good)
+    newton = (good & used if subset else good).nonzero()[0]
     R = np.zeros_like(a) if subset else None  # filled as bodies converge; None: `going` is every body, in order
     if subset or newton.shape[0] < m:
         ratio[good] = est[good]  # a Newton body's ratio is its estimate, read or not
@@ -133,7 +133,7 @@ def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Arr
         X = X_new
         C, det = _cofactors_t(X, out=C if C.shape == X.shape else None)
     R = np.empty_like(a) if R is None else R
-    svd = np.concatenate([np.flatnonzero(~good), going])
+    svd = np.concatenate([(~good).nonzero()[0], going])
     if svd.shape[0]:
         U, s, Vt = np.linalg.svd(a[:, svd].T.reshape(-1, 3, 3))
         R[:, svd] = (U @ Vt).reshape(-1, 9).T

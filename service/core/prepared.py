@@ -223,7 +223,7 @@ class PreparedScene:
         careful (whose x is its own).
         """
         states = [*starts, starts[-1] + dF if F_q is None else F_q]  # dF None: F_q, and x its value (`_step`)
-        idx = np.flatnonzero(~self._table.plain_joints(jb.pairs, self._plain))
+        idx = (~self._table.plain_joints(jb.pairs, self._plain)).nonzero()[0]
         careful = None
         if idx.shape[0]:
             careful = careful_frames(self._table, jb.pairs, rows, jb.c.facts.alpha, jb.v, idx)

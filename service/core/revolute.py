@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
-from jointlimits.service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot, to_local, unit
+from jointlimits.service.core.kinematics import BLOCK_BODY, SMALL, CarefulFrames, component_major, cross, dot, to_local, unit
 from jointlimits.service.core.registry import register
 
 FACTS = Facts(
@@ -97,11 +97,20 @@ def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Ar
     `sin_a cos_b - cos_a sin_b` is `dsin cos_b - dcos sin_b` with the increments `dcos`, `dsin`
     of the bilinear cos and sin taken term by term: no cancellation of two O(1) products.
     """
-    B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-    dB_i, dN_i, dB_j, dN_j = dF[:, 0], dF[:, 1], dF[:, 2], dF[:, 3]
-    B_i2, N_i2 = B_i + dB_i, N_i + dN_i  # body i after the step
-    dc = 0.5 * (dot(B_i2, dB_j) + dot(dB_i, B_j) + dot(N_i2, dN_j) + dot(dN_i, N_j))
-    ds = 0.5 * (dot(B_i2, dN_j) + dot(dB_i, N_j) - dot(N_i2, dB_j) - dot(dN_i, B_j))
+    if F.shape[0] <= SMALL:  # a few joints: the eight dots in whole passes (the same products and sums, in order)
+        i2, di, j, dj = F[:, :2] + dF[:, :2], dF[:, :2], F[:, 2:], dF[:, 2:]  # [B, N] of body i after the step, ...
+        p = np.empty((F.shape[0], 4, 2, 3), dtype=np.result_type(F, dF))
+        for k, (a, b) in enumerate(((i2, dj), (di, j), (i2, dj[:, ::-1]), (di, j[:, ::-1]))):
+            np.multiply(a, b, out=p[:, k])
+        d = p[..., 0] + p[..., 1] + p[..., 2]  # (N, 4, 2): [B_i2.dB_j, N_i2.dN_j], [dB_i.B_j, dN_i.N_j], [B_i2.dN_j, N_i2.dB_j], ...
+        dc = 0.5 * (d[:, 0, 0] + d[:, 1, 0] + d[:, 0, 1] + d[:, 1, 1])
+        ds = 0.5 * (d[:, 2, 0] + d[:, 3, 0] - d[:, 2, 1] - d[:, 3, 1])
+    else:
+        B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
+        dB_i, dN_i, dB_j, dN_j = dF[:, 0], dF[:, 1], dF[:, 2], dF[:, 3]
+        B_i2, N_i2 = B_i + dB_i, N_i + dN_i  # body i after the step
+        dc = 0.5 * (dot(B_i2, dB_j) + dot(dB_i, B_j) + dot(N_i2, dN_j) + dot(dN_i, N_j))
+        ds = 0.5 * (dot(B_i2, dN_j) + dot(dB_i, N_j) - dot(N_i2, dB_j) - dot(dN_i, B_j))
     c, s = cs
     c2, s2 = c + dc, s + ds
     return np.arctan2(ds * c - dc * s, c2 * c + s2 * s), (c2, s2)
@@ -176,6 +185,11 @@ class _RescaledCurvature(Curvature):
     scaled: _Scaled | None = None
 
 
+_G_BLOCKS = np.array([2, 3, 0, 1, 3, 2, 1, 0])
+_G_HALVES = np.array([0.5, 0.5, 0.5, 0.5, 0.5, -0.5, -0.5, 0.5])[:, None]
+"""d cos/dF (blocks 0-3) and d sin/dF (4-7): each the block `_G_BLOCKS` of F times `_G_HALVES`."""
+
+
 def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = None) -> tuple[Array, Curvature | None]:
     """dx/dF (N, 4, 3) and d2x/dF2: `d(x) = (cos d(sin) - sin d(cos)) / r^2`, `r^2 = cos^2 + sin^2`
     (`cs`: cos and sin at `F` if already known)."""
@@ -184,9 +198,9 @@ def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = 
     r2 = c * c + s * s
     x_c, x_s = -s / r2, c / r2
     # d cos/dF and d sin/dF, (N, 2, 4, 3): each block is one other block of F, halved.
-    g = component_major(n, (2, 4, 3), F.dtype)
-    for (e, k), (j, half) in zip(np.ndindex(2, 4), ((2, 0.5), (3, 0.5), (0, 0.5), (1, 0.5), (3, 0.5), (2, -0.5), (1, -0.5), (0, 0.5))):
-        np.multiply(F[:, j], half, out=g[:, e, k])
+    g8 = component_major(n, (8, 3), F.dtype)
+    np.multiply(F[:, _G_BLOCKS], _G_HALVES, out=g8)  # one pass: block (e, k) is F's block _G_BLOCKS[4 e + k], halved
+    g = g8.reshape(n, 2, 4, 3)
     dx = x_c[:, None, None] * g[:, 0] + x_s[:, None, None] * g[:, 1]
     if not second:
         return dx, None
@@ -251,7 +265,7 @@ class Revolute:
             if size_bound is not None:
                 # size2 <= 2 |A_i|^2 |A_j|^2 (|b_k| = |n_k| = 1) <= size_bound / 2: a joint above the bound's
                 # threshold is above the test's own; only the others (none, commonly) form their sizes.
-                rows = np.flatnonzero(~(r2 > ratio2 * size_bound))
+                rows = (~(r2 > ratio2 * size_bound)).nonzero()[0]
                 if rows.shape[0] == 0:
                     return np.zeros(F.shape[0], dtype=bool)
                 F, r2 = F[rows], r2[rows]
@@ -270,7 +284,7 @@ class Revolute:
         # frame of 1e-80 is 0 and `r^2` of 1e-160 subnormal: the plain formula would answer inf or
         # a number with few digits. (Only those rows can overflow in the first pass.)
         cs = _cos_sin(F)
-        bad = np.flatnonzero(_unsafe(F, cs))
+        bad = _unsafe(F, cs).nonzero()[0]
         with np.errstate(all="ignore") if bad.shape[0] else nullcontext():  # else: the caller's error state
             dx, curvature = _polar_derivatives(F, second, cs)
         if bad.shape[0]:

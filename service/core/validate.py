@@ -270,7 +270,7 @@ def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, sha
             for j in _where(both & (lo > up))
         ]
         if "offset" in shaped:
-            rows = np.flatnonzero(both & np.isfinite(joints.offset))
+            rows = (both & np.isfinite(joints.offset)).nonzero()[0]
             faults += check_offset(b, lo[rows], up[rows], joints.offset[rows], rows)
     if "strength" in shaped:
         faults += [Fault(at("strength", j), f"strength {float(s[j])!r} < 0: must be >= 0") for j in _where(np.isfinite(s) & (s < 0))]

@@ -25,6 +25,8 @@ from bench.reference import JointRef
 from tests.scenes import pack, random_rotation, random_unit, rotation_about
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
 
+pytestmark = pytest.mark.slow  # 1e-300..1e300 scales (~4 s)
+
 E_Z = np.array([0.0, 0.0, 1.0])
 STATES = ("q_ref", "q_prev", "q")
 SCALES = (1e-300, 1e-200, 1e-100, 1e-16, 1e-12, 1.0, 1e12, 1e100, 1e200, 1e300)

@@ -20,6 +20,8 @@ from tests.conftest import relerr
 from bench.reference import reference_request
 from tests.scenes import E_X, Scene, axis_pair_scene, place_limits, random_unit
 
+pytestmark = pytest.mark.slow  # the hard cases against mpmath (~2 s)
+
 PI = np.pi
 
 

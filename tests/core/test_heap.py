@@ -7,6 +7,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.slow  # counts page faults of repeated evaluations: a performance measurement
+
 SCRIPT = """
 import resource, sys
 import numpy as np

@@ -27,6 +27,8 @@ from tests import engine_ref
 from tests.conftest import relerr
 from tests.scenes import rotation_about
 
+pytestmark = pytest.mark.slow  # 50- and 700-digit references at extreme scales
+
 U = 2.0**-53
 T = np.array([0.6, 0.0, 0.8])  # the axis in body i's coordinates (|T| = 1 up to its rounding)
 

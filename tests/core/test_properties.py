@@ -28,6 +28,8 @@ from tests.scenes import (
     unit,
 )
 
+pytestmark = pytest.mark.slow  # derivatives by finite differences over random scenes (~8 s)
+
 OFF_BOUND = ("inside", "above", "below", "degenerate")
 SEEDS = range(14)
 

@@ -19,6 +19,8 @@ from tests.conftest import relerr
 from bench.reference import JointRef, reference_request, reference_total_energy
 from tests.scenes import E_X, Scene, axis_pair_scene, place_limits, random_scene, random_unit
 
+pytestmark = pytest.mark.slow  # mpmath over random scenes (~10 s)
+
 TOL = 1e-12  # well-conditioned: gaps >= 5% of max(1, |x|), frames far from collapse; measured 2.4e-14 (random), 3.4e-15 (pairs)
 OFF_BOUND = ("inside", "above", "below", "degenerate")
 RANDOM_SEEDS = range(48)

@@ -195,6 +195,7 @@ ISSUE_SCALES = [(s, s) for s in (1e-100, 1e-40, 1e-20, 1.0, 1e20, 1e40, 1e100)] 
 ]
 
 
+@pytest.mark.slow  # a fresh 50-digit reference per scale (~6 s)
 @pytest.mark.parametrize("scale_i,scale_j", ISSUE_SCALES, ids=[f"{a:g}-{b:g}" for a, b in ISSUE_SCALES])
 def test_psd_hessian_at_the_issues_scales(scale_i: float, scale_j: float) -> None:
     """Against the 50-digit reference of the scaled input itself (decimal factors round: no exact relation)."""

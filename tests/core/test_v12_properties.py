@@ -13,6 +13,8 @@ from bench.reference import JointRef
 from jointlimits.client import JointBatch, LocalClient, request_from_arrays
 from tests.conftest import relerr
 
+pytestmark = pytest.mark.slow  # v1.2 over random scenes (~3 s)
+
 SEEDS = range(8)
 
 

@@ -24,6 +24,8 @@ from jointlimits.service.settings import Settings
 from tests.http.test_contract_live import serve
 from tests.http.test_errors_http import base_request, edit, edit_body, with_batch
 
+pytestmark = pytest.mark.slow  # the Errors table's 30 answers from live servers (~2 s)
+
 README_PATH = Path(__file__).resolve().parents[2] / "docs" / "http-api.md"
 # The limits the table's 413 rows quote: the default body, batch and JSON-value limits, a 400-joint
 # limit, a 1 MiB answer bound (the base request's answer is ~80 KB).

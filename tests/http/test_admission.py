@@ -203,6 +203,7 @@ def test_the_default_bound_keeps_msgpack_answers_far_below_4_gib():
     assert r.status_code == 200
 
 
+@pytest.mark.slow  # issue 9's 1e6-joint bodies
 @pytest.mark.parametrize("n", [250_000, 1_000_000])
 def test_issue_9s_hessian_requests_are_refused_at_the_defaults(n, no_work):
     """Issue 9's probes: 2.5e5 joints with Hessians (a 1.2 GB answer, 2.9 GB peak RSS) and 1e6
@@ -256,6 +257,7 @@ def test_checked_evaluate_passes_the_deadline():
         checked_evaluate(**_core_args(scene(10)), deadline=time.monotonic() - 1)
 
 
+@pytest.mark.slow  # evaluations held past the deadline
 @pytest.mark.parametrize("binary_request", [False, True])
 def test_past_the_deadline_is_503_with_retry_after(binary_request, monkeypatch):
     """The request timeout passes while the core runs: 503, Retry-After, the bound named."""
@@ -275,6 +277,7 @@ def test_past_the_deadline_is_503_with_retry_after(binary_request, monkeypatch):
     assert post(client(request_timeout=60), scene(10), binary_request).status_code == 200
 
 
+@pytest.mark.slow  # 3 x 1e4 joints with Hessians, stopped at a 1 ms deadline
 def test_a_real_evaluation_past_a_short_deadline_is_stopped():
     """No mock: 3 x 1e4 joints with Hessians take far more than 1 ms; stopped after the parse or in the core."""
     c = client(request_timeout=0.001)
@@ -307,6 +310,7 @@ def test_flags_default_to_the_settings_defaults_and_read_the_environment(monkeyp
 # ------------------------------------------------------------------ the SDK splits by the same bounds
 
 
+@pytest.mark.slow  # split requests to a live server
 @pytest.mark.parametrize("binary_client", [False, True])
 def test_sdk_splits_by_the_answer_bound_and_json_values(binary_client):
     """The server tells its bounds; the SDK's parts all fit them, and the merged answer is the whole one."""
@@ -354,6 +358,7 @@ def httpx_spy(statuses: list[int]):
     return patched()
 
 
+@pytest.mark.slow  # issue 9's 10k-batch bodies
 def test_issue_9s_ten_thousand_batches_are_refused_at_the_defaults(no_work):
     """Issue 9's probe: 10k one-joint batches took 5 s; now a 413 at the default 4096, in either encoding."""
     req = scene(10_000, batches=10_000, outputs=("energy",))

@@ -101,6 +101,7 @@ def test_version():
 # --------------------------------------------------------------------------- a real server
 
 
+@pytest.mark.slow  # `jointlimits serve` subprocesses
 def test_serve_passes_limits_logs_json_and_stops_gracefully(tmp_path):
     """Limits from a flag and from the environment reach the app; one JSON line per request; SIGTERM exits 0."""
     server = Server(
@@ -126,6 +127,7 @@ def test_serve_passes_limits_logs_json_and_stops_gracefully(tmp_path):
     assert any("Shutting down" in line["msg"] for line in lines)
 
 
+@pytest.mark.slow  # `jointlimits serve` subprocesses
 def test_token_file_and_cors(tmp_path):
     token = tmp_path / "token"
     token.write_text("file-secret\n")
@@ -143,6 +145,7 @@ def test_token_file_and_cors(tmp_path):
             assert r.headers["access-control-allow-origin"] == "https://a.example"
 
 
+@pytest.mark.slow  # `jointlimits serve` subprocesses
 def test_an_app_that_does_not_import_fails_fast(tmp_path):
     """With several workers, uvicorn's supervisor would respawn them forever: the CLI refuses to start."""
     (tmp_path / "msgpack.py").write_text("raise ImportError('broken on purpose')\n")

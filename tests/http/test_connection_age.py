@@ -50,6 +50,7 @@ def test_an_old_connection_is_told_to_close_and_closed(age):
         assert sock.recv(1) == b""  # then closed by the server
 
 
+@pytest.mark.slow  # waits out four connection ages (~2.3 s)
 def test_clients_reconnect_without_an_error():
     """Requests spread over four ages: every one answered (the SDK retrying nothing), on a new connection after
     each age (httpx reads the answer that says close whole, then opens the next connection)."""

@@ -49,6 +49,7 @@ def draining(port: int, timeout: float = 2.0) -> float:
     raise AssertionError(f"/readyz did not answer 503 within {timeout} s of SIGTERM")
 
 
+@pytest.mark.slow  # `jointlimits serve` with 1 and 2 workers, a 1.5 s drain (~4.6 s)
 @pytest.mark.parametrize("workers", [2, 1])
 def test_sigterm_drains_then_stops(workers):
     """Readiness 503 at once (the supervisor passes the signal on within its 0.5 s poll), liveness 200, evaluations
@@ -83,6 +84,7 @@ def test_sigterm_drains_then_stops(workers):
     assert ("/readyz", 503) in statuses and not [s for s in statuses if s[1] >= 500 and s[0] != "/readyz"]
 
 
+@pytest.mark.slow  # `jointlimits serve`, two SIGTERMs then a SIGINT (~2 s)
 def test_a_second_sigterm_changes_nothing_and_sigint_stops_at_once():
     """A process manager and the supervisor may both send SIGTERM: the drain goes on; Ctrl-C ends it."""
     with Server(workers=1, extra_args=["--shutdown-delay", "30"]) as server:
@@ -97,6 +99,7 @@ def test_a_second_sigterm_changes_nothing_and_sigint_stops_at_once():
         assert time.monotonic() - signalled < 10  # not the 30 s delay
 
 
+@pytest.mark.slow  # `jointlimits serve` drains an open session (~3 s)
 def test_a_draining_worker_serves_its_sessions_refuses_new_ones_then_closes_them_with_1012():
     """During the delay the open session is answered and a new one's upgrade gets 503 `draining` (a balancer's
     retry lands elsewhere: tests/ops/test_lb_drill.py); at its end the session is closed with 1012, which the SDK

@@ -19,6 +19,8 @@ from jointlimits.service.app import create_app
 from tests.http.test_contract_live import LIMITS, live  # noqa: F401 (fixture)
 from tests.http.test_errors_http import base_request
 
+pytestmark = pytest.mark.slow  # schemathesis and hypothesis over HTTP (~11 s)
+
 ALLOWED = {200, 406, 413, 415, 422}
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck), database=None)
 

@@ -28,6 +28,8 @@ from jointlimits.service.settings import Settings
 from tests.http.test_contract_live import serve
 from tests.http.test_errors_http import _bin, _json
 
+pytestmark = pytest.mark.slow  # floods of hostile bodies (millions of items) through both decoders (~2.5 s)
+
 J, B = "application/json", "application/msgpack"
 
 

@@ -18,6 +18,8 @@ from jointlimits.schemas import binary as wire
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
 from tests.http.test_errors_http import base_request, edit, edit_body, with_batch
 
+pytestmark = pytest.mark.slow  # each fault through JSON, msgpack, local and sessions on a live server (~3 s)
+
 FINITE = ("Input should be a finite number", "finite_number")
 
 # Where the bad number goes: the path in the request document, and the mutation of the SDK request.

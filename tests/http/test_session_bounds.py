@@ -169,6 +169,7 @@ def limited():
         yield live
 
 
+@pytest.mark.slow  # ~330 MiB over loopback a try (~8 s)
 @pytest.mark.parametrize("opcode", [0x2, 0x1], ids=["binary", "text"])
 def test_a_message_over_the_limit_is_read_as_1009_with_its_reason_every_time(limited, opcode):
     """Issue 27: a Node client's `max_frame_bytes + 1` ended in 1006 (a reset) in 5 of 6 tries. A raw client

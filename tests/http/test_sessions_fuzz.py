@@ -7,6 +7,7 @@ import json
 
 import msgpack
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -17,6 +18,8 @@ from jointlimits.service.app import create_app
 from jointlimits.service.settings import Settings
 from tests.drills import scene
 from tests.http.test_sessions import BODY, Q, open_binary
+
+pytestmark = pytest.mark.slow  # fuzzes the session protocol (~3 s)
 
 scalars = st.one_of(st.none(), st.booleans(), st.integers(-(2**70), 2**70), st.floats(allow_nan=False, allow_infinity=False),
                     st.text(max_size=8))

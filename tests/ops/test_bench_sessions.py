@@ -5,12 +5,15 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from bench import sessions as S
 from bench.__main__ import main as bench_main
 from bench.scenes import make_scene
 from jointlimits.service.core import evaluate
 from jointlimits.service.core.prepared import prepare
+
+pytestmark = pytest.mark.slow  # the sessions bench against a uvicorn subprocess (~3 s)
 
 
 def test_the_prepared_scene_timed_is_the_stateless_answer():

@@ -27,6 +27,8 @@ import pytest
 
 from tests.drills import LOOPBACK, free_port, get
 
+pytestmark = pytest.mark.slow  # replays the Dockerfile into a fresh venv and serves from it (~20 s)
+
 ROOT = Path(__file__).resolve().parents[2]
 VENV_IN_IMAGE = "/opt/venv"
 

@@ -40,6 +40,7 @@ def test_the_drill_runs_the_docs_haproxy_configuration_but_for_addresses_and_the
         assert word in page, word
 
 
+@pytest.mark.slow  # HAProxy, three replicas, restarts (~40 s)
 @pytest.mark.skipif(shutil.which("haproxy") is None, reason="haproxy is not installed (.ci/run installs it)")
 def test_the_load_balancer_drill_fails_no_request():
     report = drills.scenario_lb(steady=2.0)
@@ -62,6 +63,7 @@ def test_the_load_balancer_drill_fails_no_request():
         assert fresh["failed"] <= 1 and set(fresh.get("what", {})) <= {"502"}, fresh
 
 
+@pytest.mark.slow  # nginx in front (~1 s)
 @pytest.mark.skipif(shutil.which("nginx") is None, reason="nginx is not installed (.ci/run installs nginx-light)")
 def test_the_docs_nginx_configuration_passes_requests_and_sessions(tmp_path: Path):
     front = drills.free_port()
@@ -102,6 +104,7 @@ backend replicas
 """An L4 balancer, as a Kubernetes Service is: it places connections, not requests."""
 
 
+@pytest.mark.slow  # HAProxy in TCP mode (~8 s)
 @pytest.mark.skipif(shutil.which("haproxy") is None, reason="haproxy is not installed (.ci/run installs it)")
 @pytest.mark.parametrize("age", [1.0, 0.0])
 def test_keep_alive_clients_spread_again_onto_a_restarted_replica(age):

@@ -51,6 +51,7 @@ def test_readme_bench_block_is_install_then_quick():
     assert quick == ".venv/bin/python -m bench --quick"
 
 
+@pytest.mark.slow  # a fresh venv with JAX, then the quick bench (~90 s)
 @pytest.mark.skipif(shutil.which("git") is None, reason="needs git to list the repository's files")
 def test_readme_quick_bench_runs_on_a_fresh_venv_with_the_bench_extra(tmp_path: Path):
     clone = fresh_clone(tmp_path / "clone")

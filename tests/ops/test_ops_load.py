@@ -15,6 +15,8 @@ import pytest
 
 from tests import drills as lt
 
+pytestmark = pytest.mark.slow  # the drills against `jointlimits serve --workers 2` (~95 s)
+
 LOAD_SECONDS = float(os.environ.get("JOINTLIMITS_LOAD_SECONDS", "30"))
 MAX_BODY_BYTES, MAX_JOINTS = 1_000_000, 1_000
 LIMITS = ["--max-body-bytes", str(MAX_BODY_BYTES), "--max-joints", str(MAX_JOINTS)]

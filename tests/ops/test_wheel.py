@@ -18,6 +18,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # builds the wheel (an isolated build environment), runs the README example from it
+
 ROOT = Path(__file__).resolve().parents[2]
 
 

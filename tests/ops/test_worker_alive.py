@@ -18,12 +18,15 @@ import time
 
 import httpx
 import numpy as np
+import pytest
 
 from jointlimits.client import codec
 from jointlimits.service import cli
 from jointlimits.service.settings import Settings
 from tests import drills as lt
 from tests.http.test_admission import scene
+
+pytestmark = pytest.mark.slow  # the largest admitted bodies to a 2-worker server (~10 s)
 
 J, B = "application/json", "application/msgpack"
 

@@ -20,6 +20,8 @@ from jointlimits.service.core import Bodies, Joints, prepare
 from tests.scenes import pack, rotation_about
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
 
+pytestmark = pytest.mark.slow  # a screw driven three turns in-process and over HTTP (~3 s)
+
 Z = np.array([0.0, 0.0, 1.0])
 EDGE = [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
 OFFSET = 0.3

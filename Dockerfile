@@ -4,7 +4,7 @@
 #   docker build -t jointlimits .
 #   docker run --rm -p 8000:8000 -e JOINTLIMITS_WORKERS=2 jointlimits
 #
-# tests/test_docker.py keeps this file honest without a Docker engine: it replays the COPY
+# tests/ops/test_docker.py keeps this file honest without a Docker engine: it replays the COPY
 # and RUN steps of the build stage into a fresh virtual environment, then starts the
 # ENTRYPOINT + CMD with the runtime ENV and runs the HEALTHCHECK command against it.
 

@@ -42,7 +42,7 @@ class Client(BaseClient):
     _http: httpx.Client
 
     # The arguments are spelled out (not forwarded as **kwargs) so that signatures and type
-    # checkers show them; tests/test_client_sdk.py holds AsyncClient's to the same.
+    # checkers show them; tests/sdk/test_client_sdk.py holds AsyncClient's to the same.
     def __init__(
         self,
         base_url: str = DEFAULT_URL,

@@ -24,10 +24,10 @@ SKIP = re.compile(r"^<!-- docs-test: skip \((?P<why>.+)\) -->$")
 FENCE = re.compile(r"^(?P<indent> *)(?P<fence>```+|~~~+)(?P<info>[^`\n]*)$")
 
 # Blocks that carry no marker because their place is fixed: the README opens with its two set-up commands
-# (tests/test_readme.py), and CI runs the second one verbatim through .ci/run.
+# (tests/docs/test_readme.py), and CI runs the second one verbatim through .ci/run.
 COVERED_ELSEWHERE = {
     ("README.md", 0): "the set-up commands: the first serves until stopped; CI runs the second through .ci/run "
-                      "(tests/test_readme.py keeps them identical)",
+                      "(tests/docs/test_readme.py keeps them identical)",
 }
 
 

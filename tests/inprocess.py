@@ -17,7 +17,7 @@ from jointlimits.service.app import create_app
 from jointlimits.service.http import timeouts
 from jointlimits.service.settings import Settings
 from tests.drills import ws_frame, ws_upgrade
-from tests.test_contract_live import running
+from tests.http.test_contract_live import running
 
 
 @dataclass

@@ -9,7 +9,7 @@ History: until issue 27 these were sha256 digests of every bit of the answers, r
 CPU. Last bits are not the same on another: OpenBLAS and NumPy pick kernels by CPU, and a
 reassociated sum rounds differently (`OPENBLAS_CORETYPE=Sandybridge` against this project's AMD
 EPYC moved x by 4.1e-15, the energy by 2.5e-15, gradient and Hessian by 1.2e-15 of each array's
-largest entry). The answers are now compared to `TOLERANCE` (tests/test_v1_answers.py argues it).
+largest entry). The answers are now compared to `TOLERANCE` (tests/core/test_v1_answers.py argues it).
 Recorded at commit 4be56b1 (the core whose digests they replace, on an AMD EPYC).
 """
 

@@ -13,7 +13,7 @@ Only joints outside their range are summed (the others' rows are exact zeros). S
 one stable sort of integer keys and vectorised passes over the sorted terms: no Python loop over
 joints. Each key's terms are added one after the other in request order (batch, then joint, then
 `(i, i)`, `(j, j)`, `(i, j)`), so a plain loop adding them in that order gives the same bits
-(tests/test_assembled.py), and each diagonal block is bitwise symmetric like the blocks it sums.
+(tests/core/test_assembled.py), and each diagonal block is bitwise symmetric like the blocks it sums.
 """
 
 from __future__ import annotations

@@ -84,7 +84,7 @@ class Prismatic:
         # step is small, far more (anchors 1e3 apart turned by 1e-3: hundreds of times); where it is as
         # large as the frames (|dD| <= |D| + |D2|, alike for S), within a small factor of ours. The frames'
         # own rounding adds to both, to ours relative to the step but for the relative positions' (the
-        # whole bound: tests/test_prismatic_scales.py, `_bound`).
+        # whole bound: tests/core/test_prismatic_scales.py, `_bound`).
         D, S = progress.state
         dD, dS = dF[:, 2] - dF[:, 0], dF[:, 1] + dF[:, 3]
         x = 0.5 * (dot(D + dD, dS) + dot(dD, S))

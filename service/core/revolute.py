@@ -27,14 +27,14 @@ h3 = P_-sigma(b - sigma a), d = b - sigma a, the PSD part of E' d2x/dF2 is exact
     mu [ lambda0 P_sigma - (h1 h1^T + h3 h3^T) / (2 r (rho^2 + r)) + d d^T / (2 r^2) ],
 
 finite for every r > 0 (the degenerate rho^2 = r, a complex-parallel frame, included).
-tests/test_psd_revolute.py checks it against `numpy.linalg.eigh`.
+tests/core/test_psd_revolute.py checks it against `numpy.linalg.eigh`.
 
 Frames whose r leaves 2^+-240 (`_unsafe`) are differentiated from each body's frames scaled by its own
 power of two, 2^-e_i and 2^-e_j: not an orthogonal change of F, so their projection is not the scaled
 frames' one carried back. It is the one at F / 2^max(e_i, e_j), one common power of two (which commutes
 with the projection: P(F) = P(F / 2^m) / 4^m): there the gradients g are O(1) and rho^2 >= 1/16, only r is
 tiny, kept as r_s 2^-|e_i - e_j| (r_s of the scaled frames), and every power of two goes into the
-coefficients exactly (`_rescaled_projection`). tests/test_revolute_psd_scales.py checks it at scales
+coefficients exactly (`_rescaled_projection`). tests/core/test_revolute_psd_scales.py checks it at scales
 1e-100 ... 1e100 against a 50-digit reference.
 """
 
@@ -83,7 +83,7 @@ COLLAPSE_RATIO = 1e-12
 (cos, sin) within rounding of zero relative to the frame vectors' size, whatever their scale
 (the same ratio as `polar.SINGULAR_RATIO`). Above it the angle is as exact as its conditioning
 allows: a few roundings times size / hypot(cos, sin), up to ~1e-3 rad right at the threshold
-(body j nearly flipped over an in-plane axis; `tests/test_degenerate_scales.py`)."""
+(body j nearly flipped over an in-plane axis; `tests/core/test_degenerate_scales.py`)."""
 
 
 def _cos_sin(F: Array) -> tuple[Array, Array]:

@@ -1,7 +1,7 @@
 """What `/openapi.json` says of each wire field, and its example: enough for a C++ or Julia author alone.
 
 Kept apart from `schemas/` (the models stay short; the words live here) and applied to the
-generated schema by `jointlimits.service.http.openapi.document`. `tests/test_openapi_docs.py` checks that
+generated schema by `jointlimits.service.http.openapi.document`. `tests/docs/test_openapi_docs.py` checks that
 every field of every model has a description and that the example answers what it shows.
 """
 

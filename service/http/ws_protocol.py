@@ -37,7 +37,7 @@ DRAIN_SECONDS = 30.0
 """Longest time the rest of a refused message is read and dropped before the socket is closed anyway."""
 DRAIN_MESSAGES = 4
 """Most bytes read and dropped after the close, in messages at the limit: the rest of the refused one and those a
-client sent behind it before it read the close (tests/test_session_closes.py sends two more)."""
+client sent behind it before it read the close (tests/http/test_session_closes.py sends two more)."""
 
 SHUTDOWN_REASON = "the server is shutting down: reopen the session (another worker or pod answers)"
 

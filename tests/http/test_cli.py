@@ -1,0 +1,164 @@
+"""`jointlimits serve`: options from flags and the environment, limits passed through, JSON logs, SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from jointlimits.service import cli
+from tests.drills import LOOPBACK, Server, get, scene
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def console_script() -> list[str]:
+    """The `jointlimits` script pip made from pyproject.toml's [project.scripts]."""
+    beside = Path(sys.executable).parent / "jointlimits"
+    found = str(beside) if beside.exists() else shutil.which("jointlimits")
+    assert found, "the jointlimits console script is not installed (pip install -e .)"
+    return [found]
+
+
+def post(port: int, body: dict | bytes, headers: dict[str, str] | None = None) -> tuple[int, dict]:
+    data = body if isinstance(body, bytes) else json.dumps(body).encode()
+    req = urllib.request.Request(
+        f"http://{LOOPBACK}:{port}/v1/evaluate", data, {"Content-Type": "application/json", **(headers or {})}
+    )
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read() or b"{}")
+
+
+# --------------------------------------------------------------------------- options
+
+
+def test_pyproject_declares_the_console_script():
+    import tomllib
+
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts["jointlimits"] == "jointlimits.cli:main"
+
+
+def parse(argv: list[str]):
+    return cli.build_parser().parse_args(["serve", *argv])
+
+
+def test_defaults(monkeypatch):
+    for k in list(os.environ):
+        if k.startswith("JOINTLIMITS_"):
+            monkeypatch.delenv(k)
+    a = parse([])
+    assert (a.host, a.port, a.workers) == ("127.0.0.1", 8000, cli.available_cpus())
+    assert a.max_body_bytes == 256 * 2**20 and a.max_joints == 1_000_000
+    assert a.graceful_timeout == 30 and a.access_log is True and a.cors_origins == ""
+
+
+def test_environment_then_flags(monkeypatch):
+    monkeypatch.setenv("JOINTLIMITS_HOST", "0.0.0.0")
+    monkeypatch.setenv("JOINTLIMITS_PORT", "9000")
+    monkeypatch.setenv("JOINTLIMITS_WORKERS", "3")
+    monkeypatch.setenv("JOINTLIMITS_MAX_BODY_BYTES", "12345")
+    monkeypatch.setenv("JOINTLIMITS_MAX_JOINTS", "77")
+    monkeypatch.setenv("JOINTLIMITS_ACCESS_LOG", "off")
+    a = parse([])
+    assert (a.host, a.port, a.workers, a.max_body_bytes, a.max_joints, a.access_log) == ("0.0.0.0", 9000, 3, 12345, 77, False)
+    a = parse(["--port", "9001", "--workers", "1", "--max-joints", "5", "--access-log", "true"])
+    assert (a.port, a.workers, a.max_joints, a.access_log) == (9001, 1, 5, True)
+
+
+def test_auto_workers_follow_the_cpu_quota(monkeypatch):
+    monkeypatch.setattr(cli, "_cgroup_cpu_quota", lambda: 1.5)
+    assert cli.available_cpus() == min(2, len(os.sched_getaffinity(0)))
+    monkeypatch.setattr(cli, "_cgroup_cpu_quota", lambda: 0.25)
+    assert cli.available_cpus() == 1
+    monkeypatch.setattr(cli, "_cgroup_cpu_quota", lambda: None)
+    assert cli.available_cpus() == len(os.sched_getaffinity(0))
+
+
+@pytest.mark.parametrize("argv", [["--workers", "0"], ["--max-joints", "-1"], ["--access-log", "maybe"]])
+def test_bad_options_are_refused(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        parse(argv)
+    assert e.value.code == 2
+
+
+def test_version():
+    out = subprocess.run([*console_script(), "--version"], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0 and out.stdout.startswith("jointlimits ")
+
+
+# --------------------------------------------------------------------------- a real server
+
+
+@pytest.mark.slow  # `jointlimits serve` subprocesses
+def test_serve_passes_limits_logs_json_and_stops_gracefully(tmp_path):
+    """Limits from a flag and from the environment reach the app; one JSON line per request; SIGTERM exits 0."""
+    server = Server(
+        workers=1,
+        extra_args=["--max-joints", "6"],
+        env={"JOINTLIMITS_MAX_BODY_BYTES": "5000"},
+        command=console_script(),
+    )
+    with server:
+        assert post(server.port, scene(4))[0] == 200
+        assert post(server.port, scene(8))[0] == 413  # 8 joints > --max-joints 6, 4.2 kB < 5000 B
+        assert post(server.port, scene(20))[0] == 413  # 10 kB > JOINTLIMITS_MAX_BODY_BYTES
+        assert post(server.port, scene(4), {"X-Request-ID": "cli-test-1"})[0] == 200
+        assert get(server.port, "/metrics")[0] == 200
+        server.proc.send_signal(signal.SIGTERM)
+        assert server.proc.wait(30) == 0
+        log = server.log()
+    lines = [json.loads(line) for line in log.splitlines() if line.strip()]  # every line is JSON
+    access = [line for line in lines if line["logger"] == "jointlimits.access" and line["path"] != "/healthz"]
+    assert [a["status"] for a in access] == [200, 413, 413, 200, 200]
+    mine = next(a for a in access if a["request_id"] == "cli-test-1")
+    assert mine["joints"] == 4 and mine["route"] == "/v1/evaluate" and mine["latency_ms"] > 0
+    assert any("Shutting down" in line["msg"] for line in lines)
+
+
+@pytest.mark.slow  # `jointlimits serve` subprocesses
+def test_token_file_and_cors(tmp_path):
+    token = tmp_path / "token"
+    token.write_text("file-secret\n")
+    server = Server(workers=1, extra_args=["--token-file", str(token), "--cors-origins", "https://a.example"])
+    with server:
+        assert post(server.port, scene(2))[0] == 401
+        assert post(server.port, scene(2), {"Authorization": "Bearer file-secret"})[0] == 200
+        assert get(server.port, "/healthz")[0] == 200
+        req = urllib.request.Request(
+            f"http://{LOOPBACK}:{server.port}/v1/evaluate",
+            method="OPTIONS",
+            headers={"Origin": "https://a.example", "Access-Control-Request-Method": "POST"},
+        )
+        with urllib.request.urlopen(req, timeout=10) as r:
+            assert r.headers["access-control-allow-origin"] == "https://a.example"
+
+
+@pytest.mark.slow  # `jointlimits serve` subprocesses
+def test_an_app_that_does_not_import_fails_fast(tmp_path):
+    """With several workers, uvicorn's supervisor would respawn them forever: the CLI refuses to start."""
+    (tmp_path / "msgpack.py").write_text("raise ImportError('broken on purpose')\n")
+    (tmp_path / "numpy.py").write_text("raise ImportError('broken on purpose')\n")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    out = subprocess.run(
+        [sys.executable, "-m", "jointlimits.service.cli", "serve", "--workers", "2", "--port", "0"],
+        capture_output=True, text=True, env=env, timeout=60, cwd=tmp_path,
+    )  # fmt: skip
+    assert out.returncode == 3 and "broken on purpose" in out.stderr
+
+
+def test_readme_serves_with_the_cli():  # the README's first command
+    text = (ROOT / "README.md").read_text()
+    first = text.split("```bash\n", 1)[1].split("```", 1)[0].splitlines()[0]
+    assert "jointlimits serve" in first

@@ -1,0 +1,184 @@
+"""Read timeouts (issue 9, item 9) and clients that leave mid-upload (item 10), on a real uvicorn.
+
+The server runs in-process with `ReadTimeoutProtocol` (1 s for the head) and a 1.5 s body
+timeout, as `jointlimits serve` runs it with its own settings; the slowloris drill of
+50 connections against `jointlimits serve --workers 2` is in tests/ops/test_ops_load.py.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import httpx
+import pytest
+import uvicorn
+
+from jointlimits.service.app import create_app
+from jointlimits.service.http import timeouts
+from jointlimits.service.settings import Settings
+from tests.drills import scraped
+from tests.http.test_contract_live import running
+from tests.http.test_errors_http import _json
+
+pytestmark = pytest.mark.slow  # waits out header and body deadlines (~7 s)
+
+HEADER_TIMEOUT, BODY_TIMEOUT = 1.0, 1.5
+SLACK = 1.5  # scheduling on a loaded 2-core machine; the timers themselves are exact
+
+
+@contextmanager
+def serve_with_timeouts() -> Iterator[int]:
+    settings = Settings(max_body_bytes=2_000_000, token=None, cors_origins=(), body_timeout=BODY_TIMEOUT)
+    config = uvicorn.Config(
+        create_app(settings), log_level="warning", lifespan="on", http=timeouts.http_protocol(HEADER_TIMEOUT)
+    )
+    with running(config) as (_, port):
+        yield port
+
+
+@pytest.fixture(scope="module")
+def port() -> Iterator[int]:
+    with serve_with_timeouts() as p:
+        yield p
+
+
+def requests_counted(port: int, status: str) -> float:
+    return scraped(port, "jointlimits_http_requests_total", route="/v1/evaluate", status=status)
+
+
+def closed_counted(port: int, reason: str) -> float:
+    """Connections closed for a slow head, by `reason` (silent, slow_head), as /metrics counts them."""
+    return scraped(port, "jointlimits_connections_closed_total", reason=reason)
+
+
+def wait_closed(s: socket.socket, give_up: float) -> tuple[float | None, bytes]:
+    """Seconds until the server closes `s` (None: still open after `give_up`), and what it sent."""
+    t0, got = time.monotonic(), b""
+    s.settimeout(0.1)
+    while time.monotonic() - t0 < give_up:
+        try:
+            chunk = s.recv(4096)
+        except TimeoutError:
+            continue
+        except ConnectionResetError:
+            return time.monotonic() - t0, got
+        if not chunk:
+            return time.monotonic() - t0, got
+        got += chunk
+    return None, got
+
+
+HEAD = b"POST /v1/evaluate HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+
+
+def test_a_connection_that_sends_nothing_is_closed(port):
+    before = closed_counted(port, "silent"), closed_counted(port, "slow_head")
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        after, got = wait_closed(s, HEADER_TIMEOUT + 10)
+    assert after is not None and after < HEADER_TIMEOUT + SLACK, after
+    assert got == b""  # nothing to answer
+    # No request exists for it: the connection layer counts it (the lifespan state hands it the metrics).
+    assert (closed_counted(port, "silent"), closed_counted(port, "slow_head")) == (before[0] + 1, before[1])
+
+
+def test_half_headers_get_408_and_are_closed(port):
+    before = closed_counted(port, "silent"), closed_counted(port, "slow_head"), requests_counted(port, "408")
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(HEAD)  # no blank line, ever
+        after, got = wait_closed(s, HEADER_TIMEOUT + 10)
+    assert after is not None and HEADER_TIMEOUT - 0.1 < after < HEADER_TIMEOUT + SLACK, after
+    assert got.startswith(b"HTTP/1.1 408 ")
+    assert closed_counted(port, "slow_head") == before[1] + 1 and closed_counted(port, "silent") == before[0]
+    assert requests_counted(port, "408") == before[2]  # not a request: its head never completed
+
+
+def test_headers_trickled_one_byte_at_a_time_are_cut_at_the_deadline(port):
+    """Each byte resets no timer: the deadline is for the whole head."""
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(HEAD)
+        t0 = time.monotonic()
+        closed = None
+        for byte in b"X-Slow: " + b"a" * 100:
+            try:
+                s.sendall(bytes([byte]))
+            except OSError:
+                closed = time.monotonic() - t0
+                break
+            after, _ = wait_closed(s, 0.2)
+            if after is not None:
+                closed = time.monotonic() - t0
+                break
+    assert closed is not None and closed < HEADER_TIMEOUT + SLACK, closed
+
+
+def test_half_body_gets_408_naming_the_body_and_is_closed(port):
+    before = requests_counted(port, "408")
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(HEAD + b"Content-Length: 1000\r\n\r\n{")
+        after, got = wait_closed(s, BODY_TIMEOUT + 10)
+    assert after is not None and BODY_TIMEOUT - 0.1 < after < BODY_TIMEOUT + SLACK, after
+    head, _, body = got.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 408 ") and b"connection: close" in head.lower()
+    detail = json.loads(body)["detail"]
+    assert detail[0]["loc"] == ["body"] and "JOINTLIMITS_BODY_TIMEOUT" in detail[0]["msg"]
+    assert requests_counted(port, "408") == before + 1
+
+
+def test_keep_alive_idle_is_not_a_slow_head(port):
+    """Idle time between two requests on one connection is the keep-alive timeout's, not the head's."""
+    before = closed_counted(port, "silent") + closed_counted(port, "slow_head")
+    with httpx.Client(base_url=f"http://127.0.0.1:{port}") as c:
+        assert c.post("/v1/evaluate", json=_json()).status_code == 200
+        time.sleep(HEADER_TIMEOUT + 0.5)  # longer than a head may take, shorter than keep-alive (5 s)
+        assert c.post("/v1/evaluate", json=_json()).status_code == 200
+        assert c.get("/healthz").status_code == 200
+    assert closed_counted(port, "silent") + closed_counted(port, "slow_head") == before
+
+
+def test_a_body_sent_in_pieces_within_the_deadline_is_answered(port):
+    body = json.dumps(_json()).encode()
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(HEAD + f"Content-Length: {len(body)}\r\n\r\n".encode())
+        for i in range(0, len(body), len(body) // 4 + 1):
+            s.sendall(body[i : i + len(body) // 4 + 1])
+            time.sleep(0.1)
+        s.settimeout(10)
+        assert s.recv(12) == b"HTTP/1.1 200"
+
+
+def test_a_client_leaving_mid_upload_counts_as_499_not_500(port):
+    before = {k: requests_counted(port, k) for k in ("499", "500")}
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(HEAD + b"Content-Length: 100000\r\n\r\n{" + b" " * 5000)
+        time.sleep(0.3)  # the app is reading the body
+    deadline = time.monotonic() + 10
+    while requests_counted(port, "499") == before["499"] and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert requests_counted(port, "499") == before["499"] + 1
+    assert requests_counted(port, "500") == before["500"]
+    assert httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200
+
+
+def test_cli_hands_the_timeouts_to_uvicorn_and_the_workers(monkeypatch):
+    import os
+
+    from jointlimits.service import cli
+
+    monkeypatch.setattr(os, "environ", {k: v for k, v in os.environ.items() if not k.startswith("JOINTLIMITS_")})
+    a = cli.build_parser().parse_args(["serve"])
+    assert (a.header_timeout, a.body_timeout) == (10.0, 30.0)
+    os.environ["JOINTLIMITS_HEADER_TIMEOUT"] = "2.5"
+    a = cli.build_parser().parse_args(["serve", "--body-timeout", "7", "--workers", "1"])
+    seen: dict = {}
+    monkeypatch.setattr(uvicorn, "run", lambda *args, **kwargs: seen.update(kwargs))
+    monkeypatch.setattr(cli.signal, "signal", lambda *args: None)
+    assert cli.serve(a) == 0
+    assert seen["http"] == "jointlimits.service.http.timeouts:ReadTimeoutProtocol"
+    assert timeouts.header_timeout_from_env() == 2.5 and Settings().body_timeout == 7.0
+    for bad in (["--header-timeout", "0"], ["--body-timeout", "-1"], ["--body-timeout", "inf"]):
+        with pytest.raises(SystemExit):
+            cli.build_parser().parse_args(["serve", *bad])

@@ -1,0 +1,126 @@
+"""What `evaluate` accepts and how the SDK reads in a notebook: dicts and wire models, TypeErrors,
+unknown keywords, local errors without HTTP, `help(Client.evaluate)`, `repr(Evaluation)`."""
+
+from __future__ import annotations
+
+import doctest
+import json
+import socket
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from jointlimits.client import AsyncClient, Client, InvalidInput, LocalClient, Scene, codec
+from jointlimits.schemas import EvaluateRequest
+from tests.sdk.test_client_sdk import chain, readme_scene
+from tests.http.test_contract_live import live  # noqa: F401 (fixture)
+from tests.http.test_errors_http import base_request
+
+
+def wire_dict() -> dict:
+    return json.loads(codec.encode(base_request(), binary=False)[0])
+
+
+def same(a, b) -> None:
+    assert a.total_energy == b.total_energy
+    for ra, rb in zip(a.batches, b.batches, strict=True):
+        for k in ("index", "x", "energy", "gradient", "hessian"):
+            assert np.array_equal(getattr(ra, k), getattr(rb, k)), k
+
+
+@pytest.mark.parametrize("mode", ["local", "binary", "json"])
+def test_a_dict_and_a_wire_model_give_what_the_request_gives(live, mode):
+    client = LocalClient() if mode == "local" else Client(live, binary=mode == "binary")
+    want = client.evaluate(base_request())
+    same(client.evaluate(wire_dict()), want)
+    same(client.evaluate(EvaluateRequest.model_validate(wire_dict())), want)
+    arrays = wire_dict()
+    arrays["bodies"] = {k: np.asarray(v) for k, v in arrays["bodies"].items()}  # NumPy arrays inside are fine
+    for b in arrays["batches"]:
+        del b["strength"], b["base_uid"]  # the wire's defaults: strength 1, the constitution's base joint
+    unit = base_request()
+    unit.batches = [replace(b, strength=np.ones(len(b))) for b in unit.batches]
+    same(client.evaluate(arrays), client.evaluate(unit))
+
+
+def test_a_bad_dict_gets_the_servers_loc_and_words(live):
+    d = wire_dict()
+    d["batches"][1]["lower"][2] = float("nan")
+    for client in (LocalClient(), Client(live, binary=False), Client(live)):
+        with pytest.raises(InvalidInput) as err:
+            client.evaluate(d)
+        assert (err.value.loc, err.value.msg) == (("body", "batches", 1, "lower", 2), "Input should be a finite number")
+    d = wire_dict()
+    d["batchs"] = d.pop("batches")
+    with pytest.raises(InvalidInput) as err:
+        LocalClient().evaluate(d)
+    assert {f.loc for f in err.value.faults} == {("body", "batchs"), ("body", "batches")}
+
+
+def closed_url() -> str:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return f"http://127.0.0.1:{port}"
+
+
+@pytest.mark.parametrize("bad", [[1, 2], "request", None, np.zeros(3)])
+def test_anything_else_is_a_type_error_naming_what_is_accepted(bad):
+    import asyncio
+
+    async def run():
+        async with AsyncClient(closed_url(), retries=0) as c:
+            await c.evaluate(bad)
+
+    for call in (lambda: LocalClient().evaluate(bad), lambda: Client(closed_url(), retries=0).evaluate(bad),
+                 lambda: asyncio.run(run())):
+        with pytest.raises(TypeError) as err:  # before any connection is tried
+            call()
+        assert all(w in str(err.value) for w in ("client.Request", "dict", "schemas.EvaluateRequest")), err.value
+
+
+def test_local_client_refuses_unknown_keywords_and_takes_the_http_ones():
+    with pytest.raises(TypeError, match="'thread'"):
+        LocalClient(thread=2)
+    LocalClient(binary=True, timeout=5, retries=1, connect_timeout=1, concurrency=2)  # one word to switch modes
+
+
+def test_local_errors_do_not_mention_http(live):
+    bad = base_request()
+    bad.batches[1].lower[2] = 5.0
+    with pytest.raises(InvalidInput) as local:
+        LocalClient().evaluate(bad)
+    with pytest.raises(InvalidInput) as remote:
+        Client(live).evaluate(bad)
+    assert "HTTP" not in str(local.value) and str(local.value).startswith("invalid input: body.batches.1.lower.2: ")
+    assert str(remote.value).startswith("HTTP 422: body.batches.1.lower.2: ")
+    assert local.value.faults == remote.value.faults
+
+
+def test_evaluate_has_a_real_docstring_and_its_example_runs():
+    doc = Client.evaluate.__doc__
+    for words in (".request(outputs=", "dict", "EvaluateRequest", "Returns", "Raises", "InvalidInput",
+                  "Unreachable", "(M, 24, 24)", ">>>"):
+        assert words in doc, words
+    c, s = np.cos(0.7), np.sin(0.7)
+    globs = {"np": np, "Scene": Scene, "client": LocalClient(),
+             "turned": np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])}
+    test = doctest.DocTestParser().get_doctest(doc, globs, "Client.evaluate", None, 0)
+    result = doctest.DocTestRunner().run(test)
+    assert result.failed == 0 and result.attempted >= 5
+    assert "Client.evaluate" in LocalClient.evaluate.__doc__ and "Client.evaluate" in AsyncClient.evaluate.__doc__
+
+
+def test_repr_of_an_evaluation_is_a_summary():
+    request = chain(60, 100, seed=1)
+    ev = LocalClient().evaluate(request)
+    text = repr(ev)
+    assert len(text.splitlines()) == 2 + len(ev.batches) and len(text) < 600, text
+    assert f"total_energy={ev.total_energy!r}" in text
+    for b, r in zip(ev.batches, request.batches):
+        assert f"constitution_uid={b.constitution_uid}, rows={len(b.index)} of {len(r)} joints" in text
+    assert "outputs=x, energy, gradient, hessian" in text
+    only = LocalClient().evaluate(readme_scene().request(outputs=("energy",), active_only=True))
+    assert "outputs=x, energy)" in repr(only)

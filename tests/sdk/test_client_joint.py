@@ -1,0 +1,87 @@
+"""`result.joint(handle)`: one joint's answer by the handle `Scene` returned, with and without `active_only`."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+from jointlimits.client import Client, Joint, LocalClient, Scene
+from tests.http.test_contract_live import live  # noqa: F401 (fixture)
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def scene() -> tuple[Scene, list[Joint]]:
+    """Revolute joints 0 (inside), 1 (0.2 above), 2 (inside); prismatic 0 (0.1 above), 1 (inside)."""
+    s = Scene()
+    a = s.add_body((np.zeros(3), np.eye(3)))
+    b = s.add_body((np.zeros(3), rot_z(0.7)), ref=(np.zeros(3), np.eye(3)))
+    c = s.add_body((np.array([0.0, 0.0, 1.3]), np.eye(3)), ref=(np.array([0.0, 0.0, 1.0]), np.eye(3)))
+    js = [
+        s.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-1.0, upper=1.0),
+        s.add_prismatic_limit(a, c, [0, 0, 0], [0, 0, 1], lower=-0.1, upper=0.2, strength=10.0),
+        s.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5, strength=100.0),
+        s.add_prismatic_limit(a, c, [0, 0, 0], [0, 0, 1], lower=-0.1, upper=0.5),
+        s.add_revolute_limit(b, a, [0, 0, 0], [0, 0, 1], lower=-1.0, upper=1.0),
+    ]
+    return s, js
+
+
+def test_the_handle_is_the_row_and_knows_its_constitution():
+    _, js = scene()
+    assert [int(j) for j in js] == [0, 0, 1, 1, 2]
+    assert [j.constitution_uid for j in js] == [670, 669, 670, 669, 670]
+    assert [(k, k.constitution_uid) for k in pickle.loads(pickle.dumps(js))] == [(j, j.constitution_uid) for j in js]
+
+
+@pytest.mark.parametrize("mode", ["local", "binary", "json"])
+@pytest.mark.parametrize("outputs", [("energy",), ("energy", "gradient", "hessian")])
+def test_joint_lookup_is_the_same_with_and_without_active_only(live, mode, outputs):
+    s, js = scene()
+    client = LocalClient() if mode == "local" else Client(live, binary=mode == "binary")
+    full = client.evaluate(s.request(outputs=outputs))
+    only = client.evaluate(s.request(outputs=outputs, active_only=True))
+    assert [len(b.index) for b in only.batches] == [1, 1]  # the scene has one active joint per batch
+    for j in js:
+        f, a = full.joint(j), only.joint(j)
+        assert f.x == full.batch(j.constitution_uid).x[j]
+        assert f.energy == a.energy and f.energy == full.batch(j.constitution_uid).energy[j]
+        for name in ("gradient", "hessian"):
+            fv, av = getattr(f, name), getattr(a, name)
+            if name in outputs:
+                assert fv.shape == av.shape == ((24,) if name == "gradient" else (24, 24))
+                assert np.array_equal(fv, av)
+            else:
+                assert fv is None and av is None
+        active = f.energy > 0
+        assert (a.x == f.x) if active else (a.x is None and f.energy == 0.0)
+    assert only.joint(js[2]).energy == pytest.approx(100 * 0.2**3, rel=1e-14)
+    assert only.joint(js[1]).x == pytest.approx(0.3, rel=1e-14)
+
+
+def test_joint_out_of_range_and_ambiguous_rows():
+    s, js = scene()
+    only = LocalClient().evaluate(s.request(active_only=True))
+    with pytest.raises(IndexError, match="3 joints"):
+        only.joint(Joint(3, 670))
+    with pytest.raises(TypeError, match="handle"):
+        only.joint(0)  # two batches: a bare row names no batch
+    assert only.batch(670).joint(2).energy == 0.0 and only.batch(670).joint(2).x is None
+    one = Scene()
+    a, b = one.add_body(np.eye(4)), one.add_body(np.eye(4))
+    one.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-1, upper=1)
+    assert LocalClient().evaluate(one.request()).joint(0).x == 0.0  # one batch: a bare row is fine
+
+
+def test_joint_lookup_after_a_split(live):
+    s, js = scene()
+    split = Client(live, max_joints_per_request=1).evaluate(s.request(active_only=True))
+    whole = LocalClient().evaluate(s.request(active_only=True))
+    for j in js:
+        assert split.joint(j).energy == whole.joint(j).energy
+        assert np.array_equal(split.joint(j).hessian, whole.joint(j).hessian)

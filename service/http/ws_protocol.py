@@ -169,6 +169,10 @@ class SessionProtocol(WebSocketsSansIOProtocol):
         if self.draining:  # closed under the application (1009, 1007, 1013): it hears so on its next receive
             return
         await super().send(message)
+        if message["type"] == "websocket.http.response.body" and not message.get("more_body", False):
+            # A denial (401, 503 draining) answers the upgrade as a close before accept does, but uvicorn marks only
+            # the latter complete and logs an ERROR for every refused upgrade; the response is sent (`close_sent`).
+            self.handshake_complete = True
 
     def connection_lost(self, exc: Exception | None) -> None:
         super().connection_lost(exc)

@@ -75,8 +75,7 @@ class JointBatch:
 
     def __post_init__(self) -> None:
         if self.base_uid is None:
-            facts = registry.CONSTITUTIONS.get(self.constitution_uid)
-            self.base_uid = -1 if facts is None else facts.base_uid  # -1: an unknown constitution, refused
+            self.base_uid = registry.base_uid_of(self.constitution_uid)
 
     @classmethod
     def of(

@@ -31,6 +31,12 @@ def unregister(uid: int) -> None:
     del CONSTITUTIONS[uid], _NUMERICS[uid]
 
 
+def base_uid_of(uid: int) -> int:
+    """The base joint an absent `base_uid` stands for (-1 for an unknown constitution, which validation refuses)."""
+    facts = CONSTITUTIONS.get(uid)
+    return -1 if facts is None else facts.base_uid
+
+
 def numerics(uid: int) -> Constitution:
     """The registered constitution `uid` (KeyError if none is: validation refuses it first)."""
     return _NUMERICS[uid]

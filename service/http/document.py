@@ -25,7 +25,7 @@ from jointlimits.schemas import binary as wire
 from jointlimits.schemas import evaluate as models
 from jointlimits.schemas import session as proto
 from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
-from jointlimits.service.core import CONSTITUTIONS, Bodies, Fault, InputError, Joints
+from jointlimits.service.core import Bodies, Fault, InputError, Joints, registry
 from jointlimits.service.core.errors import MAX_FAULTS, Loc
 from jointlimits.service.core.validate import _element_faults as element_faults
 from jointlimits.service.core.validate import DUPLICATE_KEY_MSG, HESSIAN_MODES, ROWS, NOT_A_LIST, NOT_AN_INTEGER, ORIGINS, as_array, literal_msg
@@ -76,12 +76,6 @@ class Message:
     batch: int = 0
     index: np.ndarray | None = None  # (K,) int64
     values: dict[str, np.ndarray] = field(default_factory=dict)  # update: (K,) per field given
-
-
-def base_uid_of(constitution_uid: int) -> int:
-    """The base joint an absent `base_uid` stands for (-1 for an unknown constitution, which is refused anyway)."""
-    c = CONSTITUTIONS.get(constitution_uid)
-    return c.base_uid if c is not None else -1
 
 
 class Checker:
@@ -233,7 +227,7 @@ class Checker:
         ids = arrays.get("body_ids", np.zeros((0, 2), np.int64))
         return Joints(
             constitution_uid=uid,
-            base_uid=self.int64(fields["base_uid"], (*loc, "base_uid")) if "base_uid" in fields else base_uid_of(uid),
+            base_uid=self.int64(fields["base_uid"], (*loc, "base_uid")) if "base_uid" in fields else registry.base_uid_of(uid),
             body_ids=ids,
             edges=arrays.get("edges"),
             local_edges=arrays.get("local_edges"),

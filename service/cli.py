@@ -1,26 +1,12 @@
-"""`jointlimits serve`: run the service under uvicorn with production defaults.
+"""`jointlimits serve`: the service under uvicorn with production defaults.
 
-Every option can also come from the environment (`JOINTLIMITS_<OPTION>`); a command-line
-flag wins over the environment, which wins over the default. The application's options are
-the fields of `jointlimits.service.settings.Settings`, flags made from that table; each worker
-process gets them through the same `JOINTLIMITS_*` variables (`Settings.environ`). The bearer
-token is read from `JOINTLIMITS_TOKEN` or `--token-file` only, never from a flag (flags show in `ps`).
+Each option is a flag, else its `JOINTLIMITS_<OPTION>` variable, else its default; the application's options are
+the rows of `Settings` (service/settings.py), handed to every worker as those variables (`Settings.environ`). The
+bearer token comes from `JOINTLIMITS_TOKEN` or `--token-file`, never a flag (flags show in `ps`).
 
-Several workers (`--workers N`, N > 1, or `auto`) run under uvicorn's supervisor, which
-shares one listening socket and respawns a worker that dies. Prometheus needs its
-multiprocess mode for `/metrics` to sum over them: unless `PROMETHEUS_MULTIPROC_DIR` is
-already set, a fresh directory is made for the run and removed afterwards.
-
-The supervisor kills a worker whose health ping goes unanswered for `--healthcheck-timeout`
-seconds; the answer needs the GIL, so the timeout must exceed the longest step that holds it
-(a JSON parse at `--max-json-values`, docs/deployment.md, "Limits and sizing a pod").
-
-SIGTERM drains first: each worker's `/readyz` answers 503 "draining" at once while the worker goes on
-accepting and answering for `--shutdown-delay` seconds (load balancers and Kubernetes endpoints stop
-sending meanwhile; the supervisor passes SIGTERM on to every worker, and the application's lifespan puts
-the delay before uvicorn's own handler in each: `jointlimits.service.app.drain_on_sigterm`). Then, as
-SIGINT does at once: stop accepting, finish in-flight requests (for at most `--graceful-timeout`
-seconds), exit 0.
+Several workers (`--workers N`, or `auto`) run under uvicorn's supervisor; `/metrics` sums over them through
+Prometheus' multiprocess mode (a fresh `PROMETHEUS_MULTIPROC_DIR` unless one is set). SIGTERM drains first
+(`service/app.py:drain_on_sigterm`), then stops accepting, finishes in-flight requests and exits 0.
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from jointlimits.service.core.heap import keep_heap
 from jointlimits.service.http import sessions
 from jointlimits.service.http.auth import BearerAuthMiddleware, SessionOriginMiddleware
 from jointlimits.service.http.budget import Budget, ReleaseMiddleware
-from jointlimits.service.http.refusals import FaultListMiddleware
+from jointlimits.service.http.errors import FaultListMiddleware
 from jointlimits.service.http.routes import install
 from jointlimits.service.http.timeouts import OPENED, BodyTimeoutMiddleware
 from jointlimits.service.observability import LIFESPAN_METRICS, Metrics, ObservabilityMiddleware

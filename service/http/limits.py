@@ -18,21 +18,14 @@ from collections.abc import Callable
 
 from fastapi import Request
 
-from jointlimits.service.core import Fault
-from jointlimits.service.http.errors import HttpError
+from jointlimits.service.http.errors import too_large as _too_large
 from jointlimits.schemas.answer import BATCH_OVERHEAD_BYTES, FLOATS_PER_JOINT, answer_bytes  # noqa: F401 (re-exported)
 from jointlimits.service.settings import Settings
 
-def _too_large(loc: tuple[str, ...], msg: str) -> HttpError:
-    return HttpError(413, [Fault(loc, msg, "too_large")])
-
-
 async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool] | None = None) -> bytes | None:
     """The body, refused with 413 as soon as it is known to exceed `max_bytes` (by header or while streaming).
-
-    `take(n)` is asked with each chunk's size as it arrives whether to keep it (the worker's upload
-    budget, `budget.receive`); after a refusal the rest is read and dropped (the client gets an answer,
-    not a reset connection, and nothing is held) and the result is None."""
+    `take(n)` says whether to keep each chunk (the upload budget, `budget.receive`); once it says no, the rest is
+    read and dropped (the client gets an answer, not a reset, and nothing is held) and the result is None."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > max_bytes:
         raise _too_large(("body",), f"request body is {int(declared)} bytes; this service accepts at most {max_bytes}")
@@ -49,14 +42,9 @@ async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool
     return None if chunks is None else b"".join(chunks)
 
 
-# ------------------------------------------------------------------ admission by cost, before any work
-
-
 def admit(*, joints: list[int], outputs: list[str] | tuple[str, ...], binary_answer: bool, settings: Settings) -> None:
-    """Refuse with 413 a parsed request (or a session's scene and options) whose joints or answer would cost more
-    than this service's bounds, before any work. `joints`: joints per batch (their batches were counted before
-    they were parsed: `check_json`, `check_batches`). Raises `HttpError` (413) naming the bound, the figure and
-    what to do."""
+    """413 for a parsed request (or a session's scene and options) whose joints (`joints`: per batch) or answer
+    would cost more than this service's bounds, before any work, naming the bound, the figure and what to do."""
     n_joints = sum(joints)
     if n_joints > settings.max_joints:
         raise _too_large(

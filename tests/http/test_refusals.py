@@ -16,7 +16,7 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from jointlimits.service.app import create_app
-from jointlimits.service.http.refusals import FaultListMiddleware
+from jointlimits.service.http.errors import FaultListMiddleware
 from tests.http.test_contract_live import LIMITS, serve
 
 J = {"Content-Type": "application/json"}
@@ -137,7 +137,7 @@ def test_the_services_own_refusals_are_not_read_again(monkeypatch):
     """A 422, 413 and 401 written by the service pass the fault-list wrapper unread (issue 28: no second parse)."""
     from fastapi.testclient import TestClient
 
-    from jointlimits.service.http import refusals
+    from jointlimits.service.http import errors as refusals
 
     def unread(body: bytes) -> bool:
         raise AssertionError("a refusal of the service's own was parsed again")

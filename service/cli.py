@@ -125,7 +125,7 @@ def serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from jointlimits.service.observability import log_config
-    from jointlimits.service.http.ws_protocol import server_options
+    from jointlimits.service.http.timeouts import server_options
 
     given = {t.name: getattr(args, t.name) for t in TABLE if t.flag}
     if args.token_file:  # else Settings reads JOINTLIMITS_TOKEN

@@ -6,7 +6,7 @@ Each request is admitted on its own cost (`limits`), but a worker serves many at
 - **uploads** (`sizing.upload_bytes`): the bodies being received, counted as their bytes arrive (twice: chunks
   and their joined copy). Nothing waits for it: once a chunk does not fit, the rest of the body is read and
   dropped and the answer is 503 `busy`, so a slow sender holds only what it sent. A session's messages count
-  here too (`ws_protocol.SessionProtocol`: one that does not fit closes with 1013).
+  here too (`timeouts.WriteTimeoutWebSocketProtocol`: one that does not fit closes with 1013).
 - **in flight** (`sizing.inflight_bytes`): a received request's cost, bounded from its body's size
   (`sizing.cost_before_body`), cut to what it holds once parsed (`settle`), then to its encoded answer's bytes,
   released when they have left the process (`ReleaseMiddleware`). Requests wait in arrival order (a large one is

@@ -30,7 +30,7 @@ from jointlimits.service.http import session_codec as codec
 from jointlimits.service.http.budget import Reservation
 from jointlimits.service.http.errors import HttpError
 from jointlimits.service.http.timeouts import DRAIN, Drain
-from jointlimits.service.http.ws_protocol import frame_limit
+from jointlimits.service.http.timeouts import frame_limit
 from jointlimits.service.observability import ACCESS_LOGGER, Metrics
 from jointlimits.service.settings import Settings
 
@@ -60,8 +60,8 @@ def admit(settings: Settings, batch_joints: list[int], outputs: Sequence[str], b
 
 DISCONNECT_REASONS = {
     proto.NORMAL: "client",
-    proto.MESSAGE_TOO_BIG: "frame_too_large",  # the server's own limit (service/http/ws_protocol.py)
-    proto.TRY_AGAIN_LATER: "uploads_full",  # the message's bytes did not fit in the worker's upload budget (ws_protocol.py)
+    proto.MESSAGE_TOO_BIG: "frame_too_large",  # the server's own limit (service/http/timeouts.py)
+    proto.TRY_AGAIN_LATER: "uploads_full",  # the message's bytes did not fit in the worker's upload budget (timeouts.py)
     1007: "invalid_utf8",
     1002: "protocol_error",
     proto.SERVICE_RESTART: "shutdown",

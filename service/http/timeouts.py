@@ -1,33 +1,17 @@
 """The connection layer: deadlines on reads and writes, and a WebSocket close the client always reads.
 
 uvicorn times out only idle keep-alive connections: a client that sends nothing, half its headers, or its body at
-one byte a second (slowloris) holds a connection for ever. Each bound is a total, not an idle time between reads:
+one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time:
+the request head (`ReadTimeoutProtocol`, 408 then closed), the body (`BodyTimeoutMiddleware`, 408 from
+`errors.client_gone`), a session message (1008), and the write side (issue 19) in both protocols: a transport
+whose buffer stays full for `write_timeout` seconds (a client that stops reading) is reset, freeing what it held.
+The application sees the write side through `Drain` (`scope["extensions"][DRAIN]`).
 
-- the request head, in the HTTP protocol (`ReadTimeoutProtocol`, uvicorn's `http=`): from the connection's first
-  moment (or the next request's first byte) until its headers are complete; then 408 (if it sent anything), closed;
-- the body, in the ASGI receive path (`BodyTimeoutMiddleware`): past `body_timeout` the app sees a disconnect and
-  `errors.client_gone` answers 408 with `Connection: close`; a session message still arriving is bounded by
-  `body_timeout` from its first byte too (close 1008);
-- the write side (issue 19), in both protocols: a client that stops reading leaves its answers in the transport's
-  write buffer, for ever (`close()` waits for it to drain). A paused transport (its buffer past the high-water
-  mark) that has not resumed within `write_timeout` seconds is reset: answers, replies, close frames and pongs are
-  freed with it. The application sees the write side through `Drain` (`scope["extensions"][DRAIN]`): budget
-  reservations are given back once what they paid for has left (`Drain.after`), and a session reads its next
-  message once its last reply has (`Drain.wait`). Only the latest ping is answered, and only while writes are not
-  paused (RFC 6455 5.5.3 allows it): a ping flood queues nothing.
-
-The WebSocket protocol (`WriteTimeoutWebSocketProtocol`, uvicorn's `ws=`, `server_options`) also:
-
-- closes a message over the limit (`ws_max_size` = `JOINTLIMITS_MAX_FRAME_BYTES`, 1009) or a text message that is
-  not UTF-8 (1007) with a reason and a FIN, then reads and drops what the client still sends until it closes (at
-  most `DRAIN_SECONDS` and `DRAIN_MESSAGES` times the limit): uvicorn closed the socket at once, the kernel answered
-  the arriving message with a reset and the client saw 1006 (issue 20). The application hears the same code and
-  reason, so the session's log line and metrics name the cause;
-- closes sessions with 1012 and a reason on shutdown (uvicorn sends none);
-- counts a message's bytes in the worker's upload budget (`app.state.uploads`, service/http/budget.py) from its
-  first byte: twice while it arrives (the buffer, then the joined copy), once until the application asks for the
-  next message. Bytes that do not fit close the session with 1013, drained as 1009 is;
-- logs a client's protocol faults (1007, 1002) as one WARNING line, never a traceback (a log flood for free).
+The WebSocket protocol (issue 20) closes a message over the limit (1009) or not UTF-8 (1007) with a reason and a
+FIN, then reads and drops what the client still sends (uvicorn closed at once: the kernel's reset made the client
+see 1006); the application hears the same code and reason. It closes with 1012 and a reason on shutdown, counts a
+message's bytes in the worker's upload budget from its first byte (1013 when they do not fit), answers only the
+latest ping, and logs a client's protocol faults as one WARNING line, never a traceback.
 """
 
 from __future__ import annotations
@@ -284,7 +268,7 @@ def not_utf8() -> tuple[int, str]:
 
 
 class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
-    """uvicorn's websockets (sans-I/O) protocol with the closes, bounds and upload counts of the module's text."""
+    """uvicorn's websockets (sans-I/O) protocol with the closes, bounds and upload counts above."""
 
     message_timeout: float | None = None  # None: JOINTLIMITS_BODY_TIMEOUT, read per connection
     draining = False  # closed under the application (1009, 1007, 1013): the rest is read and dropped

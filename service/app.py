@@ -43,11 +43,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[dict[str, Any]]:
 def drain_on_sigterm(app: FastAPI) -> bool:
     """Under uvicorn, in the main thread, with a positive `shutdown_delay`: SIGTERM marks the app draining
     (`/readyz` answers 503, every answer says `Connection: close`) while it keeps answering, and reaches uvicorn's
-    own handler `shutdown_delay` seconds later (then what is in flight finishes). A second SIGTERM changes nothing
-    (a supervisor and a process manager may each send one); SIGINT still stops at once. True when installed.
-
-    Installed from the lifespan: uvicorn has set its handler by then (`Server.capture_signals`), in a single
-    process as in each worker of its supervisor, which passes its SIGTERM on to every worker."""
+    own handler (set by the lifespan's start, in each worker) `shutdown_delay` seconds later. A second SIGTERM
+    changes nothing (a supervisor and a process manager may each send one); SIGINT still stops at once."""
     delay = app.state.settings.shutdown_delay
     if delay <= 0 or threading.current_thread() is not threading.main_thread():
         return False  # a test's app in a thread, or no delay: SIGTERM stays uvicorn's

@@ -43,12 +43,10 @@ class BearerAuthMiddleware:
 
 
 class SessionOriginMiddleware:
-    """Sessions honour the CORS allow-list: a WebSocket upgrade whose `Origin` is not in it is refused (403 with a
-    fault list) before auth, so a browser on a foreign site gets no session, token or not.
-
-    A browser always sends `Origin` on a WebSocket upgrade and does not apply CORS to it: without this check
-    any page could open a session (cross-site WebSocket hijacking). No `Origin` (a non-browser client: the
-    SDK, a solver) is allowed. Installed only when JOINTLIMITS_CORS_ORIGINS is set; `*` allows every origin."""
+    """Sessions honour the CORS allow-list (`*` allows every origin): a WebSocket upgrade whose `Origin` is not in
+    it is refused (403) before auth, token or not. A browser sends `Origin` on an upgrade and does not apply CORS to
+    it: without this check any page could open a session (cross-site WebSocket hijacking). No `Origin` (the SDK, a
+    solver) is allowed."""
 
     def __init__(self, app: ASGIApp, origins: tuple[str, ...]) -> None:
         self.app = app

@@ -1,20 +1,14 @@
-"""A worker's memory budgets: what its requests in flight may hold together, whatever arrives at once.
+"""A worker's two memory budgets (sizes from the limits, `service/sizing.py`; docs/deployment.md, "Limits"):
+what its requests hold together, whatever arrives at once, each request being admitted on its own cost (`limits`).
 
-Each request is admitted on its own cost (`limits`), but a worker serves many at once. Two budgets per worker
-(sizes from the limits, `jointlimits.service.sizing`):
+- uploads: the bodies being received (and a session's messages, `timeouts`), counted as their bytes arrive.
+  Nothing waits for it: a chunk that does not fit makes the answer 503 `busy`, the rest read and dropped, so a
+  slow sender holds only what it sent.
+- in flight: a request's cost, bounded from its body's size, cut to what it holds once parsed (`settle`), then to
+  its encoded answer, released once that has left the process (`ReleaseMiddleware`). Requests (and a session's
+  opening and evaluates) wait in arrival order; past `queue_timeout` they are 503 `busy`, nothing evaluated.
 
-- **uploads** (`sizing.upload_bytes`): the bodies being received, counted as their bytes arrive (twice: chunks
-  and their joined copy). Nothing waits for it: once a chunk does not fit, the rest of the body is read and
-  dropped and the answer is 503 `busy`, so a slow sender holds only what it sent. A session's messages count
-  here too (`timeouts.WriteTimeoutWebSocketProtocol`: one that does not fit closes with 1013).
-- **in flight** (`sizing.inflight_bytes`): a received request's cost, bounded from its body's size
-  (`sizing.cost_before_body`), cut to what it holds once parsed (`settle`), then to its encoded answer's bytes,
-  released when they have left the process (`ReleaseMiddleware`). Requests wait in arrival order (a large one is
-  not passed for ever by small ones); one not started after `queue_timeout` seconds is 503 `busy` with
-  `Retry-After`, nothing evaluated. A session's opening and each evaluate wait for their share the same way.
-
-Neither waits on the other (a body's upload bytes are given back once it is in flight), so no request holds
-one while waiting for the other.
+Neither waits on the other (a body's upload bytes are given back once it is in flight): no deadlock.
 """
 
 from __future__ import annotations

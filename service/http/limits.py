@@ -1,15 +1,11 @@
-"""Request limits, each checked once, in this module: the bytes while a body streams in (`read_body`); a JSON
-text's values (every JSON text) and batches (a request) on its bytes, before its parse (`check_json`); a msgpack
-request's batches from its header, before any is read (`check_batches`); the joints and the answer's size once
-parsed, before any evaluation (`admit`).
+"""Request limits, each checked once, here: the bytes while a body streams in (`read_body`); a JSON text's values
+and batches on its bytes, before its parse (`check_json`); a msgpack request's batches from its header
+(`check_batches`); the joints and the answer's size once parsed, before any evaluation (`admit`).
 
-Why values and JSON batches are counted on the bytes, not on the parsed document: parsing is what they bound.
-A JSON value costs 24 (`0,`) to 96 (`[],`) bytes of Python objects once parsed (measured: 2e6 `[]` in a list,
-+197 MiB; 2e6 `{}` batches, +151 MiB): the largest body (256 MiB) of `0,` would take ~3 GB, of `{},` ~7 GB,
-where the sizing rule charges a JSON body `JSON_BYTES_PER_VALUE` x `max_json_values` (192 MB at the defaults,
-service/sizing.py). Under that bound a parsed body holds at most `max_json_values / 11` joints, so its joints
-are counted once, parsed (`admit`). Its batches are bounded by its braces too: 2e6 empty batches, within the
-value bound, take ~0.8 s to parse and refuse; their braces, one C count.
+Values and JSON batches are counted on the bytes because parsing is what they bound: a JSON value costs 24 (`0,`)
+to 96 (`[],`) bytes of Python objects once parsed, so the largest body (256 MiB) of `0,` would take ~3 GB, of `{},`
+~7 GB (2e6 empty batches take ~0.8 s to parse; their braces, one C count). Under the value bound a body holds at
+most `max_json_values / 11` joints, so joints are counted once parsed.
 """
 
 from __future__ import annotations

@@ -21,9 +21,8 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
-from jointlimits.service.settings import ENV_PREFIX, TABLE, Settings, boolean, positive_int
+from jointlimits.service.settings import ENV_PREFIX, TABLE, Setting, Settings, boolean, positive_int
 
 BOOL = "true|false"
 """What boolean options show; 1/0, yes/no, on/off are accepted too."""
@@ -61,14 +60,31 @@ def _workers(value: str) -> int:
     return positive_int(value, "a positive integer or 'auto'")
 
 
-def _option(parser: argparse.ArgumentParser, name: str, default: Any, help: str, **kwargs: Any) -> None:
-    """`--<name>` defaulting to JOINTLIMITS_<NAME>, else `default`. A variable's text goes through `type`
-    as a flag's does, so a bad variable is refused like a bad flag."""
-    env = ENV_PREFIX + name.upper()
-    if kwargs.get("type") is boolean:
-        kwargs["metavar"] = BOOL
-    flag = "--" + name.replace("_", "-")
-    parser.add_argument(flag, default=os.environ.get(env, default), help=f"{help} ({env})", **kwargs)
+# The process's own options (uvicorn's), rows of the settings' shape: in --help before and after the application's.
+FIRST = (
+    Setting("host", "127.0.0.1", str, "bind address; 0.0.0.0 in the container", True),
+    Setting("port", 8000, int, "TCP port", True),
+    Setting("workers", "auto", _workers, "worker processes, or 'auto' = usable CPUs, cgroup quota included", True),
+)
+LAST = (
+    Setting("healthcheck_timeout", 30, positive_int, "seconds uvicorn's supervisor waits for a worker's health ping "
+            "before killing it; above the longest step that holds the GIL (a JSON parse at --max-json-values)", True),
+    Setting("graceful_timeout", 30.0, float, "seconds in-flight requests get to finish after SIGTERM", True),
+    Setting("keepalive_timeout", 75.0, float, "seconds an idle keep-alive connection stays open; keep it above your "
+            "load balancer's idle timeout", True),
+    Setting("backlog", 2048, positive_int, "listen backlog", True),
+    Setting("log_level", "info", str, "log level", True),
+    Setting("access_log", True, boolean, "one JSON line per request on stdout", True),
+)
+LOG_LEVELS = ["critical", "error", "warning", "info", "debug"]
+
+
+def _option(parser: argparse.ArgumentParser, row: Setting) -> None:
+    """`--<name>` defaulting to its variable, else its default. A variable's text goes through `row.parse` as a
+    flag's does, so a bad variable is refused like a bad flag."""
+    parser.add_argument("--" + row.name.replace("_", "-"), default=os.environ.get(row.env, row.default),
+                        type=row.parse, help=f"{row.help} ({row.env})", metavar=BOOL if row.parse is boolean else None,
+                        choices=LOG_LEVELS if row.name == "log_level" else None)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -81,32 +97,15 @@ def build_parser() -> argparse.ArgumentParser:
         description="Serve the HTTP API. Each option defaults to its JOINTLIMITS_* environment variable.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    _option(s, "host", "127.0.0.1", "bind address; 0.0.0.0 in the container")
-    _option(s, "port", 8000, "TCP port", type=int)
-    _option(s, "workers", "auto", "worker processes, or 'auto' = usable CPUs, cgroup quota included", type=_workers)
-    for setting in TABLE:  # the application's settings (the token has no flag)
-        if setting.flag:
-            _option(s, setting.name, setting.default, setting.help, type=setting.parse)
+    for row in (*FIRST, *(t for t in TABLE if t.flag)):  # the token has no flag
+        _option(s, row)
     s.add_argument(
         "--token-file",
         default=os.environ.get(ENV_PREFIX + "TOKEN_FILE") or None,
         help="file holding the bearer token required on /v1/* (JOINTLIMITS_TOKEN_FILE; or JOINTLIMITS_TOKEN itself)",
     )
-    _option(
-        s, "healthcheck_timeout", 30,
-        "seconds uvicorn's supervisor waits for a worker's health ping before killing it; above the "
-        "longest step that holds the GIL (a JSON parse at --max-json-values)",
-        type=positive_int,
-    )
-    _option(s, "graceful_timeout", 30.0, "seconds in-flight requests get to finish after SIGTERM", type=float)
-    _option(
-        s, "keepalive_timeout", 75.0,
-        "seconds an idle keep-alive connection stays open; keep it above your load balancer's idle timeout",
-        type=float,
-    )
-    _option(s, "backlog", 2048, "listen backlog", type=positive_int)
-    _option(s, "log_level", "info", "log level", choices=["critical", "error", "warning", "info", "debug"])
-    _option(s, "access_log", True, "one JSON line per request on stdout", type=boolean)
+    for row in LAST:
+        _option(s, row)
     # The SDK's command, run by the `jointlimits` entry point (jointlimits/cli.py): listed here for --help only.
     sub.add_parser("evaluate", help="a URDF robot's joints against their limits (jointlimits evaluate --help)")
     return parser

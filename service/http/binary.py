@@ -142,5 +142,5 @@ def pack(doc: Any) -> Any:
 
 
 def encode(ev: Evaluation) -> bytes:
-    """The answer document (`convert.to_wire`): arrays as raw little-endian buffers (one copy each, into the message)."""
+    """The answer document (`convert.to_wire`), arrays as raw little-endian buffers (one copy each)."""
     return wire.dumps(pack(to_wire(ev)))

@@ -93,8 +93,8 @@ async def sessions(websocket: WebSocket) -> None:
     if open_now >= settings.max_sessions:
         metrics.sessions.labels("too_many_sessions").inc()
         n = settings.max_sessions
-        return await websocket.close(proto.TOO_MANY_SESSIONS,
-                                     f"this worker holds its maximum of {n} session{'' if n == 1 else 's'}; retry later")
+        reason = f"this worker holds its maximum of {n} session{'' if n == 1 else 's'}; retry later"
+        return await websocket.close(proto.TOO_MANY_SESSIONS, reason)
     state.open_sessions = open_now + 1
     metrics.sessions_open.inc()
     started, reason, code = time.perf_counter(), "error", proto.INTERNAL_ERROR

@@ -104,14 +104,11 @@ async def refuse(scope: Scope, send: Send, status: int, fault: dict[str, Any], c
     await send({"type": f"{prefix}.response.body", "body": body})
 
 
-async def input_error_handler(request: Request, exc: Exception) -> FaultList:
-    assert isinstance(exc, InputError)
-    return FaultList(render(exc.faults, ("body",)), status_code=422)
-
-
-async def http_error_handler(request: Request, exc: Exception) -> FaultList:
+async def fault_handler(request: Request, exc: Exception) -> FaultList:
+    """An `InputError`: 422, every `loc` after "body"; an `HttpError`: its status, its faults' whole `loc`."""
+    if isinstance(exc, InputError):
+        return FaultList(render(exc.faults, ("body",)), status_code=422)
     assert isinstance(exc, HttpError)
-    # These faults carry their own full loc (["body"], ["header", "accept"], ...).
     return FaultList(render(exc.faults), status_code=exc.status, headers=exc.headers)
 
 

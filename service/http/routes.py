@@ -16,8 +16,7 @@ from jointlimits.service import sizing
 from jointlimits.service.core import Fault, InputError, evaluate, registry
 from jointlimits.service.core.errors import DeadlineExceeded, check_deadline
 from jointlimits.service.http import binary, budget, convert, document, limits, openapi
-from jointlimits.service.http.errors import (FaultList, HttpError, client_gone, deadline_handler, http_error_handler,
-                                             input_error_handler, one_fault)
+from jointlimits.service.http.errors import FaultList, HttpError, client_gone, deadline_handler, fault_handler, one_fault
 from jointlimits.service.settings import Settings
 
 router = APIRouter()
@@ -177,8 +176,8 @@ def _evaluate(  # noqa: ANN001 (codec modules)
 def install(app: FastAPI) -> None:
     """Routes, 4xx handlers and the OpenAPI components of the raw-bodied route."""
     app.include_router(router)
-    app.add_exception_handler(InputError, input_error_handler)
-    app.add_exception_handler(HttpError, http_error_handler)
+    app.add_exception_handler(InputError, fault_handler)
+    app.add_exception_handler(HttpError, fault_handler)
     app.add_exception_handler(ClientDisconnect, client_gone)  # 499 / 408, not a 500 with a traceback
     app.add_exception_handler(DeadlineExceeded, deadline_handler)
     build = app.openapi

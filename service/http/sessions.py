@@ -37,9 +37,9 @@ router = APIRouter()
 log = logging.getLogger(ACCESS_LOGGER)
 T = TypeVar("T")
 
+# How long the session waits for its close frame to be sent (behind replies the client does not read) before it
+# ends; the connection itself is dropped by the protocol's write timeout (JOINTLIMITS_WRITE_TIMEOUT).
 CLOSE_SECONDS = 5.0
-"""How long the session waits for its close frame to be sent (behind replies the client does not read) before it
-ends; the connection itself is dropped by the protocol's write timeout (JOINTLIMITS_WRITE_TIMEOUT)."""
 
 INLINE_JOINTS = 256
 """Scenes up to this many joints (a millisecond or so of work) are evaluated on the event loop: the hop to a

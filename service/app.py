@@ -1,4 +1,4 @@
-"""The ASGI application `jointlimits.service.app:app`."""
+"""The ASGI application `jointlimits.service.app:app`: settings, routes, sessions, middleware."""
 
 from __future__ import annotations
 
@@ -8,46 +8,43 @@ import os
 import signal
 import threading
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 from starlette.datastructures import State
+from starlette.middleware.cors import CORSMiddleware
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from jointlimits.service import sizing
 from jointlimits.service.core import registry
 from jointlimits.service.core.heap import keep_heap
 from jointlimits.service.http import sessions
+from jointlimits.service.http.auth import BearerAuthMiddleware, SessionOriginMiddleware
+from jointlimits.service.http.budget import Budget, ReleaseMiddleware
+from jointlimits.service.http.errors import FaultListMiddleware
 from jointlimits.service.http.routes import install
-from jointlimits.service.http.timeouts import OPENED
-from jointlimits.service.http import middleware as ops
-from jointlimits.service.observability import LIFESPAN_METRICS
+from jointlimits.service.http.timeouts import OPENED, BodyTimeoutMiddleware
+from jointlimits.service.observability import LIFESPAN_METRICS, Metrics, ObservabilityMiddleware
 from jointlimits.service.settings import Settings
-
 
 log = logging.getLogger("jointlimits.drain")
 
 
 @asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[dict[str, Any]]:
-    """The lifespan state: the metrics, for the connection layer (`jointlimits.service.http.timeouts`);
-    the drain on SIGTERM, when uvicorn serves the app (`drain_on_sigterm`)."""
+    """The metrics in the lifespan state, for the connection layer (service/http/timeouts.py); the drain."""
     drain_on_sigterm(app)
     yield {LIFESPAN_METRICS: app.state.metrics}
 
 
 def drain_on_sigterm(app: FastAPI) -> bool:
-    """Under uvicorn, in the process's main thread (every worker of `jointlimits serve`), with a positive
-    `shutdown_delay`: SIGTERM first marks the app draining (`/readyz` answers 503 "draining", every answer
-    says `Connection: close`) while the worker keeps accepting and answering, and reaches uvicorn's own
-    handler `shutdown_delay` seconds later: then the listener closes and what is in flight finishes (within
-    `--graceful-timeout`), as without a delay. A second SIGTERM changes nothing (a supervisor and a process
-    manager may each send one); SIGINT (Ctrl-C) still stops at once. True when installed.
-
-    Installed from the lifespan: uvicorn has set its handler by then (`Server.capture_signals`, which
-    puts it back, and the original, when the server ends), in a single process as in each worker of its
-    supervisor, which passes its SIGTERM on to every worker."""
+    """Under uvicorn, in the main thread, with a positive `shutdown_delay`: SIGTERM marks the app draining
+    (`/readyz` answers 503, every answer says `Connection: close`) while it keeps answering, and reaches uvicorn's
+    own handler (set by the lifespan's start, in each worker) `shutdown_delay` seconds later. A second SIGTERM
+    changes nothing (a supervisor and a process manager may each send one); SIGINT still stops at once."""
     delay = app.state.settings.shutdown_delay
     if delay <= 0 or threading.current_thread() is not threading.main_thread():
         return False  # a test's app in a thread, or no delay: SIGTERM stays uvicorn's
@@ -72,16 +69,10 @@ def drain_on_sigterm(app: FastAPI) -> bool:
     return True
 
 
-Scope = MutableMapping[str, Any]
-Message = MutableMapping[str, Any]
-ASGIApp = Callable[[Scope, Callable[[], Awaitable[Message]], Callable[[Message], Awaitable[None]]], Awaitable[None]]
-
-
 class CloseConnections:
     """`Connection: close` on every HTTP answer while the app drains, and on the first answer of a connection older
-    than `max_connection_age` (its age from `jointlimits serve`'s protocol, `timeouts.OPENED`): a client on a
-    keep-alive connection (a proxy's pool, the SDK) opens its next one anew, which the load balancer sends to a
-    pod that stays, or after a rollout to any pod, the restarted ones too."""
+    than `max_connection_age` (`timeouts.OPENED`): a keep-alive client (a proxy's pool, the SDK) opens its next
+    connection anew, which the load balancer sends to a pod that stays, or after a rollout to any pod."""
 
     def __init__(self, app: ASGIApp, state: State) -> None:
         self.app, self.state = app, state
@@ -92,8 +83,7 @@ class CloseConnections:
         opened, most = scope.get("extensions", {}).get(OPENED), self.state.settings.max_connection_age
         return self.state.draining or (opened is not None and 0 < most <= time.monotonic() - opened)
 
-    async def __call__(self, scope: Scope, receive: Callable[[], Awaitable[Message]],
-                       send: Callable[[Message], Awaitable[None]]) -> None:
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if not self.closing(scope):
             return await self.app(scope, receive, send)
 
@@ -123,9 +113,43 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.draining = False  # True from SIGTERM on (drain_on_sigterm): /readyz answers 503
     app.include_router(sessions.router)  # /v1/sessions (WebSocket)
     install(app)  # routes, 4xx handlers (422, 413, 415, 406), OpenAPI of the raw-bodied route
-    ops.install(app, settings)  # bearer auth, CORS, request ids, JSON access log, /metrics
-    app.add_middleware(CloseConnections, state=app.state)  # outermost: every answer while draining, or aged
+    metrics = app.state.metrics = Metrics()
+
+    def show(b: Budget) -> None:
+        metrics.budget_held.set(b.held)
+        metrics.budget_queued.set(b.queued)
+
+    # The worker's memory budgets (service/http/budget.py): taken by the routes, given back after the answer.
+    app.state.uploads = Budget(sizing.upload_bytes(settings), on_change=lambda b: metrics.uploads_held.set(b.held))
+    app.state.in_flight = Budget(sizing.inflight_bytes(settings), on_change=show)
+    # The middleware, innermost first (Starlette wraps in reverse): the body's read timeout; the release of the
+    # budgets after the answer is sent; bearer auth (before the body is read); CORS (answers preflights before
+    # auth could refuse them) and the sessions' Origin check (a foreign Origin is refused, token or not); every
+    # refusal in the fault-list shape; observability (sees every request, 401s and preflights too, serves
+    # /metrics); outermost, `Connection: close` while draining or on an aged connection.
+    app.add_middleware(BodyTimeoutMiddleware, timeout=settings.body_timeout)
+    app.add_middleware(ReleaseMiddleware)
+    if settings.token:
+        app.add_middleware(BearerAuthMiddleware, token=settings.token)
+    if settings.cors_origins:
+        app.add_middleware(SessionOriginMiddleware, origins=settings.cors_origins)
+        app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST"],
+                           allow_headers=["Authorization", "Content-Type", "Accept", "X-Request-ID"],
+                           expose_headers=["X-Request-ID"], max_age=600)
+    app.add_middleware(FaultListMiddleware)
+    app.add_middleware(ObservabilityMiddleware, metrics=metrics, route_paths=lambda: _route_paths(app))
+    app.add_middleware(CloseConnections, state=app.state)
     return app
+
+
+def _route_paths(app: FastAPI) -> list[str]:
+    """Paths of the app's routes without parameters (labels for requests refused before routing)."""
+    paths = [r.path for r in app.routes if isinstance(getattr(r, "path", None), str)]
+    try:
+        paths += list(app.openapi().get("paths", {}))  # also the routes of included routers
+    except Exception:  # pragma: no cover (a broken schema must not break metrics)
+        pass
+    return [p for p in paths if "{" not in p]
 
 
 app = create_app()

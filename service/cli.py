@@ -1,26 +1,12 @@
-"""`jointlimits serve`: run the service under uvicorn with production defaults.
+"""`jointlimits serve`: the service under uvicorn with production defaults.
 
-Every option can also come from the environment (`JOINTLIMITS_<OPTION>`); a command-line
-flag wins over the environment, which wins over the default. The application's options are
-the fields of `jointlimits.service.settings.Settings`, flags made from that table; each worker
-process gets them through the same `JOINTLIMITS_*` variables (`Settings.environ`). The bearer
-token is read from `JOINTLIMITS_TOKEN` or `--token-file` only, never from a flag (flags show in `ps`).
+Each option is a flag, else its `JOINTLIMITS_<OPTION>` variable, else its default; the application's options are
+the rows of `Settings` (service/settings.py), handed to every worker as those variables (`Settings.environ`). The
+bearer token comes from `JOINTLIMITS_TOKEN` or `--token-file`, never a flag (flags show in `ps`).
 
-Several workers (`--workers N`, N > 1, or `auto`) run under uvicorn's supervisor, which
-shares one listening socket and respawns a worker that dies. Prometheus needs its
-multiprocess mode for `/metrics` to sum over them: unless `PROMETHEUS_MULTIPROC_DIR` is
-already set, a fresh directory is made for the run and removed afterwards.
-
-The supervisor kills a worker whose health ping goes unanswered for `--healthcheck-timeout`
-seconds; the answer needs the GIL, so the timeout must exceed the longest step that holds it
-(a JSON parse at `--max-json-values`, docs/deployment.md, "Limits and sizing a pod").
-
-SIGTERM drains first: each worker's `/readyz` answers 503 "draining" at once while the worker goes on
-accepting and answering for `--shutdown-delay` seconds (load balancers and Kubernetes endpoints stop
-sending meanwhile; the supervisor passes SIGTERM on to every worker, and the application's lifespan puts
-the delay before uvicorn's own handler in each: `jointlimits.service.app.drain_on_sigterm`). Then, as
-SIGINT does at once: stop accepting, finish in-flight requests (for at most `--graceful-timeout`
-seconds), exit 0.
+Several workers (`--workers N`, or `auto`) run under uvicorn's supervisor; `/metrics` sums over them through
+Prometheus' multiprocess mode (a fresh `PROMETHEUS_MULTIPROC_DIR` unless one is set). SIGTERM drains first
+(`service/app.py:drain_on_sigterm`), then stops accepting, finishes in-flight requests and exits 0.
 """
 
 from __future__ import annotations
@@ -35,9 +21,8 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
-from jointlimits.service.settings import ENV_PREFIX, TABLE, Settings, boolean, positive_int
+from jointlimits.service.settings import ENV_PREFIX, TABLE, Setting, Settings, boolean, positive_int
 
 BOOL = "true|false"
 """What boolean options show; 1/0, yes/no, on/off are accepted too."""
@@ -75,14 +60,31 @@ def _workers(value: str) -> int:
     return positive_int(value, "a positive integer or 'auto'")
 
 
-def _option(parser: argparse.ArgumentParser, name: str, default: Any, help: str, **kwargs: Any) -> None:
-    """`--<name>` defaulting to JOINTLIMITS_<NAME>, else `default`. A variable's text goes through `type`
-    as a flag's does, so a bad variable is refused like a bad flag."""
-    env = ENV_PREFIX + name.upper()
-    if kwargs.get("type") is boolean:
-        kwargs["metavar"] = BOOL
-    flag = "--" + name.replace("_", "-")
-    parser.add_argument(flag, default=os.environ.get(env, default), help=f"{help} ({env})", **kwargs)
+# The process's own options (uvicorn's), rows of the settings' shape: in --help before and after the application's.
+FIRST = (
+    Setting("host", "127.0.0.1", str, "bind address; 0.0.0.0 in the container", True),
+    Setting("port", 8000, int, "TCP port", True),
+    Setting("workers", "auto", _workers, "worker processes, or 'auto' = usable CPUs, cgroup quota included", True),
+)
+LAST = (
+    Setting("healthcheck_timeout", 30, positive_int, "seconds uvicorn's supervisor waits for a worker's health ping "
+            "before killing it; above the longest step that holds the GIL (a JSON parse at --max-json-values)", True),
+    Setting("graceful_timeout", 30.0, float, "seconds in-flight requests get to finish after SIGTERM", True),
+    Setting("keepalive_timeout", 75.0, float, "seconds an idle keep-alive connection stays open; keep it above your "
+            "load balancer's idle timeout", True),
+    Setting("backlog", 2048, positive_int, "listen backlog", True),
+    Setting("log_level", "info", str, "log level", True),
+    Setting("access_log", True, boolean, "one JSON line per request on stdout", True),
+)
+LOG_LEVELS = ["critical", "error", "warning", "info", "debug"]
+
+
+def _option(parser: argparse.ArgumentParser, row: Setting) -> None:
+    """`--<name>` defaulting to its variable, else its default. A variable's text goes through `row.parse` as a
+    flag's does, so a bad variable is refused like a bad flag."""
+    parser.add_argument("--" + row.name.replace("_", "-"), default=os.environ.get(row.env, row.default),
+                        type=row.parse, help=f"{row.help} ({row.env})", metavar=BOOL if row.parse is boolean else None,
+                        choices=LOG_LEVELS if row.name == "log_level" else None)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -95,32 +97,15 @@ def build_parser() -> argparse.ArgumentParser:
         description="Serve the HTTP API. Each option defaults to its JOINTLIMITS_* environment variable.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    _option(s, "host", "127.0.0.1", "bind address; 0.0.0.0 in the container")
-    _option(s, "port", 8000, "TCP port", type=int)
-    _option(s, "workers", "auto", "worker processes, or 'auto' = usable CPUs, cgroup quota included", type=_workers)
-    for setting in TABLE:  # the application's settings (the token has no flag)
-        if setting.flag:
-            _option(s, setting.name, setting.default, setting.help, type=setting.parse)
+    for row in (*FIRST, *(t for t in TABLE if t.flag)):  # the token has no flag
+        _option(s, row)
     s.add_argument(
         "--token-file",
         default=os.environ.get(ENV_PREFIX + "TOKEN_FILE") or None,
         help="file holding the bearer token required on /v1/* (JOINTLIMITS_TOKEN_FILE; or JOINTLIMITS_TOKEN itself)",
     )
-    _option(
-        s, "healthcheck_timeout", 30,
-        "seconds uvicorn's supervisor waits for a worker's health ping before killing it; above the "
-        "longest step that holds the GIL (a JSON parse at --max-json-values)",
-        type=positive_int,
-    )
-    _option(s, "graceful_timeout", 30.0, "seconds in-flight requests get to finish after SIGTERM", type=float)
-    _option(
-        s, "keepalive_timeout", 75.0,
-        "seconds an idle keep-alive connection stays open; keep it above your load balancer's idle timeout",
-        type=float,
-    )
-    _option(s, "backlog", 2048, "listen backlog", type=positive_int)
-    _option(s, "log_level", "info", "log level", choices=["critical", "error", "warning", "info", "debug"])
-    _option(s, "access_log", True, "one JSON line per request on stdout", type=boolean)
+    for row in LAST:
+        _option(s, row)
     # The SDK's command, run by the `jointlimits` entry point (jointlimits/cli.py): listed here for --help only.
     sub.add_parser("evaluate", help="a URDF robot's joints against their limits (jointlimits evaluate --help)")
     return parser
@@ -139,7 +124,7 @@ def serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from jointlimits.service.observability import log_config
-    from jointlimits.service.http.ws_protocol import server_options
+    from jointlimits.service.http.timeouts import server_options
 
     given = {t.name: getattr(args, t.name) for t in TABLE if t.flag}
     if args.token_file:  # else Settings reads JOINTLIMITS_TOKEN

@@ -1,23 +1,12 @@
-"""Observability: JSON logs, a JSON access log per request, and Prometheus metrics.
+"""Observability: JSON logs, one JSON access-log line per request, Prometheus metrics.
 
-`ObservabilityMiddleware` is a pure ASGI middleware (no `BaseHTTPMiddleware`, which would
-buffer bodies and cost a task per request). For every HTTP request it
+`ObservabilityMiddleware` is a pure ASGI middleware (`BaseHTTPMiddleware` would buffer bodies and cost a task per
+request). The joint counts come from `state.joints` and `state.joints_by_constitution`, set by the evaluate route
+once the body is parsed; a request refused before that logs `joints: null`.
 
-- takes the caller's `X-Request-ID` (when it is short and printable) or makes one, and
-  echoes it in the response;
-- logs one JSON line on the `jointlimits.access` logger: request id, method, path, route,
-  status, latency, bytes in, joint count, client;
-- counts the request by method, route and status, and observes its latency.
-
-The joint count comes from `request.state.joints` (set by the evaluate route once the body
-is parsed, so it is free) and `request.state.joints_by_constitution`; a request rejected
-before that (bad JSON, 401, 413) logs `joints: null`.
-
-Metrics and several worker processes: `prometheus_client` aggregates across processes only
-in its multiprocess mode, which it enters when `PROMETHEUS_MULTIPROC_DIR` is set *before*
-it is imported. `jointlimits serve --workers N` (N > 1) sets it to a fresh directory, so
-`/metrics` on any worker reports the sum over all workers, including workers that died
-and were replaced (their counters stay in the directory).
+Several workers: `prometheus_client` sums over processes only in its multiprocess mode, entered when
+`PROMETHEUS_MULTIPROC_DIR` is set before it is imported; `jointlimits serve --workers N` sets it, so `/metrics` on
+any worker reports all of them, including workers that died and were replaced.
 """
 
 from __future__ import annotations
@@ -32,15 +21,8 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from prometheus_client import (
-    CONTENT_TYPE_LATEST,
-    CollectorRegistry,
-    Counter,
-    Gauge,
-    Histogram,
-    generate_latest,
-    multiprocess,
-)
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import multiprocess
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 ACCESS_LOGGER = "jointlimits.access"
@@ -48,9 +30,6 @@ _REQUEST_ID = re.compile(r"^[A-Za-z0-9._:\-]{1,128}$")
 
 # Seconds. The evaluate route spans ~1 ms (one joint) to seconds (10^5 joints with Hessians).
 LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
-
-
-# --------------------------------------------------------------------------- logging
 
 
 class JsonFormatter(logging.Formatter):
@@ -72,18 +51,13 @@ class JsonFormatter(logging.Formatter):
 
 
 def log_config(level: str = "info", access_log: bool = True) -> dict[str, Any]:
-    """A `logging.config.dictConfig` for uvicorn: everything as JSON lines on stdout.
-
-    uvicorn's own access log is replaced by ours (`jointlimits.access`, which knows the
-    request id and joint count); uvicorn's error log keeps its messages, as JSON.
-    """
+    """uvicorn's `logging.config.dictConfig`: JSON lines on stdout; uvicorn's access log replaced by ours."""
     level = level.upper()
-    handler = {"class": "logging.StreamHandler", "formatter": "json", "stream": "ext://sys.stdout"}
     return {
         "version": 1,
         "disable_existing_loggers": False,
         "formatters": {"json": {"()": "jointlimits.service.observability.JsonFormatter"}},
-        "handlers": {"stdout": handler},
+        "handlers": {"stdout": {"class": "logging.StreamHandler", "formatter": "json", "stream": "ext://sys.stdout"}},
         "loggers": {
             "uvicorn": {"handlers": ["stdout"], "level": level, "propagate": False},
             "uvicorn.error": {"level": level},
@@ -94,12 +68,53 @@ def log_config(level: str = "info", access_log: bool = True) -> dict[str, Any]:
     }
 
 
-# --------------------------------------------------------------------------- metrics
+def peer(client: Any) -> str | None:
+    """`host:port` of a scope's `client` (a tuple or Starlette's `Address`)."""
+    return f"{client[0]}:{client[1]}" if client else None
 
 
 LIFESPAN_METRICS = "jointlimits_metrics"
 """The application's `Metrics` in its lifespan state: what uvicorn hands its protocols (`app_state`),
 so the connection layer counts what happens before any request exists."""
+
+_LIVE = {"multiprocess_mode": "livesum"}  # gauges: summed over the live workers
+_METRICS: tuple[tuple[str, Any, str, str, tuple[str, ...], dict[str, Any]], ...] = (
+    ("requests", Counter, "jointlimits_http_requests_total",
+     "HTTP requests answered, by method, route template and status code.", ("method", "route", "status"), {}),
+    ("latency", Histogram, "jointlimits_http_request_duration_seconds",
+     "Time from the request's arrival to the end of its response, by method and route template.",
+     ("method", "route"), {"buckets": LATENCY_BUCKETS}),
+    ("joints", Counter, "jointlimits_joints_evaluated_total",
+     "Joints evaluated in successful requests, by constitution UID.", ("constitution",), {}),
+    ("in_flight", Gauge, "jointlimits_http_requests_in_flight",
+     "HTTP requests being handled now (summed over live workers).", (), _LIVE),
+    # The memory budgets (service/http/budget.py).
+    ("budget_held", Gauge, "jointlimits_inflight_budget_bytes",
+     "Bytes of the workers' memory budgets held by requests in flight (summed over live workers).", (), _LIVE),
+    ("uploads_held", Gauge, "jointlimits_upload_budget_bytes",
+     "Bytes of the workers' upload budgets held by request bodies being received (summed over live workers).",
+     (), _LIVE),
+    ("budget_queued", Gauge, "jointlimits_inflight_budget_queued",
+     "Requests waiting for their worker's memory budget (summed over live workers).", (), _LIVE),
+    # Connections closed by service/http/timeouts.py: most before any request exists.
+    ("connections_closed", Counter, "jointlimits_connections_closed_total",
+     "Connections the server closed, by reason: for want of a complete request head within "
+     "JOINTLIMITS_HEADER_TIMEOUT (silent: not a byte, closed without an answer; slow_head: part of a head, "
+     "answered 408); slow_read: a full write buffer for JOINTLIMITS_WRITE_TIMEOUT (dropped); slow_message: "
+     "a session message not received within JOINTLIMITS_BODY_TIMEOUT (close 1008).", ("reason",), {}),
+    # WebSocket sessions (service/http/sessions.py).
+    ("sessions_open", Gauge, "jointlimits_sessions_open", "WebSocket sessions open now (summed over live workers).",
+     (), _LIVE),
+    ("sessions", Counter, "jointlimits_sessions_total",
+     "WebSocket sessions ended, by reason (client, disconnect, idle, frame_too_large, invalid_utf8, protocol_error, "
+     "scene_too_large, too_many_sessions, shutdown, error).", ("reason",), {}),
+    ("session_messages", Counter, "jointlimits_session_messages_total",
+     "Session messages handled, by kind (open, evaluate, commit, update, close, invalid) and outcome (ok, fault).",
+     ("kind", "outcome"), {}),
+    ("session_latency", Histogram, "jointlimits_session_message_duration_seconds",
+     "Time from a session message's arrival to its reply being sent, by kind.", ("kind",),
+     {"buckets": (0.0001, 0.00025, 0.0005, *LATENCY_BUCKETS)}),
+)
 
 
 def multiprocess_dir() -> str | None:
@@ -107,159 +122,46 @@ def multiprocess_dir() -> str | None:
 
 
 class Metrics:
-    """The service's Prometheus metrics, one set per application.
-
-    Single process: a registry of its own (so two apps in one test process do not share
-    counts). Multiprocess: unregistered metrics whose values live in the shared directory,
-    exposed through a `MultiProcessCollector` built per scrape.
-    """
+    """The service's metrics (attributes named as in `_METRICS`), one set per application: a registry of its own in
+    one process (two apps in a test process do not share counts); in multiprocess mode, unregistered metrics whose
+    values live in the shared directory, collected per scrape."""
 
     def __init__(self) -> None:
         self.multiprocess = multiprocess_dir() is not None
-        reg = None if self.multiprocess else CollectorRegistry()
-        self.registry = reg
-        self.requests = Counter(
-            "jointlimits_http_requests_total",
-            "HTTP requests answered, by method, route template and status code.",
-            ["method", "route", "status"],
-            registry=reg,
-        )
-        self.latency = Histogram(
-            "jointlimits_http_request_duration_seconds",
-            "Time from the request's arrival to the end of its response, by method and route template.",
-            ["method", "route"],
-            buckets=LATENCY_BUCKETS,
-            registry=reg,
-        )
-        self.joints = Counter(
-            "jointlimits_joints_evaluated_total",
-            "Joints evaluated in successful requests, by constitution UID.",
-            ["constitution"],
-            registry=reg,
-        )
-        self.in_flight = Gauge(
-            "jointlimits_http_requests_in_flight",
-            "HTTP requests being handled now (summed over live workers).",
-            registry=reg,
-            multiprocess_mode="livesum",
-        )
-        # The memory budget of requests in flight (service/http/budget.py).
-        self.budget_held = Gauge(
-            "jointlimits_inflight_budget_bytes",
-            "Bytes of the workers' memory budgets held by requests in flight (summed over live workers).",
-            registry=reg,
-            multiprocess_mode="livesum",
-        )
-        self.uploads_held = Gauge(
-            "jointlimits_upload_budget_bytes",
-            "Bytes of the workers' upload budgets held by request bodies being received (summed over live workers).",
-            registry=reg,
-            multiprocess_mode="livesum",
-        )
-        self.budget_queued = Gauge(
-            "jointlimits_inflight_budget_queued",
-            "Requests waiting for their worker's memory budget (summed over live workers).",
-            registry=reg,
-            multiprocess_mode="livesum",
-        )
-        # Connections closed before a request head was complete (service/http/timeouts.py): no request
-        # exists for them, so jointlimits_http_requests_total cannot count them.
-        self.connections_closed = Counter(
-            "jointlimits_connections_closed_total",
-            "Connections the server closed, by reason: for want of a complete request head within "
-            "JOINTLIMITS_HEADER_TIMEOUT (silent: not a byte, closed without an answer; slow_head: part of a head, "
-            "answered 408); slow_read: a full write buffer for JOINTLIMITS_WRITE_TIMEOUT (dropped); slow_message: "
-            "a session message not received within JOINTLIMITS_BODY_TIMEOUT (close 1008).",
-            ["reason"],
-            registry=reg,
-        )
-        # WebSocket sessions (/v1/sessions, service/http/sessions.py).
-        self.sessions_open = Gauge(
-            "jointlimits_sessions_open",
-            "WebSocket sessions open now (summed over live workers).",
-            registry=reg,
-            multiprocess_mode="livesum",
-        )
-        self.sessions = Counter(
-            "jointlimits_sessions_total",
-            "WebSocket sessions ended, by reason (client, disconnect, idle, frame_too_large, invalid_utf8, protocol_error, scene_too_large, "
-            "too_many_sessions, shutdown, error).",
-            ["reason"],
-            registry=reg,
-        )
-        self.session_messages = Counter(
-            "jointlimits_session_messages_total",
-            "Session messages handled, by kind (open, evaluate, commit, update, close, invalid) and outcome (ok, fault).",
-            ["kind", "outcome"],
-            registry=reg,
-        )
-        self.session_latency = Histogram(
-            "jointlimits_session_message_duration_seconds",
-            "Time from a session message's arrival to its reply being sent, by kind.",
-            ["kind"],
-            buckets=(0.0001, 0.00025, 0.0005, *LATENCY_BUCKETS),
-            registry=reg,
-        )
+        self.registry = None if self.multiprocess else CollectorRegistry()
+        for attr, kind, name, doc, labels, extra in _METRICS:
+            setattr(self, attr, kind(name, doc, labels, registry=self.registry, **extra))
         if self.multiprocess:
             _forget_dead_workers()
 
     def exposition(self) -> bytes:
-        if self.multiprocess:
+        registry = self.registry
+        if registry is None:
             registry = CollectorRegistry()
             multiprocess.MultiProcessCollector(registry)
-            return generate_latest(registry)
-        assert self.registry is not None
-        return generate_latest(self.registry)
+        return generate_latest(registry)
 
 
 def _forget_dead_workers() -> None:
-    """Drop the live-gauge files of workers that no longer exist (a killed worker cannot do it itself).
-
-    Counters and histograms of dead workers are kept: their requests did happen.
-    """
+    """Drop the live-gauge files of workers gone (a killed worker cannot); their counters stay: their requests
+    did happen."""
     path = multiprocess_dir()
-    if not path:
-        return
-    for f in Path(path).glob("gauge_live*_*.db"):
+    for f in Path(path).glob("gauge_live*_*.db") if path else ():
         try:
             pid = int(f.stem.rsplit("_", 1)[1])
             os.kill(pid, 0)
-        except ValueError:
-            continue
         except ProcessLookupError:
             multiprocess.mark_process_dead(pid, path)
-        except PermissionError:
+        except (ValueError, PermissionError):
             continue
-
-
-async def metrics_endpoint_app(metrics: Metrics, send: Send) -> None:
-    body = metrics.exposition()
-    await send(
-        {
-            "type": "http.response.start",
-            "status": 200,
-            "headers": [(b"content-type", CONTENT_TYPE_LATEST.encode()), (b"content-length", str(len(body)).encode())],
-        }
-    )
-    await send({"type": "http.response.body", "body": body})
-
-
-# --------------------------------------------------------------------------- middleware
 
 
 class ObservabilityMiddleware:
-    """Request id, JSON access log and metrics for every HTTP request; serves `GET /metrics`."""
+    """Request id (the caller's `X-Request-ID` when short and printable, else a new one, echoed in the answer),
+    JSON access log and metrics for every HTTP request; serves `GET /metrics`."""
 
-    def __init__(
-        self,
-        app: ASGIApp,
-        metrics: Metrics,
-        metrics_path: str = "/metrics",
-        route_paths: Callable[[], Iterable[str]] = tuple,
-    ) -> None:
-        self.app = app
-        self.metrics = metrics
-        self.metrics_path = metrics_path
+    def __init__(self, app: ASGIApp, metrics: Metrics, route_paths: Callable[[], Iterable[str]] = tuple) -> None:
+        self.app, self.metrics = app, metrics
         # Paths of the app's routes, for requests refused before routing (401, 413 from a middleware):
         # they are labelled with their route too; any other unmatched path is "unmatched" (bounded labels).
         self._route_paths = route_paths
@@ -268,46 +170,42 @@ class ObservabilityMiddleware:
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-
+            return await self.app(scope, receive, send)
         start = time.perf_counter()
         request_id = _request_id(scope)
         state = scope.setdefault("state", {})
         state["request_id"] = request_id
-        status = 500
-        bytes_in = 0
-        rid_header = (b"x-request-id", request_id.encode())
+        status, bytes_in = 500, 0
 
         async def receive_counting() -> Message:
             nonlocal bytes_in
             message = await receive()
-            if message["type"] == "http.request":
-                bytes_in += len(message.get("body", b""))
+            bytes_in += len(message.get("body", b""))
             return message
 
         async def send_tagged(message: Message) -> None:
             nonlocal status
             if message["type"] == "http.response.start":
                 status = message["status"]
-                message["headers"] = [*message.get("headers", []), rid_header]
+                message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
             await send(message)
 
         self.metrics.in_flight.inc()
         try:
-            if scope["path"] == self.metrics_path and scope["method"] in ("GET", "HEAD"):
+            if scope["path"] == "/metrics" and scope["method"] in ("GET", "HEAD"):
                 scope["route"] = _MetricsRoute
-                await metrics_endpoint_app(self.metrics, send_tagged)
+                body = self.metrics.exposition()
+                headers = [(b"content-type", CONTENT_TYPE_LATEST.encode()), (b"content-length", b"%d" % len(body))]
+                await send_tagged({"type": "http.response.start", "status": 200, "headers": headers})
+                await send_tagged({"type": "http.response.body", "body": body})
             else:
                 await self.app(scope, receive_counting, send_tagged)
         finally:
             self.metrics.in_flight.dec()
-            elapsed = time.perf_counter() - start
-            self._record(scope, state, request_id, status, elapsed, bytes_in)
+            self._record(scope, state, request_id, status, time.perf_counter() - start, bytes_in)
 
-    def _record(
-        self, scope: Scope, state: dict[str, Any], request_id: str, status: int, elapsed: float, bytes_in: int
-    ) -> None:
+    def _record(self, scope: Scope, state: dict[str, Any], request_id: str, status: int, elapsed: float,
+                bytes_in: int) -> None:
         route = getattr(scope.get("route"), "path", None)
         if route is None:
             if self._known is None:
@@ -322,24 +220,10 @@ class ObservabilityMiddleware:
                 if n:
                     self.metrics.joints.labels(str(uid)).inc(n)
         if self.log.isEnabledFor(logging.INFO):
-            client = scope.get("client")
-            self.log.info(
-                "request",
-                extra={
-                    "fields": {
-                        "request_id": request_id,
-                        "method": method,
-                        "path": scope["path"],
-                        "route": route,
-                        "status": status,
-                        "latency_ms": round(elapsed * 1e3, 3),
-                        "bytes_in": bytes_in,
-                        "joints": state.get("joints"),
-                        "client": f"{client[0]}:{client[1]}" if client else None,
-                        "pid": os.getpid(),
-                    }
-                },
-            )
+            fields = {"request_id": request_id, "method": method, "path": scope["path"], "route": route,
+                      "status": status, "latency_ms": round(elapsed * 1e3, 3), "bytes_in": bytes_in,
+                      "joints": state.get("joints"), "client": peer(scope.get("client")), "pid": os.getpid()}
+            self.log.info("request", extra={"fields": fields})
 
 
 class _MetricsRoute:
@@ -349,11 +233,6 @@ class _MetricsRoute:
 def _request_id(scope: Scope) -> str:
     for name, value in scope.get("headers", ()):
         if name == b"x-request-id":
-            try:
-                rid = value.decode("ascii")
-            except UnicodeDecodeError:
-                break
-            if _REQUEST_ID.match(rid):
-                return rid
-            break
+            rid = value.decode("latin-1")
+            return rid if _REQUEST_ID.match(rid) else uuid.uuid4().hex
     return uuid.uuid4().hex

@@ -1,9 +1,8 @@
 """Memory a worker needs at its limits, and a pod with several workers (docs/deployment.md, "Sizing a pod").
 
-An upper bound from the settings alone, with coefficients measured as the peak RSS
-(`VmHWM`) of one worker serving the largest request of each kind (commands in
-docs/deployment.md); each is rounded up. The terms of one request do not all peak at once, so the
-bound is loose by up to ~1.6x at the defaults: a budget, not a prediction.
+An upper bound from the settings alone, with coefficients measured as the peak RSS (`VmHWM`) of one worker serving
+the largest request of each kind (commands in docs/deployment.md), each rounded up. The terms of one request do not
+all peak at once, so the bound is loose by up to ~1.6x at the defaults: a budget, not a prediction.
 """
 
 from __future__ import annotations
@@ -15,75 +14,60 @@ from jointlimits.schemas.answer import answer_bytes
 from jointlimits.service.settings import Settings
 
 MiB = 2**20
-
-WORKER_BASE_BYTES = 96 * MiB
-"""A worker after start-up, imports and first request (measured 65 MiB)."""
-SUPERVISOR_BYTES = 64 * MiB
-"""uvicorn's supervisor with several workers (it never imports the application; ~30 MiB)."""
-JSON_BYTES_PER_VALUE = 96
-"""A JSON body's parse, per value (Python objects, then arrays): measured 89 B at 8e6 values of `0`."""
+WORKER_BASE_BYTES = 96 * MiB  # a worker after start-up, imports and first request (measured 65 MiB)
+SUPERVISOR_BYTES = 64 * MiB  # uvicorn's supervisor with several workers (it never imports the application; ~30 MiB)
+JSON_BYTES_PER_VALUE = 96  # a JSON body's parse, per value (objects, then arrays): measured 89 B at 8e6 `0`s
+# A msgpack joint: its 88 body bytes, their copy, the core's per-joint temporaries and its energy answer
+# (measured 1.03 KB: 1e6 joints, energy only, +1005 MiB).
 BYTES_PER_JOINT = 1100
-"""A msgpack joint: its 88 body bytes, their copy, the core's per-joint temporaries and its energy answer
-(measured 1.03 KB: 1e6 joints, energy only, +1005 MiB)."""
+# A msgpack body row triple (288 bytes): body, copy, the body table and its polar factors (measured 1.44 KB:
+# 9.2e5 bodies, +1265 MiB).
 BYTES_PER_BODY = 1500
-"""A msgpack body row triple (288 bytes): body, copy, the body table and its polar factors
-(measured 1.44 KB: 9.2e5 bodies, +1265 MiB)."""
-MSGPACK_BYTES = {"joint": 8 * (2 + 6 + 3), "body": 3 * 12 * 8}
-"""Request bytes of one joint and of one body in msgpack: a body of given size holds at most so many."""
-JSON_BYTES_PER_VALUE_MIN = 2
-"""The shortest JSON value and its separator (`0,`): a body of `b` bytes holds at most `b / 2 + 1` values."""
-JSON_VALUES_PER_JOINT = 11
-"""Values one joint adds to a JSON body at least: 2 body ids, 6 edge coordinates, lower, upper, strength."""
+MSGPACK_BYTES = {"joint": 8 * (2 + 6 + 3), "body": 3 * 12 * 8}  # request bytes of one joint and of one body
+JSON_BYTES_PER_VALUE_MIN = 2  # the shortest JSON value and its separator (`0,`): b bytes hold b / 2 + 1 values
+JSON_VALUES_PER_JOINT = 11  # 2 body ids, 6 edge coordinates, lower, upper, strength
+# A joint of a session's prepared scene, held for the connection's life (measured ~700 B: 67 MB for 1e5 joints).
 SESSION_BYTES_PER_JOINT = 768
-"""A joint of a WebSocket session's prepared scene, held for the connection's life (measured ~700 B:
-67 MB for the bench's 1e5-joint scene)."""
+# A body of a session's prepared scene: its q, q_prev, q_ref rows (288 B) and what `prepare` adds per body (polar
+# factors, frames: measured 609 B per body for a 1-joint scene of 2e5 bodies).
 SESSION_BYTES_PER_BODY = 1024
-"""A body of a session's prepared scene, held for the connection's life: its `q`, `q_prev`, `q_ref` rows (288 B)
-and what `prepare` adds per body (polar factors, frames: measured 609 B allocated per body for a 1-joint scene
-of 2e5 bodies). A body counts as `SESSION_BYTES_PER_BODY / SESSION_BYTES_PER_JOINT` joints (`session_weight`)."""
+# Peak over the answer's bound: its arrays and the encoded message (measured <= 2.0 in msgpack at the bound once
+# the request's own cost is taken off; JSON answers reach their bound only with the longest floats).
+ANSWER_FACTOR = 2.5
+UPLOAD_FACTOR = 2  # a body being received is held twice at its end: its chunks and their joined copy
+# The upload budget's least size: with small body limits, a burst of bodies being received (oversized ones among
+# them, each held until it passes the limit) still leaves room for the others.
+UPLOAD_FLOOR = 128 * MiB
 
 
 def session_weight(joints: int, bodies: int) -> int:
-    """What a session's scene counts against JOINTLIMITS_MAX_SESSION_JOINTS: its joints, and its bodies at
-    their weight in joints (4/3 each, rounded up): the bound stays `SESSION_BYTES_PER_JOINT x MAX_SESSION_JOINTS`
-    bytes of prepared scenes, whatever their mix (a 1-joint scene of 2e5 bodies holds ~65 MB, not one joint's)."""
+    """What a session's scene counts against JOINTLIMITS_MAX_SESSION_JOINTS: its joints, and its bodies at their
+    weight in joints (4/3, rounded up), so the bound stays `SESSION_BYTES_PER_JOINT x MAX_SESSION_JOINTS` bytes
+    whatever the mix (a 1-joint scene of 2e5 bodies holds ~65 MB, not one joint's)."""
     return joints + -(-bodies * SESSION_BYTES_PER_BODY // SESSION_BYTES_PER_JOINT)
 
 
-ANSWER_FACTOR = 2.5
-"""Peak over the answer's bound: the answer's arrays and the encoded message (measured <= 2.0 in
-msgpack at the bound once the request's own cost is taken off; JSON answers reach their bound only
-with the longest floats, and the arrays are then a third of it)."""
+def _msgpack(body_bytes: int, s: Settings) -> tuple[int, int]:
+    """The costliest msgpack body of this size and its joints: joints cost more per byte than bodies, so as many
+    joints as allowed, bodies in the rest."""
+    joints = min(s.max_joints, body_bytes // MSGPACK_BYTES["joint"])
+    bodies = (body_bytes - joints * MSGPACK_BYTES["joint"]) // MSGPACK_BYTES["body"]
+    return BYTES_PER_JOINT * joints + BYTES_PER_BODY * bodies, joints
 
 
 def request_bytes(s: Settings) -> int:
     """The costlier of the largest JSON body (its bytes and parse) and the largest msgpack body (bytes and core)."""
-    json_body = s.max_body_bytes + JSON_BYTES_PER_VALUE * s.max_json_values
-    # msgpack: joints cost more per request byte than bodies, so the worst body is as many joints as
-    # allowed and bodies in the rest of its bytes.
-    joints = min(s.max_joints, s.max_body_bytes // MSGPACK_BYTES["joint"])
-    bodies = (s.max_body_bytes - joints * MSGPACK_BYTES["joint"]) // MSGPACK_BYTES["body"]
-    return max(json_body, BYTES_PER_JOINT * joints + BYTES_PER_BODY * bodies)
+    return max(s.max_body_bytes + JSON_BYTES_PER_VALUE * s.max_json_values, _msgpack(s.max_body_bytes, s)[0])
 
 
 def inflight_bytes(s: Settings) -> int:
-    """The memory budget of a worker's requests in flight: the costliest request its limits admit and its
-    answer. Requests start only while their costs (`cost_before_body`, then `request_cost`) fit in it
-    together (service/http/budget.py), so it bounds a worker however many requests arrive at once."""
+    """The memory budget of a worker's requests in flight: the costliest request its limits admit and its answer.
+    Requests start only while their costs fit in it together (service/http/budget.py)."""
     return request_bytes(s) + int(ANSWER_FACTOR * s.max_answer_bytes)
 
 
-UPLOAD_FACTOR = 2
-"""A body being received is held twice at its end: its chunks and their joined copy."""
-
-
-UPLOAD_FLOOR = 128 * MiB
-"""The upload budget's least size: with small body limits, a burst of bodies being received (a flood of
-oversized ones among them, each held until it passes the limit) still leaves room for the others."""
-
-
 def upload_bytes(s: Settings) -> int:
-    """The memory budget of the bodies a worker is receiving: one body at the limit, and at least `UPLOAD_FLOOR`."""
+    """The memory budget of the bodies a worker is receiving: one body at the limit, at least `UPLOAD_FLOOR`."""
     return max(UPLOAD_FACTOR * s.max_body_bytes, UPLOAD_FLOOR)
 
 
@@ -95,17 +79,11 @@ def worker_bytes(s: Settings) -> int:
 
 
 def cost_before_body(body_bytes: int, binary_request: bool, binary_answer: bool, s: Settings) -> int:
-    """Memory a request of `body_bytes` bytes may take before it is parsed: the costliest request of that
-    size and its answer, every joint with every output. At most `inflight_bytes(s)`.
-
-    The terms are `request_bytes`' at this size: msgpack's joints cost more per byte than its bodies, so
-    its worst body is joints alone; a JSON body's worst is its shortest values (`0,`).
-    """
+    """Memory a request of `body_bytes` bytes may take before it is parsed, by `request_bytes`' terms at this size
+    (a JSON body's worst is its shortest values, `0,`), and its answer with every output. At most `inflight_bytes`."""
     b = min(body_bytes, s.max_body_bytes)
     if binary_request:
-        joints = min(s.max_joints, b // MSGPACK_BYTES["joint"])
-        bodies = (b - joints * MSGPACK_BYTES["joint"]) // MSGPACK_BYTES["body"]
-        request = BYTES_PER_JOINT * joints + BYTES_PER_BODY * bodies
+        request, joints = _msgpack(b, s)
     else:
         values = min(s.max_json_values, b // JSON_BYTES_PER_VALUE_MIN + 1)
         joints = min(s.max_joints, values // JSON_VALUES_PER_JOINT)
@@ -113,17 +91,10 @@ def cost_before_body(body_bytes: int, binary_request: bool, binary_answer: bool,
     return _with_answer(request, [joints], OUTPUTS, binary_answer, s)
 
 
-def request_cost(
-    body_bytes: int,
-    json_values: int | None,
-    batch_joints: Sequence[int],
-    n_bodies: int,
-    outputs: Sequence[str],
-    binary_answer: bool,
-    s: Settings,
-) -> int:
-    """Memory of a parsed request by the same terms as `cost_before_body`, from what it holds: its JSON
-    values (None: a msgpack body), joints per batch, bodies and outputs. At most `inflight_bytes(s)`."""
+def request_cost(body_bytes: int, json_values: int | None, batch_joints: Sequence[int], n_bodies: int,
+                 outputs: Sequence[str], binary_answer: bool, s: Settings) -> int:
+    """Memory of a parsed request by the same terms, from what it holds: its JSON values (None: a msgpack body),
+    joints per batch, bodies and outputs. At most `inflight_bytes(s)`."""
     if json_values is None:
         request = BYTES_PER_JOINT * sum(batch_joints) + BYTES_PER_BODY * n_bodies
     else:
@@ -131,8 +102,8 @@ def request_cost(
     return _with_answer(request, batch_joints, outputs, binary_answer, s)
 
 
-def _with_answer(request: int, batch_joints: Sequence[int], outputs: Sequence[str], binary_answer: bool, s: Settings) -> int:
-    """`request` bytes and the answer's (its bound within the limit, `ANSWER_FACTOR` times), at most the budget."""
+def _with_answer(request: int, batch_joints: Sequence[int], outputs: Sequence[str], binary_answer: bool,
+                 s: Settings) -> int:
     answer = min(s.max_answer_bytes, answer_bytes(batch_joints, outputs, binary_answer))
     return min(inflight_bytes(s), request + int(ANSWER_FACTOR * answer))
 

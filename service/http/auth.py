@@ -1,100 +1,62 @@
-"""Optional bearer-token auth for the API (`/v1/...`).
+"""Optional bearer-token auth on `/v1/...`, checked before the body is read; the sessions' `Origin` check.
 
-With no token configured (`JOINTLIMITS_TOKEN` unset or empty) the API is open. With one,
-every request under `/v1/` must carry `Authorization: Bearer <token>`, or it answers 401
-with `WWW-Authenticate: Bearer` before its body is read (an unauthenticated flood costs
-no parsing). `/healthz`, `/metrics` and the OpenAPI document stay open, so probes and
-scrapers need no secret. CORS preflights (`OPTIONS`) are answered by the CORS middleware,
-which sits outside this one.
+With no token (`JOINTLIMITS_TOKEN` unset or empty) the API is open. With one, every request under `/v1/` must carry
+`Authorization: Bearer <token>`, else 401 with `WWW-Authenticate: Bearer` before its body is read (a flood costs
+no parsing). `/healthz`, `/metrics` and the OpenAPI document stay open for probes and scrapers; CORS preflights
+are answered by the CORS middleware, outside this one.
 """
 
 from __future__ import annotations
 
 import hmac
-import json
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from jointlimits.service.http.refusals import FAULT_LIST
+from jointlimits.service.http.errors import refuse
 
 PROTECTED_PREFIX = "/v1/"
+_UNAUTHORIZED = "missing or invalid bearer token"
+
+
+def _header(scope: Scope, name: bytes) -> bytes | None:
+    return next((v for k, v in scope.get("headers", ()) if k == name), None)
 
 
 class BearerAuthMiddleware:
     def __init__(self, app: ASGIApp, token: str, prefix: str = PROTECTED_PREFIX) -> None:
         if not token:
             raise ValueError("BearerAuthMiddleware needs a non-empty token")
-        self.app = app
-        self.expected = token.encode()
-        self.prefix = prefix
+        self.app, self.expected, self.prefix = app, token.encode(), prefix
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket") or not scope["path"].startswith(self.prefix) or self._authorized(scope):
-            await self.app(scope, receive, send)
-            return
-        fault = {"loc": ["header", "authorization"], "msg": "missing or invalid bearer token", "type": "unauthorized"}
-        body = json.dumps({"detail": [fault]}).encode()
-        prefix = "http"
-        if scope["type"] == "websocket":
-            # A session is refused on its upgrade request, before it is accepted: the same 401 where the
-            # server can answer the handshake with a response (uvicorn can), else a close (HTTP 403).
-            if "websocket.http.response" not in (scope.get("extensions") or {}):
-                await send({"type": "websocket.close", "code": 1008, "reason": "missing or invalid bearer token"})
-                return
-            prefix = "websocket.http"
-        await send(
-            {
-                "type": f"{prefix}.response.start",
-                "status": 401,
-                FAULT_LIST: True,
-                "headers": [
-                    (b"content-type", b"application/json"),
-                    (b"content-length", str(len(body)).encode()),
-                    (b"www-authenticate", b'Bearer realm="jointlimits"'),
-                ],
-            }
-        )
-        await send({"type": f"{prefix}.response.body", "body": body})
+            return await self.app(scope, receive, send)
+        # A session is refused on its upgrade request, before it is accepted: the same 401.
+        fault = {"loc": ["header", "authorization"], "msg": _UNAUTHORIZED, "type": "unauthorized"}
+        await refuse(scope, send, 401, fault, _UNAUTHORIZED, [(b"www-authenticate", b'Bearer realm="jointlimits"')])
 
     def _authorized(self, scope: Scope) -> bool:
-        for name, value in scope.get("headers", ()):
-            if name == b"authorization":
-                scheme, _, credentials = value.strip().partition(b" ")
-                # The scheme is case-insensitive (RFC 9110); the token comparison is constant-time,
-                # so it leaks nothing about how much of the token matched.
-                return scheme.lower() == b"bearer" and hmac.compare_digest(credentials.strip(), self.expected)
-        return False
+        scheme, _, credentials = (_header(scope, b"authorization") or b"").strip().partition(b" ")
+        # The scheme is case-insensitive (RFC 9110); the token comparison is constant-time,
+        # so it leaks nothing about how much of the token matched.
+        return scheme.lower() == b"bearer" and hmac.compare_digest(credentials.strip(), self.expected)
 
 
 class SessionOriginMiddleware:
-    """Sessions honour the CORS allow-list: a WebSocket upgrade whose `Origin` is not in it is refused (403 with a
-    fault list) before auth, so a browser on a foreign site gets no session, token or not.
-
-    A browser always sends `Origin` on a WebSocket upgrade and does not apply CORS to it: without this check
-    any page could open a session (cross-site WebSocket hijacking). No `Origin` (a non-browser client: the
-    SDK, a solver) is allowed. Installed only when JOINTLIMITS_CORS_ORIGINS is set; `*` allows every origin."""
+    """Sessions honour the CORS allow-list (`*` allows every origin): a WebSocket upgrade whose `Origin` is not in
+    it is refused (403) before auth, token or not. A browser sends `Origin` on an upgrade and does not apply CORS to
+    it: without this check any page could open a session (cross-site WebSocket hijacking). No `Origin` (the SDK, a
+    solver) is allowed."""
 
     def __init__(self, app: ASGIApp, origins: tuple[str, ...]) -> None:
         self.app = app
         self.origins = {o.rstrip("/") for o in origins}
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        origin = self._origin(scope) if scope["type"] == "websocket" else None
+        raw = _header(scope, b"origin") if scope["type"] == "websocket" else None
+        origin = None if raw is None else raw.decode("latin-1")
         if origin is None or "*" in self.origins or origin.rstrip("/") in self.origins:
-            await self.app(scope, receive, send)
-            return
+            return await self.app(scope, receive, send)
         msg = f"origin {origin[:200]!r} is not allowed (JOINTLIMITS_CORS_ORIGINS): no session from this site"
-        body = json.dumps({"detail": [{"loc": ["header", "origin"], "msg": msg, "type": "origin_not_allowed"}]}).encode()
-        if "websocket.http.response" not in (scope.get("extensions") or {}):
-            await send({"type": "websocket.close", "code": 1008, "reason": "origin not allowed"})  # 403 with no body
-            return
-        headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-        await send({"type": "websocket.http.response.start", "status": 403, "headers": headers, FAULT_LIST: True})
-        await send({"type": "websocket.http.response.body", "body": body})
-
-    @staticmethod
-    def _origin(scope: Scope) -> str | None:
-        for name, value in scope.get("headers", ()):
-            if name == b"origin":
-                return value.decode("latin-1")
-        return None
+        await refuse(scope, send, 403, {"loc": ["header", "origin"], "msg": msg, "type": "origin_not_allowed"},
+                     "origin not allowed")

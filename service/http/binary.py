@@ -11,11 +11,13 @@ import io
 from typing import Any
 
 import msgpack
+import numpy as np
 
 from jointlimits.schemas import binary as wire
 from jointlimits.service.core import Evaluation, Fault, InputError
 from jointlimits.service.core.errors import Loc
 from jointlimits.service.http import document, limits
+from jointlimits.service.http.convert import to_wire
 from jointlimits.service.http.errors import HttpError
 
 MEDIA_TYPE = wire.MEDIA_TYPE
@@ -128,25 +130,17 @@ def decode(body: bytes, max_batches: int | None = None, opening: bool = False,
     return r.request(_unpack(body, r, max_batches), opening)
 
 
+def pack(doc: Any) -> Any:
+    """`doc` with each array an array map (integers as int64, the rest float64), for `wire.dumps`."""
+    if isinstance(doc, np.ndarray):
+        return wire.pack_array(doc, wire.INT64 if doc.dtype.kind in "iu" else wire.FLOAT64)
+    if isinstance(doc, dict):
+        return {k: pack(v) for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [pack(v) for v in doc]
+    return doc
+
+
 def encode(ev: Evaluation) -> bytes:
-    """The response document: arrays as raw little-endian buffers (one copy each, into the message)."""
-    batches = []
-    for res in ev.batches:
-        out: dict[str, Any] = {
-            "constitution_uid": res.constitution_uid,
-            "index": wire.pack_array(res.index, wire.INT64),
-            "x": wire.pack_array(res.x, wire.FLOAT64),
-            **({} if res.coordinate is None else {"coordinate": wire.pack_array(res.coordinate, wire.FLOAT64)}),
-            "energy": wire.pack_array(res.energy, wire.FLOAT64),
-        }
-        for k in ("gradient", "hessian"):
-            a = getattr(res, k)
-            if a is not None:
-                out[k] = wire.pack_array(a, wire.FLOAT64)
-        batches.append(out)
-    doc: dict[str, Any] = {"total_energy": float(ev.total_energy), "batches": batches}
-    if ev.assembled is not None:  # layout="bodies"
-        a = ev.assembled
-        doc["assembled"] = {k: wire.pack_array(getattr(a, k), wire.INT64 if k in ("rows", "cols") else wire.FLOAT64)
-                            for k in ("gradient", "rows", "cols", "blocks") if getattr(a, k) is not None}
-    return wire.dumps(doc)
+    """The answer document (`convert.to_wire`), arrays as raw little-endian buffers (one copy each)."""
+    return wire.dumps(pack(to_wire(ev)))

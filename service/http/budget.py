@@ -1,27 +1,14 @@
-"""A worker's memory budgets: what its requests in flight may hold together, whatever arrives at once.
+"""A worker's two memory budgets (sizes from the limits, `service/sizing.py`; docs/deployment.md, "Limits"):
+what its requests hold together, whatever arrives at once, each request being admitted on its own cost (`limits`).
 
-Each request is admitted on its own cost (`limits`), but a worker serves many at once: four
-requests at the body bound, each within the limits, held 1.5 times the memory the pod was sized
-for. Two budgets per worker (sizes from the limits, `jointlimits.service.sizing`):
+- uploads: the bodies being received (and a session's messages, `timeouts`), counted as their bytes arrive.
+  Nothing waits for it: a chunk that does not fit makes the answer 503 `busy`, the rest read and dropped, so a
+  slow sender holds only what it sent.
+- in flight: a request's cost, bounded from its body's size, cut to what it holds once parsed (`settle`), then to
+  its encoded answer, released once that has left the process (`ReleaseMiddleware`). Requests (and a session's
+  opening and evaluates) wait in arrival order; past `queue_timeout` they are 503 `busy`, nothing evaluated.
 
-- **uploads** (`sizing.upload_bytes`): the bodies being received, counted as their bytes arrive
-  (twice: the chunks and their joined copy). Nothing waits for it: once a chunk does not fit, the
-  rest of the body is read and dropped and the answer is a 503 `busy`. So a client that sends
-  slowly holds only what it sent, and no upload can wait on another. A WebSocket session's messages
-  count here too, from their first byte (`ws_protocol.SessionProtocol`: one that does not fit closes with 1013).
-- **in flight** (`sizing.inflight_bytes`): a received request's cost, first bounded from its body's
-  size (`sizing.cost_before_body`), then cut to what it holds once parsed (`sizing.request_cost`,
-  before the core runs), then to its encoded answer's bytes, released when they have left the process
-  (`ReleaseMiddleware`: a client that does not read is dropped after JOINTLIMITS_WRITE_TIMEOUT, which
-  releases them). Requests wait for it in arrival
-  order (a large one is not passed for ever by small ones); its size is the costliest request the
-  limits admit, so every admitted request fits alone. One that has not started after
-  `queue_timeout` seconds is a 503 `busy` with `Retry-After`: nothing was evaluated, a client may
-  retry it (the Python SDK does). A WebSocket session's opening and each of its evaluates wait for
-  their share the same way (`service/http/sessions.py`).
-
-Neither waits on the other (a body's upload bytes are given back once its request is in flight),
-so no request holds one while waiting for the other.
+Neither waits on the other (a body's upload bytes are given back once it is in flight): no deadlock.
 """
 
 from __future__ import annotations
@@ -30,24 +17,18 @@ import asyncio
 import threading
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from starlette.requests import Request
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jointlimits.service import sizing
-from jointlimits.service.core import Fault
 from jointlimits.service.http import limits
-from jointlimits.service.http.errors import RETRY_AFTER_SECONDS, HttpError
+from jointlimits.service.http.errors import busy
 from jointlimits.service.http.timeouts import DRAIN
 from jointlimits.service.settings import Settings
-from jointlimits.service.sizing import UPLOAD_FACTOR
 
-RESERVATIONS = "reservations"
-"""Key in a request's scope state of the reservations `ReleaseMiddleware` gives back after its answer."""
-IN_FLIGHT = "in_flight"
-"""Key in a request's scope state of its in-flight reservation, cut to its parsed cost by the route."""
 SMALL_SHARE = 16
 """A request of at most this fraction of the budget (~160 MB at the defaults, ~50 MB at the manifest's
 limits: every request of a few thousand joints) passes the waiters when it fits."""
@@ -76,32 +57,48 @@ class Reservation:
 
     budget: Budget
     size: int
-    _released: bool = field(default=False, repr=False)
+    _released: bool = False
 
     def try_grow(self, size: int) -> bool:
-        """Hold `size` more bytes if they fit now (no waiting: for the uploads budget); whether they did."""
-        return self.budget._try_take(self, size)
+        """Hold `size` more bytes if they fit now and nobody waits (no waiting: for the uploads budget)."""
+        b = self.budget
+        with b._lock:
+            fits = not self._released and not b._waiters and b.held + size <= b.capacity
+            if fits:
+                b.held += size
+                self.size += size
+        if fits:
+            b._changed()
+        return fits
 
     def shrink(self, size: int) -> None:
         """Hold `size` bytes from now on, if less than now (it never waits to grow: no request waits holding)."""
-        self.budget._give_back(self, max(0, self.size - max(size, 0)))
+        self._give_back(max(0, self.size - max(size, 0)))
 
     def release(self) -> None:
         """Give every byte back (idempotent)."""
-        self.budget._give_back(self, self.size, final=True)
+        self._give_back(self.size, final=True)
+
+    def _give_back(self, size: int, final: bool = False) -> None:
+        b = self.budget
+        with b._lock:
+            if self._released:
+                return
+            size = min(size, self.size)
+            self.size -= size
+            self._released = final
+            b.held -= size
+            b._wake()
+        b._changed()
 
 
 class Budget:
     """`capacity` bytes shared by the requests in flight; waiters served in arrival order (a small arrival,
-    at most `capacity / SMALL_SHARE`, that fits starts at once).
-
-    Thread-safe: the event loop acquires, worker threads may shrink and release (waking the
-    waiters through their loop).
-    """
+    at most `capacity / SMALL_SHARE`, that fits starts at once). Thread-safe: the event loop acquires, worker
+    threads may shrink and release (waking the waiters through their loop)."""
 
     def __init__(self, capacity: int, on_change: Callable[[Budget], None] | None = None) -> None:
-        self.capacity = capacity
-        self.held = 0
+        self.capacity, self.held = capacity, 0
         self._lock = threading.Lock()
         self._waiters: deque[_Waiter] = deque()
         self._on_change = on_change  # metrics: held bytes and queue length, after each change
@@ -148,27 +145,6 @@ class Budget:
         """An empty reservation, grown by `Reservation.try_grow` as bytes arrive."""
         return Reservation(self, 0)
 
-    def _try_take(self, reservation: Reservation, size: int) -> bool:
-        with self._lock:
-            fits = not reservation._released and not self._waiters and self.held + size <= self.capacity
-            if fits:
-                self.held += size
-                reservation.size += size
-        if fits:
-            self._changed()
-        return fits
-
-    def _give_back(self, reservation: Reservation, size: int, final: bool = False) -> None:
-        with self._lock:
-            if reservation._released:
-                return
-            size = min(size, reservation.size)
-            reservation.size -= size
-            reservation._released = final
-            self.held -= size
-            self._wake()
-        self._changed()
-
     def _changed(self) -> None:
         if self._on_change is not None:
             self._on_change(self)
@@ -182,48 +158,29 @@ class Budget:
             waiter.loop.call_soon_threadsafe(_resolve, waiter.future)
 
 
-def busy(what: str) -> HttpError:
-    """503 `busy`: refused before any evaluation, for `what` reason; a client may retry after Retry-After."""
-    msg = f"{what}; nothing was evaluated: retry after Retry-After seconds (the Python SDK does), or send smaller requests"
-    return HttpError(503, [Fault(("body",), msg, "busy")], headers={"Retry-After": str(RETRY_AFTER_SECONDS)})
-
-
-def uploads_full(budget: Budget) -> HttpError:
-    return busy(
-        f"this worker is receiving as many request bodies as its upload budget holds ({budget.capacity} bytes, "
-        "docs/deployment.md, 'Limits and sizing a pod')"
-    )
-
-
-def queue_full(settings: Settings, budget: Budget) -> HttpError:
-    return busy(
-        f"this worker's requests in flight hold its memory budget ({budget.capacity} bytes, docs/deployment.md, "
-        f"'Limits and sizing a pod') and this request waited {settings.queue_timeout:g} s (JOINTLIMITS_QUEUE_TIMEOUT) without starting",
-    )
-
-
 async def reserve(budget: Budget, cost: int, settings: Settings) -> Reservation:
     """`cost` bytes of the worker's in-flight `budget` once there is room (HTTP requests and WebSocket session
     messages alike); 503 busy after `queue_timeout` seconds of waiting."""
     try:
         return await budget.acquire(cost, settings.queue_timeout)
     except Busy:
-        raise queue_full(settings, budget) from None
+        raise busy(f"this worker's requests in flight hold its memory budget ({budget.capacity} bytes, "
+                   f"docs/deployment.md, 'Limits and sizing a pod') and this request waited "
+                   f"{settings.queue_timeout:g} s (JOINTLIMITS_QUEUE_TIMEOUT) without starting") from None
 
 
 async def receive(request: Request, settings: Settings, binary_request: bool, binary_answer: bool) -> bytes:
     """The request's body, received within the worker's upload budget (once a chunk does not fit, the rest is
     read and dropped, then 503 busy); then its turn in the in-flight budget (bounded from the body's size until
-    parsed: `settle`), which counts the body, so its upload bytes are given back. Past `queue_timeout`
-    seconds of waiting: 503 busy. Both reservations are given back once the answer has been sent
-    (`ReleaseMiddleware`)."""
+    parsed: `settle`), which counts the body, so its upload bytes are given back. Both are given back once the
+    answer has been sent (`ReleaseMiddleware`)."""
     reservations = held(request.state)
-    uploads, in_flight = request.app.state.uploads, request.app.state.in_flight
+    uploads = request.app.state.uploads
     upload = uploads.reserve_now()
     reservations.append(upload)
 
     def take(n: int) -> bool:
-        if upload.try_grow(UPLOAD_FACTOR * n):
+        if upload.try_grow(sizing.UPLOAD_FACTOR * n):
             return True
         upload.release()  # the chunks kept so far are dropped with it
         return False
@@ -231,48 +188,41 @@ async def receive(request: Request, settings: Settings, binary_request: bool, bi
     try:
         body = await limits.read_body(request, settings.max_body_bytes, take)
         if body is None:  # refused as it arrived, then drained
-            raise uploads_full(uploads)
+            raise busy(f"this worker is receiving as many request bodies as its upload budget holds "
+                       f"({uploads.capacity} bytes, docs/deployment.md, 'Limits and sizing a pod')")
         cost = sizing.cost_before_body(len(body), binary_request, binary_answer, settings)
-        reservation = await reserve(in_flight, cost, settings)
+        reservation = await reserve(request.app.state.in_flight, cost, settings)
     finally:
         upload.release()
     reservations.append(reservation)
-    setattr(request.state, IN_FLIGHT, reservation)
+    request.state.in_flight = reservation
     return body
 
 
 def settle(state: Any, cost: int) -> None:
-    """Cut the request's in-flight reservation (if any) to `cost`, its parsed cost (`sizing.request_cost`):
-    room for the requests waiting."""
-    reservation = getattr(state, IN_FLIGHT, None) if state is not None else None
+    """Cut the request's in-flight reservation (if any) to `cost`, its parsed cost: room for the requests waiting."""
+    reservation = getattr(state, "in_flight", None) if state is not None else None
     if reservation is not None:
         reservation.shrink(cost)
 
 
 class ReleaseMiddleware:
     """Gives back every reservation a request took (`held(state)`: `receive` appends them) once its answer has
-    left the process, or it failed, or its client left.
-
-    Sending an answer only puts it in the connection's write buffer: a client that does not read leaves it
-    there. So once the application is done, the reservations are cut to the answer's bytes and released when
-    the buffer has drained (`timeouts.Drain`; the connection is dropped after JOINTLIMITS_WRITE_TIMEOUT if it
-    never does). Without a `Drain` (in-process, no transport) they are released at once."""
+    left the process, or it failed, or its client left (`hold_until_drained`)."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":  # every HTTP request, whatever its path (a proxy's prefix included)
-            await self.app(scope, receive, send)
-            return
+            return await self.app(scope, receive, send)
         reservations: list[Reservation] = []
-        scope.setdefault("state", {})[RESERVATIONS] = reservations
+        scope.setdefault("state", {})["reservations"] = reservations
         sent = 0
 
         async def counting_send(message: Message) -> None:
             nonlocal sent
-            if message["type"] == "http.response.body":
-                sent += len(message.get("body", b""))
+            sent += len(message.get("body", b""))
             await send(message)
 
         try:
@@ -283,7 +233,8 @@ class ReleaseMiddleware:
 
 def hold_until_drained(scope: Scope, reservations: list[Reservation], written: int) -> None:
     """Keep `written` bytes of `reservations` (what was just written to the connection) until its write buffer
-    has drained, give back the rest now; all of them at once without a `Drain`."""
+    has drained (`timeouts.Drain`: a client that does not read is dropped after JOINTLIMITS_WRITE_TIMEOUT), give
+    back the rest now; all of them at once without a `Drain` (in-process, no transport)."""
     drain = scope.get("extensions", {}).get(DRAIN)
     kept = list(reservations)
     reservations.clear()
@@ -301,7 +252,7 @@ def hold_until_drained(scope: Scope, reservations: list[Reservation], written: i
 
 def held(state: Any) -> list[Reservation]:
     """The list `ReleaseMiddleware` releases, from a request's `state`."""
-    found = getattr(state, RESERVATIONS, None) if state is not None else None
+    found = getattr(state, "reservations", None) if state is not None else None
     if found is None:  # without the middleware nothing would give the bytes back
         raise RuntimeError("budget.ReleaseMiddleware is not installed: reservations would never be released")
     return found

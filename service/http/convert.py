@@ -105,33 +105,32 @@ worker's event loop and uvicorn's health-check thread keep answering while a lar
 
 
 def encode(ev: Evaluation) -> bytes:
-    """JSON bytes with each float in its shortest round-trip form, written in pieces.
-
-    The bytes are those of `orjson.dumps(to_wire(ev))`; each array is written
-    `FLOATS_PER_PIECE` numbers at a time and the pieces are joined once (`bytes.join`
-    releases the GIL while it copies). The core guarantees finite numbers; orjson
-    would write a stray NaN as `null`, never as `NaN`.
-    """
-    doc = to_wire(ev)
-    out: list[bytes | memoryview] = [b'{"total_energy":', orjson.dumps(doc["total_energy"]), b',"batches":[']
-    for i, b in enumerate(doc["batches"]):
-        out += [b","] if i else []
-        out += _object(b)
-    out.append(b"]")
-    if "assembled" in doc:  # layout="bodies": the per-body gradient and the block-sparse Hessian
-        out += [b',"assembled":', *_object(doc["assembled"])]
-    out.append(b"}")
-    return b"".join(out)
+    """The answer's JSON bytes (`dumps`)."""
+    return dumps(to_wire(ev))
 
 
-def _object(d: dict[str, Any]) -> list[bytes | memoryview]:
-    """A JSON object of scalars and arrays, each array in pieces (`_array_pieces`)."""
-    out: list[bytes | memoryview] = [b"{"]
-    for j, (k, v) in enumerate(d.items()):
-        out += [b',"' if j else b'"', k.encode(), b'":']
-        out += _array_pieces(v) if isinstance(v, np.ndarray) else [orjson.dumps(v)]
-    out.append(b"}")
-    return out
+def dumps(doc: dict[str, Any]) -> bytes:
+    """The bytes of `orjson.dumps(doc, option=OPT_SERIALIZE_NUMPY)` (each float in its shortest round-trip form),
+    each array written `FLOATS_PER_PIECE` numbers at a time and the pieces joined once (`bytes.join` releases the
+    GIL while it copies). The core guarantees finite numbers; orjson would write a stray NaN as `null`."""
+    return b"".join(_pieces(doc))
+
+
+def _pieces(v: Any) -> list[bytes | memoryview]:
+    """`v` (a document of objects, lists, scalars and arrays; keys plain ASCII) as JSON, in pieces."""
+    if isinstance(v, np.ndarray):
+        return _array_pieces(v)
+    if isinstance(v, dict):
+        out: list[bytes | memoryview] = [b"{"]
+        for j, (k, x) in enumerate(v.items()):
+            out += [b',"' if j else b'"', k.encode(), b'":', *_pieces(x)]
+        return [*out, b"}"]
+    if isinstance(v, list):
+        out = [b"["]
+        for j, x in enumerate(v):
+            out += [b"," if j else b"", *_pieces(x)]
+        return [*out, b"]"]
+    return [orjson.dumps(v, option=orjson.OPT_SERIALIZE_NUMPY)]
 
 
 def _array_pieces(a: np.ndarray) -> list[bytes | memoryview]:

@@ -1,16 +1,11 @@
 """The one validator: a plain document checked, every fault named, and turned into the core's arguments.
 
-The decoders only turn bytes into plain data (`convert`: JSON by pydantic's parser, jiter; `binary`: msgpack
-by the msgpack library): maps, lists, strings, numbers, and in msgpack the arrays' maps `{dtype, shape, data}`.
-A `Checker` reads that document, for a request (`POST /v1/evaluate`, a session's opening) and a session's
-later message alike, in either encoding: the keys (repeated, unknown, missing), the structure (a map, a list,
-an int64, a literal, a boolean where the wire says so) and each numeric array (a list of numbers, or an array
-map as a NumPy view, without a copy). What needs arithmetic (shapes, finiteness, indices, ranges, geometry) is
-the core's (`service/core/validate.py`), on every path: the arrays are handed over whatever their shape.
-
-The words are pydantic's, as JSON's users have always read them; msgpack keeps its own for what only it can
-say (a map, an integer "in int64 range", a key that is not a string). At most `MAX_FAULTS` faults: the
-`MAX_FAULTS`-th ends the check (`InputError`), so a flood of bad batches costs 20 faults' worth of work.
+The decoders only turn bytes into plain data (`convert`: JSON by jiter; `binary`: msgpack, its arrays as maps
+`{dtype, shape, data}`). A `Checker` reads that document, a request (or a session's opening) or a session's later
+message, in either encoding: the keys, the structure and each numeric array (made a NumPy array, an array map a
+view without a copy). What needs arithmetic (shapes, finiteness, indices, geometry) is the core's
+(`service/core/validate.py`). The words are pydantic's, as JSON's users have always read them; msgpack keeps its
+own for what only it can say. The `MAX_FAULTS`-th fault ends the check: a flood of bad batches costs 20 faults.
 """
 
 from __future__ import annotations

@@ -1,15 +1,11 @@
-"""Request limits, each checked once, in this module: the bytes while a body streams in (`read_body`); a JSON
-text's values (every JSON text) and batches (a request) on its bytes, before its parse (`check_json`); a msgpack
-request's batches from its header, before any is read (`check_batches`); the joints and the answer's size once
-parsed, before any evaluation (`admit`).
+"""Request limits, each checked once, here: the bytes while a body streams in (`read_body`); a JSON text's values
+and batches on its bytes, before its parse (`check_json`); a msgpack request's batches from its header
+(`check_batches`); the joints and the answer's size once parsed, before any evaluation (`admit`).
 
-Why values and JSON batches are counted on the bytes, not on the parsed document: parsing is what they bound.
-A JSON value costs 24 (`0,`) to 96 (`[],`) bytes of Python objects once parsed (measured: 2e6 `[]` in a list,
-+197 MiB; 2e6 `{}` batches, +151 MiB): the largest body (256 MiB) of `0,` would take ~3 GB, of `{},` ~7 GB,
-where the sizing rule charges a JSON body `JSON_BYTES_PER_VALUE` x `max_json_values` (192 MB at the defaults,
-service/sizing.py). Under that bound a parsed body holds at most `max_json_values / 11` joints, so its joints
-are counted once, parsed (`admit`). Its batches are bounded by its braces too: 2e6 empty batches, within the
-value bound, take ~0.8 s to parse and refuse; their braces, one C count.
+Values and JSON batches are counted on the bytes because parsing is what they bound: a JSON value costs 24 (`0,`)
+to 96 (`[],`) bytes of Python objects once parsed, so the largest body (256 MiB) of `0,` would take ~3 GB, of `{},`
+~7 GB (2e6 empty batches take ~0.8 s to parse; their braces, one C count). Under the value bound a body holds at
+most `max_json_values / 11` joints, so joints are counted once parsed.
 """
 
 from __future__ import annotations
@@ -18,21 +14,14 @@ from collections.abc import Callable
 
 from fastapi import Request
 
-from jointlimits.service.core import Fault
-from jointlimits.service.http.errors import HttpError
+from jointlimits.service.http.errors import too_large as _too_large
 from jointlimits.schemas.answer import BATCH_OVERHEAD_BYTES, FLOATS_PER_JOINT, answer_bytes  # noqa: F401 (re-exported)
 from jointlimits.service.settings import Settings
 
-def _too_large(loc: tuple[str, ...], msg: str) -> HttpError:
-    return HttpError(413, [Fault(loc, msg, "too_large")])
-
-
 async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool] | None = None) -> bytes | None:
     """The body, refused with 413 as soon as it is known to exceed `max_bytes` (by header or while streaming).
-
-    `take(n)` is asked with each chunk's size as it arrives whether to keep it (the worker's upload
-    budget, `budget.receive`); after a refusal the rest is read and dropped (the client gets an answer,
-    not a reset connection, and nothing is held) and the result is None."""
+    `take(n)` says whether to keep each chunk (the upload budget, `budget.receive`); once it says no, the rest is
+    read and dropped (the client gets an answer, not a reset, and nothing is held) and the result is None."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > max_bytes:
         raise _too_large(("body",), f"request body is {int(declared)} bytes; this service accepts at most {max_bytes}")
@@ -49,14 +38,9 @@ async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool
     return None if chunks is None else b"".join(chunks)
 
 
-# ------------------------------------------------------------------ admission by cost, before any work
-
-
 def admit(*, joints: list[int], outputs: list[str] | tuple[str, ...], binary_answer: bool, settings: Settings) -> None:
-    """Refuse with 413 a parsed request (or a session's scene and options) whose joints or answer would cost more
-    than this service's bounds, before any work. `joints`: joints per batch (their batches were counted before
-    they were parsed: `check_json`, `check_batches`). Raises `HttpError` (413) naming the bound, the figure and
-    what to do."""
+    """413 for a parsed request (or a session's scene and options) whose joints (`joints`: per batch) or answer
+    would cost more than this service's bounds, before any work, naming the bound, the figure and what to do."""
     n_joints = sum(joints)
     if n_joints > settings.max_joints:
         raise _too_large(

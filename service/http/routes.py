@@ -1,4 +1,4 @@
-"""Endpoints of contract v1 (+ discovery): parse, call the core once, encode."""
+"""Endpoints of contract v1 and discovery: negotiate the encodings, parse, call the core once, encode."""
 
 from __future__ import annotations
 
@@ -9,22 +9,71 @@ from fastapi.responses import JSONResponse, RedirectResponse, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
-from jointlimits.schemas import ConstitutionsResponse, EvaluateResponse
-from jointlimits.service.core import InputError, evaluate
-from jointlimits.service.core.errors import DeadlineExceeded, check_deadline
+from jointlimits.schemas import ConstitutionsResponse, EvaluateResponse, Limits
+from jointlimits.schemas.binary import MEDIA_TYPES as BINARY_TYPES
+from jointlimits.schemas.constitutions import describe
 from jointlimits.service import sizing
-from jointlimits.service.http import binary, budget, convert, discovery, document, limits, negotiate, openapi
-from jointlimits.service.http.errors import FaultList, HttpError, client_gone, deadline_handler, http_error_handler, input_error_handler
+from jointlimits.service.core import Fault, InputError, evaluate, registry
+from jointlimits.service.core.errors import DeadlineExceeded, check_deadline
+from jointlimits.service.http import binary, budget, convert, document, limits, openapi
+from jointlimits.service.http.errors import FaultList, HttpError, client_gone, deadline_handler, fault_handler, one_fault
 from jointlimits.service.settings import Settings
 
 router = APIRouter()
-CODECS = {negotiate.JSON: convert, negotiate.BINARY: binary}
+JSON, BINARY = convert.MEDIA_TYPE, binary.MEDIA_TYPE
+CODECS = {JSON: convert, BINARY: binary}
+SUPPORTED = f"{JSON} or {BINARY}"
+
+
+def _media_type(value: str) -> str:
+    return value.split(";", 1)[0].strip().lower()
+
+
+def request_type(content_type: str | None) -> str:
+    """`JSON` or `BINARY` from `Content-Type`; no header at all is read as JSON, as FastAPI does. Else 415."""
+    t = _media_type(content_type or JSON)
+    if t == JSON or t.endswith("+json"):
+        return JSON
+    if t in BINARY_TYPES:
+        return BINARY
+    raise HttpError(415, [Fault(("header", "content-type"), f"unsupported Content-Type {t!r}; send {SUPPORTED}",
+                                "media_type")])
+
+
+def response_type(accept: str | None, requested: str) -> str:
+    """The acceptable type with the highest q; ties and a missing header answer in the request's encoding."""
+    if not accept or not accept.strip():
+        return requested
+    quality = {JSON: 0.0, BINARY: 0.0}
+    for part in accept.split(","):
+        media, *params = part.split(";")
+        t = _media_type(media)
+        q = _quality(params)
+        for candidate, aliases in ((JSON, {JSON}), (BINARY, BINARY_TYPES)):
+            if t in aliases or t in ("*/*", "application/*"):
+                quality[candidate] = max(quality[candidate], q)
+    best = max(quality.values())
+    if best <= 0.0:
+        raise HttpError(406, [Fault(("header", "accept"), f"cannot answer in {accept!r}; accept {SUPPORTED}",
+                                    "not_acceptable")])
+    return requested if quality[requested] == best else max(quality, key=quality.__getitem__)
+
+
+def _quality(params: list[str]) -> float:
+    for p in params:
+        name, _, value = p.partition("=")
+        if name.strip().lower() == "q":
+            try:
+                q = float(value)
+            except ValueError:
+                return 0.0
+            return q if 0.0 <= q <= 1.0 else 0.0
+    return 1.0
 
 
 @router.get("/", include_in_schema=False)
 def root(request: Request) -> RedirectResponse:
-    """A browser at the service's root lands on its docs (FastAPIOffline's Swagger UI, service/app.py), under
-    whatever prefix a proxy mounts the service at."""
+    """A browser at the service's root lands on its docs, under whatever prefix a proxy mounts the service at."""
     return RedirectResponse(request.scope.get("root_path", "").rstrip("/") + "/docs")
 
 
@@ -59,13 +108,16 @@ def readyz(request: Request) -> Response:
 def draining(settings: Settings) -> FaultList:
     """The 503 of a worker that drains: to `/readyz`, and to the upgrade of a new session (which the worker
     would close within the delay: the client's retry, through a balancer, opens it elsewhere)."""
-    fault = {"loc": [], "msg": DRAINING.format(delay=settings.shutdown_delay), "type": "draining"}
-    return FaultList({"detail": [fault]}, status_code=503)
+    return one_fault(503, [], DRAINING.format(delay=settings.shutdown_delay), "draining")
 
 
 @router.get("/v1/constitutions", response_model=ConstitutionsResponse, summary="Supported constitutions")
 def list_constitutions(request: Request) -> ConstitutionsResponse:
-    return discovery.constitutions(request.app.state.settings)
+    s = request.app.state.settings
+    infos = [describe(f) for f in sorted(registry.CONSTITUTIONS.values(), key=lambda f: -f.uid)]
+    bounds = Limits(max_body_bytes=s.max_body_bytes, max_joints=s.max_joints, max_batches=s.max_batches,
+                    max_answer_bytes=s.max_answer_bytes, max_json_values=s.max_json_values)
+    return ConstitutionsResponse(constitutions=infos, limits=bounds)
 
 
 @router.post(
@@ -75,17 +127,15 @@ def list_constitutions(request: Request) -> ConstitutionsResponse:
     summary="Energy, gradient and Hessian of a batch of joint limits",
     description="Body and answer in JSON or msgpack (`Content-Type` / `Accept`); errors are always JSON.",
     openapi_extra={"requestBody": openapi.request_body()},
-    responses={
-        200: {"content": {negotiate.BINARY: {"schema": {"type": "string", "format": "binary"}}}},
-        **openapi.error_responses(),
-    },
+    responses={200: {"content": {BINARY: {"schema": {"type": "string", "format": "binary"}}}},
+               **openapi.error_responses()},
 )
 async def evaluate_joints(request: Request) -> Response:
     settings = request.app.state.settings
-    decoder = CODECS[negotiate.request_type(request.headers.get("content-type"))]
-    answer = negotiate.response_type(request.headers.get("accept"), decoder.MEDIA_TYPE)
+    decoder = CODECS[request_type(request.headers.get("content-type"))]
+    answer = response_type(request.headers.get("accept"), decoder.MEDIA_TYPE)
     # Received within the worker's memory budgets, then its turn among the requests in flight.
-    body = await budget.receive(request, settings, decoder is binary, answer == negotiate.BINARY)
+    body = await budget.receive(request, settings, decoder is binary, answer == BINARY)
     # The deadline covers the work (parse, core, encode), not the upload or the wait (bounded above).
     deadline = time.monotonic() + settings.request_timeout
     # Parsing and NumPy run in a worker thread, so the event loop stays free.
@@ -102,15 +152,15 @@ def _evaluate(  # noqa: ANN001 (codec modules)
         kwargs = convert.decode(body, settings.max_json_values, settings.max_batches, checker=checker)
     else:
         kwargs = binary.decode(body, settings.max_batches, checker=checker)
-    json_values = checker.values  # None for msgpack
     check_deadline(deadline)
     # Admission by cost, before any evaluation: joints, the answer's size in its encoding.
     batch_joints = [len(j.body_ids) for j in kwargs["batches"]]
-    limits.admit(joints=batch_joints, outputs=kwargs["outputs"], binary_answer=encoder is binary, settings=settings)
+    outputs, binary_answer = kwargs["outputs"], encoder is binary
+    limits.admit(joints=batch_joints, outputs=outputs, binary_answer=binary_answer, settings=settings)
     # From the bound of its size to what it holds: room for the requests waiting.
-    n_bodies, outputs = kwargs["bodies"].q.shape[0], kwargs["outputs"]
-    cost = sizing.request_cost(len(body), json_values, batch_joints, n_bodies, outputs, encoder is binary, settings)
-    budget.settle(state, cost)
+    n_bodies = kwargs["bodies"].q.shape[0]
+    budget.settle(state, sizing.request_cost(len(body), checker.values, batch_joints, n_bodies, outputs,
+                                             binary_answer, settings))
     if state is not None:  # joint counts for the access log and metrics (service/observability.py)
         by_uid: dict[int, int] = {}
         for j in kwargs["batches"]:
@@ -126,8 +176,8 @@ def _evaluate(  # noqa: ANN001 (codec modules)
 def install(app: FastAPI) -> None:
     """Routes, 4xx handlers and the OpenAPI components of the raw-bodied route."""
     app.include_router(router)
-    app.add_exception_handler(InputError, input_error_handler)
-    app.add_exception_handler(HttpError, http_error_handler)
+    app.add_exception_handler(InputError, fault_handler)
+    app.add_exception_handler(HttpError, fault_handler)
     app.add_exception_handler(ClientDisconnect, client_gone)  # 499 / 408, not a 500 with a traceback
     app.add_exception_handler(DeadlineExceeded, deadline_handler)
     build = app.openapi

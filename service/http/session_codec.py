@@ -9,9 +9,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-import orjson
-
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core import Evaluation, Fault, InputError
@@ -82,33 +79,15 @@ def message_id(e: Exception) -> int | str | None:
 
 
 def encode(doc: dict[str, Any], binary_frame: bool) -> Frame:
-    """A reply (not an evaluation): arrays as array maps (msgpack) or lists of shortest round-trip floats (JSON)."""
-    if binary_frame:
-        return wire.dumps(_walk(doc, lambda a: wire.pack_array(a, wire.INT64 if a.dtype.kind == "i" else wire.FLOAT64)))
-    return orjson.dumps(_walk(doc, np.ascontiguousarray), option=orjson.OPT_SERIALIZE_NUMPY).decode()
-
-
-def _walk(obj: Any, array: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return array(obj)
-    if isinstance(obj, dict):
-        return {k: _walk(v, array) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_walk(v, array) for v in obj]
-    return obj
+    """A reply in the encoding of the message it answers: arrays as array maps (msgpack) or lists of shortest
+    round-trip floats (JSON), written as `POST /v1/evaluate`'s answers are."""
+    return wire.dumps(binary.pack(doc)) if binary_frame else convert.dumps(doc).decode()
 
 
 def encode_evaluation(ev: Evaluation, binary_frame: bool, id: int | str | None) -> Frame:
-    """`POST /v1/evaluate`'s answer document, bytes from its own encoder, with `kind` (and `id`) added in front."""
+    """`POST /v1/evaluate`'s answer document with `kind` (and `id`) in front."""
     head = {"kind": proto.EVALUATION} if id is None else {"kind": proto.EVALUATION, "id": id}
-    if binary_frame:
-        body = binary.encode(ev)
-        # A msgpack map is a header (fixmap 0x80 | count, for < 16 keys) then its key/value pairs, in order.
-        assert 0x80 <= body[0] < 0x90 - len(head), "the answer document is a small map"
-        pairs = b"".join(wire.dumps({k: v})[1:] for k, v in head.items())
-        return bytes([body[0] + len(head)]) + pairs + body[1:]
-    body = convert.encode(ev)
-    return (orjson.dumps(head)[:-1] + b"," + body[1:]).decode()
+    return encode({**head, **convert.to_wire(ev)}, binary_frame)
 
 
 def at_message_q(e: InputError) -> InputError:

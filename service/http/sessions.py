@@ -1,9 +1,8 @@
 """`/v1/sessions`: a prepared scene per WebSocket connection (docs/sessions.md, "Sessions").
 
-Parse a frame, call the prepared scene, encode the reply: nothing else. The state (the
-prepared scene with its `q_prev` and committed coordinates) lives with the connection, so
-any worker of any pod can hold a session and a load balancer spreads connections.
-Bounds: sessions per worker, frame bytes, idle seconds, scene joints (+ `admit`).
+Parse a frame, call the prepared scene, encode the reply: nothing else. The state (the prepared scene with its
+`q_prev` and committed coordinates) lives with the connection, so any worker of any pod can hold a session.
+Bounds: sessions per worker, frame bytes, idle seconds, scene joints (+ `limits.admit`), the in-flight budget.
 """
 
 from __future__ import annotations
@@ -13,7 +12,7 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
@@ -22,25 +21,25 @@ from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect
 
 from jointlimits.schemas import session as proto
-from jointlimits.service.core import Evaluation, Fault, InputError
-from jointlimits.service.core.prepared import PreparedScene, prepare
 from jointlimits.service import sizing
-from jointlimits.service.http import budget, limits, routes
+from jointlimits.service.core import Fault, InputError
+from jointlimits.service.core.prepared import PreparedScene, prepare
+from jointlimits.service.http import budget, routes
 from jointlimits.service.http import session_codec as codec
 from jointlimits.service.http.budget import Reservation
 from jointlimits.service.http.errors import HttpError
-from jointlimits.service.http.timeouts import DRAIN, Drain
-from jointlimits.service.http.ws_protocol import frame_limit
-from jointlimits.service.observability import ACCESS_LOGGER, Metrics
+from jointlimits.service.http.limits import admit
+from jointlimits.service.http.timeouts import DRAIN, frame_limit
+from jointlimits.service.observability import ACCESS_LOGGER, Metrics, peer
 from jointlimits.service.settings import Settings
 
 router = APIRouter()
 log = logging.getLogger(ACCESS_LOGGER)
 T = TypeVar("T")
 
+# How long the session waits for its close frame to be sent (behind replies the client does not read) before it
+# ends; the connection itself is dropped by the protocol's write timeout (JOINTLIMITS_WRITE_TIMEOUT).
 CLOSE_SECONDS = 5.0
-"""How long the session waits for its close frame to be sent (behind replies the client does not read) before it
-ends; the connection itself is dropped by the protocol's write timeout (JOINTLIMITS_WRITE_TIMEOUT)."""
 
 INLINE_JOINTS = 256
 """Scenes up to this many joints (a millisecond or so of work) are evaluated on the event loop: the hop to a
@@ -48,24 +47,14 @@ worker thread and back costs tens of microseconds on an idle machine and millise
 (docs/performance.md, "Sessions and prepared scenes"). Larger ones run in a worker thread, so that one large session does
 not hold up the replies of the worker's other sessions."""
 
-
-def admit(settings: Settings, batch_joints: list[int], outputs: Sequence[str], binary_answer: bool) -> None:
-    """The one admission check of a session's work: the opening scene, then each `evaluate` (its outputs).
-
-    Raises `HttpError` 413 (a fault reply; at open, then close 4413): the same cost bounds as
-    `POST /v1/evaluate` (`limits.admit`: joints, the answer's size for these outputs).
-    """
-    limits.admit(joints=list(batch_joints), outputs=list(outputs), binary_answer=binary_answer, settings=settings)
-
-
 DISCONNECT_REASONS = {
     proto.NORMAL: "client",
-    proto.MESSAGE_TOO_BIG: "frame_too_large",  # the server's own limit (service/http/ws_protocol.py)
-    proto.TRY_AGAIN_LATER: "uploads_full",  # the message's bytes did not fit in the worker's upload budget (ws_protocol.py)
+    proto.MESSAGE_TOO_BIG: "frame_too_large",  # the server's own limit (service/http/timeouts.py)
+    proto.TRY_AGAIN_LATER: "uploads_full",  # the message's bytes did not fit in the worker's upload budget
     1007: "invalid_utf8",
     1002: "protocol_error",
     proto.SERVICE_RESTART: "shutdown",
-    1008: "slow_message",  # a message not all received within JOINTLIMITS_BODY_TIMEOUT (service/http/timeouts.py)
+    1008: "slow_message",  # a message not all received within JOINTLIMITS_BODY_TIMEOUT
 }
 """The metric's `reason` of a connection the server layer ended (any other code: "disconnect")."""
 
@@ -80,39 +69,39 @@ class Closing(Exception):
 
 @dataclass
 class Session:
-    """One connection's state: the prepared scene and the evaluate options of the opening document."""
+    """One connection's state: the prepared scene (None until opened), the evaluate options of the opening
+    document, and its weight in the worker's `session_joints` (joints, bodies at 4/3: `sizing.session_weight`)."""
 
-    scene: PreparedScene
-    defaults: dict[str, Any]
-    joints: int
+    scene: PreparedScene | None = None
+    defaults: dict[str, Any] | None = None
+    joints: int = 0
+    weight: int = 0
 
 
 @router.websocket(proto.PATH)
 async def sessions(websocket: WebSocket) -> None:
-    app = websocket.app
-    settings: Settings = app.state.settings
+    state = websocket.app.state
+    settings: Settings = state.settings
     limit = frame_limit(websocket, settings.max_frame_bytes)  # the server's own may be lower: report the one in force
     if limit != settings.max_frame_bytes:
         settings = replace(settings, max_frame_bytes=limit)
-    metrics: Metrics = app.state.metrics
-    if app.state.draining:  # after SIGTERM: a session opened here would be closed within the delay
-        await websocket.send_denial_response(routes.draining(settings))
-        return
+    metrics: Metrics = state.metrics
+    if state.draining:  # after SIGTERM: a session opened here would be closed within the delay
+        return await websocket.send_denial_response(routes.draining(settings))
     await websocket.accept()
-    state = app.state
     open_now = getattr(state, "open_sessions", 0)
     if open_now >= settings.max_sessions:
         metrics.sessions.labels("too_many_sessions").inc()
-        await websocket.close(
-            proto.TOO_MANY_SESSIONS, f"this worker holds its maximum of {settings.max_sessions} session{'' if settings.max_sessions == 1 else 's'}; retry later"
-        )
-        return
+        n = settings.max_sessions
+        reason = f"this worker holds its maximum of {n} session{'' if n == 1 else 's'}; retry later"
+        return await websocket.close(proto.TOO_MANY_SESSIONS, reason)
     state.open_sessions = open_now + 1
     metrics.sessions_open.inc()
     started, reason, code = time.perf_counter(), "error", proto.INTERNAL_ERROR
-    held = _Held()
+    session = Session()
+    reservations: list[Reservation] = []  # an evaluation's share of the in-flight budget, until its reply is sent
     try:
-        await _serve(websocket, settings, metrics, held)
+        await _messages(websocket, settings, metrics, session, reservations)
         reason, code = "client", proto.NORMAL
     except Closing as c:
         reason, code = c.metric, c.code
@@ -126,41 +115,24 @@ async def sessions(websocket: WebSocket) -> None:
         logging.getLogger("jointlimits").exception("session failed")
         await _close(websocket, proto.INTERNAL_ERROR, "internal error")
     finally:
+        for r in reservations:
+            r.release()
         state.open_sessions -= 1
-        _reserve(state, held, 0, settings.max_session_joints)  # its scene is gone
+        _reserve(state, session, 0, settings.max_session_joints)  # its scene is gone
         metrics.sessions_open.dec()
         metrics.sessions.labels(reason).inc()
-        _log(websocket, started, reason, code)
+        if log.isEnabledFor(logging.INFO):
+            fields = {"path": proto.PATH, "reason": reason, "close_code": code,
+                      "duration_s": round(time.perf_counter() - started, 3), "client": peer(websocket.client),
+                      "pid": os.getpid()}
+            log.info("session", extra={"fields": fields})
 
 
-@dataclass
-class _Held:
-    """Weight of this connection's scene (joints, bodies at 4/3: `sizing.session_weight`), counted in the
-    worker's `session_joints` while it is open."""
-
-    joints: int = 0
-
-
-async def _serve(websocket: WebSocket, settings: Settings, metrics: Metrics, held: _Held) -> None:
+async def _messages(websocket: WebSocket, settings: Settings, metrics: Metrics, session: Session,
+                    reservations: list[Reservation]) -> None:
     """Open a scene from the first message that is a valid scene, then answer messages until `close`."""
-    reservations: list[Reservation] = []  # an evaluation's share of the in-flight budget, until its reply is sent
-    try:
-        await _messages(websocket, settings, metrics, held, reservations)
-    finally:
-        _release(reservations)
-
-
-def _release(reservations: list[Reservation]) -> None:
-    for r in reservations:
-        r.release()
-    reservations.clear()
-
-
-async def _messages(
-    websocket: WebSocket, settings: Settings, metrics: Metrics, held: _Held, reservations: list[Reservation]
-) -> None:
-    session: Session | None = None
-    drain: Drain | None = websocket.scope.get("extensions", {}).get(DRAIN)
+    state = websocket.app.state
+    drain = websocket.scope.get("extensions", {}).get(DRAIN)
     while True:
         if drain is not None:
             # One reply in the write buffer at most: the next message is read once the last reply has left (or the
@@ -169,27 +141,24 @@ async def _messages(
         frame = await _receive(websocket, settings)
         t0 = time.perf_counter()
         binary_frame = isinstance(frame, bytes)
-        kind, outcome, mid = "open" if session is None else "invalid", "ok", None
+        kind, outcome, mid = "open" if session.scene is None else "invalid", "ok", None
         try:
-            if session is None:
+            if session.scene is None:
                 # Preparing a scene takes what a request of its size may take: a share of the in-flight budget
                 # (bounded from the message's size), until the reply is sent.
                 cost = sizing.cost_before_body(len(frame), binary_frame, binary_frame, settings)  # JSON text: ASCII
-                reservations.append(await budget.reserve(websocket.app.state.in_flight, cost, settings))
-                session, reply = await _open(frame, settings, websocket.app.state, held)
+                reservations.append(await budget.reserve(state.in_flight, cost, settings))
+                reply = await run_in_threadpool(_open, frame, settings, state, session)
             else:
                 message = codec.decode(frame, settings.max_json_values)
                 kind, mid = message.kind, message.id
                 if kind == proto.CLOSE:
                     metrics.session_messages.labels(kind, outcome).inc()
-                    await websocket.close(proto.NORMAL, "closed by the client")
-                    return
-                reply = await _answer(session, message, binary_frame, settings, websocket.app.state, reservations)
+                    return await websocket.close(proto.NORMAL, "closed by the client")
+                reply = await _answer(session, message, binary_frame, settings, state, reservations)
         except (InputError, HttpError) as e:
             outcome = "fault"
-            if mid is None:  # the opening document's too
-                mid = codec.message_id(e)
-            reply = codec.encode(codec.error(e, mid), binary_frame)
+            reply = codec.encode(codec.error(e, codec.message_id(e) if mid is None else mid), binary_frame)
             if kind == "open" and isinstance(e, HttpError) and e.status == 413:
                 await _send(websocket, reply, settings)
                 metrics.session_messages.labels(kind, outcome).inc()
@@ -203,12 +172,11 @@ async def _messages(
 
 async def _receive(websocket: WebSocket, settings: Settings) -> codec.Frame:
     """The next message's payload; `Closing` on idle time or an oversized frame, `WebSocketDisconnect` when gone."""
+    idle = settings.session_idle_seconds
     try:
-        message = await asyncio.wait_for(websocket.receive(), settings.session_idle_seconds)
+        message = await asyncio.wait_for(websocket.receive(), idle)
     except asyncio.TimeoutError:
-        raise Closing(
-            proto.IDLE_TIMEOUT, f"no message for {settings.session_idle_seconds:g} s: session closed", "idle"
-        ) from None
+        raise Closing(proto.IDLE_TIMEOUT, f"no message for {idle:g} s: session closed", "idle") from None
     if message["type"] == "websocket.disconnect":
         raise WebSocketDisconnect(message.get("code", 1000), message.get("reason"))
     frame = message.get("bytes")
@@ -219,10 +187,8 @@ async def _receive(websocket: WebSocket, settings: Settings) -> codec.Frame:
     else:
         size = len(frame)
     if size > settings.max_frame_bytes:
-        raise Closing(
-            proto.MESSAGE_TOO_BIG, f"message of {size} bytes; this service accepts at most {settings.max_frame_bytes}",
-            "frame_too_large",
-        )
+        msg = f"message of {size} bytes; this service accepts at most {settings.max_frame_bytes}"
+        raise Closing(proto.MESSAGE_TOO_BIG, msg, "frame_too_large")
     return frame
 
 
@@ -241,20 +207,19 @@ async def _send(websocket: WebSocket, reply: codec.Frame, settings: Settings) ->
     try:
         await asyncio.wait_for(send, settings.session_idle_seconds)
     except asyncio.TimeoutError:
-        raise Closing(
-            proto.IDLE_TIMEOUT, f"no reply read for {settings.session_idle_seconds:g} s: session closed", "idle"
-        ) from None
+        msg = f"no reply read for {settings.session_idle_seconds:g} s: session closed"
+        raise Closing(proto.IDLE_TIMEOUT, msg, "idle") from None
 
 
 _RESERVING = threading.Lock()  # opens run in worker threads: the check and the count change together
 
 
-def _reserve(state: Any, held: _Held, joints: int, most: int, bodies: int = 0) -> None:
+def _reserve(state: Any, session: Session, joints: int, most: int, bodies: int = 0) -> None:
     """Count this connection's scene, `joints` and `bodies` at their weight (`sizing.session_weight`), in the
     worker's `session_joints` (413 past `most`)."""
     weight = sizing.session_weight(joints, bodies)
     with _RESERVING:
-        others = getattr(state, "session_joints", 0) - held.joints
+        others = getattr(state, "session_joints", 0) - session.weight
         if others + weight > most:
             what = f"{joints} joint{'' if joints == 1 else 's'}"
             if bodies:
@@ -265,56 +230,49 @@ def _reserve(state: Any, held: _Held, joints: int, most: int, bodies: int = 0) -
             )
             heavier = ("body", "bodies") if weight - joints > joints else ("body", "batches")  # what weighs most
             raise HttpError(413, [Fault(heavier, msg, "too_large")])
-        state.session_joints, held.joints = others + weight, weight
+        state.session_joints, session.weight = others + weight, weight
 
 
-async def _open(frame: codec.Frame, settings: Settings, state: Any, held: _Held) -> tuple[Session, codec.Frame]:
-    def work() -> tuple[Session, codec.Frame]:
-        kwargs = codec.decode_open(frame, settings.max_json_values, settings.max_batches)
-        opening_id = kwargs.pop("id")
-        batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
-        admit(settings, batch_joints, kwargs["outputs"], isinstance(frame, bytes))
-        joints, bodies = sum(batch_joints), int(kwargs["bodies"].q.shape[0])
-        _reserve(state, held, joints, settings.max_session_joints, bodies)  # everything the scene will hold
-        try:
-            scene = prepare(kwargs["bodies"], kwargs["batches"])
-        except BaseException:
-            _reserve(state, held, 0, settings.max_session_joints)  # a refused scene holds nothing
-            raise
-        # Every evaluate option of the opening document is the session's default; `layout` too, which a later
-        # message cannot change (schemas/session.py has no such field): a solver opens with the layout it needs.
-        defaults = {k: kwargs[k] for k in ("outputs", "hessian_mode", "active_only", "layout")}
-        opened = {
-            "kind": proto.OPENED,
-            "bodies": scene.n_bodies,
-            "batch_sizes": list(scene.batch_sizes),
-            "coordinates": scene.coordinates(),
-            "limits": {"max_frame_bytes": settings.max_frame_bytes, "idle_seconds": settings.session_idle_seconds},
-        }
-        if opening_id is not None:
-            opened["id"] = opening_id
-        return Session(scene, defaults, sum(batch_joints)), codec.encode(opened, isinstance(frame, bytes))
-
-    return await run_in_threadpool(work)
+def _open(frame: codec.Frame, settings: Settings, state: Any, session: Session) -> codec.Frame:
+    """Open the session's scene from its opening document (in a worker thread); the `opened` reply."""
+    kwargs = codec.decode_open(frame, settings.max_json_values, settings.max_batches)
+    batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
+    admit(joints=batch_joints, outputs=kwargs["outputs"], binary_answer=isinstance(frame, bytes), settings=settings)
+    joints, bodies = sum(batch_joints), int(kwargs["bodies"].q.shape[0])
+    _reserve(state, session, joints, settings.max_session_joints, bodies)  # everything the scene will hold
+    try:
+        scene = prepare(kwargs["bodies"], kwargs["batches"])
+    except BaseException:
+        _reserve(state, session, 0, settings.max_session_joints)  # a refused scene holds nothing
+        raise
+    # Every evaluate option of the opening document is the session's default; `layout` too, which a later
+    # message cannot change (schemas/session.py has no such field): a solver opens with the layout it needs.
+    session.scene, session.joints = scene, joints
+    session.defaults = {k: kwargs[k] for k in ("outputs", "hessian_mode", "active_only", "layout")}
+    opened = {"kind": proto.OPENED, "bodies": scene.n_bodies, "batch_sizes": list(scene.batch_sizes),
+              "coordinates": scene.coordinates(),
+              "limits": {"max_frame_bytes": settings.max_frame_bytes, "idle_seconds": settings.session_idle_seconds}}
+    if kwargs["id"] is not None:
+        opened["id"] = kwargs["id"]
+    return codec.encode(opened, isinstance(frame, bytes))
 
 
-async def _answer(
-    session: Session, m: codec.Message, binary_frame: bool, settings: Settings, state: Any, reservations: list[Reservation]
-) -> codec.Frame:
+async def _answer(session: Session, m: codec.Message, binary_frame: bool, settings: Settings, state: Any,
+                  reservations: list[Reservation]) -> codec.Frame:
     """The reply to `m`; an evaluation first takes its share of the worker's in-flight budget (as `POST
     /v1/evaluate` does: its core and its answer), appended to `reservations` (released once the reply is sent)."""
     scene = session.scene
+    assert scene is not None and session.defaults is not None
     if m.kind == proto.EVALUATE:
         options = {**session.defaults, **m.options}
         batch_sizes = list(scene.batch_sizes)
-        admit(settings, batch_sizes, options["outputs"], binary_frame)
+        admit(joints=batch_sizes, outputs=options["outputs"], binary_answer=binary_frame, settings=settings)
         cost = sizing.request_cost(0, None, batch_sizes, scene.n_bodies, options["outputs"], binary_frame, settings)
         reservations.append(await budget.reserve(state.in_flight, cost, settings))
-        ev: Evaluation = await _run(session, lambda: scene.evaluate(m.q, **options))
+        ev = await _run(session, lambda: scene.evaluate(m.q, **options))
         return codec.encode_evaluation(ev, binary_frame, m.id)
     if m.kind == proto.COMMIT:
-        coords = await _run(session, lambda: scene.commit(m.q))
-        reply: dict[str, Any] = {"kind": proto.COMMITTED, "coordinates": coords}
+        reply: dict[str, Any] = {"kind": proto.COMMITTED, "coordinates": await _run(session, lambda: scene.commit(m.q))}
     else:  # update
         await _run(session, lambda: scene.update(m.batch, m.index, **m.values))
         reply = {"kind": proto.UPDATED, "batch": m.batch, "joints": int(m.index.shape[0])}
@@ -327,28 +285,6 @@ async def _answer(
 
 async def _run(session: Session, fn: Callable[[], T]) -> T:
     try:
-        if session.joints <= INLINE_JOINTS:
-            return fn()
-        return await run_in_threadpool(fn)
+        return fn() if session.joints <= INLINE_JOINTS else await run_in_threadpool(fn)
     except InputError as e:
         raise codec.at_message_q(e) from None
-
-
-def _log(websocket: WebSocket, started: float, reason: str, code: int) -> None:
-    if not log.isEnabledFor(logging.INFO):
-        return
-    client = websocket.client
-    log.info(
-        "session",
-        extra={
-            "fields": {
-                "path": proto.PATH,
-                "reason": reason,
-                "close_code": code,
-                "duration_s": round(time.perf_counter() - started, 3),
-                "client": f"{client.host}:{client.port}" if client else None,
-                "pid": os.getpid(),
-            }
-        },
-    )
-

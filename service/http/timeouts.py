@@ -1,35 +1,17 @@
-"""Read timeouts: a connection gets `header_timeout` seconds for its request head, `body_timeout` for its body.
+"""The connection layer: deadlines on reads and writes, and a WebSocket close the client always reads.
 
-uvicorn times out only idle keep-alive connections: a client that connects and sends
-nothing, or half its headers, or its body at one byte a second (slowloris), holds a
-connection (and a file descriptor) for ever. Two bounds, at the two layers that see them:
+uvicorn times out only idle keep-alive connections: a client that sends nothing, half its headers, or its body at
+one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time:
+the request head (`ReadTimeoutProtocol`, 408 then closed), the body (`BodyTimeoutMiddleware`, 408 from
+`errors.client_gone`), a session message (1008), and the write side (issue 19) in both protocols: a transport
+whose buffer stays full for `write_timeout` seconds (a client that stops reading) is reset, freeing what it held.
+The application sees the write side through `Drain` (`scope["extensions"][DRAIN]`).
 
-- the request head, in the HTTP protocol (`ReadTimeoutProtocol`, passed to uvicorn as
-  `http=`): a timer from the connection's first moment (or, on a keep-alive connection,
-  the next request's first byte) until its headers are complete; when it fires the
-  connection is answered 408 (if it sent anything) and closed;
-- the body, in the ASGI receive path (`BodyTimeoutMiddleware`): each wait for body bytes
-  is bounded by the request's deadline, `body_timeout` after the request began; past it
-  the app sees a disconnect, and `client_gone` (routes' handler of `ClientDisconnect`)
-  answers 408 with `Connection: close`.
-
-Both deadlines are totals, not idle times between reads: a trickle of one byte a second
-is closed as surely as silence.
-
-The write side (issue 19): a client that stops reading leaves what it was sent in the
-process (the transport's write buffer), uncounted and for ever: `transport.close()` waits
-for the buffer to drain. So both protocols here (HTTP, `ReadTimeoutProtocol`, and WebSocket,
-`WriteTimeoutWebSocketProtocol`, passed to uvicorn as `ws=`) arm a timer when the transport
-pauses writing (its buffer is past the high-water mark) and abort the connection if it has
-not resumed within `write_timeout` seconds: answers, session replies, close frames and pongs
-alike are freed with it. The application sees the write side through `Drain`
-(`scope["extensions"][DRAIN]`): budget reservations are given back once what they paid for
-has left the process (`Drain.after`), and a session waits for its last reply to drain before
-it reads the next message (`Drain.wait`). Only the latest ping of what was read is answered,
-and only while writes are not paused (RFC 6455 5.5.3 lets an endpoint answer only the latest
-ping): a connection owes one pong at most, so a ping flood queues nothing.
-A session message still arriving is bounded by `body_timeout` from its first byte, as a
-request body is (close 1008).
+The WebSocket protocol (issue 20) closes a message over the limit (1009) or not UTF-8 (1007) with a reason and a
+FIN, then reads and drops what the client still sends (uvicorn closed at once: the kernel's reset made the client
+see 1006); the application hears the same code and reason. It closes with 1012 and a reason on shutdown, counts a
+message's bytes in the worker's upload budget from its first byte (1013 when they do not fit), answers only the
+latest ping, and logs a client's protocol faults as one WARNING line, never a traceback.
 """
 
 from __future__ import annotations
@@ -38,17 +20,22 @@ import asyncio
 import logging
 import socket
 import struct
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.websockets import WebSocket
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
+from websockets.exceptions import PayloadTooBig
+from websockets.frames import Close, Frame, Opcode
 
-from jointlimits.service.http.ws_protocol import SessionProtocol, not_utf8
-from jointlimits.service.observability import LIFESPAN_METRICS
+from jointlimits.schemas.session import TRY_AGAIN_LATER
+from jointlimits.service.observability import LIFESPAN_METRICS, peer
 from jointlimits.service.settings import Settings
+from jointlimits.service.sizing import UPLOAD_FACTOR
 
 BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `client_gone`
 DRAIN = "jointlimits.drain"
@@ -57,19 +44,15 @@ OPENED = "jointlimits.opened"
 """Key in an HTTP request's scope `extensions` of its connection's `time.monotonic()` at accept (service/app.py:
 the connection's age)."""
 MESSAGE_TOO_SLOW = 1008  # policy violation: a session message not received within body_timeout
+DRAIN_SECONDS = 30.0
+"""Longest time the rest of a refused message is read and dropped before the socket is closed anyway."""
+DRAIN_MESSAGES = 4
+"""Most bytes read and dropped after the close, in messages at the limit: the rest of the refused one and those a
+client sent behind it before it read the close (tests/http/test_session_closes.py sends two more)."""
+SHUTDOWN_REASON = "the server is shutting down: reopen the session (another worker or pod answers)"
 _PONG = b"\x8a"  # the first byte of a server's pong frame (FIN, opcode 0xA; no extensions are negotiated)
 _408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"
 log = logging.getLogger("jointlimits.timeouts")
-
-
-def header_timeout_from_env() -> float:
-    """`Settings().header_timeout`: JOINTLIMITS_HEADER_TIMEOUT, which `jointlimits serve` sets for its workers."""
-    return Settings().header_timeout
-
-
-def write_timeout_from_env() -> float:
-    """`Settings().write_timeout`: JOINTLIMITS_WRITE_TIMEOUT, which `jointlimits serve` sets for its workers."""
-    return Settings().write_timeout
 
 
 class Drain:
@@ -77,8 +60,7 @@ class Drain:
     (`paused`), callbacks to run once it is not (`after`), a wait for that (`wait`). Event loop only."""
 
     def __init__(self) -> None:
-        self.paused = False
-        self.closed = False
+        self.paused = self.closed = False
         self._after: list[Callable[[], None]] = []
         self._writable = asyncio.Event()
         self._writable.set()
@@ -111,11 +93,29 @@ class Drain:
         self.resume()
 
 
-class _WriteBound:
-    """The write deadline shared by both protocols: `write_timeout` seconds of paused writing, then abort.
+class _Timer:
+    """One deadline at a time on the loop: `start` replaces the one armed, `fn` runs when it passes."""
 
-    Mixed in before uvicorn's protocol class (its `pause_writing`, `resume_writing`, `connection_lost`
-    run after ours); the subclass calls `_init_write_bound` in its `__init__`."""
+    def __init__(self, loop: asyncio.AbstractEventLoop, fn: Callable[[], None]) -> None:
+        self.loop, self.fn, self.handle = loop, fn, None
+
+    def start(self, seconds: float) -> None:
+        self.stop()
+        self.handle = self.loop.call_later(seconds, self._fire)  # type: ignore[assignment]
+
+    def stop(self) -> None:
+        if self.handle is not None:
+            self.handle.cancel()
+            self.handle = None
+
+    def _fire(self) -> None:
+        self.handle = None
+        self.fn()
+
+
+class _WriteBound:
+    """The write deadline of both protocols: `write_timeout` seconds of paused writing, then a reset. Mixed in
+    before uvicorn's protocol class (its `pause_writing`, `resume_writing`, `connection_lost` run after ours)."""
 
     write_timeout: float | None = None  # None: JOINTLIMITS_WRITE_TIMEOUT, read per connection
     transport: asyncio.Transport
@@ -123,55 +123,48 @@ class _WriteBound:
     app_state: dict[str, Any]
     client: tuple[str, int] | None
 
-    def _init_write_bound(self) -> None:
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
         if self.write_timeout is None:
-            self.write_timeout = write_timeout_from_env()
+            self.write_timeout = Settings().write_timeout
         self.drain = Drain()
-        self._write_timer: asyncio.TimerHandle | None = None
+        self._write_timer = _Timer(self.loop, self._write_expired)
 
     def pause_writing(self) -> None:
         super().pause_writing()  # type: ignore[misc]
         self.drain.pause()
-        self._start_write_timer()
-
-    def _linger(self) -> None:
-        """After a last write (an answer complete, a session over): bytes still buffered below the high-water
-        mark get the same bound, else `close()` would wait for them for ever."""
-        if self._write_timer is None and self.transport.get_write_buffer_size() > 0:
-            self._start_write_timer()
-
-    def _start_write_timer(self) -> None:
-        self._stop_write_timer()
-        self._write_timer = self.loop.call_later(self.write_timeout, self._write_expired)  # type: ignore[arg-type]
+        self._write_timer.start(self.write_timeout)  # type: ignore[arg-type]
 
     def resume_writing(self) -> None:
-        self._stop_write_timer()
+        self._write_timer.stop()
         super().resume_writing()  # type: ignore[misc]
         self.drain.resume()
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self._stop_write_timer()
+        self._write_timer.stop()
         super().connection_lost(exc)  # type: ignore[misc]
         self.drain.close()  # what waited for the buffer (reservations) is freed with it
 
-    def _stop_write_timer(self) -> None:
-        if self._write_timer is not None:
-            self._write_timer.cancel()
-            self._write_timer = None
+    def _linger(self) -> None:
+        """After a last write (an answer complete, a session over): bytes still buffered below the high-water
+        mark get the same bound, else `close()` would wait for them for ever."""
+        if self._write_timer.handle is None and self.transport.get_write_buffer_size() > 0:
+            self._write_timer.start(self.write_timeout)  # type: ignore[arg-type]
+
+    def _closed(self, reason: str) -> None:
+        """Count a connection the server closed (absent when uvicorn runs without the lifespan)."""
+        metrics = self.app_state.get(LIFESPAN_METRICS)
+        if metrics is not None:
+            metrics.connections_closed.labels(reason=reason).inc()
 
     def _write_expired(self) -> None:
-        self._write_timer = None
         buffered = self.transport.get_write_buffer_size()
         if buffered == 0:  # drained meanwhile (a lingering write), nothing is held
             return
         # One line, no traceback: a client that stops reading is expected, not a server fault.
-        log.warning(
-            "client %s left its write buffer full for %s s (%d bytes waiting): connection reset (JOINTLIMITS_WRITE_TIMEOUT)",
-            _peer(self.client), self.write_timeout, buffered,
-        )
-        metrics = self.app_state.get(LIFESPAN_METRICS)
-        if metrics is not None:
-            metrics.connections_closed.labels(reason="slow_read").inc()
+        log.warning("client %s left its write buffer full for %s s (%d bytes waiting): connection reset "
+                    "(JOINTLIMITS_WRITE_TIMEOUT)", peer(self.client), self.write_timeout, buffered)
+        self._closed("slow_read")
         _reset(self.transport)
 
 
@@ -188,10 +181,6 @@ def _reset(transport: asyncio.Transport) -> None:
     transport.abort()
 
 
-def _peer(client: tuple[str, int] | None) -> str:
-    return f"{client[0]}:{client[1]}" if client else "?"
-
-
 class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     """uvicorn's httptools protocol with a deadline on each request head (`header_timeout` seconds) and on
     a full write buffer (`write_timeout` seconds); each request's scope carries the connection's `Drain`."""
@@ -201,10 +190,9 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.header_timeout is None:
-            self.header_timeout = header_timeout_from_env()
-        self._head_timer: asyncio.TimerHandle | None = None
+            self.header_timeout = Settings().header_timeout
+        self._head_timer = _Timer(self.loop, self._head_expired)
         self._head_bytes = False  # bytes of the current head have arrived
-        self._init_write_bound()
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
@@ -221,37 +209,28 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self._arm()  # a connection that never sends a byte is closed too
 
     def data_received(self, data: bytes) -> None:
-        if self._head_timer is None and (self.cycle is None or self.cycle.response_complete):
+        if self._head_timer.handle is None and (self.cycle is None or self.cycle.response_complete):
             self._arm()  # the first bytes of the next request on a keep-alive connection
         self._head_bytes = True
         super().data_received(data)
 
     def on_headers_complete(self) -> None:
-        self._disarm()
+        self._head_timer.stop()
         super().on_headers_complete()
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self._disarm()
+        self._head_timer.stop()
         super().connection_lost(exc)
 
     def _arm(self) -> None:
-        self._disarm()
         self._head_bytes = False
-        self._head_timer = self.loop.call_later(self.header_timeout, self._head_expired)
-
-    def _disarm(self) -> None:
-        if self._head_timer is not None:
-            self._head_timer.cancel()
-            self._head_timer = None
+        self._head_timer.start(self.header_timeout)  # type: ignore[arg-type]
 
     def _head_expired(self) -> None:
-        self._head_timer = None
         if self.transport.is_closing():
             return
         log.debug("request head not complete within %s s: closing %s", self.header_timeout, self.client)
-        metrics = self.app_state.get(LIFESPAN_METRICS)  # absent when uvicorn runs without the lifespan
-        if metrics is not None:
-            metrics.connections_closed.labels(reason="slow_head" if self._head_bytes else "silent").inc()
+        self._closed("slow_head" if self._head_bytes else "silent")
         if self._head_bytes:
             self.transport.write(_408)
         self.transport.close()
@@ -263,26 +242,48 @@ def http_protocol(header_timeout: float, write_timeout: float | None = None) -> 
     return type("ReadTimeoutProtocol", (ReadTimeoutProtocol,), {"header_timeout": header_timeout, "write_timeout": write_timeout})
 
 
-class WriteTimeoutWebSocketProtocol(_WriteBound, SessionProtocol):
-    """uvicorn's websockets (sans-I/O) protocol with a close the client always reads (`ws_protocol.SessionProtocol`:
-    1009 / 1007 drained, reasons), bounded on the write side like `ReadTimeoutProtocol`, with:
+class _Queue(asyncio.Queue):  # type: ignore[type-arg]
+    """uvicorn's queue of ASGI events, with the bytes of the messages it holds (`held`)."""
 
-    - no pong queued while writes are paused (a ping flood then costs nothing but CPU);
-    - a deadline of `message_timeout` seconds (JOINTLIMITS_BODY_TIMEOUT) on a message still arriving,
-      counted while the server reads (not while it holds a received message for the application);
-    - a client's protocol faults (invalid UTF-8: 1007; bad frames: 1002) logged as one WARNING line,
-      never a traceback: they are the client's, and a traceback per frame is a log flood for free.
-    """
+    held = 0
+
+    def _put(self, item: Any) -> None:
+        self.held += _size(item)
+        super()._put(item)
+
+    def _get(self) -> Any:
+        item = super()._get()
+        self.held -= _size(item)
+        return item
+
+
+def _size(event: dict[str, Any]) -> int:
+    """Memory of a received message's payload (a text message's `str`: at most its UTF-8 bytes)."""
+    data = event.get("bytes", event.get("text"))
+    return sys.getsizeof(data) if data else 0
+
+
+def not_utf8() -> tuple[int, str]:
+    return 1007, "a text message must be valid UTF-8 (send msgpack as a binary message)"
+
+
+class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
+    """uvicorn's websockets (sans-I/O) protocol with the closes, bounds and upload counts above."""
 
     message_timeout: float | None = None  # None: JOINTLIMITS_BODY_TIMEOUT, read per connection
+    draining = False  # closed under the application (1009, 1007, 1013): the rest is read and dropped
+    _drained = 0  # bytes read and dropped since the close
+    _upload: Any = None  # this connection's `budget.Reservation` in the worker's upload budget
+    _in_app = 0  # bytes of the message the application took last (held until it asks for the next one)
+    _fragments = 0  # bytes of `frames`, the fragments of the message arriving (a running sum: there may be millions)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self.queue = _Queue()
         if self.message_timeout is None:
             self.message_timeout = Settings().body_timeout
-        self._message_timer: asyncio.TimerHandle | None = None
+        self._message_timer = _Timer(self.loop, self._message_expired)
         self._owed_pong = b""  # the answer to the latest ping, held while writes are paused (one at most)
-        self._init_write_bound()
 
     def handle_connect(self, event: Any) -> None:
         super().handle_connect(event)
@@ -291,13 +292,57 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, SessionProtocol):
             scope["extensions"] = {**scope.get("extensions", {}), DRAIN: self.drain}  # type: ignore[typeddict-unknown-key]
 
     def data_received(self, data: bytes) -> None:
-        super().data_received(data)
+        if self.draining:  # the rest of a refused message: dropped unread, up to DRAIN_MESSAGES at the limit
+            self._drained += len(data)
+            if self._drained > DRAIN_MESSAGES * (self.config.ws_max_size or 0):
+                self.transport.close()  # cut off (a reset): the client has had its close frame for that long
+        else:
+            super().data_received(data)
+            self._count_upload()
         self._watch_message()
 
     async def receive(self) -> Any:
         message = await super().receive()
+        self._in_app = _size(message)  # the one before is done with: the application asks for the next
+        self._count_upload()
         self._watch_message()  # reading may have resumed with part of a message buffered
         return message
+
+    def handle_text(self, event: Frame) -> None:
+        self._fragment(event, first=True)
+        super().handle_text(event)
+
+    def handle_bytes(self, event: Frame) -> None:
+        self._fragment(event, first=True)
+        super().handle_bytes(event)
+
+    def handle_cont(self, event: Frame) -> None:
+        self._fragment(event)
+        super().handle_cont(event)
+
+    def _fragment(self, event: Frame, first: bool = False) -> None:
+        # A fragment is a bytes object in uvicorn's list: ~40 bytes besides its data, which a flood of tiny ones costs.
+        self._fragments = 0 if event.fin else (0 if first else self._fragments) + sys.getsizeof(event.data) + 8
+
+    def _count_upload(self) -> None:
+        """Hold what this connection's messages take in the worker's upload budget: the message arriving twice,
+        those received once; past the budget, close with 1013 and drain."""
+        if self.close_sent or self.disconnected:  # given back already (`_close_and_drain`, `connection_lost`)
+            return
+        if self._upload is None:
+            uploads = getattr(getattr(getattr(self, "scope", {}).get("app"), "state", None), "uploads", None)
+            if uploads is None:  # not the service's application, or not yet running
+                return
+            self._upload = uploads.reserve_now()
+        want = UPLOAD_FACTOR * (len(self.conn.reader.buffer) + self._fragments) + self.queue.held + self._in_app
+        if want <= self._upload.size:
+            self._upload.shrink(want)
+        elif not self._upload.try_grow(want - self._upload.size):
+            capacity = self._upload.budget.capacity
+            self._close_and_drain(TRY_AGAIN_LATER, f"this worker's upload budget ({capacity} bytes) is full: retry later")
+
+    def eof_received(self) -> bool | None:
+        return None  # the client closed its side: the transport closes (nothing is left unread)
 
     def handle_ping(self) -> None:
         # websockets queues a pong for every ping of the bytes just read (up to 256 KiB of them: ~2000): the
@@ -321,38 +366,62 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, SessionProtocol):
             self.transport.write(pong)
 
     def handle_parser_exception(self) -> None:
-        close = self.conn.close_sent
+        """A message too big or not UTF-8: our close frame and a FIN, then read and drop until the client closes."""
+        close, exc = self.conn.close_sent, self.conn.parser_exc
         if close is not None:
-            log.warning("client %s broke the WebSocket protocol: closing with %s (%s)", _peer(self.client), close.code,
+            log.warning("client %s broke the WebSocket protocol: closing with %s (%s)", peer(self.client), close.code,
                         close.reason or "no reason")
-        super().handle_parser_exception()
+        if not isinstance(exc, (PayloadTooBig, UnicodeDecodeError)):
+            return super().handle_parser_exception()
+        self.conn.data_to_send()  # websockets' own close frame and EOF: replaced by ours
+        self._close_and_drain(*((1009, _too_big(exc, self.config.ws_max_size)) if isinstance(exc, PayloadTooBig)
+                                else not_utf8()))
 
     def send_receive_event_to_app(self) -> None:
         if self.curr_msg_data_type != "text" or self.close_sent:
-            super().send_receive_event_to_app()
-            return
-        # uvicorn's text path, with its traceback at ERROR for invalid UTF-8 replaced by one line.
+            return super().send_receive_event_to_app()
+        # uvicorn's text path, with its traceback at ERROR for invalid UTF-8 replaced by one line and a drained close.
         data = self.frames[0] if len(self.frames) == 1 else b"".join(self.frames)
         self.frames = []
         try:
             text = data.decode()
         except UnicodeDecodeError:
             code, reason = not_utf8()
-            log.warning("client %s broke the WebSocket protocol: closing with %s (%s)", _peer(self.client), code, reason)
-            self._close_and_drain(code, reason)  # tells the application, sends the close, drains the rest
-            return
+            log.warning("client %s broke the WebSocket protocol: closing with %s (%s)", peer(self.client), code, reason)
+            return self._close_and_drain(code, reason)  # tells the application, sends the close, drains the rest
         self.queue.put_nowait({"type": "websocket.receive", "text": text})
         if not self.read_paused:
             self.read_paused = True
             self.transport.pause_reading()
+
+    def _close_and_drain(self, code: int, reason: str) -> None:
+        self.frames, self._fragments = [], 0  # freed now, not when the connection ends
+        self.conn.reader.buffer.clear()
+        if self._upload is not None:
+            self._upload.release()
+        self.queue.put_nowait({"type": "websocket.disconnect", "code": code, "reason": reason})
+        self.transport.write(Frame(Opcode.CLOSE, Close(code, reason).serialize()).serialize(mask=False))
+        if self.transport.can_write_eof():
+            self.transport.write_eof()  # the client reads the close frame, then EOF: no reset
+        self.close_sent = self.draining = True
+        if self.read_paused:
+            self.read_paused = False
+            self.transport.resume_reading()
+        self.close_timer = self.loop.call_later(DRAIN_SECONDS, self.transport.close)
 
     async def run_asgi(self) -> None:
         await super().run_asgi()
         self._linger()  # a close frame (or last reply) still buffered is bounded too
 
     async def send(self, message: Any) -> None:
+        if self.draining:  # closed under the application: it hears so on its next receive
+            return
         await super().send(message)
-        if message.get("type") == "websocket.close" and self.close_timer is not None and not self.draining:
+        if message["type"] == "websocket.http.response.body" and not message.get("more_body", False):
+            # A denial (401, 503 draining) answers the upgrade as a close before accept does, but uvicorn marks only
+            # the latter complete and logs an ERROR for every refused upgrade; the response is sent (`close_sent`).
+            self.handshake_complete = True
+        if message["type"] == "websocket.close" and self.close_timer is not None and not self.draining:
             # uvicorn waits 10 s for the client's answer to our close frame, then closes gracefully (the kernel
             # keeps what the client did not read): the client gets the write timeout, then a reset.
             self.close_timer.cancel()
@@ -362,41 +431,42 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, SessionProtocol):
         self.close_timer = None
         if self.transport.is_closing() and self.transport.get_write_buffer_size() == 0:
             return
-        log.info("client %s did not answer the close frame within %s s: connection reset", _peer(self.client),
+        log.info("client %s did not answer the close frame within %s s: connection reset", peer(self.client),
                  self.write_timeout)
-        metrics = self.app_state.get(LIFESPAN_METRICS)
-        if metrics is not None:
-            metrics.connections_closed.labels(reason="slow_read").inc()
+        self._closed("slow_read")
         _reset(self.transport)
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self._stop_message_timer()
+        self._message_timer.stop()
         super().connection_lost(exc)
+        if self._upload is not None:
+            self._upload.release()
+
+    def shutdown(self) -> None:
+        if not self.handshake_complete or self.close_sent:
+            return super().shutdown()
+        self.stop_keepalive()
+        self.queue.put_nowait({"type": "websocket.disconnect", "code": 1012, "reason": SHUTDOWN_REASON})
+        self.conn.send_close(1012, SHUTDOWN_REASON)
+        self.transport.write(b"".join(self.conn.data_to_send()))
+        self.transport.close()
 
     def _watch_message(self) -> None:
         """Arm the message deadline while part of a message is buffered and the server is reading; else disarm."""
         partial = bool(self.conn.reader.buffer) or bool(self.frames)
         if partial and not self.read_paused and not self.close_sent and self.handshake_complete:
-            if self._message_timer is None:
-                self._message_timer = self.loop.call_later(self.message_timeout, self._message_expired)  # type: ignore[arg-type]
+            if self._message_timer.handle is None:
+                self._message_timer.start(self.message_timeout)  # type: ignore[arg-type]
         else:
-            self._stop_message_timer()
-
-    def _stop_message_timer(self) -> None:
-        if self._message_timer is not None:
-            self._message_timer.cancel()
-            self._message_timer = None
+            self._message_timer.stop()
 
     def _message_expired(self) -> None:
-        self._message_timer = None
         if self.close_sent or self.transport.is_closing():
             return
         buffered = len(self.conn.reader.buffer) + sum(len(f) for f in self.frames)
         log.warning("client %s sent %d bytes of a message, not all of it within %s s: closing with %d",
-                    _peer(self.client), buffered, self.message_timeout, MESSAGE_TOO_SLOW)
-        metrics = self.app_state.get(LIFESPAN_METRICS)
-        if metrics is not None:
-            metrics.connections_closed.labels(reason="slow_message").inc()
+                    peer(self.client), buffered, self.message_timeout, MESSAGE_TOO_SLOW)
+        self._closed("slow_message")
         self.frames = []
         self.conn.reader.buffer.clear()  # freed now, not when the connection ends (reading stops with the close)
         self.conn.send_close(MESSAGE_TOO_SLOW, f"message not received within {self.message_timeout:g} s")
@@ -405,28 +475,46 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, SessionProtocol):
         self._linger()
 
 
+def _too_big(exc: PayloadTooBig, limit: int | None) -> str:
+    size = getattr(exc, "size", None)  # the frame's size; None for a message of several frames
+    what = f"message of {size + (exc.current_size or 0)} bytes" if size is not None else "message"
+    return f"{what} over the limit; this service accepts at most {limit} (JOINTLIMITS_MAX_FRAME_BYTES)"
+
+
 def ws_protocol(write_timeout: float | None = None, message_timeout: float | None = None) -> type[WriteTimeoutWebSocketProtocol]:
     """A `WriteTimeoutWebSocketProtocol` with its own bounds (for an in-process uvicorn.Config; None: from the
     environment)."""
-    return type(
-        "WriteTimeoutWebSocketProtocol", (WriteTimeoutWebSocketProtocol,),
-        {"write_timeout": write_timeout, "message_timeout": message_timeout},
-    )
+    return type("WriteTimeoutWebSocketProtocol", (WriteTimeoutWebSocketProtocol,),
+                {"write_timeout": write_timeout, "message_timeout": message_timeout})
+
+
+def server_options(max_frame_bytes: int) -> dict[str, Any]:
+    """uvicorn's WebSocket options for the service: this protocol, the message limit it enforces (the
+    application's, so the two agree), no permessage-deflate (float64 arrays barely compress: it would only cost
+    CPU; docs/sessions.md, "The protocol, byte by byte")."""
+    return {"ws": "jointlimits.service.http.timeouts:WriteTimeoutWebSocketProtocol", "ws_max_size": max_frame_bytes,
+            "ws_per_message_deflate": False}
+
+
+def frame_limit(websocket: WebSocket, configured: int) -> int:
+    """The message limit in force on this connection: `configured` (JOINTLIMITS_MAX_FRAME_BYTES), or the server's
+    own where lower (plain `uvicorn jointlimits.service.app:app` keeps uvicorn's 16 MiB `ws_max_size`). Under
+    another server (or Starlette's TestClient) it is not known, and the configured one is reported and enforced."""
+    config = getattr(getattr(websocket._receive, "__self__", None), "config", None)
+    server = getattr(config, "ws_max_size", None)
+    return min(configured, server) if isinstance(server, int) and server > 0 else configured
 
 
 class BodyTimeoutMiddleware:
     """Bounds each wait for body bytes by the request's deadline; past it the app sees a disconnect."""
 
     def __init__(self, app: ASGIApp, timeout: float) -> None:
-        self.app = app
-        self.timeout = timeout
+        self.app, self.timeout = app, timeout
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + self.timeout
+            return await self.app(scope, receive, send)
+        deadline = asyncio.get_running_loop().time() + self.timeout
         body_done = False
 
         async def receive_bounded() -> Message:

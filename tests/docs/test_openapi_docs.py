@@ -9,7 +9,7 @@ import orjson
 import pytest
 
 from jointlimits.schemas import EvaluateRequest
-from jointlimits.service.http import openapi_text as text
+from jointlimits.service.http import openapi as text
 from jointlimits.service.settings import Settings
 from tests.http.test_contract_live import live, serve  # noqa: F401 (fixture)
 

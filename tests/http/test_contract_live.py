@@ -17,7 +17,7 @@ import uvicorn
 from fastapi import FastAPI
 
 from jointlimits.service.app import create_app
-from jointlimits.service.http.ws_protocol import server_options
+from jointlimits.service.http.timeouts import server_options
 from jointlimits.service.settings import Settings
 
 # Small limits, so that 413s and the SDK's splitting are exercised with small requests.

@@ -178,7 +178,7 @@ def test_cli_hands_the_timeouts_to_uvicorn_and_the_workers(monkeypatch):
     monkeypatch.setattr(cli.signal, "signal", lambda *args: None)
     assert cli.serve(a) == 0
     assert seen["http"] == "jointlimits.service.http.timeouts:ReadTimeoutProtocol"
-    assert timeouts.header_timeout_from_env() == 2.5 and Settings().body_timeout == 7.0
+    assert Settings().header_timeout == 2.5 and Settings().body_timeout == 7.0
     for bad in (["--header-timeout", "0"], ["--body-timeout", "-1"], ["--body-timeout", "inf"]):
         with pytest.raises(SystemExit):
             cli.build_parser().parse_args(["serve", *bad])

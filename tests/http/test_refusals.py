@@ -16,7 +16,7 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from jointlimits.service.app import create_app
-from jointlimits.service.http.refusals import FaultListMiddleware
+from jointlimits.service.http.errors import FaultListMiddleware
 from tests.http.test_contract_live import LIMITS, serve
 
 J = {"Content-Type": "application/json"}
@@ -137,12 +137,12 @@ def test_the_services_own_refusals_are_not_read_again(monkeypatch):
     """A 422, 413 and 401 written by the service pass the fault-list wrapper unread (issue 28: no second parse)."""
     from fastapi.testclient import TestClient
 
-    from jointlimits.service.http import refusals
+    from jointlimits.service.http import errors
 
     def unread(body: bytes) -> bool:
         raise AssertionError("a refusal of the service's own was parsed again")
 
-    monkeypatch.setattr(refusals, "is_fault_list", unread)
+    monkeypatch.setattr(errors, "is_fault_list", unread)
     with TestClient(create_app(replace(LIMITS, token="s3cret"))) as client:
         r = client.post("/v1/evaluate", content=b"{}", headers=J)
         assert r.status_code == 401 and r.json()["detail"][0]["type"] == "unauthorized"

@@ -1,7 +1,7 @@
 """A refused session upgrade (the bearer token's 401, a draining worker's 503) is an answer, not a server error:
 uvicorn's WebSocket protocol marks only an accept or a close before accept as the end of a handshake and logged
 "ASGI callable returned without completing handshake" at ERROR for each denial, an alert per reconnect during a
-rollout. `service/http/ws_protocol.py:SessionProtocol.send` marks a sent denial as the handshake's end."""
+rollout. `service/http/timeouts.py:WriteTimeoutWebSocketProtocol.send` marks a sent denial as the handshake's end."""
 
 from __future__ import annotations
 

@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from jointlimits.client import InvalidInput, JointBatch, codec
 from jointlimits.service import sizing
 from jointlimits.service.http import budget
-from jointlimits.service.http.ws_protocol import DRAIN_MESSAGES
+from jointlimits.service.http.timeouts import DRAIN_MESSAGES
 from jointlimits.service.app import create_app
 from jointlimits.service.settings import Settings
 from jointlimits.service.sizing import UPLOAD_FACTOR

@@ -155,7 +155,7 @@ def test_an_absent_value_is_left_as_it_is():
 
 def test_try_again_later_is_a_close_code_of_the_protocol():
     """1013 (the upload budget full) is named beside 4429 in schemas/session.py, the codes the SDK knows."""
-    from jointlimits.service.http import sessions, ws_protocol
+    from jointlimits.service.http import sessions, timeouts
 
-    assert proto.TRY_AGAIN_LATER == ws_protocol.TRY_AGAIN_LATER == 1013
+    assert proto.TRY_AGAIN_LATER == timeouts.TRY_AGAIN_LATER == 1013
     assert sessions.DISCONNECT_REASONS[proto.TRY_AGAIN_LATER] == "uploads_full"

@@ -29,7 +29,7 @@ from jointlimits.client.session import resumable
 from jointlimits.client.session_sync import closed_error, handshake_error
 from jointlimits.schemas import session as proto
 from jointlimits.service.app import create_app
-from jointlimits.service.http.ws_protocol import server_options
+from jointlimits.service.http.timeouts import server_options
 from jointlimits.service.settings import Settings
 from tests.drills import ws_upgrade
 from tests.http.test_contract_live import LIMITS, running

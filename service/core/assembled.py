@@ -25,9 +25,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from jointlimits.service.core import penalty
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, InputError
-from jointlimits.service.core.scene import Array, BatchResult, Evaluation, Joints
+from jointlimits.service.core.scene import Array, Evaluation
 from jointlimits.service.core.validate import literal_msg, nonfinite_rows
 
 LAYOUTS = ("joints", "bodies")
@@ -65,33 +64,6 @@ class Assembled:
         jj = (12 * c[:, None, None] + a[None, None, :]).repeat(12, axis=1)
         n = 12 * self.n_bodies
         return sparse.coo_array((data.ravel(), (ii.ravel(), jj.ravel())), shape=(n, n)).tocsr()
-
-
-def active_rows(joints: Joints, result: BatchResult, active_only: bool) -> NDArray[np.intp]:
-    """Positions in `result`'s rows of joints outside their range (the only rows with derivatives).
-
-    The gap is the core's: `x` against `lower - offset`, `upper - offset` (bitwise its bounds).
-    """
-    if active_only:
-        return np.arange(result.index.shape[0])
-    i = result.index
-    lo, up = joints.lower[i], joints.upper[i]
-    if joints.offset is not None:
-        lo, up = lo - joints.offset[i], up - joints.offset[i]
-    g, _ = penalty.gap(result.x, lo, up)
-    return np.flatnonzero((g > 0) & (joints.strength[i] > 0))
-
-
-def assemble(n_bodies: int, batches: Sequence[Joints], ev: Evaluation, active_only: bool) -> Assembled:
-    """The scatter-add over the bodies of `batches` of `ev`'s per-joint rows (`layout="joints"`)."""
-    per_joint = []
-    for joints, r in zip(batches, ev.batches):
-        rows = active_rows(joints, r, active_only)
-        ids = np.asarray(joints.body_ids, dtype=np.int64)[r.index[rows]]
-        per_joint.append((ids, None if r.gradient is None else r.gradient[rows], None if r.hessian is None else r.hessian[rows]))
-    want_g = bool(ev.batches) and ev.batches[0].gradient is not None
-    want_h = bool(ev.batches) and ev.batches[0].hessian is not None
-    return assemble_active(n_bodies, per_joint, want_g, want_h)
 
 
 def assemble_active(
@@ -220,13 +192,3 @@ def strip(ev: Evaluation, out: Assembled) -> Evaluation:
     ev = replace(ev, batches=[replace(r, gradient=None, hessian=None) for r in ev.batches])
     ev.assembled = out
     return ev
-
-
-def apply(ev: Evaluation, n_bodies: int, batches: Sequence[Joints], layout: str, active_only: bool) -> Evaluation:
-    """A per-joint `ev` in `layout`: unchanged for "joints"; for "bodies" the assembled answer, batches
-    without derivatives. (The core's evaluate with `layout="bodies"` assembles without per-joint rows.)"""
-    if check_layout(layout):
-        raise InputError(check_layout(layout))
-    if layout == "joints":
-        return ev
-    return strip(ev, assemble(n_bodies, batches, ev, active_only))

@@ -4,11 +4,12 @@ core's `layout="bodies"` answer (which differentiates and stores the active join
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
 from jointlimits.service.core import penalty
-from jointlimits.service.core.assembled import Assembled, assemble_active, strip
+from jointlimits.service.core.assembled import Assembled, assemble_active
 from jointlimits.service.core.scene import Evaluation, Joints
 
 
@@ -34,4 +35,5 @@ def assemble(n_bodies: int, batches: Sequence[Joints], ev: Evaluation, active_on
 
 def apply(ev: Evaluation, n_bodies: int, batches: Sequence[Joints], active_only: bool) -> Evaluation:
     """A per-joint `ev` as the core answers `layout="bodies"`: the assembled answer, batches without derivatives."""
-    return strip(ev, assemble(n_bodies, batches, ev, active_only))
+    out = assemble(n_bodies, batches, ev, active_only)
+    return replace(ev, batches=[replace(r, gradient=None, hessian=None) for r in ev.batches], assembled=out)

@@ -19,14 +19,14 @@ joints. Each key's terms are added one after the other in request order (batch, 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, InputError
-from jointlimits.service.core.scene import Array, Evaluation
+from jointlimits.service.core.scene import Array
 from jointlimits.service.core.validate import literal_msg, nonfinite_rows
 
 LAYOUTS = ("joints", "bodies")
@@ -185,10 +185,3 @@ def _raise_overflow(out: Assembled) -> None:
 
 def check_layout(layout: str) -> list[Fault]:
     return [] if layout in LAYOUTS else [Fault(("layout",), literal_msg(LAYOUTS), "literal_error")]
-
-
-def strip(ev: Evaluation, out: Assembled) -> Evaluation:
-    """`ev` with the assembled answer `out` and batches without derivatives (index, x, energy, coordinate kept)."""
-    ev = replace(ev, batches=[replace(r, gradient=None, hessian=None) for r in ev.batches])
-    ev.assembled = out
-    return ev

@@ -1,26 +1,15 @@
 """Chain rule from the frame quantities F to the 24 DOFs of a joint, written in the contract's order.
 
-Each F_k depends on its body's DOFs only through `alpha_k p + A v_k`, so
-`dF_k / dq` is `I_3 (x) w_k` with `w_k = [alpha_k, v_k]` (4,): row r of F_k sees
-`p_r` (weight alpha_k) and row r of A (weights v_k). `J` is never formed.
+`dF_k / dq` is `I_3 (x) w_k` with `w_k = [alpha_k, v_k]` (4,) (`F_k = alpha_k p + A v_k`): row r of F_k
+sees `p_r` (weight alpha_k) and row r of A (weights v_k). `J` is never formed.
 
-The Hessian `E'' g g^T + J^T (E' d2x/dF2) J` is assembled from the structured
-curvature (`constitution.Curvature`), bitwise symmetric by construction, straight into
-the output in DOF order, as signed rank-1 factors `X^T diag(s) X` in one small GEMM per
-joint (the signs are exact, so `(s_e X_ei) X_ej == (s_e X_ej) X_ei`):
-
-- low rank: `Y^T S Y` with `Y = U J` (k x 24) and `S = E' C + E'' t t^T` (k x k) as its
-  eigen-factors;
-- Kronecker: `J^T (K (x) I_3) J` touches only the entries that share a row r of
-  `[p | A]`: per r an 8 x 8 (or, with no points, 6 x 6) block `W = w^T K w`. With points
-  (the prismatic joint) it enters the GEMM as 3 m more factors; without (the revolute
-  joint, whose translation rows and columns are then zero) its 3 x 3 blocks are added after
-  a GEMM of the k low-rank factors alone: 12 factors of 24 entries cost the GEMM more
-  than the 6 block additions (`python -m bench`, "Every joint active").
-
-Every pass before the GEMM runs along the joints (component-major arrays, as the frames):
-a per-joint 2 x 3 product or a broadcast over a trailing axis of 3 costs a call or a loop
-per joint.
+The Hessian `E'' g g^T + J^T (E' d2x/dF2) J` of a structured curvature (`constitution.Curvature`) is
+written straight into the output as signed rank-1 factors `X^T diag(s) X`, one small GEMM per joint,
+bitwise symmetric (the signs are exact, so `(s_e X_ei) X_ej == (s_e X_ej) X_ei`): the low-rank part
+`Y^T S Y` (`Y = U J`, `S = E' C + E'' t t^T`) as S's eigen-factors; the Kronecker part `J^T (K (x) I_3) J`,
+which only pairs entries of the same row r of `[p | A]`, as 3 m more factors with points (the prismatic
+joint), or without (the revolute joint) as 3 x 3 blocks added after the GEMM (12 more factors of 24
+entries cost the GEMM more). Every pass before the GEMM runs along the joints (component-major arrays).
 """
 
 from __future__ import annotations
@@ -75,9 +64,15 @@ def hessian(
     entry of `out` is finite for sure (no check of `out` needed): |X| below `finite_factor`, so no sum of
     products overflows.
     """
-    basis, k0 = _with_dx(curvature, dx)
+    # The vectors in F (N, k, 4, 3) whose chained factors the low-rank part needs: the basis, then `dx`
+    # when the gradient is not in its span (E'' dx dx^T beside it).
+    basis = curvature.basis
+    n, k0 = basis.shape[:2]
+    if curvature.dx_coef is None:
+        basis = component_major(n, (k0 + 1, 4, 3), basis.dtype)  # every pass after it runs along the joints
+        basis[:, :k0], basis[:, k0] = curvature.basis, dx
     mix = _Mix.of(curvature, k0, dE, d2E)
-    blocks = [slice(s, s + BLOCK) for s in range(0, v.shape[0], BLOCK)] if v.shape[0] > BLOCK else [slice(None)]
+    blocks = [slice(s, s + BLOCK) for s in range(0, n, BLOCK)] if n > BLOCK else [slice(None)]
     if not alpha.any():
         return _hessian_directions(v, basis, mix, curvature.kron, dE, out, blocks)
     return _hessian_points(alpha, v, basis, mix, curvature, dE, out, blocks)
@@ -106,41 +101,34 @@ def _hessian_points(
     sign[:, k:].reshape(n, m, 3)[...] = np.sign(w)[:, :, None]
     Jdx = component_major(n, (24,), dtype)
     finite = k + 3 * m <= MAX_FACTORS
-    for q in blocks:
-        X, bound = _point_factors(alpha, v[q], basis[q], mix.rows(q), fs[q], Jdx[q])
-        SX = X * sign[q, :, None]
-        # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
-        # in the same order: the product is bitwise symmetric without a symmetrising pass.
-        np.matmul(SX.transpose(0, 2, 1), X, out=out[q])
-        finite = finite and bool(bound < finite_factor(dtype))
-    return Jdx, finite
-
-
-def _point_factors(alpha: Array, v: Array, basis: Array, mix: _Mix, fs: Array, Jdx: Array) -> tuple[Array, float]:
-    """A block's factors `X` (M, k + 3 m, 24), C order for the GEMM, and max |X| (NaN if any is NaN);
-    `J^T dx` (M, 24) into `Jdx`. `fs` (M, m, 2, 2, 1): the Kronecker weights' `sqrt|w_e| f_e`."""
-    n, dtype = v.shape[0], v.dtype
-    Y = chain(alpha, v, basis)  # (M, k, 24): the basis chained to DOFs, component-major
-    Xl = mix.factors(Y)
-    mix.jdx(Y, out=Jdx)
-    m, k = fs.shape[1], Xl.shape[1]
-    # t[e, body, :] = sum over the body's blocks of f_e[block] [alpha, v][block], times sqrt|w_e|:
-    # elementwise along the joints (a 2 x 4 product per joint and body is a BLAS call each).
     wv = component_major(n, (2, 2, 4), dtype)  # (joint, body, block, [alpha, v])
     wv[..., 0] = alpha.reshape(2, 2)
     wv[..., 1:] = v.reshape(n, 2, 2, 3)
-    t = component_major(n, (m, 2, 4), dtype)
-    np.multiply(fs[:, :, :, 0], wv[:, None, :, 0], out=t)
-    t += fs[:, :, :, 1] * wv[:, None, :, 1]
-    t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
-    X = np.zeros((n, k + 3 * m, 2, 12), dtype=dtype)
-    X[:, :k] = Xl.reshape(n, k, 2, 12)
-    Xk = X[:, k:].reshape(n, m, 3, 2, 12)  # (joint, e, row r, body, DOF)
-    for r in range(3):
-        Xk[:, :, r, :, 3 + 3 * r : 6 + 3 * r] = t[..., 1:]
-        Xk[:, :, r, :, r] = t[..., 0]
-    bound = max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0))  # X holds these values and zeros
-    return X.reshape(n, k + 3 * m, 24), bound
+    for q in blocks:
+        Y = chain(alpha, v[q], basis[q])  # (M, k, 24): the basis chained to DOFs, component-major
+        mq = mix.rows(q)
+        Xl = mq.factors(Y)
+        mq.jdx(Y, out=Jdx[q])
+        M = Xl.shape[0]
+        # t[e, body, :] = sum over the body's blocks of f_e[block] [alpha, v][block], times sqrt|w_e|:
+        # elementwise along the joints (a 2 x 4 product per joint and body is a BLAS call each).
+        t = component_major(M, (m, 2, 4), dtype)
+        np.multiply(fs[q][:, :, :, 0], wv[q][:, None, :, 0], out=t)
+        t += fs[q][:, :, :, 1] * wv[q][:, None, :, 1]
+        t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
+        X = np.zeros((M, k + 3 * m, 2, 12), dtype=dtype)
+        X[:, :k] = Xl.reshape(M, k, 2, 12)
+        Xk = X[:, k:].reshape(M, m, 3, 2, 12)  # (joint, e, row r, body, DOF)
+        for r in range(3):
+            Xk[:, :, r, :, 3 + 3 * r : 6 + 3 * r] = t[..., 1:]
+            Xk[:, :, r, :, r] = t[..., 0]
+        X = X.reshape(M, k + 3 * m, 24)
+        # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
+        # in the same order: the product is bitwise symmetric without a symmetrising pass.
+        np.matmul((X * sign[q, :, None]).transpose(0, 2, 1), X, out=out[q])
+        # X holds the values of Xl and t, and zeros (NaN fails the test).
+        finite = finite and bool(max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0)) < finite_factor(dtype))
+    return Jdx, finite
 
 
 def _hessian_directions(
@@ -189,18 +177,6 @@ def _hessian_directions(
         finite = finite and bool(np.abs(Xl).max(initial=0.0) < finite_factor(dtype))
         finite = finite and bool(np.abs(W).max(initial=0.0) < big)
     return Jdx.reshape(n, 24), finite
-
-
-def _with_dx(curvature: Curvature, dx: Array | None) -> tuple[Array, int]:
-    """The vectors in F (N, k, 4, 3) whose chained factors the low-rank part needs: the curvature's
-    basis, then `dx` when the gradient is not in its span (E'' dx dx^T beside it); and the basis' size."""
-    basis = curvature.basis
-    n, k0 = basis.shape[:2]
-    if curvature.dx_coef is not None:
-        return basis, k0
-    both = component_major(n, (k0 + 1, 4, 3), basis.dtype)  # every pass after it runs along the joints
-    both[:, :k0], both[:, k0] = basis, dx
-    return both, k0
 
 
 def _kron_scatter(same: bool) -> tuple[NDArray[np.intp], NDArray[np.intp]]:

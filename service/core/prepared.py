@@ -24,37 +24,15 @@ from jointlimits.service.core import assembled
 from jointlimits.service.core.constitution import Array, Constitution, Progress
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
 from jointlimits.service.core.evaluate import collapsed_faults, differentiate
-from jointlimits.service.core.kinematics import (
-    PREV_STEP,
-    STEP,
-    REF,
-    STEPS,
-    TOTAL_STEP,
-    BodyTable,
-    CarefulFrames,
-    add_positions,
-    careful_frames,
-    exponents,
-    frame_quantities,
-    relative_position,
-    scaled_frames,
-    state_frames,
-)
+from jointlimits.service.core.kinematics import (PREV_STEP, REF, STEP, STEPS, TOTAL_STEP, BodyTable, CarefulFrames,
+                                                 add_positions, careful_frames, exponents, frame_quantities,
+                                                 relative_position, scaled_frames, state_frames)
 from jointlimits.service.core.geometry import axis_and_anchors
 from jointlimits.service.core.registry import CONSTITUTIONS, numerics
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
-from jointlimits.service.core.validate import (
-    check_bodies,
-    check_dofs,
-    check_evaluation,
-    check_joints,
-    check_options,
-    check_rotations,
-    check_update_index,
-    check_update_ranges,
-    check_update_values,
-    raise_if,
-)
+from jointlimits.service.core.validate import (check_bodies, check_dofs, check_evaluation, check_joints, check_options,
+                                               check_rotations, check_update_index, check_update_ranges,
+                                               check_update_values, raise_if)
 
 # 2 pi in two parts (Cody-Waite): `k * _TWO_PI_HI` is exact for |k| < 2**24 turns (24 trailing zero
 # bits), so `rem` of a many-turn angle loses nothing to the rounding of 2 pi.
@@ -155,8 +133,9 @@ class PreparedScene:
     def _run(self, q: Array, outputs: tuple[str, ...], psd: bool, active_only: bool, deadline: float | None,
              layout: str) -> Evaluation:
         batches = self._batches
-        # v1's coordinate takes every step at q; once the angle is a state (a prev_coordinate, a commit) the last alone.
-        self._load(q, {jb.rows[-1] for jb in batches}, {r for jb in batches for r in jb.rows[-1 if jb.theta is not None else 0:]})
+        # v1's coordinate takes every step at q; once the angle is a state (a prev_coordinate, a commit), the last.
+        steps = {r for jb in batches for r in (jb.rows if jb.theta is None else jb.rows[-1:])}
+        self._load(q, {jb.rows[-1] for jb in batches}, steps)
         want_g, want_h, compact = "gradient" in outputs, "hessian" in outputs, layout == "bodies"
         # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
         results = [self._evaluate_batch(b, jb, want_g, want_h, psd, active_only, deadline, compact)
@@ -165,10 +144,12 @@ class PreparedScene:
         if not np.isfinite(total):
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
         ev = Evaluation(total_energy=total, batches=[r for r, _, _ in results])
-        if not compact:
-            return ev
-        per_joint = [(jb.pairs.T[a], r.gradient, r.hessian) for jb, (r, _, a) in zip(batches, results)]
-        return assembled.strip(ev, assembled.assemble_active(self.n_bodies, per_joint, want_g, want_h))
+        if compact:  # summed per body; the batches keep index, x, energy and coordinate
+            per_joint = [(jb.pairs.T[a], r.gradient, r.hessian) for jb, (r, _, a) in zip(batches, results)]
+            ev.assembled = assembled.assemble_active(self.n_bodies, per_joint, want_g, want_h)
+            for r in ev.batches:
+                r.gradient = r.hessian = None
+        return ev
 
     def _load(self, q: Array, rows: Iterable[int], steps: Iterable[int]) -> None:
         """`q` (B, 12) into the body table's state 2 (scratch: states 0, 1 are `q_ref`, `q_prev`), the increments
@@ -189,14 +170,11 @@ class PreparedScene:
         path: str,
         F_q: Array | None = None,
     ) -> tuple[list[Array], CarefulFrames | None, Array, object]:
-        """Frames (N, 4, 3) in each state of the steps `rows` (the last one at `q`, loaded), their
-        careful frames, x (N,) summed over the steps `fixed + [dF]` that start at `starts`, and what
-        the coordinate formed at q for the collapse test (`Progress.known`).
-
-        As `kinematics.state_frames`: each state is the previous one plus the step (the frames at q
-        `F_q` where given, `_step`), except for joints of bodies off the common path (`_plain`), formed
-        directly (scaled). The steps `fixed` are taken once per scene (`_progress`, kept as `path`): bit
-        for bit what summing them again would give, for every joint that is not careful (whose x is its own).
+        """Frames (N, 4, 3) in each state of the steps `rows` (the last one to the loaded `q`), their careful
+        frames, x (N,) summed over the steps `fixed + [dF]` from `starts`, and what the coordinate formed at
+        q for the collapse test (`Progress.known`). As `kinematics.state_frames`: each state is the previous
+        one plus its step (or `F_q`, `_step`), but for joints of bodies off the common path (`_plain`),
+        formed directly (scaled). The `fixed` steps' progress is kept per scene (`_progress`, as `path`).
         """
         states = [*starts, starts[-1] + dF if F_q is None else F_q]  # dF None: F_q, and x its value (`_step`)
         careful = None
@@ -216,17 +194,14 @@ class PreparedScene:
         return states, careful, x, p.known[-1]
 
     def _step(self, jb: _Batch, row: int, r_start: Array | None) -> tuple[Array | None, Array | None]:
-        """The frames' increment (N, 4, 3) over the table's increment `row` to `q` (loaded), from the
-        state where body j sits at `r_start` (N, 3) from body i (points only); and for frames with
-        points the frames at q themselves (else None). With the absolute origin (points telescope) x is
-        the value at q alone: the frames there from q's own A and positions, as the engine forms them,
-        and no increment (None).
+        """The frames' increment (N, 4, 3) over the table's increment `row` to the loaded `q`, from the state
+        where body j sits at `r_start` (N, 3) from body i; with points, also the frames at q (else None).
+        With the absolute origin (points telescope) x is the value at q alone: those frames from q's own A
+        and positions, as the engine forms them, and no increment (None).
 
-        The start's frames plus the step would keep body j's position at q only to the rounding of
-        its position at the start: nothing of it where the bodies were 1e17 apart there and are 0.4
-        apart at q. So the frames at q are `A v` at the start plus A's increment (`held`: within a small
-        factor of `A(q) v` itself wherever the common path serves, `kinematics._plain_bodies`), then
-        body j's position at q.
+        The start's frames plus the step would keep body j's position at q only to the rounding of its
+        position at the start (nothing of a 0.4 apart at q after 1e17 apart there). So the frames at q are
+        `A v` at the start (`held`) plus A's increment, then body j's position at q.
         """
         t, alpha = self._table, jb.c.facts.alpha
         if r_start is not None and jb.absolute:

@@ -1,19 +1,13 @@
-"""Answers assembled per body (`layout="bodies"`): every joint's gradient and Hessian summed into its bodies' DOFs.
+"""Answers per body (`layout="bodies"`): every active joint's gradient and Hessian summed into its bodies' DOFs.
 
-A joint on bodies `(i, j)` has a gradient `[g_i, g_j]` (24) and a Hessian with blocks
-`H_ii, H_ij, H_ji, H_jj` (12 x 12 each). Assembled over a request with B bodies:
+A joint on bodies `(i, j)` has a gradient `[g_i, g_j]` (24) and a Hessian of 12 x 12 blocks `H_ii, H_ij, H_ji, H_jj`.
+Over B bodies: `gradient` (B, 12), row `k` the sum of every active joint's `g_k`; the Hessian (12B x 12B, symmetric)
+as its upper block triangle, `rows <= cols` (K,) sorted (row, then column), one per body pair a joint outside its
+range touches, and `blocks` (K, 12, 12) summed over those joints (the full matrix adds the off-diagonal transposes).
 
-- `gradient` (B, 12): row `k` is the sum of every active joint's `g_k`;
-- the Hessian (12B x 12B, symmetric) as its upper block triangle: `rows`, `cols` (K,) body indices
-  with `rows <= cols`, sorted (row, then column), one entry per body pair that a joint outside its
-  range touches, and `blocks` (K, 12, 12) with block `(r, c)` = d2E / dq_r dq_c summed over those
-  joints. The full matrix is the blocks plus the transposes of the off-diagonal ones.
-
-Only joints outside their range are summed (the others' rows are exact zeros). Scatter-adds are
-one stable sort of integer keys and vectorised passes over the sorted terms: no Python loop over
-joints. Each key's terms are added one after the other in request order (batch, then joint, then
-`(i, i)`, `(j, j)`, `(i, j)`), so a plain loop adding them in that order gives the same bits
-(tests/core/test_assembled.py), and each diagonal block is bitwise symmetric like the blocks it sums.
+A scatter-add is one stable sort of integer keys and vectorised passes over the sorted terms (no loop over joints),
+adding each key's terms one after the other in request order (batch, joint, then `(i, i)`, `(j, j)`, `(i, j)`): a
+plain loop in that order gives the same bits (tests/core/test_assembled.py); diagonal blocks stay bitwise symmetric.
 """
 
 from __future__ import annotations
@@ -50,9 +44,8 @@ class Assembled:
         try:
             from scipy import sparse
         except ImportError:
-            raise ImportError(
-                "Assembled.matrix() needs scipy: pip install 'jointlimits[sparse]' (or pip install scipy)"
-            ) from None
+            msg = "Assembled.matrix() needs scipy: pip install 'jointlimits[sparse]' (or pip install scipy)"
+            raise ImportError(msg) from None
         if self.blocks is None:
             raise ValueError("no Hessian: ask for the 'hessian' output")
         off = self.rows != self.cols

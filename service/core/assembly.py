@@ -24,9 +24,8 @@ from jointlimits.service.core.constitution import Array, Curvature
 from jointlimits.service.core.kinematics import SMALL, component_major
 
 BLOCK = 1024
-"""Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just
-written stay in cache. Per-joint scalars are taken for every joint of a call at once: per block
-they would cost a call each (its overhead, and on threads a GIL hand-off)."""
+"""Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just written stay
+in cache (per-joint scalars are taken for all joints at once: per block they would cost a call each)."""
 
 MAX_FACTORS = 64
 """At most this many factors per joint (7 for the prismatic joint): `finite_factor` relies on it."""
@@ -56,13 +55,10 @@ def hessian(
 ) -> tuple[Array, bool]:
     """`E'' g g^T + J^T (E' d2x/dF2) J` (N, 24, 24) into `out`, bitwise symmetric, each entry written once.
 
-    `curvature` is `d2x/dF2` (after a PSD projection it already carries E': pass `dE = 1`). `dx`
-    (N, 4, 3) only when `curvature.dx_coef` is None. The Hessian is `X^T diag(s) X` with `X`
-    (N, p, 24) signed rank-1 factors (`s` in {-1, 0, 1}): one small GEMM per joint, `BLOCK`
-    joints at a time; the per-joint scalars (eigen-decompositions, weights, signs) once for all N.
-    Returns `J^T dx` (N, 24), a by-product of the factors (the gradient over E'), and whether every
-    entry of `out` is finite for sure (no check of `out` needed): |X| below `finite_factor`, so no sum of
-    products overflows.
+    `curvature` is `d2x/dF2` (after a PSD projection it carries E': pass `dE = 1`); `dx` (N, 4, 3) only
+    when `curvature.dx_coef` is None. `X` (N, p, 24) `BLOCK` joints at a time, the per-joint scalars once.
+    Returns `J^T dx` (N, 24) (the gradient over E'), and whether `out` is finite for sure (|X| below
+    `finite_factor`: no sum of products overflows; else the caller checks it).
     """
     # The vectors in F (N, k, 4, 3) whose chained factors the low-rank part needs: the basis, then `dx`
     # when the gradient is not in its span (E'' dx dx^T beside it).
@@ -198,12 +194,8 @@ _KRON_SCATTER = {same: _kron_scatter(same) for same in (False, True)}
 
 
 def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
-    """`J^T dF` restricted to the `A` entries, for frames without points: (N, e, 18) component-major
-    ((N,) contiguous per entry), entry `(b, r, c)` = sum over body b's frames k of `dF[k, r] v_k[c]`;
-    or into `out` (N, e, 2, 3, 3), returned as given.
-
-    `v` (N, 4, 3), `dF` (N, e, 4, 3), any layouts: every pass runs along the joints.
-    """
+    """`J^T dF` on the `A` entries, for frames without points: (N, e, 18) component-major, entry `(b, r, c)` =
+    sum over body b's frames k of `dF[k, r] v_k[c]`; or into `out` (N, e, 2, 3, 3). `v` (N, 4, 3), `dF` (N, e, 4, 3)."""
     n, e = dF.shape[:2]
     given = out is not None
     out = component_major(n, (e, 2, 3, 3), dF.dtype) if out is None else out
@@ -324,10 +316,8 @@ class _Mix:
 
 
 def psd_projection(M: Array) -> Array:
-    """Each symmetric (12 x 12) `M` (N, 12, 12) with negative eigenvalues clamped to 0, as a Curvature's parts.
-
-    Returns the eigen-factors `V^T` (N, 12, 4, 3) and clamped eigenvalues (N, 12).
-    """
+    """Each symmetric `M` (N, 12, 12) with negative eigenvalues clamped to 0, as a Curvature's parts: the
+    eigen-factors `V^T` (N, 12, 4, 3) and the clamped eigenvalues (N, 12)."""
     n = M.shape[0]
     lam, V = np.linalg.eigh(M)
     return V.transpose(0, 2, 1).reshape(n, 12, 4, 3), np.maximum(lam, 0.0)

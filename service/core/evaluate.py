@@ -23,22 +23,9 @@ SCATTER_CHUNK = 2048
 """The chunk when Hessian rows are scattered (some joints inside their range): its scratch rows, 9 MB."""
 
 
-def differentiate(
-    b: int,
-    c: Constitution,
-    F: Array,
-    v: Array,
-    x: Array,
-    lo: Array,
-    up: Array,
-    s: Array,
-    want_g: bool,
-    want_h: bool,
-    psd: bool,
-    compact: bool,
-    threads: int = 1,
-    deadline: float | None = None,
-) -> tuple[Array, Array | None, Array | None, Array | None]:
+def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Array, up: Array, s: Array, want_g: bool,
+                  want_h: bool, psd: bool, compact: bool, threads: int = 1,
+                  deadline: float | None = None) -> tuple[Array, Array | None, Array | None, Array | None]:
     """Batch `b`'s energy (N,) at its frames `F` (N, 4, 3) and coordinate `x` (N,); the positions `active` (A,)
     of the joints outside their range (None when neither derivatives nor `compact` are asked); the asked-for
     gradient (R, 24) and Hessian (R, 24, 24), else None: R = A rows of the active joints if `compact`, else N
@@ -131,8 +118,9 @@ def _derivatives(c: Constitution, F: Array, v: Array, dE: Array, d2E: Array, g_o
         if projected is None:  # the generic route: a 12 x 12 eigensolver per joint
             basis, lam = assembly.psd_projection(dE[:, None, None] * curvature.dense())
             m = lam.shape[0]
-            projected = Curvature(kron=np.zeros((m, 4, 4), lam.dtype), basis=basis, coef=lam[:, :, None] * np.eye(12, dtype=lam.dtype),
-                                  kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)), diagonal=True)
+            projected = Curvature(kron=np.zeros((m, 4, 4), lam.dtype), basis=basis,
+                                  coef=lam[:, :, None] * np.eye(12, dtype=lam.dtype), diagonal=True,
+                                  kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)))
         # The projection already carries E': the chain rule sees E' = 1 (E'' dx dx^T beside it, PSD as it is).
         curvature, dE_h, dx_h = projected, np.ones_like(dE), dx
     Jdx, finite = assembly.hessian(c.facts.alpha, v, curvature, dE_h, d2E, h_out, dx=dx_h)
@@ -149,15 +137,9 @@ def _gradient(dE: Array, Jdx: Array, out: Array) -> None:
     out += 0.0  # -0.0 + 0.0 == +0.0, every other value unchanged
 
 
-def collapsed_faults(
-    b: int,
-    c: Constitution,
-    names: tuple[str, ...],
-    states: list[Array],
-    careful: CarefulFrames | None = None,
-    known: list | None = None,
-    size_bounds: list | None = None,
-) -> list[Fault]:
+def collapsed_faults(b: int, c: Constitution, names: tuple[str, ...], states: list[Array],
+                     careful: CarefulFrames | None = None, known: list | None = None,
+                     size_bounds: list | None = None) -> list[Fault]:
     """Joints of batch `b` whose frame collapses in any state (`states` (N, 4, 3) named by `names`);
     `careful` joints judged on their scaled frames (`careful.states`, in the same order). `known`: per
     state, what the coordinate already formed there (`Progress.known`), or None; `size_bounds` per

@@ -89,15 +89,8 @@ class PreparedScene:
         self.n_bodies: int = table.dofs.shape[2]
         self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches]
 
-    def evaluate(
-        self,
-        q: ArrayLike,
-        outputs: Iterable[str] = OUTPUTS,
-        hessian_mode: str = "exact",
-        active_only: bool = False,
-        deadline: float | None = None,
-        layout: str = "joints",
-    ) -> Evaluation:
+    def evaluate(self, q: ArrayLike, outputs: Iterable[str] = OUTPUTS, hessian_mode: str = "exact",
+                 active_only: bool = False, deadline: float | None = None, layout: str = "joints") -> Evaluation:
         """Energy, gradient and Hessian of every joint at `q` (B, 12), as CONTRACT.md defines them
         (`layout` "bodies": summed per body, `Evaluation.assembled`, service/core/assembled.py).
 
@@ -160,18 +153,10 @@ class PreparedScene:
         self._plain = t.plain_over(steps)
         self._all_plain = bool(self._plain.all())
 
-    def _to_q(
-        self,
-        jb: _Batch,
-        starts: list[Array],
-        fixed: list[Array],
-        rows: tuple[int, ...],
-        dF: Array | None,
-        path: str,
-        F_q: Array | None = None,
-    ) -> tuple[list[Array], CarefulFrames | None, Array, object]:
-        """Frames (N, 4, 3) in each state of the steps `rows` (the last one to the loaded `q`), their careful
-        frames, x (N,) summed over the steps `fixed + [dF]` from `starts`, and what the coordinate formed at
+    def _to_q(self, jb: _Batch, starts: list[Array], fixed: list[Array], rows: tuple[int, ...], path: str,
+              dF: Array | None, F_q: Array | None) -> tuple[Array, CarefulFrames | None, Array, object]:
+        """Frames (N, 4, 3) at the loaded `q` (the end of the steps `rows`), the careful frames there
+        (`_last_state`), x (N,) summed over the steps `fixed + [dF]` from `starts`, and what the coordinate formed at
         q for the collapse test (`Progress.known`). As `kinematics.state_frames`: each state is the previous
         one plus its step (or `F_q`, `_step`), but for joints of bodies off the common path (`_plain`),
         formed directly (scaled). The `fixed` steps' progress is kept per scene (`_progress`, as `path`).
@@ -186,12 +171,12 @@ class PreparedScene:
                 for k, F in enumerate(states):
                     F[idx] = careful.unscaled(k)
         if dF is None:
-            return states, careful, jb.c.value(states[-1]), None
+            return states[-1], _last_state(careful), jb.c.value(states[-1]), None
         p = jb.c.advance(_progress(jb.c, jb.progress, path, starts, fixed), states[-2], dF)
         x = p.x
         if careful is not None:
             x[careful.idx] = jb.c.careful_coordinate(careful)
-        return states, careful, x, p.known[-1]
+        return states[-1], _last_state(careful), x, p.known[-1]
 
     def _step(self, jb: _Batch, row: int, r_start: Array | None) -> tuple[Array | None, Array | None]:
         """The frames' increment (N, 4, 3) over the table's increment `row` to the loaded `q`, from the state
@@ -214,20 +199,23 @@ class PreparedScene:
         F_q = add_positions(jb.held + dF, r_q, alpha)
         return add_positions(dF, r_q - r_start, alpha), F_q
 
+    def _collapsed(self, b: int, jb: _Batch, F: Array, careful: CarefulFrames | None, known: object) -> list[Fault]:
+        """Batch `b`'s joints whose frame `F` (N, 4, 3) collapses at the loaded `q`."""
+        bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
+        return collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound)
+
     def _evaluate_batch(self, b: int, jb: _Batch, want_g: bool, want_h: bool, psd: bool, active_only: bool,
                         deadline: float | None, compact: bool) -> tuple[BatchResult, Array, Array | None]:
         """Batch `b`'s answer at the loaded `q`, every joint's energy (N,) and the active joints' positions."""
         check_deadline(deadline)
         dF, F_q = self._step(jb, jb.rows[-1], jb.r_start)
         if jb.theta is None:  # v1: x summed over every step from q_ref
-            states, careful, x, known = self._to_q(jb, jb.starts, jb.fixed, jb.rows, dF, "whole", F_q)
+            F, careful, x, known = self._to_q(jb, jb.starts, jb.fixed, jb.rows, "whole", dF, F_q)
             x = _from_origin(x, jb)
         else:
-            states, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF, "last", F_q)
+            F, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], "last", dF, F_q)
             x = jb.theta + x
-        F = states[-1]
-        bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
-        raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], _last_state(careful), [known], bound))[:MAX_FAULTS])
+        raise_if((jb.faults + self._collapsed(b, jb, F, careful, known))[:MAX_FAULTS])
         energy, active, gradient, hessian = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd,
                                                           compact or active_only, self._threads, deadline)
         index, xs, es = (active, x[active], energy[active]) if active_only else (np.arange(x.shape[0]), x, energy)
@@ -250,8 +238,7 @@ class PreparedScene:
             log, new = FaultLog(), []
             for b, jb in enumerate(self._batches):
                 F_q, x, careful, known = self._from_ref(jb)
-                bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
-                log.add(collapsed_faults(b, jb.c, ("q",), [F_q], careful, [known], bound))
+                log.add(self._collapsed(b, jb, F_q, careful, known))
                 if jb.c.facts.stateful:
                     r = self._angle(jb)
                     x = r + rem(x - r)
@@ -271,9 +258,9 @@ class PreparedScene:
         r_ref = None
         if jb.c.facts.points:
             r_ref = jb.r_start if STEPS[jb.rows[-1]][0] == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
-        dF, F_q = self._step(jb, TOTAL_STEP, r_ref)
-        states, careful, x, known = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), dF, "ref", F_q)
-        return states[-1], _from_origin(x, jb), _last_state(careful), known
+        F_q, careful, x, known = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), "ref",
+                                            *self._step(jb, TOTAL_STEP, r_ref))
+        return F_q, _from_origin(x, jb), careful, known
 
     def _angle(self, jb: _Batch) -> Array:
         """The committed angle at q_prev: `theta`, or DeltaTheta(q_prev, q_ref) (from the batch's origin) before any commit."""
@@ -297,15 +284,8 @@ class PreparedScene:
                 out.append(_plus_offset(x, jb.offset))
         return out
 
-    def update(
-        self,
-        batch: int,
-        index: ArrayLike,
-        lower: ArrayLike | None = None,
-        upper: ArrayLike | None = None,
-        strength: ArrayLike | None = None,
-        offset: ArrayLike | None = None,
-    ) -> None:
+    def update(self, batch: int, index: ArrayLike, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
+               strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
         """Set the limits, strengths or offsets of joints `index` (M,) of `batch`, each (M,) if given.
 
         Validated as a request is (`InputError`, loc ("batches", batch, "lower", j)); all or
@@ -341,17 +321,9 @@ def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtyp
     return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype, own=True)
 
 
-def evaluate(
-    bodies: Bodies,
-    batches: Sequence[Joints],
-    outputs: Iterable[str] = OUTPUTS,
-    hessian_mode: str = "exact",
-    active_only: bool = False,
-    dtype: type = np.float64,
-    threads: int = 1,
-    deadline: float | None = None,
-    layout: str = "joints",
-) -> Evaluation:
+def evaluate(bodies: Bodies, batches: Sequence[Joints], outputs: Iterable[str] = OUTPUTS, hessian_mode: str = "exact",
+             active_only: bool = False, dtype: type = np.float64, threads: int = 1, deadline: float | None = None,
+             layout: str = "joints") -> Evaluation:
     """Energy, gradient and Hessian of every joint, as CONTRACT.md (v1, v1.1) defines them: the
     stateless call, `prepare(bodies, batches).evaluate(bodies.q, ...)`.
 

@@ -49,14 +49,15 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
         alloc = np.empty if a == n else np.zeros
         gradient = alloc((n, 24), dtype=dtype) if want_g else None
         hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
+        every = a == x.shape[0]  # every joint active: no gathers, every chunk's rows in place
         # Per-joint scalars for every active joint at once: per chunk they would be a dozen short calls each.
-        at_active = [take_joints(q, active) for q in (x, lo, up, s)]
+        at = (lambda q: q) if every else (lambda q: take_joints(q, active))  # noqa: E731
+        at_active = [at(q) for q in (x, lo, up, s)]
         if wide:  # a gap or width overflowed: from halves
             _, dE, d2E = penalty.derivatives(*at_active)
         else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
-            dE, d2E = penalty.slopes(take_joints(r, active), take_joints(w, active), *at_active)
+            dE, d2E = penalty.slopes(at(r), at(w), *at_active)
         shift = penalty.scale_up(dE, d2E, *at_active)
-        out_pos = np.arange(n) if compact else active
         # Rows written in place when every row is differentiated; else a chunk's go through scratch rows
         # first, kept to a few MB. On threads, at least two chunks per thread (a batch alone keeps them busy).
         size = CHUNK if a == n or not want_h else SCATTER_CHUNK
@@ -67,14 +68,16 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             """Differentiate active joints `start : start + size`; the rows among them that overflow."""
             check_deadline(deadline)
             part = slice(start, start + size)
-            sel, pos = active[part], out_pos[part]
-            contiguous = pos[-1] - pos[0] + 1 == pos.shape[0]  # active_only, or a fully active stretch: in place
-            rows = slice(pos[0], pos[-1] + 1)
+            sel = active[part]
+            rows, contiguous = part, True  # compact or every joint active: the chunk's own rows, in place
+            if not (compact or every):  # in place too where a stretch of joints is active
+                rows, contiguous = slice(sel[0], sel[-1] + 1), sel[-1] - sel[0] + 1 == sel.shape[0]
             h_out = None
             if want_h:
                 h_out = hessian[rows] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
             g_out = gradient[rows] if want_g and contiguous else np.empty((sel.shape[0], 24), dtype)
-            h_finite = _derivatives(c, take_joints(F, sel), take_joints(v, sel), dE[part], d2E[part], g_out, h_out, psd)
+            Fc, vc = (F[part], v[part]) if every else (take_joints(F, sel), take_joints(v, sel))
+            h_finite = _derivatives(c, Fc, vc, dE[part], d2E[part], g_out, h_out, psd)
             if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`): back by 2^-k
                 k = shift[part]
                 lifted = k.nonzero()[0]
@@ -87,9 +90,9 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             if want_h and not h_finite:
                 bad += nonfinite_rows(h_out)
             if want_g and not contiguous:
-                gradient[pos] = g_out
+                gradient[sel] = g_out
             if want_h and not contiguous:
-                hessian[pos] = h_out
+                hessian[sel] = h_out
             return [int(sel[i]) for i in bad]
 
         for bad in run_all([partial(chunk, start) for start in range(0, a, size)], threads):

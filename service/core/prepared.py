@@ -133,7 +133,7 @@ class PreparedScene:
         # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
         results = [self._evaluate_batch(b, jb, want_g, want_h, psd, active_only, deadline, compact)
                    for b, jb in enumerate(batches)]
-        total = float(sum(np.sum(e) for _, e, _ in results))
+        total = float(sum(e.sum() for _, e, _ in results))
         if not np.isfinite(total):
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
         ev = Evaluation(total_energy=total, batches=[r for r, _, _ in results])

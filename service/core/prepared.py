@@ -369,8 +369,6 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     rows = {PREV_STEP} | {row for j in batches if j.constitution_uid in CONSTITUTIONS
                           for row in _increments(numerics(j.constitution_uid))[:-1]}
     n_bodies = bodies.q_ref.shape[0]
-    with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
-        table = BodyTable(bodies, dtype, rows=rows, rotate=False)
     checks = [check_joints(b, joints, n_bodies) for b, joints in enumerate(batches)]
     # The polar factors of the bodies some joint reads (indices out of range are `check_joints`' faults).
     used = np.zeros(n_bodies, dtype=bool)
@@ -379,14 +377,13 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
         if ids.dtype.kind in "iu" and ids.shape[0]:
             # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
             used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
-    with np.errstate(all="ignore"):
-        table.rotate(used)
     log = FaultLog()
-    log.add(check_rotations(table.ratio))
-    for faults in checks:  # in batch order (the log keeps the first)
-        log.add(faults)
-    log.raise_if_any()
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations, hostile numbers by the checks after
+        table = BodyTable(bodies, dtype, rows=rows, used=used)
+        log.add(check_rotations(table.ratio))
+        for faults in checks:  # in batch order (the log keeps the first)
+            log.add(faults)
+        log.raise_if_any()
         # (2, N) pairs: contiguous indices gather 30% faster
         prepared = [_prepare_batch(b, j, table, own, np.ascontiguousarray(j.body_ids.T)) for b, j in enumerate(batches)]
     if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once

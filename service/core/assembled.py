@@ -1,33 +1,26 @@
-"""Answers assembled per body (`layout="bodies"`): every joint's gradient and Hessian summed into its bodies' DOFs.
+"""Answers per body (`layout="bodies"`): every active joint's gradient and Hessian summed into its bodies' DOFs.
 
-A joint on bodies `(i, j)` has a gradient `[g_i, g_j]` (24) and a Hessian with blocks
-`H_ii, H_ij, H_ji, H_jj` (12 x 12 each). Assembled over a request with B bodies:
+A joint on bodies `(i, j)` has a gradient `[g_i, g_j]` (24) and a Hessian of 12 x 12 blocks `H_ii, H_ij, H_ji, H_jj`.
+Over B bodies: `gradient` (B, 12), row `k` the sum of every active joint's `g_k`; the Hessian (12B x 12B, symmetric)
+as its upper block triangle, `rows <= cols` (K,) sorted (row, then column), one per body pair a joint outside its
+range touches, and `blocks` (K, 12, 12) summed over those joints (the full matrix adds the off-diagonal transposes).
 
-- `gradient` (B, 12): row `k` is the sum of every active joint's `g_k`;
-- the Hessian (12B x 12B, symmetric) as its upper block triangle: `rows`, `cols` (K,) body indices
-  with `rows <= cols`, sorted (row, then column), one entry per body pair that a joint outside its
-  range touches, and `blocks` (K, 12, 12) with block `(r, c)` = d2E / dq_r dq_c summed over those
-  joints. The full matrix is the blocks plus the transposes of the off-diagonal ones.
-
-Only joints outside their range are summed (the others' rows are exact zeros). Scatter-adds are
-one stable sort of integer keys and vectorised passes over the sorted terms: no Python loop over
-joints. Each key's terms are added one after the other in request order (batch, then joint, then
-`(i, i)`, `(j, j)`, `(i, j)`), so a plain loop adding them in that order gives the same bits
-(tests/core/test_assembled.py), and each diagonal block is bitwise symmetric like the blocks it sums.
+A scatter-add is one stable sort of integer keys and vectorised passes over the sorted terms (no loop over joints),
+adding each key's terms one after the other in request order (batch, joint, then `(i, i)`, `(j, j)`, `(i, j)`): a
+plain loop in that order gives the same bits (tests/core/test_assembled.py); diagonal blocks stay bitwise symmetric.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from jointlimits.service.core import penalty
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, InputError
-from jointlimits.service.core.scene import Array, BatchResult, Evaluation, Joints
+from jointlimits.service.core.scene import Array
 from jointlimits.service.core.validate import literal_msg, nonfinite_rows
 
 LAYOUTS = ("joints", "bodies")
@@ -51,9 +44,8 @@ class Assembled:
         try:
             from scipy import sparse
         except ImportError:
-            raise ImportError(
-                "Assembled.matrix() needs scipy: pip install 'jointlimits[sparse]' (or pip install scipy)"
-            ) from None
+            msg = "Assembled.matrix() needs scipy: pip install 'jointlimits[sparse]' (or pip install scipy)"
+            raise ImportError(msg) from None
         if self.blocks is None:
             raise ValueError("no Hessian: ask for the 'hessian' output")
         off = self.rows != self.cols
@@ -65,33 +57,6 @@ class Assembled:
         jj = (12 * c[:, None, None] + a[None, None, :]).repeat(12, axis=1)
         n = 12 * self.n_bodies
         return sparse.coo_array((data.ravel(), (ii.ravel(), jj.ravel())), shape=(n, n)).tocsr()
-
-
-def active_rows(joints: Joints, result: BatchResult, active_only: bool) -> NDArray[np.intp]:
-    """Positions in `result`'s rows of joints outside their range (the only rows with derivatives).
-
-    The gap is the core's: `x` against `lower - offset`, `upper - offset` (bitwise its bounds).
-    """
-    if active_only:
-        return np.arange(result.index.shape[0])
-    i = result.index
-    lo, up = joints.lower[i], joints.upper[i]
-    if joints.offset is not None:
-        lo, up = lo - joints.offset[i], up - joints.offset[i]
-    g, _ = penalty.gap(result.x, lo, up)
-    return np.flatnonzero((g > 0) & (joints.strength[i] > 0))
-
-
-def assemble(n_bodies: int, batches: Sequence[Joints], ev: Evaluation, active_only: bool) -> Assembled:
-    """The scatter-add over the bodies of `batches` of `ev`'s per-joint rows (`layout="joints"`)."""
-    per_joint = []
-    for joints, r in zip(batches, ev.batches):
-        rows = active_rows(joints, r, active_only)
-        ids = np.asarray(joints.body_ids, dtype=np.int64)[r.index[rows]]
-        per_joint.append((ids, None if r.gradient is None else r.gradient[rows], None if r.hessian is None else r.hessian[rows]))
-    want_g = bool(ev.batches) and ev.batches[0].gradient is not None
-    want_h = bool(ev.batches) and ev.batches[0].hessian is not None
-    return assemble_active(n_bodies, per_joint, want_g, want_h)
 
 
 def assemble_active(
@@ -213,20 +178,3 @@ def _raise_overflow(out: Assembled) -> None:
 
 def check_layout(layout: str) -> list[Fault]:
     return [] if layout in LAYOUTS else [Fault(("layout",), literal_msg(LAYOUTS), "literal_error")]
-
-
-def strip(ev: Evaluation, out: Assembled) -> Evaluation:
-    """`ev` with the assembled answer `out` and batches without derivatives (index, x, energy, coordinate kept)."""
-    ev = replace(ev, batches=[replace(r, gradient=None, hessian=None) for r in ev.batches])
-    ev.assembled = out
-    return ev
-
-
-def apply(ev: Evaluation, n_bodies: int, batches: Sequence[Joints], layout: str, active_only: bool) -> Evaluation:
-    """A per-joint `ev` in `layout`: unchanged for "joints"; for "bodies" the assembled answer, batches
-    without derivatives. (The core's evaluate with `layout="bodies"` assembles without per-joint rows.)"""
-    if check_layout(layout):
-        raise InputError(check_layout(layout))
-    if layout == "joints":
-        return ev
-    return strip(ev, assemble(n_bodies, batches, ev, active_only))

@@ -1,26 +1,15 @@
 """Chain rule from the frame quantities F to the 24 DOFs of a joint, written in the contract's order.
 
-Each F_k depends on its body's DOFs only through `alpha_k p + A v_k`, so
-`dF_k / dq` is `I_3 (x) w_k` with `w_k = [alpha_k, v_k]` (4,): row r of F_k sees
-`p_r` (weight alpha_k) and row r of A (weights v_k). `J` is never formed.
+`dF_k / dq` is `I_3 (x) w_k` with `w_k = [alpha_k, v_k]` (4,) (`F_k = alpha_k p + A v_k`): row r of F_k
+sees `p_r` (weight alpha_k) and row r of A (weights v_k). `J` is never formed.
 
-The Hessian `E'' g g^T + J^T (E' d2x/dF2) J` is assembled from the structured
-curvature (`constitution.Curvature`), bitwise symmetric by construction, straight into
-the output in DOF order, as signed rank-1 factors `X^T diag(s) X` in one small GEMM per
-joint (the signs are exact, so `(s_e X_ei) X_ej == (s_e X_ej) X_ei`):
-
-- low rank: `Y^T S Y` with `Y = U J` (k x 24) and `S = E' C + E'' t t^T` (k x k) as its
-  eigen-factors;
-- Kronecker: `J^T (K (x) I_3) J` touches only the entries that share a row r of
-  `[p | A]`: per r an 8 x 8 (or, with no points, 6 x 6) block `W = w^T K w`. With points
-  (the prismatic joint) it enters the GEMM as 3 m more factors; without (the revolute
-  joint, whose translation rows and columns are then zero) its 3 x 3 blocks are added after
-  a GEMM of the k low-rank factors alone: 12 factors of 24 entries cost the GEMM more
-  than the 6 block additions (`python -m bench`, "Every joint active").
-
-Every pass before the GEMM runs along the joints (component-major arrays, as the frames):
-a per-joint 2 x 3 product or a broadcast over a trailing axis of 3 costs a call or a loop
-per joint.
+The Hessian `E'' g g^T + J^T (E' d2x/dF2) J` of a structured curvature (`constitution.Curvature`) is
+written straight into the output as signed rank-1 factors `X^T diag(s) X`, one small GEMM per joint,
+bitwise symmetric (the signs are exact, so `(s_e X_ei) X_ej == (s_e X_ej) X_ei`): the low-rank part
+`Y^T S Y` (`Y = U J`, `S = E' C + E'' t t^T`) as S's eigen-factors; the Kronecker part `J^T (K (x) I_3) J`,
+which only pairs entries of the same row r of `[p | A]`, as 3 m more factors with points (the prismatic
+joint), or without (the revolute joint) as 3 x 3 blocks added after the GEMM (12 more factors of 24
+entries cost the GEMM more). Every pass before the GEMM runs along the joints (component-major arrays).
 """
 
 from __future__ import annotations
@@ -29,14 +18,14 @@ from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
+from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature
 from jointlimits.service.core.kinematics import SMALL, component_major
 
 BLOCK = 1024
-"""Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just
-written stay in cache. Per-joint scalars are taken for every joint of a call at once: per block
-they would cost a call each (its overhead, and on threads a GIL hand-off)."""
+"""Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just written stay
+in cache (per-joint scalars are taken for all joints at once: per block they would cost a call each)."""
 
 MAX_FACTORS = 64
 """At most this many factors per joint (7 for the prismatic joint): `finite_factor` relies on it."""
@@ -66,17 +55,20 @@ def hessian(
 ) -> tuple[Array, bool]:
     """`E'' g g^T + J^T (E' d2x/dF2) J` (N, 24, 24) into `out`, bitwise symmetric, each entry written once.
 
-    `curvature` is `d2x/dF2` (after a PSD projection it already carries E': pass `dE = 1`). `dx`
-    (N, 4, 3) only when `curvature.dx_coef` is None. The Hessian is `X^T diag(s) X` with `X`
-    (N, p, 24) signed rank-1 factors (`s` in {-1, 0, 1}): one small GEMM per joint, `BLOCK`
-    joints at a time; the per-joint scalars (eigen-decompositions, weights, signs) once for all N.
-    Returns `J^T dx` (N, 24), a by-product of the factors (the gradient over E'), and whether every
-    entry of `out` is finite for sure (no check of `out` needed): |X| below `finite_factor`, so no sum of
-    products overflows.
+    `curvature` is `d2x/dF2` (after a PSD projection it carries E': pass `dE = 1`); `dx` (N, 4, 3) only
+    when `curvature.dx_coef` is None. `X` (N, p, 24) `BLOCK` joints at a time, the per-joint scalars once.
+    Returns `J^T dx` (N, 24) (the gradient over E'), and whether `out` is finite for sure (|X| below
+    `finite_factor`: no sum of products overflows; else the caller checks it).
     """
-    basis, k0 = _with_dx(curvature, dx)
+    # The vectors in F (N, k, 4, 3) whose chained factors the low-rank part needs: the basis, then `dx`
+    # when the gradient is not in its span (E'' dx dx^T beside it).
+    basis = curvature.basis
+    n, k0 = basis.shape[:2]
+    if curvature.dx_coef is None:
+        basis = component_major(n, (k0 + 1, 4, 3), basis.dtype)  # every pass after it runs along the joints
+        basis[:, :k0], basis[:, k0] = curvature.basis, dx
     mix = _Mix.of(curvature, k0, dE, d2E)
-    blocks = [slice(s, s + BLOCK) for s in range(0, v.shape[0], BLOCK)]
+    blocks = [slice(s, s + BLOCK) for s in range(0, n, BLOCK)] if n > BLOCK else [slice(None)]
     if not alpha.any():
         return _hessian_directions(v, basis, mix, curvature.kron, dE, out, blocks)
     return _hessian_points(alpha, v, basis, mix, curvature, dE, out, blocks)
@@ -99,68 +91,59 @@ def _hessian_points(
         w = dE[:, None] * w
     m, k = w.shape[1], mix.lam.shape[1]
     fs = component_major(n, (m, 2, 2, 1), dtype)  # sqrt|w_e| f_e, by body and block
-    np.multiply(np.broadcast_to(f, (n, m, 4)), np.sqrt(np.abs(w))[:, :, None], out=fs.reshape(n, m, 4))
+    np.multiply(f, np.sqrt(np.abs(w))[:, :, None], out=fs.reshape(n, m, 4))
     sign = np.empty((n, k + 3 * m), dtype=dtype)
     np.sign(mix.lam, out=sign[:, :k])
     sign[:, k:].reshape(n, m, 3)[...] = np.sign(w)[:, :, None]
     Jdx = component_major(n, (24,), dtype)
     finite = k + 3 * m <= MAX_FACTORS
-    for q in blocks:
-        X, bound = _point_factors(alpha, v[q], basis[q], mix.rows(q), fs[q], Jdx[q])
-        SX = X * sign[q, :, None]
-        # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
-        # in the same order: the product is bitwise symmetric without a symmetrising pass.
-        np.matmul(SX.transpose(0, 2, 1), X, out=out[q])
-        finite = finite and bool(bound < finite_factor(dtype))
-    return Jdx, finite
-
-
-def _point_factors(alpha: Array, v: Array, basis: Array, mix: _Mix, fs: Array, Jdx: Array) -> tuple[Array, float]:
-    """A block's factors `X` (M, k + 3 m, 24), C order for the GEMM, and max |X| (NaN if any is NaN);
-    `J^T dx` (M, 24) into `Jdx`. `fs` (M, m, 2, 2, 1): the Kronecker weights' `sqrt|w_e| f_e`."""
-    n, dtype = v.shape[0], v.dtype
-    Y = chain(alpha, v, basis)  # (M, k, 24): the basis chained to DOFs, component-major
-    Xl = mix.factors(Y)
-    mix.jdx(Y, out=Jdx)
-    m, k = fs.shape[1], Xl.shape[1]
-    # t[e, body, :] = sum over the body's blocks of f_e[block] [alpha, v][block], times sqrt|w_e|:
-    # elementwise along the joints (a 2 x 4 product per joint and body is a BLAS call each).
     wv = component_major(n, (2, 2, 4), dtype)  # (joint, body, block, [alpha, v])
     wv[..., 0] = alpha.reshape(2, 2)
     wv[..., 1:] = v.reshape(n, 2, 2, 3)
-    t = component_major(n, (m, 2, 4), dtype)
-    np.multiply(fs[:, :, :, 0], wv[:, None, :, 0], out=t)
-    t += fs[:, :, :, 1] * wv[:, None, :, 1]
-    t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
-    X = np.zeros((n, k + 3 * m, 2, 12), dtype=dtype)
-    X[:, :k] = Xl.reshape(n, k, 2, 12)
-    Xk = X[:, k:].reshape(n, m, 3, 2, 12)  # (joint, e, row r, body, DOF)
-    for r in range(3):
-        Xk[:, :, r, :, 3 + 3 * r : 6 + 3 * r] = t[..., 1:]
-        Xk[:, :, r, :, r] = t[..., 0]
-    bound = max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0))  # X holds these values and zeros
-    return X.reshape(n, k + 3 * m, 24), bound
+    for q in blocks:
+        Y = chain(alpha, v[q], basis[q])  # (M, k, 24): the basis chained to DOFs, component-major
+        mq = mix.rows(q)
+        Xl = mq.factors(Y)
+        mq.jdx(Y, out=Jdx[q])
+        M = Xl.shape[0]
+        # t[e, body, :] = sum over the body's blocks of f_e[block] [alpha, v][block], times sqrt|w_e|:
+        # elementwise along the joints (a 2 x 4 product per joint and body is a BLAS call each).
+        t = component_major(M, (m, 2, 4), dtype)
+        np.multiply(fs[q][:, :, :, 0], wv[q][:, None, :, 0], out=t)
+        t += fs[q][:, :, :, 1] * wv[q][:, None, :, 1]
+        t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
+        X = np.zeros((M, k + 3 * m, 2, 12), dtype=dtype)
+        X[:, :k] = Xl.reshape(M, k, 2, 12)
+        Xk = X[:, k:].reshape(M, m, 3, 2, 12)  # (joint, e, row r, body, DOF)
+        for r in range(3):
+            Xk[:, :, r, :, 3 + 3 * r : 6 + 3 * r] = t[..., 1:]
+            Xk[:, :, r, :, r] = t[..., 0]
+        X = X.reshape(M, k + 3 * m, 24)
+        # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
+        # in the same order: the product is bitwise symmetric without a symmetrising pass.
+        np.matmul((X * sign[q, :, None]).transpose(0, 2, 1), X, out=out[q])
+        # X holds the values of Xl and t, and zeros (NaN fails the test).
+        finite = finite and bool(max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0)) < finite_factor(dtype))
+    return Jdx, finite
 
 
 def _hessian_directions(
     v: Array, basis: Array, mix: _Mix, kron: Array, dE: Array, out: Array, blocks: list[slice]
 ) -> tuple[Array, bool]:
     """`hessian` for frames without points (the revolute joint): the low-rank part as one GEMM of its
-    few factors, the Kronecker part added block by block.
+    few factors, the Kronecker part added after it.
 
     `J^T (K (x) I_3) J` only touches the entries where a row r of body b's `A` meets the same row r
-    of body b''s: per r the 3 x 3 blocks `W_bb' = sum_kk' K_kk' v_k v_k'^T` over the two bodies' frames,
-    added entry by entry after a GEMM of the k low-rank factors (12 more factors of 24 entries each
-    cost the GEMM more; a revolute joint's exact K has no same-body blocks: only W_ij and its
-    transpose). Bitwise symmetric: the GEMM as in `hessian`, `W_ji` is `W_ij` transposed, and each
-    same-body `W_bb` is summed symmetrically.
+    of body b''s: per r the 3 x 3 blocks `W_bb'` (`_kron_blocks`), added entry by entry after a GEMM
+    of the k low-rank factors (12 more factors of 24 entries each cost the GEMM more). Bitwise
+    symmetric: the GEMM as in `hessian`, `W_ji` is `W_ij` transposed, each `W_bb` symmetric.
     """
     n, dtype = v.shape[0], v.dtype
     k = mix.lam.shape[1]
     sign = np.sign(mix.lam)
     same = bool(kron[:, :2, :2].any() or kron[:, 2:, 2:].any())  # only after a PSD projection
-    pairs = [(0, 2), (1, 2), (0, 3), (1, 3)] + ([(0, 0), (1, 1), (0, 1), (2, 2), (3, 3), (2, 3)] if same else [])
-    dK = {(a, b): dE * kron[:, a, b] for a, b in pairs}  # the entries of E' K the blocks use, (N,) each
+    dK = dE[:, None, None] * kron  # E' K
+    at, src = _KRON_SCATTER[same]
     Jdx = np.empty((n, 2, 12), dtype=dtype)
     Jdx[..., :3] = 0.0  # the translations: no points
     # |LR| <= k finite_factor^2 <= max / 4 and |W| < max / 4: no sum overflows (NaN fails both tests).
@@ -177,83 +160,42 @@ def _hessian_directions(
         X = np.zeros((m, k, 2, 12), dtype=dtype)
         X[..., 3:] = Xl.reshape(m, k, 2, 9)
         X = X.reshape(m, k, 24)
-        SX = np.multiply(X, sign[q, :, None])
-        np.matmul(SX.transpose(0, 2, 1), X, out=out[q])
-        W = _kron_blocks(v[q], {key: d[q] for key, d in dK.items()}, same)
-        # Entry by entry along the joints: a 3 x 3 block of 3-element rows costs the iterator a loop per
-        # row (and a row of W at a time, as strided views, measured slower still).
+        np.matmul((X * sign[q, :, None]).transpose(0, 2, 1), X, out=out[q])
+        W = _kron_blocks(v[q], dK[q], same).reshape(m, -1)
         H = out[q].reshape(m, 576)
-        if m <= SMALL:  # a few joints: one scatter (each entry of H takes at most one entry of W: any order)
-            at, a, c = _KRON_SCATTER[same]
-            H[:, at] += np.concatenate([W[key][:, a[t], c[t]] for t, key in enumerate(W)], axis=1)
-            blocks_left = {}
+        # Each entry of H takes at most one entry of W: any order. A few joints: one scatter; more, column
+        # by column (the scatter's (M, P) gather costs more than P strided passes there).
+        if m <= SMALL:
+            H[:, at] += W[:, src]
         else:
-            blocks_left = W
-        for (b, b2), block in blocks_left.items():
-            for a, c, rows, cols in _KRON_ENTRIES[b, b2]:
-                w = block[:, a, c]
-                for i, j in zip(rows, cols):
-                    H[:, i] += w
-                    if b != b2:
-                        H[:, j] += w
+            for p, w in zip(at.tolist(), src.tolist()):
+                H[:, p] += W[:, w]
         finite = finite and bool(np.abs(Xl).max(initial=0.0) < finite_factor(dtype))
-        finite = finite and all(bool(np.abs(block).max(initial=0.0) < big) for block in W.values())
+        finite = finite and bool(np.abs(W).max(initial=0.0) < big)
     return Jdx.reshape(n, 24), finite
 
 
-def _with_dx(curvature: Curvature, dx: Array | None) -> tuple[Array, int]:
-    """The vectors in F (N, k, 4, 3) whose chained factors the low-rank part needs: the curvature's
-    basis, then `dx` when the gradient is not in its span (E'' dx dx^T beside it); and the basis' size."""
-    basis = curvature.basis
-    n, k0 = basis.shape[:2]
-    if curvature.dx_coef is not None:
-        return basis, k0
-    both = component_major(n, (k0 + 1, 4, 3), basis.dtype)  # every pass after it runs along the joints
-    both[:, :k0], both[:, k0] = basis, dx
-    return both, k0
+def _kron_scatter(same: bool) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Where `_kron_blocks`' entries go in a flat 24 x 24 Hessian: the positions (P,) and the flat entry of
+    the blocks (nb, 3, 3) each takes. Entry (a, c) of `W_bb'` sits at (row r of body b's A, column a) x
+    (row r of body b''s A, column c) for r = 0, 1, 2, and (b != b') at the transposed position too."""
+    at, src = [], []
+    for t, (b, b2) in enumerate([(0, 1), (0, 0), (1, 1)][: 3 if same else 1]):
+        for a in range(3):
+            for c in range(3):
+                i, j = 12 * b + 3 + 3 * np.arange(3) + a, 12 * b2 + 3 + 3 * np.arange(3) + c
+                spots = [*(24 * i + j)] + ([*(24 * j + i)] if b != b2 else [])
+                at += spots
+                src += [9 * t + 3 * a + c] * len(spots)
+    return np.array(at), np.array(src)
 
 
-def _kron_entries(b: int, b2: int) -> list[tuple[int, int, list[int], list[int]]]:
-    """Per entry (a, c) of `W_bb'`: its flat positions in a 24 x 24 Hessian, (row r of body b's A, column
-    a) x (row r of body b''s A, column c) for r = 0, 1, 2, and the transposed positions."""
-    out = []
-    for a in range(3):
-        for c in range(3):
-            i = 12 * b + 3 + 3 * np.arange(3) + a
-            j = 12 * b2 + 3 + 3 * np.arange(3) + c
-            out.append((a, c, (24 * i + j).tolist(), (24 * j + i).tolist()))
-    return out
-
-
-_KRON_ENTRIES = {(b, b2): _kron_entries(b, b2) for b in range(2) for b2 in range(2)}
-
-
-def _kron_scatter(keys: list[tuple[int, int]]) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
-    """`_KRON_ENTRIES` of the blocks `keys` (in `_kron_blocks`' order) as one scatter: the flat positions
-    (P,), and per block the entries (a, c) each of its positions takes."""
-    at, a_of, c_of = [], [], []
-    for b, b2 in keys:
-        a_k, c_k = [], []
-        for a, c, rows, cols in _KRON_ENTRIES[b, b2]:
-            spots = rows + (cols if b != b2 else [])
-            at += spots
-            a_k += [a] * len(spots)
-            c_k += [c] * len(spots)
-        a_of.append(np.array(a_k))
-        c_of.append(np.array(c_k))
-    return np.array(at), a_of, c_of
-
-
-_KRON_SCATTER = {False: _kron_scatter([(0, 1)]), True: _kron_scatter([(0, 1), (0, 0), (1, 1)])}
+_KRON_SCATTER = {same: _kron_scatter(same) for same in (False, True)}
 
 
 def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
-    """`J^T dF` restricted to the `A` entries, for frames without points: (N, e, 18) component-major
-    ((N,) contiguous per entry), entry `(b, r, c)` = sum over body b's frames k of `dF[k, r] v_k[c]`;
-    or into `out` (N, e, 2, 3, 3), returned as given.
-
-    `v` (N, 4, 3), `dF` (N, e, 4, 3), any layouts: every pass runs along the joints.
-    """
+    """`J^T dF` on the `A` entries, for frames without points: (N, e, 18) component-major, entry `(b, r, c)` =
+    sum over body b's frames k of `dF[k, r] v_k[c]`; or into `out` (N, e, 2, 3, 3). `v` (N, 4, 3), `dF` (N, e, 4, 3)."""
     n, e = dF.shape[:2]
     given = out is not None
     out = component_major(n, (e, 2, 3, 3), dF.dtype) if out is None else out
@@ -264,29 +206,23 @@ def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
     return out if given else out.reshape(n, e, 18)
 
 
-def _kron_blocks(v: Array, dK: dict[tuple[int, int], Array], same: bool) -> dict[tuple[int, int], Array]:
-    """The nonzero blocks `W_bb'` (N, 3, 3) = `sum_kk' dE K_kk' v_k v_k'^T` over body b's frames k and
-    b''s k', by (b, b'): (0, 1) always (`W_10` is its transpose), (0, 0) and (1, 1) when `same` (K
-    has same-body entries). `dK` the entries `dE K_kk'` (N,) by (k, k'). Component-major."""
+def _kron_blocks(v: Array, dK: Array, same: bool) -> Array:
+    """The nonzero blocks `W_bb'` (N, nb, 3, 3) = `sum_kk' dK_kk' v_k v_k'^T` over body b's frames k and
+    b''s k': (0, 1) (`W_10` is its transpose), then (0, 0) and (1, 1) when `same` (K has same-body
+    entries). `dK` (N, 4, 4) is `E' K`. Component-major: every pass runs along the joints."""
     n = v.shape[0]
-    dtype = v.dtype
-    vc = [v[:, k, :, None] for k in range(4)]  # (N, 3, 1): v_k as a column
-    vr = [v[:, k, None, :] for k in range(4)]  # (N, 1, 3): v_k as a row
-
-    def Kab(a: int, b: int) -> Array:
-        return dK[a, b][:, None, None]
-
-    W = {(0, 1): component_major(n, (3, 3), dtype)}
-    np.multiply(Kab(0, 2) * vc[0] + Kab(1, 2) * vc[1], vr[2], out=W[0, 1])
-    W[0, 1] += (Kab(0, 3) * vc[0] + Kab(1, 3) * vc[1]) * vr[3]
-    if same:
-        for b in range(2):
-            p, q = 2 * b, 2 * b + 1
-            # (v_p v_p^T) K_pp + (v_q v_q^T) K_qq + (v_p v_q^T + v_q v_p^T) K_pq: each term symmetric bitwise.
-            W[b, b] = component_major(n, (3, 3), dtype)
-            np.multiply(vc[p] * vr[p], Kab(p, p), out=W[b, b])
-            W[b, b] += (vc[q] * vr[q]) * Kab(q, q)
-            W[b, b] += (vc[p] * vr[q] + vc[q] * vr[p]) * Kab(p, q)
+    W = component_major(n, (3 if same else 1, 3, 3), v.dtype)
+    u = dK[:, 0, 2:, None] * v[:, 0, None, :]  # (N, 2, 3): sum over body i's k of K_kk' v_k, for k' = 2, 3
+    u += dK[:, 1, 2:, None] * v[:, 1, None, :]
+    np.multiply(u[:, 0, :, None], v[:, 2, None, :], out=W[:, 0])
+    W[:, 0] += u[:, 1, :, None] * v[:, 3, None, :]
+    if same:  # both bodies at once: p = 2b, q = 2b + 1
+        Kb = np.diagonal(dK.reshape(n, 2, 2, 2, 2), axis1=1, axis2=3)[..., None, None]  # [:, i, j, b] = K_(2b+i)(2b+j)
+        vp, vq, vpr, vqr = v[:, 0::2, :, None], v[:, 1::2, :, None], v[:, 0::2, None, :], v[:, 1::2, None, :]
+        # (v_p v_p^T) K_pp + (v_q v_q^T) K_qq + (v_p v_q^T + v_q v_p^T) K_pq: each term symmetric bitwise.
+        np.multiply(vp * vpr, Kb[:, 0, 0], out=W[:, 1:])
+        W[:, 1:] += (vq * vqr) * Kb[:, 1, 1]
+        W[:, 1:] += (vp * vqr + vq * vpr) * Kb[:, 0, 1]
     return W
 
 
@@ -346,6 +282,8 @@ class _Mix:
 
     def rows(self, q: slice) -> _Mix:
         """Joints `q` (views)."""
+        if q == slice(None):
+            return self
         cut = lambda a: None if a is None else a[q]  # noqa: E731
         rot = None if self.rot is None else tuple(a[q] for a in self.rot)
         return _Mix(self.lam[q], self.k0, cut(self.t), cut(self.scale), rot, cut(self.VT))  # type: ignore[arg-type]
@@ -378,10 +316,8 @@ class _Mix:
 
 
 def psd_projection(M: Array) -> Array:
-    """Each symmetric (12 x 12) `M` (N, 12, 12) with negative eigenvalues clamped to 0, as a Curvature's parts.
-
-    Returns the eigen-factors `V^T` (N, 12, 4, 3) and clamped eigenvalues (N, 12).
-    """
+    """Each symmetric `M` (N, 12, 12) with negative eigenvalues clamped to 0, as a Curvature's parts: the
+    eigen-factors `V^T` (N, 12, 4, 3) and the clamped eigenvalues (N, 12)."""
     n = M.shape[0]
     lam, V = np.linalg.eigh(M)
     return V.transpose(0, 2, 1).reshape(n, 12, 4, 3), np.maximum(lam, 0.0)

@@ -12,7 +12,7 @@ import numpy as np
 from jointlimits.service.core import assembly, penalty
 from jointlimits.service.core.constitution import Array, Constitution, Curvature
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, check_deadline
-from jointlimits.service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, CarefulFrames, take_joints
+from jointlimits.service.core.kinematics import CarefulFrames, take_joints
 from jointlimits.service.core.parallel import run_all
 from jointlimits.service.core.validate import nonfinite_rows, raise_if
 
@@ -23,146 +23,91 @@ SCATTER_CHUNK = 2048
 """The chunk when Hessian rows are scattered (some joints inside their range): its scratch rows, 9 MB."""
 
 
-def _increments(c: Constitution) -> tuple[int, ...]:
-    """The body table's rows of `A` increments that `c.coordinate` takes, in its order."""
-    return (TOTAL_STEP,) if c.facts.telescopes else (PREV_STEP, STEP)
-
-
-def differentiate(
-    b: int,
-    c: Constitution,
-    F: Array,
-    v: Array,
-    x: Array,
-    lo: Array,
-    up: Array,
-    s: Array,
-    want_g: bool,
-    want_h: bool,
-    psd: bool,
-    active_only: bool,
-    threads: int,
-    deadline: float | None = None,
-    compact: bool = False,
-) -> dict:
-    """Energy (N,) of batch `b` at its frames `F` (N, 4, 3) and coordinate `x` (N,), and the asked-for
-    derivatives of its active joints: the fields of a `BatchResult`, plus `all_energy` (N,) and the
-    positions `active` (A,) of the joints outside their range.
+def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Array, up: Array, s: Array, want_g: bool,
+                  want_h: bool, psd: bool, compact: bool, threads: int = 1,
+                  deadline: float | None = None) -> tuple[Array, Array | None, Array | None, Array | None]:
+    """Batch `b`'s energy (N,) at its frames `F` (N, 4, 3) and coordinate `x` (N,); the positions `active` (A,)
+    of the joints outside their range (None when neither derivatives nor `compact` are asked); the asked-for
+    gradient (R, 24) and Hessian (R, 24, 24), else None: R = A rows of the active joints if `compact`, else N
+    (the inactive rows exact zeros, never differentiated).
 
     `v` (N, 4, 3) the body-local vectors; `lo`, `up` (N,) the bounds on `x`, `s` (N,) the strengths.
     Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
-    past `deadline` (a `time.monotonic()` value), checked before each derivative chunk. `compact`:
-    derivative rows for the active joints only (as `active_only`) while index, x, energy keep every
-    joint; `active` (A,) says which (`layout="bodies"` sums those rows alone). The derivative
-    chunks run on `threads` threads.
+    past `deadline` (a `time.monotonic()` value), checked before each derivative chunk, which run on `threads`.
     """
-    dtype = F.dtype
     g = penalty.distance(x, lo, up)  # one gap for the energy, the active joints and their slopes
     energy, r, w, wide = penalty.energy_and_relative(g, x, lo, up, s)
-    compact = compact or active_only  # derivative rows: the active joints only, or every joint
-    if not (want_g or want_h or compact):
-        # Energy alone, every row: which joints are active is not asked (`active` None).
-        _raise_overflow(b, nonfinite_rows(energy))
-        n = x.shape[0]
-        return dict(constitution_uid=c.facts.uid, index=np.arange(n), x=x, energy=energy, gradient=None, hessian=None,
-                    all_energy=energy, active=None)
-
-    active = ((g > 0) & (s > 0)).nonzero()[0]
-    n = active.shape[0] if compact else x.shape[0]
-    # Inactive rows are exact zeros that were never differentiated (calloc: untouched pages stay free);
-    # when every row is differentiated each is written once, with no zero-fill before.
-    alloc = np.empty if active.shape[0] == n else np.zeros
-    gradient = alloc((n, 24), dtype=dtype) if want_g else None
-    hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
-    out_pos = np.arange(n) if compact else active
-
-    # Rows written in place when every row is differentiated; else a chunk's go through a scratch array
-    # first, kept to a few MB. On threads, at least two chunks per thread (a batch alone keeps them busy).
-    block = assembly.BLOCK
-    size = CHUNK if active.shape[0] == n or not want_h else SCATTER_CHUNK
-    if threads > 1:
-        size = min(size, block * max(1, -(-active.shape[0] // (2 * threads * block))))
-
-    def chunk(start: int) -> list[int]:
-        """Differentiate active joints `start : start + size`; the rows among them that overflow."""
-        check_deadline(deadline)
-        sel = active[start : start + size]
-        pos = out_pos[start : start + size]
-        # Contiguous rows (active_only, or a fully active stretch) are written in place.
-        contiguous = pos[-1] - pos[0] + 1 == pos.shape[0]
-        h_out = None
-        if want_h:
-            h_out = hessian[pos[0] : pos[-1] + 1] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
-        g_out = gradient[pos[0] : pos[-1] + 1] if want_g and contiguous else np.empty((sel.shape[0], 24), dtype)
-        rows = partial(take_joints, sel=sel)
-        part = slice(start, start + size)
-        h_finite = _derivatives(c, rows(F), rows(v), dE[part], d2E[part], g_out, h_out, psd)
-        if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`): back by 2^-k
-            k = shift[part]
-            lifted = k.nonzero()[0]
-            for out in (g_out, h_out):
-                if out is not None and lifted.shape[0]:
-                    out[lifted] = np.ldexp(out[lifted], -k[lifted].reshape(-1, *(1,) * (out.ndim - 1)))
-        # Only active rows can overflow: checked while they are still in cache (the Hessian only
-        # when its factors do not already bound it).
-        bad = nonfinite_rows(g_out) if want_g else []
-        if want_h and not h_finite:
-            bad += nonfinite_rows(h_out)
-        if want_g and not contiguous:
-            gradient[pos] = g_out
-        if want_h and not contiguous:
-            hessian[pos] = h_out
-        return [int(sel[i]) for i in bad]
-
     overflow = nonfinite_rows(energy)
+    active = gradient = hessian = None
+    if want_g or want_h or compact:
+        active = ((g > 0) & (s > 0)).nonzero()[0]
     if want_g or want_h:
-        # Per-joint scalars for every active joint at once: per chunk they would be a dozen short
-        # calls each (call overhead, and a GIL hand-off each on threads).
-        at_active = [take_joints(a, active) for a in (x, lo, up, s)]
+        a, dtype = active.shape[0], F.dtype
+        n = a if compact else x.shape[0]
+        # Inactive rows are exact zeros (calloc: untouched pages stay free); when every row is
+        # differentiated each is written once, with no zero-fill before.
+        alloc = np.empty if a == n else np.zeros
+        gradient = alloc((n, 24), dtype=dtype) if want_g else None
+        hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
+        every = a == x.shape[0]  # every joint active: no gathers, every chunk's rows in place
+        # Per-joint scalars for every active joint at once: per chunk they would be a dozen short calls each.
+        at = (lambda q: q) if every else (lambda q: take_joints(q, active))  # noqa: E731
+        at_active = [at(q) for q in (x, lo, up, s)]
         if wide:  # a gap or width overflowed: from halves
             _, dE, d2E = penalty.derivatives(*at_active)
         else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
-            dE, d2E = penalty.slopes(take_joints(r, active), take_joints(w, active), *at_active)
+            dE, d2E = penalty.slopes(at(r), at(w), *at_active)
         shift = penalty.scale_up(dE, d2E, *at_active)
-        chunks = [partial(chunk, start) for start in range(0, active.shape[0], size)]
-        for bad in run_all(chunks, threads):
+        # Rows written in place when every row is differentiated; else a chunk's go through scratch rows
+        # first, kept to a few MB. On threads, at least two chunks per thread (a batch alone keeps them busy).
+        size = CHUNK if a == n or not want_h else SCATTER_CHUNK
+        if threads > 1:
+            size = min(size, assembly.BLOCK * max(1, -(-a // (2 * threads * assembly.BLOCK))))
+
+        def chunk(start: int) -> list[int]:
+            """Differentiate active joints `start : start + size`; the rows among them that overflow."""
+            check_deadline(deadline)
+            part = slice(start, start + size)
+            sel = active[part]
+            rows, contiguous = part, True  # compact or every joint active: the chunk's own rows, in place
+            if not (compact or every):  # in place too where a stretch of joints is active
+                rows, contiguous = slice(sel[0], sel[-1] + 1), sel[-1] - sel[0] + 1 == sel.shape[0]
+            h_out = None
+            if want_h:
+                h_out = hessian[rows] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
+            g_out = gradient[rows] if want_g and contiguous else np.empty((sel.shape[0], 24), dtype)
+            Fc, vc = (F[part], v[part]) if every else (take_joints(F, sel), take_joints(v, sel))
+            h_finite = _derivatives(c, Fc, vc, dE[part], d2E[part], g_out, h_out, psd)
+            if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`): back by 2^-k
+                k = shift[part]
+                lifted = k.nonzero()[0]
+                for out in (g_out, h_out):
+                    if out is not None and lifted.shape[0]:
+                        out[lifted] = np.ldexp(out[lifted], -k[lifted].reshape(-1, *(1,) * (out.ndim - 1)))
+            # Only active rows can overflow: checked while in cache (the Hessian only when its factors
+            # do not already bound it).
+            bad = nonfinite_rows(g_out) if want_g else []
+            if want_h and not h_finite:
+                bad += nonfinite_rows(h_out)
+            if want_g and not contiguous:
+                gradient[sel] = g_out
+            if want_h and not contiguous:
+                hessian[sel] = h_out
+            return [int(sel[i]) for i in bad]
+
+        for bad in run_all([partial(chunk, start) for start in range(0, a, size)], threads):
             overflow += bad
-    _raise_overflow(b, overflow)
-    return dict(
-        constitution_uid=c.facts.uid,
-        index=active if active_only else np.arange(x.shape[0]),
-        x=x[active] if active_only else x,
-        energy=energy[active] if active_only else energy,
-        gradient=gradient,
-        hessian=hessian,
-        all_energy=energy,
-        active=active,
-    )
-
-
-def _raise_overflow(b: int, overflow: list[int]) -> None:
-    """`InputError` naming the joints `overflow` of batch `b` (their energy or derivatives overflow), if any."""
-    raise_if(
-        [
-            Fault(
-                ("batches", b, "strength", j),
-                "the energy or its derivatives overflow float64 at this configuration and strength",
-            )
+    if overflow:
+        raise_if([
+            Fault(("batches", b, "strength", j),
+                  "the energy or its derivatives overflow float64 at this configuration and strength")
             for j in sorted(set(overflow))[:MAX_FAULTS]
-        ]
-    )
+        ])
+    return energy, active, gradient, hessian
 
 
-def _derivatives(
-    c: Constitution,
-    F: Array,
-    v: Array,
-    dE: Array,
-    d2E: Array,
-    g_out: Array,
-    h_out: Array | None,
-    psd: bool,
-) -> bool:
+def _derivatives(c: Constitution, F: Array, v: Array, dE: Array, d2E: Array, g_out: Array, h_out: Array | None,
+                 psd: bool) -> bool:
     """Gradient (M, 24) of active joints into `g_out`; their Hessian (M, 24, 24) into `h_out` if given;
     whether the Hessian is finite for sure (False: check it). `dE`, `d2E` (M,) the penalty's
     derivatives in x."""
@@ -176,8 +121,9 @@ def _derivatives(
         if projected is None:  # the generic route: a 12 x 12 eigensolver per joint
             basis, lam = assembly.psd_projection(dE[:, None, None] * curvature.dense())
             m = lam.shape[0]
-            projected = Curvature(kron=np.zeros((m, 4, 4), lam.dtype), basis=basis, coef=lam[:, :, None] * np.eye(12, dtype=lam.dtype),
-                                  kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)), diagonal=True)
+            projected = Curvature(kron=np.zeros((m, 4, 4), lam.dtype), basis=basis,
+                                  coef=lam[:, :, None] * np.eye(12, dtype=lam.dtype), diagonal=True,
+                                  kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)))
         # The projection already carries E': the chain rule sees E' = 1 (E'' dx dx^T beside it, PSD as it is).
         curvature, dE_h, dx_h = projected, np.ones_like(dE), dx
     Jdx, finite = assembly.hessian(c.facts.alpha, v, curvature, dE_h, d2E, h_out, dx=dx_h)
@@ -194,15 +140,9 @@ def _gradient(dE: Array, Jdx: Array, out: Array) -> None:
     out += 0.0  # -0.0 + 0.0 == +0.0, every other value unchanged
 
 
-def collapsed_faults(
-    b: int,
-    c: Constitution,
-    names: tuple[str, ...],
-    states: list[Array],
-    careful: CarefulFrames | None = None,
-    known: list | None = None,
-    size_bounds: list | None = None,
-) -> list[Fault]:
+def collapsed_faults(b: int, c: Constitution, names: tuple[str, ...], states: list[Array],
+                     careful: CarefulFrames | None = None, known: list | None = None,
+                     size_bounds: list | None = None) -> list[Fault]:
     """Joints of batch `b` whose frame collapses in any state (`states` (N, 4, 3) named by `names`);
     `careful` joints judged on their scaled frames (`careful.states`, in the same order). `known`: per
     state, what the coordinate already formed there (`Progress.known`), or None; `size_bounds` per

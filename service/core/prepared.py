@@ -23,37 +23,16 @@ from numpy.typing import ArrayLike, NDArray
 from jointlimits.service.core import assembled
 from jointlimits.service.core.constitution import Array, Constitution, Progress
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
-from jointlimits.service.core.evaluate import _increments, collapsed_faults, differentiate
-from jointlimits.service.core.kinematics import (
-    PREV_STEP,
-    REF,
-    STEPS,
-    TOTAL_STEP,
-    BodyTable,
-    CarefulFrames,
-    add_positions,
-    careful_frames,
-    exponents,
-    frame_quantities,
-    relative_position,
-    scaled_frames,
-    state_frames,
-)
+from jointlimits.service.core.evaluate import collapsed_faults, differentiate
+from jointlimits.service.core.kinematics import (PREV_STEP, REF, STEP, STEPS, TOTAL_STEP, BodyTable, CarefulFrames,
+                                                 add_positions, careful_frames, exponents, frame_quantities,
+                                                 relative_position, scaled_frames, state_frames)
 from jointlimits.service.core.geometry import axis_and_anchors
 from jointlimits.service.core.registry import CONSTITUTIONS, numerics
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
-from jointlimits.service.core.validate import (
-    check_bodies,
-    check_dofs,
-    check_evaluation,
-    check_joints,
-    check_options,
-    check_rotations,
-    check_update_index,
-    check_update_ranges,
-    check_update_values,
-    raise_if,
-)
+from jointlimits.service.core.validate import (check_bodies, check_dofs, check_evaluation, check_joints, check_options,
+                                               check_rotations, check_update_index, check_update_ranges,
+                                               check_update_values, raise_if)
 
 # 2 pi in two parts (Cody-Waite): `k * _TWO_PI_HI` is exact for |k| < 2**24 turns (24 trailing zero
 # bits), so `rem` of a many-turn angle loses nothing to the rounding of 2 pi.
@@ -77,11 +56,9 @@ class _Batch:
     F_ref: Array  # (N, 4, 3) frames at q_ref
     starts: list[Array]  # frames where each step of `x` starts (F_ref, then F at q_prev if used)
     fixed: list[Array]  # the steps before the last one (which goes to q): they do not depend on q
-    rows: tuple[int, ...]  # the body table's increment rows of those steps and the last one
+    rows: tuple[int, ...]  # the body table's increment rows of those steps and the last one (STEP or TOTAL_STEP, to q)
     prev_careful: CarefulFrames | None  # the fixed steps' careful frames (kinematics.state_frames)
-    row: int  # the body table's increment row of the last step (to q): STEP or TOTAL_STEP
-    start: int  # the state the last step starts from (0: q_ref, 1: q_prev)
-    r_start: Array | None  # (N, 3) body j from body i in that state (points only)
+    r_start: Array | None  # (N, 3) body j from body i where the last step starts (points only)
     held: Array | None  # (N, 4, 3) the frames in that state without body j's position, `A v` (points, origin q_ref: `_step`)
     lower: Array  # the request's bounds on the coordinate, float64 (`update` writes them: copies in `prepare`)
     upper: Array
@@ -108,22 +85,12 @@ class PreparedScene:
         self._table = table
         self._batches = batches
         self._threads = threads  # each batch's derivative chunks on that many threads
-        self._dtype = table.dtype
-        self._plain = table.plain  # the bodies the frames' common path serves over the steps to q (`_load`)
+        self._plain, self._all_plain = table.plain, False  # the bodies on the frames' common path to q (`_load`)
         self.n_bodies: int = table.dofs.shape[2]
         self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches]
 
-    # ---------------------------------------------------------------- evaluate
-
-    def evaluate(
-        self,
-        q: ArrayLike,
-        outputs: Iterable[str] = OUTPUTS,
-        hessian_mode: str = "exact",
-        active_only: bool = False,
-        deadline: float | None = None,
-        layout: str = "joints",
-    ) -> Evaluation:
+    def evaluate(self, q: ArrayLike, outputs: Iterable[str] = OUTPUTS, hessian_mode: str = "exact",
+                 active_only: bool = False, deadline: float | None = None, layout: str = "joints") -> Evaluation:
         """Energy, gradient and Hessian of every joint at `q` (B, 12), as CONTRACT.md defines them
         (`layout` "bodies": summed per body, `Evaluation.assembled`, service/core/assembled.py).
 
@@ -133,168 +100,127 @@ class PreparedScene:
         past it, `DeadlineExceeded`.
         """
         q = np.asarray(q, dtype=np.float64)
-        return self._evaluate(q, tuple(outputs), hessian_mode, active_only, checked=False, deadline=deadline, layout=layout)
+        outputs = tuple(outputs)
+        log = FaultLog()
+        log.add(check_options(outputs, hessian_mode))
+        log.add(assembled.check_layout(layout))
+        log.add(check_dofs("q", q, self.n_bodies))
+        log.raise_if_any()
+        return self._evaluate(q, outputs, hessian_mode, active_only, deadline, layout)
 
-    def _evaluate(
-        self,
-        q: Array,
-        outputs: tuple[str, ...],
-        hessian_mode: str,
-        active_only: bool,
-        checked: bool,
-        deadline: float | None = None,
-        layout: str = "joints",
-    ) -> Evaluation:
-        if not checked:  # `evaluate` (the stateless call) has checked them all
-            log = FaultLog()
-            log.add(check_options(outputs, hessian_mode))
-            log.add(assembled.check_layout(layout))
-            log.add(check_dofs("q", q, self.n_bodies))
-            log.raise_if_any()
+    def _evaluate(self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool,
+                  deadline: float | None, layout: str) -> Evaluation:
+        """`evaluate` of checked arguments."""
         # Overflow is expected with hostile numbers: every overflow becomes an `InputError` naming the
         # joint. The PSD projection (an eigensolver) fails outright on a non-finite curvature; the
         # exact mode then locates the joints.
         with np.errstate(all="ignore"):
             try:
-                ev = self._run(q, outputs, hessian_mode, active_only, deadline, layout)
+                ev = self._run(q, outputs, hessian_mode == "psd", active_only, deadline, layout)
             except np.linalg.LinAlgError:
-                self._run(q, outputs, "exact", active_only, deadline)
+                self._run(q, outputs, False, active_only, deadline, "joints")
                 raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
         raise_if(check_evaluation(ev))
         return ev
 
-    def _run(
-        self,
-        q: Array,
-        outputs: tuple[str, ...],
-        hessian_mode: str,
-        active_only: bool,
-        deadline: float | None = None,
-        layout: str = "joints",
-    ) -> Evaluation:
-        self._load(q, {jb.row for jb in self._batches}, {r for jb in self._batches for r in self._x_rows(jb)})
-        want_g, want_h = "gradient" in outputs, "hessian" in outputs
+    def _run(self, q: Array, outputs: tuple[str, ...], psd: bool, active_only: bool, deadline: float | None,
+             layout: str) -> Evaluation:
+        batches = self._batches
+        # v1's coordinate takes every step at q; once the angle is a state (a prev_coordinate, a commit), the last.
+        steps = {r for jb in batches for r in (jb.rows if jb.theta is None else jb.rows[-1:])}
+        self._load(q, {jb.rows[-1] for jb in batches}, steps)
+        want_g, want_h, compact = "gradient" in outputs, "hessian" in outputs, layout == "bodies"
         # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
-        rest = (want_g, want_h, hessian_mode == "psd", active_only, self._threads, deadline, layout == "bodies")
-        results = [self._evaluate_batch(b, jb, *rest) for b, jb in enumerate(self._batches)]
-        total = float(sum(np.sum(e) for e in (r.pop("all_energy") for r in results)))
+        results = [self._evaluate_batch(b, jb, want_g, want_h, psd, active_only, deadline, compact)
+                   for b, jb in enumerate(batches)]
+        total = float(sum(e.sum() for _, e, _ in results))
         if not np.isfinite(total):
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
-        active = [r.pop("active") for r in results]
-        ev = Evaluation(total_energy=total, batches=[BatchResult(**r) for r in results])
-        if layout == "joints":
-            return ev
-        per_joint = [(jb.pairs.T[a], r.gradient, r.hessian) for jb, a, r in zip(self._batches, active, ev.batches)]
-        return assembled.strip(ev, assembled.assemble_active(self.n_bodies, per_joint, want_g, want_h))
+        ev = Evaluation(total_energy=total, batches=[r for r, _, _ in results])
+        if compact:  # summed per body; the batches keep index, x, energy and coordinate
+            per_joint = [(jb.pairs.T[a], r.gradient, r.hessian) for jb, (r, _, a) in zip(batches, results)]
+            ev.assembled = assembled.assemble_active(self.n_bodies, per_joint, want_g, want_h)
+            for r in ev.batches:
+                r.gradient = r.hessian = None
+        return ev
 
     def _load(self, q: Array, rows: Iterable[int], steps: Iterable[int]) -> None:
-        """`q` (B, 12) into the body table's state 2 (scratch: the table's states 0, 1 are `q_ref`,
-        `q_prev`), the increments `rows` of `A` to it (`STEP` from q_prev, `TOTAL_STEP` from q_ref),
-        and which bodies the common frame path serves over the increments `steps` (`_plain`)."""
+        """`q` (B, 12) into the body table's state 2 (scratch: states 0, 1 are `q_ref`, `q_prev`), the increments
+        `rows` of `A` to it, and whether the common frame path serves every body over the increments `steps`."""
         t = self._table
         t.load(2, q)
         t.increments(rows)
         self._plain = t.plain_over(steps)
+        self._all_plain = bool(self._plain.all())
 
-    @staticmethod
-    def _x_rows(jb: _Batch) -> tuple[int, ...]:
-        """The increment rows of the batch's steps that its coordinate takes at q: all of them (v1), or the
-        last one alone once the angle is a state (a `prev_coordinate` or a commit)."""
-        return jb.rows[-1:] if jb.theta is not None else jb.rows
-
-    def _to_q(
-        self,
-        jb: _Batch,
-        starts: list[Array],
-        fixed: list[Array],
-        rows: tuple[int, ...],
-        dF: Array | None,
-        path: str,
-        F_q: Array | None = None,
-    ) -> tuple[list[Array], CarefulFrames | None, Array, object]:
-        """Frames (N, 4, 3) in each state of the steps `rows` (the last one at `q`, loaded), their
-        careful frames, x (N,) summed over the steps `fixed + [dF]` that start at `starts`, and what
-        the coordinate formed at q for the collapse test (`Progress.known`).
-
-        As `kinematics.state_frames`: each state is the previous one plus the step (the frames at q
-        `F_q` where given, `_step`), except for joints of bodies the common path does not serve
-        (`_plain`), formed directly (scaled). The steps `fixed` are taken once per scene (`_progress`,
-        kept as `path`): bit for bit what summing them again would give, for every joint that is not
-        careful (whose x is its own).
+    def _to_q(self, jb: _Batch, starts: list[Array], fixed: list[Array], rows: tuple[int, ...], path: str,
+              dF: Array | None, F_q: Array | None) -> tuple[Array, CarefulFrames | None, Array, object]:
+        """Frames (N, 4, 3) at the loaded `q` (the end of the steps `rows`), the careful frames there
+        (`_last_state`), x (N,) summed over the steps `fixed + [dF]` from `starts`, and what the coordinate formed at
+        q for the collapse test (`Progress.known`). As `kinematics.state_frames`: each state is the previous
+        one plus its step (or `F_q`, `_step`), but for joints of bodies off the common path (`_plain`),
+        formed directly (scaled). The `fixed` steps' progress is kept per scene (`_progress`, as `path`).
         """
         states = [*starts, starts[-1] + dF if F_q is None else F_q]  # dF None: F_q, and x its value (`_step`)
-        idx = (~self._table.plain_joints(jb.pairs, self._plain)).nonzero()[0]
         careful = None
-        if idx.shape[0]:
-            careful = careful_frames(self._table, jb.pairs, rows, jb.c.facts.alpha, jb.v, idx)
-            states = [F.copy() for F in states[:-1]] + states[-1:]  # the cached starts stay as they are
-            for k, F in enumerate(states):
-                F[idx] = careful.unscaled(k)
+        if not self._all_plain:
+            idx = (~self._table.plain_joints(jb.pairs, self._plain)).nonzero()[0]
+            if idx.shape[0]:
+                careful = careful_frames(self._table, jb.pairs, rows, jb.c.facts.alpha, jb.v, idx)
+                states = [F.copy() for F in states[:-1]] + states[-1:]  # the cached starts stay as they are
+                for k, F in enumerate(states):
+                    F[idx] = careful.unscaled(k)
         if dF is None:
-            return states, careful, jb.c.value(states[-1]), None
+            return states[-1], _last_state(careful), jb.c.value(states[-1]), None
         p = jb.c.advance(_progress(jb.c, jb.progress, path, starts, fixed), states[-2], dF)
         x = p.x
         if careful is not None:
             x[careful.idx] = jb.c.careful_coordinate(careful)
-        return states, careful, x, p.known[-1]
+        return states[-1], _last_state(careful), x, p.known[-1]
 
     def _step(self, jb: _Batch, row: int, r_start: Array | None) -> tuple[Array | None, Array | None]:
-        """The frames' increment (N, 4, 3) over the table's increment `row` to `q` (loaded), from the
-        state where body j sits at `r_start` (N, 3) from body i (points only); and for frames with
-        points the frames at q themselves (else None). With the absolute origin (points telescope) x is
-        the value at q alone: the frames there from q's own A and positions, as the engine forms them,
-        and no increment (None).
+        """The frames' increment (N, 4, 3) over the table's increment `row` to the loaded `q`, from the state
+        where body j sits at `r_start` (N, 3) from body i; with points, also the frames at q (else None).
+        With the absolute origin (points telescope) x is the value at q alone: those frames from q's own A
+        and positions, as the engine forms them, and no increment (None).
 
-        The start's frames plus the step would keep body j's position at q only to the rounding of
-        its position at the start: nothing of it where the bodies were 1e17 apart there and are 0.4
-        apart at q. So the frames at q are `A v` at the start plus A's increment (`held`: within a small
-        factor of `A(q) v` itself wherever the common path serves, `kinematics._plain_bodies`), then
-        body j's position at q.
+        The start's frames plus the step would keep body j's position at q only to the rounding of its
+        position at the start (nothing of a 0.4 apart at q after 1e17 apart there). So the frames at q are
+        `A v` at the start (`held`) plus A's increment, then body j's position at q.
         """
-        t = self._table
+        t, alpha = self._table, jb.c.facts.alpha
         if r_start is not None and jb.absolute:
             r_q = relative_position(t.positions_of(jb.pairs, 2))
-            return None, frame_quantities(r_q, t.linear_at(jb.pairs, 2), jb.c.facts.alpha, jb.v)
-        dF = frame_quantities(None, t.linear_of(jb.pairs, row), jb.c.facts.alpha, jb.v)  # A's increment times v
+            return None, frame_quantities(r_q, t.linear_at(jb.pairs, 2), alpha, jb.v)
+        dF = frame_quantities(None, t.linear_of(jb.pairs, row), alpha, jb.v)  # A's increment times v
         if r_start is None:
             return dF, None
         r_q = relative_position(t.positions_of(jb.pairs, 2))
-        F_q = add_positions(jb.held + dF, r_q, jb.c.facts.alpha)
-        return add_positions(dF, r_q - r_start, jb.c.facts.alpha), F_q
+        F_q = add_positions(jb.held + dF, r_q, alpha)
+        return add_positions(dF, r_q - r_start, alpha), F_q
 
-    def _x(self, jb: _Batch, dF: Array | None, F_q: Array | None) -> tuple[Array, Array, CarefulFrames | None, object]:
-        """The joint coordinate `x` (N,) and the frames (N, 4, 3) at `q` from the last step `dF` (and
-        the frames at q `F_q`, if given: `_step`), the careful frames of the state at q (`_last_state`)
-        and what the coordinate formed there."""
-        if jb.theta is None:
-            states, careful, x, known = self._to_q(jb, jb.starts, jb.fixed, jb.rows, dF, "whole", F_q)
+    def _collapsed(self, b: int, jb: _Batch, F: Array, careful: CarefulFrames | None, known: object) -> list[Fault]:
+        """Batch `b`'s joints whose frame `F` (N, 4, 3) collapses at the loaded `q`."""
+        bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
+        return collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound)
+
+    def _evaluate_batch(self, b: int, jb: _Batch, want_g: bool, want_h: bool, psd: bool, active_only: bool,
+                        deadline: float | None, compact: bool) -> tuple[BatchResult, Array, Array | None]:
+        """Batch `b`'s answer at the loaded `q`, every joint's energy (N,) and the active joints' positions."""
+        check_deadline(deadline)
+        dF, F_q = self._step(jb, jb.rows[-1], jb.r_start)
+        if jb.theta is None:  # v1: x summed over every step from q_ref
+            F, careful, x, known = self._to_q(jb, jb.starts, jb.fixed, jb.rows, "whole", dF, F_q)
             x = _from_origin(x, jb)
         else:
-            states, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], dF, "last", F_q)
+            F, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], "last", dF, F_q)
             x = jb.theta + x
-        return x, states[-1], _last_state(careful), known
-
-    def _evaluate_batch(
-        self,
-        b: int,
-        jb: _Batch,
-        want_g: bool,
-        want_h: bool,
-        psd: bool,
-        active_only: bool,
-        threads: int,
-        deadline: float | None = None,
-        compact: bool = False,
-    ) -> dict:
-        check_deadline(deadline)
-        x, F, careful, known = self._x(jb, *self._step(jb, jb.row, jb.r_start))
-        bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
-        raise_if((jb.faults + collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound))[:MAX_FAULTS])
-        r = differentiate(
-            b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd, active_only, threads, deadline, compact
-        )
-        r["coordinate"] = _plus_offset(r["x"], jb.offset, r["index"] if active_only else None)
-        return r
+        raise_if((jb.faults + self._collapsed(b, jb, F, careful, known))[:MAX_FAULTS])
+        energy, active, gradient, hessian = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd,
+                                                          compact or active_only, self._threads, deadline)
+        index, xs, es = (active, x[active], energy[active]) if active_only else (np.arange(x.shape[0]), x, energy)
+        coordinate = _plus_offset(xs, jb.offset, active if active_only else None)
+        return BatchResult(jb.c.facts.uid, index, xs, es, gradient, hessian, coordinate), energy, active
 
     # ---------------------------------------------------------------- state
 
@@ -312,8 +238,7 @@ class PreparedScene:
             log, new = FaultLog(), []
             for b, jb in enumerate(self._batches):
                 F_q, x, careful, known = self._from_ref(jb)
-                bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
-                log.add(collapsed_faults(b, jb.c, ("q",), [F_q], careful, [known], bound))
+                log.add(self._collapsed(b, jb, F_q, careful, known))
                 if jb.c.facts.stateful:
                     r = self._angle(jb)
                     x = r + rem(x - r)
@@ -332,10 +257,10 @@ class PreparedScene:
         formed there."""
         r_ref = None
         if jb.c.facts.points:
-            r_ref = jb.r_start if jb.start == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
-        dF, F_q = self._step(jb, TOTAL_STEP, r_ref)
-        states, careful, x, known = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), dF, "ref", F_q)
-        return states[-1], _from_origin(x, jb), _last_state(careful), known
+            r_ref = jb.r_start if STEPS[jb.rows[-1]][0] == 0 else relative_position(self._table.positions_of(jb.pairs, 0))
+        F_q, careful, x, known = self._to_q(jb, [jb.F_ref], [], (TOTAL_STEP,), "ref",
+                                            *self._step(jb, TOTAL_STEP, r_ref))
+        return F_q, _from_origin(x, jb), careful, known
 
     def _angle(self, jb: _Batch) -> Array:
         """The committed angle at q_prev: `theta`, or DeltaTheta(q_prev, q_ref) (from the batch's origin) before any commit."""
@@ -359,15 +284,8 @@ class PreparedScene:
                 out.append(_plus_offset(x, jb.offset))
         return out
 
-    def update(
-        self,
-        batch: int,
-        index: ArrayLike,
-        lower: ArrayLike | None = None,
-        upper: ArrayLike | None = None,
-        strength: ArrayLike | None = None,
-        offset: ArrayLike | None = None,
-    ) -> None:
+    def update(self, batch: int, index: ArrayLike, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
+               strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
         """Set the limits, strengths or offsets of joints `index` (M,) of `batch`, each (M,) if given.
 
         Validated as a request is (`InputError`, loc ("batches", batch, "lower", j)); all or
@@ -399,201 +317,13 @@ def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtyp
     `dtype` np.float32 is the benchmark's single-precision variant.
     """
     q_prev, q_ref = (np.array(a, dtype=np.float64) for a in (bodies.q_prev, bodies.q_ref))
-    log = FaultLog()
-    log.add(check_bodies(Bodies(q_prev, q_prev, q_ref), names=("q_ref", "q_prev")))
-    log.raise_if_any()
+    raise_if(check_bodies(Bodies(q_prev, q_prev, q_ref), names=("q_ref", "q_prev"))[:MAX_FAULTS])
     return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype, own=True)
 
 
-def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: list[Array], fixed: list[Array]) -> Progress:
-    """The coordinate's progress from `starts[0]` over the steps `fixed` (from `starts`), kept in
-    `kept` as `path` (they do not depend on q)."""
-    p = kept.get(path)
-    if p is None:
-        p = c.begin(starts[0])
-        for F, dF in zip(starts, fixed):
-            p = c.advance(p, F, dF)
-        kept[path] = p
-    return p
-
-
-def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:
-    """`careful` reduced to its last state (the frames at q), for the collapse test there."""
-    if careful is None:
-        return None
-    return CarefulFrames(careful.idx, careful.exponents[-1:], careful.states[-1:], [], [])
-
-
-def _from_origin(x: Array, jb: _Batch) -> Array:
-    """`x` (N,) measured from the batch's origin: plus its value at q_ref where that is "absolute" (a telescoping
-    coordinate is already: its value at q, `_step`; x(q_ref) plus the difference from there would keep x
-    only to the rounding of x(q_ref), nothing of a slide of 0.4 after one of 1e17)."""
-    return x if jb.x0 is None else x + jb.x0
-
-
-def _plus_offset(x: Array, offset: Array | None, index: NDArray[np.int64] | None = None) -> Array:
-    """The coordinate `x + offset` (M,) of `x` (M,), at joints `index` (M,) of `offset` if given."""
-    if offset is None:
-        return x.copy()
-    return x + (offset if index is None else offset[index])
-
-
-def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, own: bool) -> PreparedScene:
-    """`prepare` of bodies whose states are already checked, and joints as arrays. `own`: the scene's
-    limits are its own arrays (`update` writes them); else the stateless call's, which allocates
-    nothing it does not need (every fresh array here is page faults of its own), and whose collapsed
-    frames at q_ref and q_prev are named with those at q."""
-    # q_prev is always in the table: the state a commit replaces.
-    rows = {PREV_STEP} | {row for j in batches if j.constitution_uid in CONSTITUTIONS
-                          for row in _increments(numerics(j.constitution_uid))[:-1]}
-    n_bodies = bodies.q_ref.shape[0]
-    with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations
-        table = BodyTable(bodies, dtype, rows=rows, rotate=False)
-    checks = [check_joints(b, joints, n_bodies) for b, joints in enumerate(batches)]
-    used = _bodies_used(batches, n_bodies)
-    with np.errstate(all="ignore"):
-        table.rotate(used)  # the polar factors of the bodies some joint reads
-    log = FaultLog()
-    log.add(check_rotations(table.ratio))
-    for faults in checks:  # in batch order (the log keeps the first)
-        log.add(faults)
-    log.raise_if_any()
-    pairs = [np.ascontiguousarray(j.body_ids.T) for j in batches]  # (2, N): contiguous indices gather 30% faster
-    with np.errstate(all="ignore"):
-        prepared = [_prepare_batch(b, j, table, own, p) for b, (j, p) in enumerate(zip(batches, pairs))]
-    if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
-        for jb in prepared:
-            log.add(jb.faults)
-            jb.faults = []
-        log.raise_if_any()
-    return PreparedScene(table, prepared, threads)
-
-
-def _bodies_used(batches: list[Joints], n_bodies: int) -> NDArray[np.bool_]:
-    """(B,) True for the bodies some joint of `batches` reads (indices out of range are faults of
-    `check_joints`, not counted here)."""
-    used = np.zeros(n_bodies, dtype=bool)
-    for j in batches:
-        ids = np.asarray(j.body_ids).ravel()
-        if ids.dtype.kind in "iu" and ids.shape[0]:
-            # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
-            used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
-    return used
-
-
-def _states(rows: tuple[int, ...]) -> set[int]:
-    """The states a batch whose steps are the table's `rows` reads when prepared: q_ref, where the last
-    step starts, and those the fixed steps span."""
-    return {0, STEPS[rows[-1]][0]} | {s for row in rows[:-1] for s in STEPS[row]}
-
-
-def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: NDArray[np.intp]) -> _Batch:
-    """Batch `b`'s frames at its states, from `table`; `pairs` (2, N) its bodies i and j, contiguous."""
-    c = numerics(joints.constitution_uid)
-    dtype = table.dtype
-    points = c.facts.points
-    rows = _increments(c)
-    A_ref = table.linear_of(pairs, REF)
-    start = STEPS[rows[-1]][0]
-    p = {s: table.positions_of(pairs, s) for s in _states(rows)} if points else {}
-    r = {s: relative_position(ps) for s, ps in p.items()}
-    cast = lambda a: None if a is None else a.astype(dtype, copy=False)  # noqa: E731
-    R_ref = table.rotations(pairs)
-    t, anchors = axis_and_anchors(c, cast(joints.edges), cast(joints.local_edges), p.get(0), A_ref, R_ref)
-    v = c.local_vectors(t, anchors, R_ref)
-    F_ref = frame_quantities(None, A_ref, c.facts.alpha, v)
-    absolute = joints.origin == "absolute"
-    held = None
-    if points and not absolute:  # x's last step starts at q_ref (points telescope): `_step` forms the frames at q from `A_ref v`
-        held = F_ref.copy(order="K")  # component-major, as F_ref
-    if points:
-        add_positions(F_ref, r[0], c.facts.alpha)
-    x0 = _absolute_zero(c, A_ref, v) if absolute and not c.facts.telescopes else None
-    # The steps before the last one (q_ref -> q_prev) and where each starts.
-    fixed = []
-    for row in rows[:-1]:
-        s0, s1 = STEPS[row]
-        fixed.append(frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), c.facts.alpha, v))
-    starts, prev_careful = state_frames(table, pairs, rows[:-1], c.facts.alpha, v, F_ref, fixed) if fixed else ([F_ref], None)
-    progress: dict[str, Progress] = {}
-    # The fixed steps' progress now: the collapse tests at q_ref and q_prev read what it formed there.
-    known = _progress(c, progress, "whole", starts, fixed).known
-    bounds = [table.size_bound(pairs, s) for s in range(len(starts))] if c.facts.unit_frames else None
-    faults = collapsed_faults(b, c, ("q_ref", "q_prev")[: len(starts)], starts, prev_careful, known, bounds)
-    n = pairs.shape[1]
-    offset = joints.offset if joints.offset is not None or not own else np.zeros(n)
-    theta = None
-    if joints.prev_coordinate is not None:
-        theta = (joints.prev_coordinate - (0.0 if offset is None else offset)).astype(dtype, copy=False)
-    lower, upper, strength = joints.lower, joints.upper, joints.strength
-    # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
-    lo, up = (a if offset is None else a - offset for a in (lower, upper))
-    return _Batch(
-        c=c,
-        pairs=pairs,
-        v=v,
-        F_ref=F_ref,
-        starts=starts,
-        fixed=fixed,
-        rows=rows,
-        prev_careful=prev_careful,
-        row=rows[-1],
-        start=start,
-        r_start=r.get(start),
-        held=held,
-        lower=lower,
-        upper=upper,
-        strength=strength,
-        offset=offset,
-        lo=lo.astype(dtype, copy=False),
-        up=up.astype(dtype, copy=False),
-        s=strength.astype(dtype, copy=own),
-        theta=theta,
-        absolute=absolute,
-        x0=x0,
-        faults=faults,
-        progress=progress,
-    )
-
-
-def _absolute_zero(c: Constitution, A_ref: Array, v: Array) -> Array:
-    """x at q_ref measured from the constitution's own zero (N,), of a coordinate of directions alone (the
-    angle; one with points telescopes: its absolute value is taken at q, `PreparedScene._step`).
-
-    The directions are read from `A_ref` scaled per body by a power of two (exact): frames at the edge
-    of float64 keep every digit of their angle.
-    """
-    return c.value(scaled_frames(None, A_ref, exponents(A_ref), c.facts.alpha, v))
-
-
-def _as_arrays(j: Joints, copy: bool = False) -> Joints:
-    f64 = lambda a: None if a is None else np.array(a, dtype=np.float64, copy=copy or None)  # noqa: E731
-    return Joints(
-        constitution_uid=int(j.constitution_uid),
-        base_uid=int(j.base_uid),
-        body_ids=np.array(j.body_ids, dtype=np.int64, copy=copy or None),
-        edges=f64(j.edges),
-        local_edges=f64(j.local_edges),
-        origin=j.origin,
-        lower=f64(j.lower),
-        upper=f64(j.upper),
-        strength=f64(j.strength),
-        offset=f64(j.offset),
-        prev_coordinate=f64(j.prev_coordinate),
-    )
-
-
-def evaluate(
-    bodies: Bodies,
-    batches: Sequence[Joints],
-    outputs: Iterable[str] = OUTPUTS,
-    hessian_mode: str = "exact",
-    active_only: bool = False,
-    dtype: type = np.float64,
-    threads: int = 1,
-    deadline: float | None = None,
-    layout: str = "joints",
-) -> Evaluation:
+def evaluate(bodies: Bodies, batches: Sequence[Joints], outputs: Iterable[str] = OUTPUTS, hessian_mode: str = "exact",
+             active_only: bool = False, dtype: type = np.float64, threads: int = 1, deadline: float | None = None,
+             layout: str = "joints") -> Evaluation:
     """Energy, gradient and Hessian of every joint, as CONTRACT.md (v1, v1.1) defines them: the
     stateless call, `prepare(bodies, batches).evaluate(bodies.q, ...)`.
 
@@ -614,6 +344,133 @@ def evaluate(
     log.add(assembled.check_layout(layout))
     log.add(check_bodies(bodies))
     log.raise_if_any()
-    arrays = [_as_arrays(j) for j in batches]
-    scene = _prepare(bodies, arrays, threads, dtype, own=False)
-    return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, checked=True, deadline=deadline, layout=layout)
+    scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
+    return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, deadline, layout)
+
+
+def _as_arrays(j: Joints, copy: bool = False) -> Joints:
+    f64 = lambda a: None if a is None else np.array(a, dtype=np.float64, copy=copy or None)  # noqa: E731
+    return Joints(int(j.constitution_uid), int(j.base_uid), np.array(j.body_ids, dtype=np.int64, copy=copy or None),
+                  f64(j.edges), f64(j.lower), f64(j.upper), f64(j.strength), f64(j.offset), f64(j.prev_coordinate),
+                  f64(j.local_edges), j.origin)
+
+
+def _increments(c: Constitution) -> tuple[int, ...]:
+    """The body table's rows of `A` increments that `c`'s coordinate takes, in its order."""
+    return (TOTAL_STEP,) if c.facts.telescopes else (PREV_STEP, STEP)
+
+
+def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, own: bool) -> PreparedScene:
+    """`prepare` of bodies whose states are already checked, and joints as arrays. `own`: the scene's
+    limits are its own arrays (`update` writes them); else the stateless call's, which allocates
+    nothing it does not need (every fresh array here is page faults of its own), and whose collapsed
+    frames at q_ref and q_prev are named with those at q."""
+    # q_prev is always in the table: the state a commit replaces.
+    rows = {PREV_STEP} | {row for j in batches if j.constitution_uid in CONSTITUTIONS
+                          for row in _increments(numerics(j.constitution_uid))[:-1]}
+    n_bodies = bodies.q_ref.shape[0]
+    checks = [check_joints(b, joints, n_bodies) for b, joints in enumerate(batches)]
+    # The polar factors of the bodies some joint reads (indices out of range are `check_joints`' faults).
+    used = np.zeros(n_bodies, dtype=bool)
+    for j in batches:
+        ids = np.asarray(j.body_ids).ravel()
+        if ids.dtype.kind in "iu" and ids.shape[0]:
+            # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
+            used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
+    log = FaultLog()
+    with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations, hostile numbers by the checks after
+        table = BodyTable(bodies, dtype, rows=rows, used=used)
+        log.add(check_rotations(table.ratio))
+        for faults in checks:  # in batch order (the log keeps the first)
+            log.add(faults)
+        log.raise_if_any()
+        # (2, N) pairs: contiguous indices gather 30% faster
+        prepared = [_prepare_batch(b, j, table, own, np.ascontiguousarray(j.body_ids.T)) for b, j in enumerate(batches)]
+    if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
+        for jb in prepared:
+            log.add(jb.faults)
+            jb.faults = []
+        log.raise_if_any()
+    return PreparedScene(table, prepared, threads)
+
+
+def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: NDArray[np.intp]) -> _Batch:
+    """Batch `b`'s frames at its states, from `table`; `pairs` (2, N) its bodies i and j, contiguous."""
+    c = numerics(joints.constitution_uid)
+    alpha, points, dtype = c.facts.alpha, c.facts.points, table.dtype
+    rows = _increments(c)
+    A_ref = table.linear_of(pairs, REF)
+    start = STEPS[rows[-1]][0]
+    # The states read here: q_ref, where the last step starts, and those the fixed steps span.
+    states = {0, start} | {s for row in rows[:-1] for s in STEPS[row]}
+    p = {s: table.positions_of(pairs, s) for s in states} if points else {}
+    r = {s: relative_position(ps) for s, ps in p.items()}
+    cast = lambda a: None if a is None else a.astype(dtype, copy=False)  # noqa: E731
+    R_ref = table.rotations(pairs)
+    t, anchors = axis_and_anchors(c, cast(joints.edges), cast(joints.local_edges), p.get(0), A_ref, R_ref)
+    v = c.local_vectors(t, anchors, R_ref)
+    F_ref = frame_quantities(None, A_ref, alpha, v)
+    absolute = joints.origin == "absolute"
+    held = None
+    if points and not absolute:  # x's last step starts at q_ref (points telescope): `_step` forms the frames at q from `A_ref v`
+        held = F_ref.copy(order="K")  # component-major, as F_ref
+    if points:
+        add_positions(F_ref, r[0], alpha)
+    # x at q_ref from the constitution's own zero, for a coordinate of directions alone (one with points
+    # telescopes: its absolute value is taken at q, `_step`), from `A_ref` scaled per body by a power of
+    # two (exact): frames at the edge of float64 keep every digit of their angle.
+    x0 = None
+    if absolute and not c.facts.telescopes:
+        x0 = c.value(scaled_frames(None, A_ref, exponents(A_ref), alpha, v))
+    # The steps before the last one (q_ref -> q_prev) and where each starts.
+    fixed = []
+    for row in rows[:-1]:
+        s0, s1 = STEPS[row]
+        fixed.append(frame_quantities(r[s1] - r[s0] if points else None, table.linear_of(pairs, row), alpha, v))
+    starts, prev_careful = state_frames(table, pairs, rows[:-1], alpha, v, F_ref, fixed) if fixed else ([F_ref], None)
+    progress: dict[str, Progress] = {}
+    # The fixed steps' progress now: the collapse tests at q_ref and q_prev read what it formed there.
+    known = _progress(c, progress, "whole", starts, fixed).known
+    bounds = [table.size_bound(pairs, s) for s in range(len(starts))] if c.facts.unit_frames else None
+    faults = collapsed_faults(b, c, ("q_ref", "q_prev")[: len(starts)], starts, prev_careful, known, bounds)
+    offset = joints.offset if joints.offset is not None or not own else np.zeros(pairs.shape[1])
+    theta = None
+    if joints.prev_coordinate is not None:
+        theta = (joints.prev_coordinate - (0.0 if offset is None else offset)).astype(dtype, copy=False)
+    lower, upper, strength = joints.lower, joints.upper, joints.strength
+    # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
+    lo, up = (a if offset is None else a - offset for a in (lower, upper))
+    return _Batch(c, pairs, v, F_ref, starts, fixed, rows, prev_careful, r.get(start), held, lower, upper, strength,
+                  offset, lo.astype(dtype, copy=False), up.astype(dtype, copy=False), strength.astype(dtype, copy=own),
+                  theta, absolute, x0, faults, progress)
+
+
+def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: list[Array], fixed: list[Array]) -> Progress:
+    """The coordinate's progress from `starts[0]` over the steps `fixed` (from `starts`), kept in
+    `kept` as `path` (they do not depend on q)."""
+    p = kept.get(path)
+    if p is None:
+        p = c.begin(starts[0])
+        for F, dF in zip(starts, fixed):
+            p = c.advance(p, F, dF)
+        kept[path] = p
+    return p
+
+
+def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:
+    """`careful` reduced to its last state (the frames at q), for the collapse test there."""
+    return None if careful is None else CarefulFrames(careful.idx, careful.exponents[-1:], careful.states[-1:], [], [])
+
+
+def _from_origin(x: Array, jb: _Batch) -> Array:
+    """`x` (N,) measured from the batch's origin: plus its value at q_ref where that is "absolute" (a telescoping
+    coordinate is already: its value at q, `_step`; x(q_ref) plus the difference from there would keep x
+    only to the rounding of x(q_ref), nothing of a slide of 0.4 after one of 1e17)."""
+    return x if jb.x0 is None else x + jb.x0
+
+
+def _plus_offset(x: Array, offset: Array | None, index: NDArray[np.int64] | None = None) -> Array:
+    """The coordinate `x + offset` (M,) of `x` (M,), at joints `index` (M,) of `offset` if given."""
+    if offset is None:
+        return x.copy()
+    return x + (offset if index is None else offset[index])

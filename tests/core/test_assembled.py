@@ -13,9 +13,10 @@ import pytest
 
 from jointlimits.service.core import InputError, evaluate
 from jointlimits.service.core import assembled as core_assembled
-from jointlimits.service.core.assembled import Assembled, apply, assemble, assemble_active, reduce_pairs
+from jointlimits.service.core.assembled import Assembled, assemble_active, reduce_pairs
 from jointlimits.service.core.prepared import prepare
 from tests import scenes
+from tests.assembled_ref import apply, assemble
 from tests.scenes import random_scene
 
 
@@ -76,11 +77,11 @@ def test_assembled_is_the_scatter_add_of_the_per_joint_answer(seed: int, mode: s
 def test_apply_strips_the_batches_and_keeps_x_and_energy():
     bodies, batches = scene(1)
     ev = evaluate(bodies, batches)
-    out = apply(ev, bodies.q.shape[0], batches, "bodies", False)
-    assert all(r.gradient is None and r.hessian is None for r in out.batches)
-    assert all(np.array_equal(a.x, b.x) and np.array_equal(a.energy, b.energy) for a, b in zip(out.batches, ev.batches))
-    assert out.assembled is not None and out.total_energy == ev.total_energy
-    assert apply(ev, bodies.q.shape[0], batches, "joints", False) is ev
+    for out in (apply(ev, bodies.q.shape[0], batches, False), evaluate(bodies, batches, layout="bodies")):
+        assert all(r.gradient is None and r.hessian is None for r in out.batches)
+        assert all(np.array_equal(a.x, b.x) and np.array_equal(a.energy, b.energy) for a, b in zip(out.batches, ev.batches))
+        assert out.assembled is not None and out.total_energy == ev.total_energy
+    assert ev.assembled is None  # layout "joints": the per-joint answer as it is
 
 
 def test_only_the_outputs_asked_for():
@@ -204,7 +205,7 @@ def test_core_equals_the_loop_scatter_add_bitwise(seed, mode, size):
     # The same bits from a per-joint answer (apply), with or without active_only.
     for active_only in (False, True):
         rows = evaluate(**sc.core_args(hessian_mode=mode, active_only=active_only))
-        assert_bitwise(apply(rows, sc.q.shape[0], [b.joints() for b in sc.batches], "bodies", active_only).assembled, a)
+        assert_bitwise(apply(rows, sc.q.shape[0], [b.joints() for b in sc.batches], active_only).assembled, a)
     if size[0] == 40:
         terms = np.concatenate([b.body_ids[r.energy > 0] for b, r in zip(sc.batches, per_joint.batches)])
         assert (np.bincount(terms.reshape(-1)) > 1).sum() > core_assembled._FEW
@@ -232,7 +233,7 @@ def test_offsets_move_the_range_and_the_assembly_follows():
     batches = [replace(b.joints(), offset=rng.uniform(-0.3, 0.3, len(b.lower))) for b in sc.batches]
     ev = evaluate(sc.bodies(), batches, layout="bodies")
     per_joint = evaluate(sc.bodies(), batches)
-    assert_bitwise(apply(per_joint, sc.q.shape[0], batches, "bodies", False).assembled, ev.assembled)
+    assert_bitwise(apply(per_joint, sc.q.shape[0], batches, False).assembled, ev.assembled)
     G, blocks = loop_assembly([b.body_ids for b in batches], per_joint.batches, sc.q.shape[0])
     assert np.array_equal(ev.assembled.gradient, G)
     assert np.array_equal(ev.assembled.blocks, np.stack([blocks[k] for k in sorted(blocks)]))

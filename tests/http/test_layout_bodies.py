@@ -19,7 +19,7 @@ from bench.scenes import make_scene
 from jointlimits.client import AsyncClient, Client, JointBatch, LocalClient, Request
 from jointlimits.schemas import binary as wire
 from jointlimits.service.core import evaluate
-from jointlimits.service.core.assembled import assemble
+from tests.assembled_ref import assemble
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
 
 

@@ -10,7 +10,7 @@ import numpy as np
 from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, InvalidInput
 from jointlimits.client.model import BatchResult, Evaluation, Request, null_arrays
-from jointlimits.client.progress import ProgressCallback
+from jointlimits.client.transport import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from jointlimits.schemas.constitutions import describe
 from jointlimits.service import core
@@ -32,20 +32,12 @@ def core_batches(request: Request, copy: bool = False) -> list[core.Joints]:
     if missing := null_arrays(request):
         raise core.InputError(missing)
     own = np.array if copy else (lambda a: a)
-    c = lambda a: None if a is None else own(a)  # noqa: E731
+    arrays = ("body_ids", "edges", "local_edges", "lower", "upper", "strength", "offset", "prev_coordinate")
     return [
         core.Joints(
-            constitution_uid=b.constitution_uid,
+            constitution_uid=b.constitution_uid, origin=b.origin,
             base_uid=b.base_uid if b.base_uid is not None else -1,  # None only for an unknown constitution: refused
-            body_ids=c(b.body_ids),
-            edges=c(b.edges),
-            local_edges=c(b.local_edges),
-            origin=b.origin,
-            lower=c(b.lower),
-            upper=c(b.upper),
-            strength=c(b.strength),
-            offset=c(b.offset),
-            prev_coordinate=c(b.prev_coordinate),
+            **{k: None if (a := getattr(b, k)) is None else own(a) for k in arrays},
         )
         for b in request.batches
     ]

@@ -80,25 +80,6 @@ class Resume:
         raise first from e
 
 
-def connection_options(http_options: dict[str, Any]) -> dict[str, Any]:
-    """A session's URL, upgrade headers (the bearer token, if any) and timeout from an HTTP client's options."""
-    t = http_options["timeout"]
-    return {
-        "url": ws_url(str(http_options["base_url"])),
-        "headers": {k: v for k, v in http_options["headers"].items() if k == "Authorization"},
-        "timeout": getattr(t, "read", t),  # an httpx.Timeout's read timeout, or the number itself
-    }
-
-
-def ws_url(base_url: str) -> str:
-    """The sessions endpoint of an HTTP base URL: http -> ws, https -> wss."""
-    base = base_url.rstrip("/")
-    scheme, sep, rest = base.partition("://")
-    if not sep:
-        scheme, rest = "http", base
-    return {"http": "ws", "https": "wss"}.get(scheme, scheme) + "://" + rest + proto.PATH
-
-
 class SessionState:
     """The protocol of one session: frames to send, replies read, and the state kept for reopening."""
 
@@ -252,7 +233,7 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
     }
 
 
-__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "connection_options", "message_array", "options", "resumable", "ws_url"]
+__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "message_array", "options", "resumable"]
 
 
 class StateView:

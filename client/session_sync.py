@@ -9,16 +9,14 @@ from types import TracebackType
 from typing import Any, TypeVar
 
 from numpy.typing import ArrayLike
-import orjson
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidMessage, InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 
 from jointlimits.client import codec
-from jointlimits.client.errors import Fault, ServiceError, Unreachable, WrongURL
+from jointlimits.client.errors import ServiceError, Unreachable
 from jointlimits.client.model import Array, Evaluation, Request
 from jointlimits.client.session import RESUMED_CLOSES, Frame, Resume, SessionClosed, SessionState, StateView
-from jointlimits.client.transport import PROXY_STATUSES, proxy_page
-from jointlimits.schemas import session as proto
+from jointlimits.client.transport import PROXY_STATUSES, is_fault_list, proxy_page, wrong_url
 
 T = TypeVar("T")
 
@@ -28,33 +26,16 @@ def handshake_error(url: str, e: Exception) -> Exception:
     or a server that is not this service), else the service's refusal (401, ...) as the `ServiceError` HTTP raises."""
     if isinstance(e, InvalidStatus):
         status, body = e.response.status_code, bytes(e.response.body or b"")
-        if status in PROXY_STATUSES and not _is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
+        if status in PROXY_STATUSES and not is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
             return Unreachable(url, 1, status=status, proxy=proxy_page(body))
-        if status == 404 or not _is_fault_list(body):
-            return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade")
+        if status == 404 or not is_fault_list(body):
+            return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade", 404)
         return codec.error(status, body)
     if isinstance(e, (InvalidHandshake, InvalidMessage)):  # a server that speaks something else (HTTP/1.0, TLS, ...)
-        return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})")
+        return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})", 404)
     if isinstance(e, (OSError, TimeoutError)):  # refused, unresolvable host, no answer within the open timeout
         return Unreachable(url, 1, e)
     return SessionClosed(url, None, "", f"{type(e).__name__}: {e}")
-
-
-def _is_fault_list(body: bytes) -> bool:
-    try:
-        detail = orjson.loads(body).get("detail")
-    except (orjson.JSONDecodeError, AttributeError):
-        return False
-    return isinstance(detail, list)
-
-
-def wrong_url(url: str, what: str) -> WrongURL:
-    """Say that the client's base URL is not the service's root (the usual slip: a trailing `/v1`)."""
-    root = url.removesuffix(proto.PATH).replace("ws://", "http://", 1).replace("wss://", "https://", 1)
-    hint = " (drop the trailing /v1: the client adds it)" if root.rstrip("/").endswith("/v1") else ""
-    msg = (f"{url} {what}: no joint-limit service at base_url {root!r}{hint}; "
-           "base_url is the service's root, e.g. http://127.0.0.1:8000")
-    return WrongURL(404, [Fault((), msg, "wrong_url")])
 
 
 def closed_error(url: str, e: ConnectionClosed) -> SessionClosed:

@@ -9,8 +9,9 @@ session) does so, after a dropped connection too.
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable, Generator
 from dataclasses import replace
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import orjson
@@ -28,6 +29,9 @@ from jointlimits.service.core.errors import Fault as CoreFault
 from jointlimits.service.core.validate import NOT_AN_INTEGER, as_array
 
 Frame = bytes | str
+T = TypeVar("T")
+Steps = Generator[tuple[str, Any], Any, T]
+"""A session's step, free of I/O: it yields the I/O it needs (`Exchange`) and is sent each one's result."""
 _BINARY_ERROR = b"\xa4kind\xa5error"
 _JSON_ERROR = '{"kind":"error"'
 
@@ -254,3 +258,85 @@ class StateView:
     def coordinates(self) -> list[Array]:
         """The committed coordinates, one (N,) array per batch (as opened, before any commit)."""
         return self.state.coordinates
+
+    def request_for_reopen(self) -> Request:
+        """A request that opens a session in this one's committed state (`SessionState.request_for_reopen`)."""
+        return self.state.request_for_reopen()
+
+
+class Exchange(StateView):
+    """A WebSocket session's steps, free of I/O (the sans-I/O pattern): each a generator of the I/O it needs,
+    `("connect", None)`, `("send", frame)` (sent the reply), `("sleep", seconds)`, `("drop", None)`, which
+    `session_sync.Session` runs blocking and `session_aio.AsyncSession` awaited (their `_run`)."""
+
+    _ws: Any
+
+    def __init__(self, url: str, request: Request, *, binary: bool = True, timeout: float | None = 60.0,
+                 headers: dict[str, str] | None = None, retries: int = 3, backoff: float = 0.2,
+                 resume: bool = True) -> None:
+        self.state = SessionState(request, url, binary)
+        self.timeout, self.headers = timeout, dict(headers or {})
+        self.retries, self.backoff, self.resume = retries, backoff, resume
+        self._ws = None
+        self._closed = False  # by `close()`: no more resuming
+
+    def _resuming(self, step: Callable[[], Steps[T]]) -> Steps[T]:
+        """`step()`, tried again after a failure another server can take over (`Resume`)."""
+        resume = Resume(self.retries, self.backoff, self.resume)
+        while True:
+            try:
+                return (yield from step())
+            except ServiceError as e:  # SessionClosed, Unreachable, a refused upgrade, a fault
+                yield "sleep", resume.pause(e)
+
+    def _opening(self) -> Steps[None]:
+        try:
+            yield from self._resuming(self._open)
+        except BaseException:
+            # A refused opening (a fault, 4429, ...): close the connection before raising, so that the server has
+            # let go of it (its session slot, its budget) by the time the caller tries again.
+            yield "drop", None
+            raise
+
+    def _open(self) -> Steps[None]:
+        yield "drop", None  # a connection whose opening was refused (a busy 503 reply) before trying again
+        yield "connect", None
+        self.state.opened((yield "send", self.state.open_frame()))
+
+    def _reopen(self) -> Steps[None]:
+        self._closed = False
+        self.state.request = self.state.request_for_reopen()
+        yield from self._open()
+
+    def _exchange(self, frame: Frame) -> Steps[Frame]:
+        """`frame`'s reply; with `resume`, on a new connection in the committed state where the last one was lost."""
+        def attempt() -> Steps[Frame]:
+            if self._ws is None and self.resume and not self._closed:
+                yield from self._reopen()
+            if self._ws is None:
+                raise SessionClosed(self.url, None, "", "the session is closed")
+            return (yield "send", frame)
+
+        return (yield from self._resuming(attempt))
+
+    def _evaluate(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Steps[Evaluation]:
+        frame = self.state.evaluate_frame(q, outputs, hessian_mode, active_only)
+        return self.state.evaluation((yield from self._exchange(frame)))
+
+    def _commit(self, q: ArrayLike) -> Steps[list[Array]]:
+        return self.state.committed((yield from self._exchange(self.state.commit_frame(q))), q)
+
+    def _update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Steps[None]:
+        self.state.updated((yield from self._exchange(self.state.update_frame(batch, index, values))), batch, index, values)
+
+    def _close(self) -> Steps[None]:
+        self._closed = True
+        if self._ws is not None:
+            try:
+                yield "send", self.state.close_frame()  # the server answers by closing (code 1000)
+            except SessionClosed:
+                pass
+            yield "drop", None
+
+    def _no_reply(self) -> SessionClosed:
+        return SessionClosed(self.url, None, "", f"no reply within {self.timeout} s")

@@ -27,22 +27,11 @@ class AsyncClient(BaseClient):
     _http: httpx.AsyncClient
 
     # Spelled out, as `Client`'s (tests/sdk/test_client_sdk.py holds them to the same), plus `concurrency`.
-    def __init__(
-        self,
-        base_url: str = DEFAULT_URL,
-        *,
-        binary: bool = True,
-        timeout: float | httpx.Timeout = 60.0,
-        connect_timeout: float = transport.CONNECT_TIMEOUT,
-        retries: int = 3,
-        backoff: float = 0.2,
-        token: str | None = None,
-        max_joints_per_request: int | None = None,
-        progress: bool | ProgressCallback = False,
-        max_retry_after: float = transport.MAX_RETRY_AFTER,
-        concurrency: int = 4,
-        http_transport: httpx.AsyncBaseTransport | None = None,
-    ) -> None:
+    def __init__(self, base_url: str = DEFAULT_URL, *, binary: bool = True, timeout: float | httpx.Timeout = 60.0,
+                 connect_timeout: float = transport.CONNECT_TIMEOUT, retries: int = 3, backoff: float = 0.2,
+                 token: str | None = None, max_joints_per_request: int | None = None,
+                 progress: bool | ProgressCallback = False, max_retry_after: float = transport.MAX_RETRY_AFTER,
+                 concurrency: int = 4, http_transport: httpx.AsyncBaseTransport | None = None) -> None:
         options = {k: v for k, v in locals().items() if k not in ("self", "concurrency", "__class__")}
         super().__init__(**options)
         self.concurrency = concurrency

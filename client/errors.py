@@ -99,16 +99,8 @@ class Busy(ServiceError):
     is never retried.)
     """
 
-    def __init__(
-        self,
-        status: int,
-        faults: list[Fault],
-        where: str | None = None,
-        *,
-        retry_after: float | None = None,
-        attempts: int = 1,
-        max_retry_after: float | None = None,
-    ) -> None:
+    def __init__(self, status: int, faults: list[Fault], where: str | None = None, *,
+                 retry_after: float | None = None, attempts: int = 1, max_retry_after: float | None = None) -> None:
         """`max_retry_after`: set when the server's `Retry-After` was over it (the reason to stop)."""
         super().__init__(status, faults, where)
         self.retry_after, self.attempts = retry_after, attempts

@@ -78,20 +78,10 @@ class JointBatch:
             self.base_uid = registry.base_uid_of(self.constitution_uid)
 
     @classmethod
-    def of(
-        cls,
-        constitution_uid: int,
-        body_ids: ArrayLike,
-        edges: ArrayLike | None,
-        lower: ArrayLike,
-        upper: ArrayLike,
-        strength: ArrayLike = 1.0,
-        *,
-        offset: ArrayLike | None = None,
-        prev_coordinate: ArrayLike | None = None,
-        local_edges: ArrayLike | None = None,
-        origin: str = "q_ref",
-    ) -> JointBatch:
+    def of(cls, constitution_uid: int, body_ids: ArrayLike, edges: ArrayLike | None, lower: ArrayLike,
+           upper: ArrayLike, strength: ArrayLike = 1.0, *, offset: ArrayLike | None = None,
+           prev_coordinate: ArrayLike | None = None, local_edges: ArrayLike | None = None,
+           origin: str = "q_ref") -> JointBatch:
         """From array-likes; scalar `lower`, `upper`, `strength`, `offset`, `prev_coordinate` apply to every joint.
 
         Give the joints' geometry as world `edges` (N, 2, 3) at q_ref, or as body-local `local_edges`

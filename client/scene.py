@@ -79,42 +79,19 @@ class Scene:
         self._q_prev.append(q_prev)
         return len(self._q) - 1
 
-    def add_limit(
-        self,
-        uid: int,
-        i: int,
-        j: int,
-        p0: ArrayLike | None = None,
-        p1: ArrayLike | None = None,
-        lower: float | None = None,
-        upper: float | None = None,
-        strength: float = STRENGTH_DEFAULT,
-        *,
-        offset: float = 0.0,
-        local_edge: ArrayLike | None = None,
-        origin: str = "q_ref",
-        prev_coordinate: float | None = None,
-    ) -> Joint:
+    def add_limit(self, uid: int, i: int, j: int, p0: ArrayLike | None = None, p1: ArrayLike | None = None,
+                  lower: float | None = None, upper: float | None = None, strength: float = STRENGTH_DEFAULT, *,
+                  offset: float = 0.0, local_edge: ArrayLike | None = None, origin: str = "q_ref",
+                  prev_coordinate: float | None = None) -> Joint:
         """A limit of the constitution `uid` (any registered one, `LocalClient().constitutions()`) on the joint of
         bodies `i`, `j`, as `add_revolute_limit` describes; `prev_coordinate` for a stateful one only."""
         return self._add(uid, "Scene.add_limit", i, j, p0, p1, local_edge, origin, lower, upper, strength, offset,
                          prev=prev_coordinate)
 
-    def add_revolute_limit(
-        self,
-        i: int,
-        j: int,
-        p0: ArrayLike | None = None,
-        p1: ArrayLike | None = None,
-        lower: float | None = None,
-        upper: float | None = None,
-        strength: float = STRENGTH_DEFAULT,
-        *,
-        offset: float = 0.0,
-        local_edge: ArrayLike | None = None,
-        origin: str = "q_ref",
-        prev_coordinate: float | None = None,
-    ) -> Joint:
+    def add_revolute_limit(self, i: int, j: int, p0: ArrayLike | None = None, p1: ArrayLike | None = None,
+                           lower: float | None = None, upper: float | None = None, strength: float = STRENGTH_DEFAULT,
+                           *, offset: float = 0.0, local_edge: ArrayLike | None = None, origin: str = "q_ref",
+                           prev_coordinate: float | None = None) -> Joint:
         """#670 on the revolute joint of bodies `i`, `j` about the edge `p0 -> p1` (world, at ref); angles in rad.
         Or, instead of `p0`, `p1`, `local_edge` `[[l0, l1], [r0, r1]]`: the edge in body i's and body j's own
         coordinates (v1.2). `origin` "absolute" measures x from the reference engine's zero (v1.2).
@@ -128,31 +105,19 @@ class Scene:
         return self._add(REVOLUTE_LIMIT, "Scene.add_revolute_limit", i, j, p0, p1, local_edge, origin, lower, upper,
                          strength, offset, prev=prev_coordinate)
 
-    def add_prismatic_limit(
-        self,
-        i: int,
-        j: int,
-        p0: ArrayLike | None = None,
-        p1: ArrayLike | None = None,
-        lower: float | None = None,
-        upper: float | None = None,
-        strength: float = STRENGTH_DEFAULT,
-        *,
-        offset: float = 0.0,
-        local_edge: ArrayLike | None = None,
-        origin: str = "q_ref",
-    ) -> Joint:
+    def add_prismatic_limit(self, i: int, j: int, p0: ArrayLike | None = None, p1: ArrayLike | None = None,
+                            lower: float | None = None, upper: float | None = None,
+                            strength: float = STRENGTH_DEFAULT, *, offset: float = 0.0,
+                            local_edge: ArrayLike | None = None, origin: str = "q_ref") -> Joint:
         """#669 on the prismatic joint of bodies `i`, `j` sliding along `p0 -> p1`, or along `local_edge`
         (anchors `l0` on body i, `r0` on body j); `offset` is the spec's `init_distance` (as for
         `add_revolute_limit`). Returns its handle (its row in its batch)."""
         return self._add(PRISMATIC_LIMIT, "Scene.add_prismatic_limit", i, j, p0, p1, local_edge, origin, lower, upper,
                          strength, offset)
 
-    def _add(
-        self, uid: int, where: str, i: int, j: int, p0: ArrayLike | None, p1: ArrayLike | None,
-        local_edge: ArrayLike | None, origin: str, lower: float | None, upper: float | None, *rest: float,
-        prev: float | None = None,
-    ) -> Joint:
+    def _add(self, uid: int, where: str, i: int, j: int, p0: ArrayLike | None, p1: ArrayLike | None,
+             local_edge: ArrayLike | None, origin: str, lower: float | None, upper: float | None, *rest: float,
+             prev: float | None = None) -> Joint:
         if lower is None or upper is None:
             raise TypeError("a joint limit needs lower and upper")
         if (local_edge is None) == (p0 is None or p1 is None):
@@ -260,17 +225,9 @@ class Scene:
         )
 
 
-def request_from_arrays(
-    q: ArrayLike,
-    joints: Sequence[JointBatch],
-    *,
-    q_prev: ArrayLike | None = None,
-    q_ref: ArrayLike | None = None,
-    outputs: Sequence[str] = OUTPUTS,
-    hessian_mode: str = "exact",
-    active_only: bool = False,
-    layout: str = "joints",
-) -> Request:
+def request_from_arrays(q: ArrayLike, joints: Sequence[JointBatch], *, q_prev: ArrayLike | None = None,
+                        q_ref: ArrayLike | None = None, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact",
+                        active_only: bool = False, layout: str = "joints") -> Request:
     """The vectorised builder: bodies' DOFs (B, 12) (`q_ref` defaults to `q`, `q_prev` to `q_ref`) and
     batches made with `JointBatch.of(uid, body_ids, edges, lower, upper, strength)`; `layout` as in `Scene.request`."""
     faults: list[CoreFault] = []

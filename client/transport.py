@@ -48,21 +48,11 @@ class BaseClient:
     _HTTP: Any
     _http: Any
 
-    def __init__(
-        self,
-        base_url: str = DEFAULT_URL,
-        *,
-        binary: bool = True,
-        timeout: float | httpx.Timeout = 60.0,
-        connect_timeout: float = CONNECT_TIMEOUT,
-        retries: int = 3,
-        backoff: float = 0.2,
-        token: str | None = None,
-        max_joints_per_request: int | None = None,
-        progress: bool | ProgressCallback = False,
-        max_retry_after: float = MAX_RETRY_AFTER,
-        http_transport: httpx.BaseTransport | httpx.AsyncBaseTransport | None = None,
-    ) -> None:
+    def __init__(self, base_url: str = DEFAULT_URL, *, binary: bool = True, timeout: float | httpx.Timeout = 60.0,
+                 connect_timeout: float = CONNECT_TIMEOUT, retries: int = 3, backoff: float = 0.2,
+                 token: str | None = None, max_joints_per_request: int | None = None,
+                 progress: bool | ProgressCallback = False, max_retry_after: float = MAX_RETRY_AFTER,
+                 http_transport: httpx.BaseTransport | httpx.AsyncBaseTransport | None = None) -> None:
         self.binary = binary
         self.retries, self.backoff = retries, backoff
         self.max_retry_after = max_retry_after

@@ -288,16 +288,10 @@ def _read_joints(gid: int, geo: Any, limit: Facts, bodies: _Bodies, use_angle: b
     )
 
 
-def request_from_scene(
-    scene: Any,
-    q: ArrayLike | None = None,
-    q_prev: ArrayLike | None = None,
-    q_ref: ArrayLike | None = None,
-    committed: bool | None = None,
-    outputs: Sequence[str] = ("energy", "gradient", "hessian"),
-    *,
-    reference: Reference | str | None = None,
-) -> tuple[Request, list[list[JointRef]]]:
+def request_from_scene(scene: Any, q: ArrayLike | None = None, q_prev: ArrayLike | None = None,
+                       q_ref: ArrayLike | None = None, committed: bool | None = None,
+                       outputs: Sequence[str] = ("energy", "gradient", "hessian"), *,
+                       reference: Reference | str | None = None) -> tuple[Request, list[list[JointRef]]]:
     """The request that evaluates every #670 / #669 joint of a `uipc.core.Scene` as the engine does,
     and `joints`: `joints[k][r]` = (joint geometry id, edge index) of batch `k`'s row `r`.
 
@@ -400,11 +394,8 @@ def request_from_scene(
 # ------------------------------------------------------------------------------------- write back
 
 
-def write_back(
-    scene: Any,
-    coordinates: Evaluation | Sequence[ArrayLike | BatchResult],
-    joints: Sequence[Sequence[JointRef]],
-) -> None:
+def write_back(scene: Any, coordinates: Evaluation | Sequence[ArrayLike | BatchResult],
+               joints: Sequence[Sequence[JointRef]]) -> None:
     """Write committed coordinates into the joint edges: `angle` (670, what the engine reads as
     `prev_coordinate`) and `distance` (669, the engine's published slide), row `r` of batch `k`
     into `joints[k][r]`.

@@ -100,15 +100,3 @@ KEYS: dict[str, dict[str, bool]] = {
     m.model_fields["kind"].annotation.__args__[0]: {k: f.is_required() for k, f in m.model_fields.items()}
     for m in (EvaluateMessage, CommitMessage, UpdateMessage, CloseMessage)
 }
-
-__all__ = [
-    "CLIENT_MESSAGE",
-    "KEYS",
-    "OpeningRequest",
-    "PATH",
-    "ClientMessage",
-    "CloseMessage",
-    "CommitMessage",
-    "EvaluateMessage",
-    "UpdateMessage",
-]

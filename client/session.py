@@ -104,17 +104,13 @@ class SessionState:
         return self._out(content if self.binary else content.decode())
 
     def evaluate_frame(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Frame:
-        doc: dict[str, Any] = {"kind": proto.EVALUATE, "q": self._q(q)}
-        if outputs is not None:
-            doc["outputs"] = list(as_outputs(outputs))
-        if hessian_mode is not None:
-            doc["hessian_mode"] = hessian_mode
-        if active_only is not None:
-            doc["active_only"] = bool(active_only)
-        return self._encode(doc)
+        given = {"outputs": None if outputs is None else list(as_outputs(outputs)), "hessian_mode": hessian_mode,
+                 "active_only": None if active_only is None else bool(active_only)}
+        return self._encode({"kind": proto.EVALUATE, "q": message_array(q, "q"),
+                             **{k: v for k, v in given.items() if v is not None}})  # None: the opening's
 
     def commit_frame(self, q: ArrayLike) -> Frame:
-        return self._encode({"kind": proto.COMMIT, "q": self._q(q)})
+        return self._encode({"kind": proto.COMMIT, "q": message_array(q, "q")})
 
     def update_frame(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Frame:
         doc: dict[str, Any] = {"kind": proto.UPDATE, "batch": batch_number(batch), "index": message_array(index, "index", integer=True)}
@@ -123,9 +119,6 @@ class SessionState:
 
     def close_frame(self) -> Frame:
         return self._encode({"kind": proto.CLOSE})
-
-    def _q(self, q: ArrayLike) -> Array:
-        return message_array(q, "q")
 
     def _encode(self, doc: dict[str, Any]) -> Frame:
         if self.binary:

@@ -6,13 +6,13 @@ from typing import Any
 
 import orjson
 
-from jointlimits.client.errors import Fault, InvalidInput
-from jointlimits.client.model import JointBatch, Request
+from jointlimits.client.model import JointBatch, Request, in_body
 from jointlimits.schemas import EvaluateRequest
 
-ACCEPTED = "a client.Request (Scene().request(), request_from_arrays(...)), a dict in the wire JSON's shape, or a schemas.EvaluateRequest"
-_JOINT_FIELDS = ("constitution_uid", "body_ids", "edges", "local_edges", "origin", "lower", "upper", "strength", "base_uid",
-                 "offset", "prev_coordinate")
+ACCEPTED = ("a client.Request (Scene().request(), request_from_arrays(...)), a dict in the wire JSON's shape, "
+            "or a schemas.EvaluateRequest")
+_JOINT_FIELDS = ("constitution_uid", "body_ids", "edges", "local_edges", "origin", "lower", "upper", "strength",
+                 "base_uid", "offset", "prev_coordinate")
 
 
 def as_request(request: Any) -> Request:
@@ -39,7 +39,8 @@ def as_request(request: Any) -> Request:
     try:
         kw = read(body)
     except InputError as e:
-        raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults], where="invalid input") from None
+        raise in_body(e.faults) from None
     b = kw["bodies"]
     batches = [JointBatch(**{f: getattr(j, f) for f in _JOINT_FIELDS}) for j in kw["batches"]]
-    return Request(b.q, b.q_prev, b.q_ref, batches, tuple(kw["outputs"]), kw["hessian_mode"], kw["active_only"], kw["layout"])
+    return Request(b.q, b.q_prev, b.q_ref, batches, tuple(kw["outputs"]), kw["hessian_mode"], kw["active_only"],
+                   kw["layout"])

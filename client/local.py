@@ -10,14 +10,12 @@ import numpy as np
 
 from jointlimits.client.accept import as_request
 from jointlimits.client.aio import AsyncClient
-from jointlimits.client.errors import Fault, InvalidInput
-from jointlimits.client.model import BatchResult, Evaluation, Request, null_arrays
+from jointlimits.client.model import BatchResult, Evaluation, Request, in_body, null_arrays
 from jointlimits.client.transport import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from jointlimits.schemas.constitutions import describe
 from jointlimits.service import core
 from jointlimits.service.core import registry
-
 
 HTTP_OPTIONS = frozenset(inspect.signature(AsyncClient).parameters) - {"base_url"}
 """Keywords of `Client` / `AsyncClient` that `LocalClient` accepts and ignores."""
@@ -87,7 +85,7 @@ class LocalClient:
                                hessian_mode=request.hessian_mode, active_only=request.active_only,
                                threads=self.threads, layout=request.layout)
         except core.InputError as e:
-            raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults], where="invalid input") from None
+            raise in_body(e.faults) from None
         if callable(progress):
             progress(request.n_joints, request.n_joints)
         return result(ev).sized(request)

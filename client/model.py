@@ -24,6 +24,11 @@ def invalid(faults: list[CoreFault], where: str) -> InvalidInput:
     return InvalidInput(422, [Fault(f.loc, f.msg, f.type) for f in faults[:MAX_FAULTS]], where=f"invalid input ({where})")
 
 
+def in_body(faults: list[CoreFault]) -> InvalidInput:
+    """Faults named before or instead of the service, as the `InvalidInput` it would answer (`loc`s after "body")."""
+    return InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in faults], where="invalid input")
+
+
 def as_outputs(outputs: Any) -> tuple[str, ...]:
     """`outputs` as the wire's list: a list, tuple or array of names, or one name alone (a bare string asks for that
     output: `outputs="energy"`); anything else is the wire's fault for a value where a list belongs, on every path

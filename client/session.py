@@ -1,9 +1,7 @@
 """What every session (WebSocket sync and async, in-process) shares, free of I/O (docs/sessions.md, "Sessions").
 
-A session keeps, client-side, what reopening needs: the scene as last updated, the last
-committed `q` (the server's `q_prev`) and the committed coordinates. `request_for_reopen()`
-is a request that opens a new session in exactly that state, and `reopen()` (on each kind of
-session) does so, after a dropped connection too.
+A session keeps, client-side, what reopening needs: the scene as last updated, the last committed `q` (the
+server's `q_prev`) and the committed coordinates; `reopen()` opens a new session in exactly that state.
 """
 
 from __future__ import annotations
@@ -20,7 +18,7 @@ from numpy.typing import ArrayLike
 from jointlimits.client import codec
 from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, InvalidInput, ServiceError, Unreachable
-from jointlimits.client.model import Array, Evaluation, Request, as_outputs
+from jointlimits.client.model import Array, Evaluation, Request, as_outputs, in_body
 from jointlimits.client.transport import delays
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
@@ -207,7 +205,7 @@ def message_array(value: Any, name: str, integer: bool = False) -> np.ndarray:
     no cast (an index of 0.5 is not joint 0); else `InvalidInput`, the service's fault, before anything is sent."""
     a, faults = as_array(value, (name,), integer)
     if faults:
-        raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in faults], where="invalid input")
+        raise in_body(faults)
     return a
 
 
@@ -312,7 +310,8 @@ class Exchange(StateView):
 
         return (yield from self._resuming(attempt))
 
-    def _evaluate(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Steps[Evaluation]:
+    def _evaluate(self, q: ArrayLike, outputs: Any, hessian_mode: str | None,
+                  active_only: bool | None) -> Steps[Evaluation]:
         frame = self.state.evaluate_frame(q, outputs, hessian_mode, active_only)
         return self.state.evaluation((yield from self._exchange(frame)))
 
@@ -320,7 +319,8 @@ class Exchange(StateView):
         return self.state.committed((yield from self._exchange(self.state.commit_frame(q))), q)
 
     def _update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Steps[None]:
-        self.state.updated((yield from self._exchange(self.state.update_frame(batch, index, values))), batch, index, values)
+        reply = yield from self._exchange(self.state.update_frame(batch, index, values))
+        self.state.updated(reply, batch, index, values)
 
     def _close(self) -> Steps[None]:
         self._closed = True

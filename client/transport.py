@@ -17,8 +17,8 @@ import httpx
 import orjson
 
 from jointlimits.client import codec, split
-from jointlimits.client.errors import Busy, Fault, InvalidInput, ServiceError, Unreachable, WrongURL
-from jointlimits.client.model import Evaluation, Request, null_arrays
+from jointlimits.client.errors import Busy, Fault, ServiceError, Unreachable, WrongURL
+from jointlimits.client.model import Evaluation, Request, in_body, null_arrays
 from jointlimits.schemas import OUTPUTS, ConstitutionsResponse, answer
 from jointlimits.schemas import session as proto
 
@@ -90,7 +90,7 @@ class BaseClient:
         """`request` in parts that fit `self._limits` (fetched by the caller: that is I/O); a None array
         is refused here, as the service would (it cannot be counted, split or encoded)."""
         if missing := null_arrays(request):
-            raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in missing], where="invalid input")
+            raise in_body(missing)
         n = part_joints(self._limits, self.binary, self.max_joints_per_request, request.outputs, len(request.batches))
         parts = split.plan(request, n)
         progress = self.progress if progress is None else progress
@@ -210,7 +210,8 @@ class Retry:
         step = None if too_long else next(self._pauses, None)
         if step is None:
             if error is None:
-                raise Unreachable(self.url, self.attempts, status=response.status_code, proxy=proxy_page(response.content))
+                raise Unreachable(self.url, self.attempts, status=response.status_code,
+                                  proxy=proxy_page(response.content))
             raise Busy(error.status, error.faults, retry_after=after, attempts=self.attempts,
                        max_retry_after=self.max_retry_after if too_long else None)
         return max(step, after or 0.0)

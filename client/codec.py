@@ -8,13 +8,11 @@ import numpy as np
 import orjson
 
 from jointlimits.client.errors import ServiceError
-from jointlimits.client.model import Assembled, BatchResult, Evaluation, Request
+from jointlimits.client.model import NEEDED, OPTIONAL, Assembled, BatchResult, Evaluation, Request
 from jointlimits.schemas import binary as wire
 
 JSON = "application/json"
 BINARY = wire.MEDIA_TYPE
-_PER_JOINT = ("lower", "upper", "strength")
-_OPTIONAL = ("edges", "local_edges", "offset", "prev_coordinate")  # one of the edges; v1.1's, sent only when given
 
 
 def encode(request: Request, binary: bool) -> tuple[bytes, str]:
@@ -39,8 +37,8 @@ def _document(request: Request, f64: Any, i64: Any) -> dict[str, Any]:
                 "constitution_uid": int(b.constitution_uid),
                 "base_uid": int(b.base_uid if b.base_uid is not None else -1),
                 "body_ids": i64(b.body_ids),
-                **{k: f64(getattr(b, k)) for k in _PER_JOINT},
-                **{k: f64(a) for k in _OPTIONAL if (a := getattr(b, k, None)) is not None},
+                **{k: f64(getattr(b, k)) for k in NEEDED[1:]},
+                **{k: f64(a) for k in OPTIONAL if (a := getattr(b, k, None)) is not None},  # sent when given
                 **({"origin": b.origin} if b.origin != "q_ref" else {}),  # the default stays off the wire
             }
             for b in request.batches

@@ -10,7 +10,7 @@ import numpy as np
 
 from jointlimits.client.accept import as_request
 from jointlimits.client.aio import AsyncClient
-from jointlimits.client.model import BatchResult, Evaluation, Request, in_body, null_arrays
+from jointlimits.client.model import NEEDED, OPTIONAL, BatchResult, Evaluation, Request, in_body, null_arrays
 from jointlimits.client.transport import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from jointlimits.schemas.constitutions import describe
@@ -29,12 +29,11 @@ def core_batches(request: Request, copy: bool = False) -> list[core.Joints]:
     if missing := null_arrays(request):
         raise core.InputError(missing)
     own = np.array if copy else (lambda a: a)
-    arrays = ("body_ids", "edges", "local_edges", "lower", "upper", "strength", "offset", "prev_coordinate")
     return [
         core.Joints(
             constitution_uid=b.constitution_uid, origin=b.origin,
             base_uid=b.base_uid if b.base_uid is not None else -1,  # None only for an unknown constitution: refused
-            **{k: None if (a := getattr(b, k)) is None else own(a) for k in arrays},
+            **{k: None if (a := getattr(b, k)) is None else own(a) for k in NEEDED + OPTIONAL},
         )
         for b in request.batches
     ]

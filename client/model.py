@@ -53,7 +53,11 @@ def _array(value: ArrayLike, name: str, faults: list[CoreFault], integer: bool =
 def _wrong_shape(name: str, a: np.ndarray, want: tuple[int, ...], faults: list[CoreFault]) -> None:
     faults.append(CoreFault((name,), f"must have shape {want} (one row per joint of body_ids), got {a.shape}"))
     return None
+
+
 REVOLUTE_LIMIT, PRISMATIC_LIMIT = revolute.FACTS.uid, prismatic.FACTS.uid
+NEEDED, OPTIONAL = ("body_ids", "lower", "upper", "strength"), ("edges", "local_edges", "offset", "prev_coordinate")
+"""A `JointBatch`'s arrays: those it needs, and those it may leave None (one of the edges; v1.1's)."""
 
 
 @dataclass
@@ -162,11 +166,10 @@ def null_arrays(request: Request) -> list[CoreFault]:
     """None or a scalar where an array is needed (a state of the bodies, a batch's `body_ids`, `lower`, `upper`,
     `strength`; a given `edges`, `offset`, ...), named as the service names a `null` or a number there (a None
     optional array is an absent one)."""
-    needed, optional = ("body_ids", "lower", "upper", "strength"), ("edges", "local_edges", "offset", "prev_coordinate")
     not_a_list = lambda a, need: (a is None and need) or (a is not None and np.ndim(a) == 0)  # noqa: E731
     faults = [CoreFault(("bodies", k), *NOT_A_LIST) for k in ("q", "q_prev", "q_ref") if not_a_list(getattr(request, k), True)]
     return faults + [CoreFault(("batches", b, k), *NOT_A_LIST) for b, batch in enumerate(request.batches)
-                     for k in needed + optional if not_a_list(getattr(batch, k), k in needed)]
+                     for k in NEEDED + OPTIONAL if not_a_list(getattr(batch, k), k in NEEDED)]
 
 
 class Joint(int):

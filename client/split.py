@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from jointlimits.client.errors import Fault, ServiceError
-from jointlimits.client.model import Assembled, BatchResult, Evaluation, JointBatch, Request
+from jointlimits.client.model import NEEDED, OPTIONAL, Assembled, BatchResult, Evaluation, JointBatch, Request
 from jointlimits.service.core.assembled import reduce_pairs
 
 
@@ -66,11 +66,8 @@ def _part(request: Request, pieces: list[tuple[int, int, int]]) -> Part:
     return Part(sub, [k for k, _, _ in pieces], [a for _, a, _ in pieces], keep)
 
 
-_ROWS = ("body_ids", "edges", "local_edges", "lower", "upper", "strength", "offset", "prev_coordinate")
-
-
 def _rows(b: JointBatch, start: int, stop: int) -> JointBatch:
-    return replace(b, **{k: np.asarray(a)[start:stop] for k in _ROWS if (a := getattr(b, k)) is not None})
+    return replace(b, **{k: np.asarray(a)[start:stop] for k in NEEDED + OPTIONAL if (a := getattr(b, k)) is not None})
 
 
 def merge(request: Request, parts: list[Part], results: list[Evaluation]) -> Evaluation:

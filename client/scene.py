@@ -24,6 +24,12 @@ from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
 Pose = Union[ArrayLike, tuple[ArrayLike, ArrayLike]]
 
 
+def transforms_to_q(T: ArrayLike) -> np.ndarray:
+    """Transforms (I, 4, 4) as DOFs (I, 12): `[T[0:3, 3], T[0, 0:3], T[1, 0:3], T[2, 0:3]]` (libuipc's transform_to_q)."""
+    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
+    return np.concatenate([T[:, :3, 3], T[:, :3, :3].reshape(-1, 9)], axis=1)
+
+
 def dofs(pose: Pose, loc: tuple[str | int, ...] = ("pose",), where: str = "dofs") -> np.ndarray:
     """The 12 DOFs (12,) of one pose; `InvalidInput` naming `loc` for anything else."""
     faults: list[CoreFault] = []
@@ -36,7 +42,7 @@ def dofs(pose: Pose, loc: tuple[str | int, ...] = ("pose",), where: str = "dofs"
     else:
         a = _array(pose, "pose", faults)
         if a is not None and a.shape == (4, 4):
-            return np.concatenate([a[:3, 3], a[:3, :3].reshape(9)])
+            return transforms_to_q(a)[0]
         if a is not None and a.shape == (12,):
             return a.astype(np.float64, copy=True)
         msg = f"a pose is a 4x4 transform, a (p, A) pair or 12 DOFs, got shape {None if a is None else a.shape}"

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from jointlimits.client.model import Array, BatchResult, Evaluation, JointBatch, Request
+from jointlimits.client.scene import transforms_to_q
 from jointlimits.service.core import registry
 from jointlimits.service.core.constitution import Facts
 
@@ -95,12 +96,6 @@ def _is_affine_body(uid: int | None) -> bool:
         return False
     reg = _uipc().builtin.ConstitutionUIDCollection.instance()
     return bool(reg.exists(uid)) and reg.find(uid).type == "AffineBody"
-
-
-def _transforms_to_q(T: ArrayLike) -> Array:
-    """(I, 4, 4) -> (I, 12): `q = [T[0:3, 3], T[0, 0:3], T[1, 0:3], T[2, 0:3]]` (the engine's `transform_to_q`)."""
-    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
-    return np.concatenate([T[:, :3, 3], T[:, :3, :3].reshape(-1, 9)], axis=1)
 
 
 def _limits_by_base() -> dict[int, Facts]:
@@ -182,8 +177,8 @@ def _bodies(slots: list[tuple[int, Any, Any]], snapshot: Reference | None = None
                     f"the engine numbers this body geometry's first body {theirs}, the adapter {at}", gid,
                     hint="geometries created or destroyed after world.init() and not yet rebuilt by the engine?")
         offset[gid], count[gid] = at, T.shape[0]
-        qs.append(_transforms_to_q(T))
-        q_refs.append(_transforms_to_q(T_ref))
+        qs.append(transforms_to_q(T))
+        q_refs.append(transforms_to_q(T_ref))
         at += T.shape[0]
     guess = ""
     if snapshot is None and urdf_posed:

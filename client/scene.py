@@ -25,7 +25,7 @@ Pose = Union[ArrayLike, tuple[ArrayLike, ArrayLike]]
 
 
 def transforms_to_q(T: ArrayLike) -> np.ndarray:
-    """Transforms (I, 4, 4) as DOFs (I, 12): `[T[0:3, 3], T[0, 0:3], T[1, 0:3], T[2, 0:3]]` (libuipc's transform_to_q)."""
+    """Transforms (I, 4, 4) as DOFs (I, 12), `[T[0:3, 3], T[0, :3], T[1, :3], T[2, :3]]` (libuipc's transform_to_q)."""
     T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
     return np.concatenate([T[:, :3, 3], T[:, :3, :3].reshape(-1, 9)], axis=1)
 

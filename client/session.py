@@ -270,6 +270,10 @@ class Exchange(StateView):
         self.retries, self.backoff, self.resume = retries, backoff, resume
         self._ws = None
         self._closed = False  # by `close()`: no more resuming
+        self._begin()
+
+    def _begin(self) -> None:
+        """The constructor's last step: the blocking session opens here, the asyncio one when awaited."""
 
     def _resuming(self, step: Callable[[], Steps[T]]) -> Steps[T]:
         """`step()`, tried again after a failure another server can take over (`Resume`)."""

@@ -13,7 +13,7 @@ from websockets.sync.client import connect
 
 from jointlimits.client import codec
 from jointlimits.client.errors import Unreachable
-from jointlimits.client.model import Array, Evaluation, Request
+from jointlimits.client.model import Array, Evaluation
 from jointlimits.client.session import RESUMED_CLOSES, Exchange, SessionClosed, Steps
 from jointlimits.client.transport import PROXY_STATUSES, is_fault_list, proxy_page, wrong_url
 
@@ -62,10 +62,7 @@ class Session(Exchange):
     else, or past them, a lost connection raises `SessionClosed`, and `reopen()` continues.
     """
 
-    def __init__(self, url: str, request: Request, **options: Any) -> None:
-        """`options`: those of `jointlimits.client.session.Exchange` (`binary`, `timeout`, `headers`, `retries`,
-        `backoff`, `resume`); the session is open when this returns."""
-        super().__init__(url, request, **options)
+    def _begin(self) -> None:
         self._stack = ExitStack()
         self._run(self._opening())
 

@@ -128,7 +128,8 @@ class Scene:
             raise TypeError("a joint limit needs lower and upper")
         if (local_edge is None) == (p0 is None or p1 is None):
             raise TypeError("give the joint's edge either as p0, p1 (world, at ref) or as local_edge, not both")
-        kind, edge = ("edges", self._edge(p0, p1)) if local_edge is None else ("local_edges", self._local_edge(local_edge))
+        given = {"p0": p0, "p1": p1} if local_edge is None else {"local_edge": local_edge}
+        kind, edge = "edges" if local_edge is None else "local_edges", self._edge(given)  # type: ignore[arg-type]
         ids = (int(i), int(j))
         lower, upper, *rest = self._check(uid, where, ids, kind, edge, origin, (lower, upper, *rest), prev)
         key = (uid, kind, origin, prev is not None)
@@ -182,25 +183,17 @@ class Scene:
         return nums
 
     @staticmethod
-    def _edge(p0: ArrayLike, p1: ArrayLike) -> np.ndarray:
+    def _edge(given: dict[str, ArrayLike]) -> np.ndarray:
+        """`p0`, `p1` as the edge (2, 3), or `local_edge` (2, 2, 3); else `InvalidInput` naming the argument."""
         faults: list[CoreFault] = []
-        points = [_array(p, name, faults) for name, p in (("p0", p0), ("p1", p1))]
-        for name, p in zip(("p0", "p1"), points):
-            if p is not None and p.shape != (3,):
-                faults.append(CoreFault((name,), f"must be a point (3,), got shape {p.shape}"))
+        arrays = {name: _array(v, name, faults) for name, v in given.items()}
+        for name, a in arrays.items():
+            want, what = ((2, 2, 3), "[[l0, l1], [r0, r1]] (2, 2, 3)") if name == "local_edge" else ((3,), "a point (3,)")
+            if a is not None and a.shape != want:
+                faults.append(CoreFault((name,), f"must be {what}, got shape {a.shape}"))
         if faults:
-            raise invalid(faults, "Scene: a joint's edge")
-        return np.stack(points)  # type: ignore[arg-type]
-
-    @staticmethod
-    def _local_edge(local_edge: ArrayLike) -> np.ndarray:
-        faults: list[CoreFault] = []
-        edge = _array(local_edge, "local_edge", faults)
-        if edge is not None and edge.shape != (2, 2, 3):
-            faults.append(CoreFault(("local_edge",), f"must be [[l0, l1], [r0, r1]] (2, 2, 3), got shape {edge.shape}"))
-        if faults:
-            raise invalid(faults, "Scene: a joint's local edge")
-        return edge  # type: ignore[return-value]
+            raise invalid(faults, "Scene: a joint's " + ("local edge" if "local_edge" in given else "edge"))
+        return arrays["local_edge"] if "local_edge" in arrays else np.stack([arrays["p0"], arrays["p1"]])
 
     def request(
         self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False,

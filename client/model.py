@@ -119,18 +119,11 @@ class JointBatch:
                 return a
             return np.broadcast_to(a, (n,)).copy() if a.shape in ((), (1,), (n,)) else _wrong_shape(name, a, (n,), faults)
 
-        batch = cls(
-            constitution_uid=constitution_uid,
-            body_ids=ids,  # type: ignore[arg-type]
-            edges=shaped("edges", edges, 2, 3),
-            local_edges=shaped("local_edges", local_edges, 2, 2, 3),
-            origin=origin,
-            lower=per_joint("lower", lower),  # type: ignore[arg-type]
-            upper=per_joint("upper", upper),  # type: ignore[arg-type]
-            strength=per_joint("strength", strength),  # type: ignore[arg-type]
-            offset=per_joint("offset", offset),
-            prev_coordinate=per_joint("prev_coordinate", prev_coordinate),
-        )
+        numbers = {"lower": lower, "upper": upper, "strength": strength, "offset": offset,
+                   "prev_coordinate": prev_coordinate}
+        batch = cls(constitution_uid, ids, shaped("edges", edges, 2, 3),  # type: ignore[arg-type]
+                    local_edges=shaped("local_edges", local_edges, 2, 2, 3), origin=origin,
+                    **{k: per_joint(k, v) for k, v in numbers.items()})  # type: ignore[arg-type]
         if faults:
             raise invalid(faults, "JointBatch.of")
         return batch

@@ -188,17 +188,16 @@ class Scene:
         faults: list[CoreFault] = []
         arrays = {name: _array(v, name, faults) for name, v in given.items()}
         for name, a in arrays.items():
-            want, what = ((2, 2, 3), "[[l0, l1], [r0, r1]] (2, 2, 3)") if name == "local_edge" else ((3,), "a point (3,)")
+            local = name == "local_edge"
+            want, what = ((2, 2, 3), "[[l0, l1], [r0, r1]] (2, 2, 3)") if local else ((3,), "a point (3,)")
             if a is not None and a.shape != want:
                 faults.append(CoreFault((name,), f"must be {what}, got shape {a.shape}"))
         if faults:
             raise invalid(faults, "Scene: a joint's " + ("local edge" if "local_edge" in given else "edge"))
         return arrays["local_edge"] if "local_edge" in arrays else np.stack([arrays["p0"], arrays["p1"]])
 
-    def request(
-        self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False,
-        layout: str = "joints",
-    ) -> Request:
+    def request(self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False,
+                layout: str = "joints") -> Request:
         """The request: one batch per constitution (and per edge kind, origin, and whether the joints were
         given `prev_coordinate`), in the order first used; bodies in the order added.
 
@@ -211,17 +210,10 @@ class Scene:
             geometry = {kind: np.stack(edges)}
             batches.append(JointBatch.of(uid, ids, geometry.pop("edges", None), lower, upper, strength, offset=off,
                                          prev_coordinate=prev[0] if stated else None, origin=origin, **geometry))
-        stack = lambda rows: np.array(rows, dtype=np.float64).reshape(-1, 12)  # noqa: E731
-        return Request(
-            q=stack(self._q),
-            q_prev=stack(self._q_prev),
-            q_ref=stack(self._q_ref),
-            batches=batches,
-            outputs=outputs,  # type: ignore[arg-type] (one name alone too: Request.outputs)
-            hessian_mode=hessian_mode,
-            active_only=active_only,
-            layout=layout,
-        )
+        states = (self._q, self._q_prev, self._q_ref)
+        q, q_prev, q_ref = (np.array(rows, dtype=np.float64).reshape(-1, 12) for rows in states)
+        # `outputs`: one name alone too (Request.outputs).
+        return Request(q, q_prev, q_ref, batches, outputs, hessian_mode, active_only, layout)  # type: ignore[arg-type]
 
 
 def request_from_arrays(q: ArrayLike, joints: Sequence[JointBatch], *, q_prev: ArrayLike | None = None,

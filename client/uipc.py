@@ -311,10 +311,10 @@ def request_from_scene(scene: Any, q: ArrayLike | None = None, q_prev: ArrayLike
     that cannot be read, and ImportError without pyuipc.
     """
     _uipc()
-    if isinstance(reference, str) and reference != "rest":
-        raise SceneError(f"`reference` is a snapshot from reference(scene), \"rest\" or None, got {reference!r}")
-    if reference is not None and not isinstance(reference, (Reference, str)):
-        raise SceneError(f"`reference` is a snapshot from reference(scene), \"rest\" or None, got {type(reference).__name__}")
+    given_rest = isinstance(reference, str) and reference == "rest"
+    if not (reference is None or given_rest or isinstance(reference, Reference)):
+        got = repr(reference) if isinstance(reference, str) else type(reference).__name__
+        raise SceneError(f"`reference` is a snapshot from reference(scene), \"rest\" or None, got {got}")
     if reference is not None and q_ref is not None:
         raise SceneError("give the transforms at world.init() once: `reference` or `q_ref`, not both")
     slots = _slots(scene)

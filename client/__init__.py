@@ -15,44 +15,15 @@ raises `SessionClosed` and `reopen()` continues from the last commit.
 from jointlimits.client.aio import AsyncClient
 from jointlimits.client.errors import Busy, Fault, InvalidInput, ServiceError, TooLarge, Unreachable, WrongURL
 from jointlimits.client.local import LocalClient
-from jointlimits.client.model import (
-    PRISMATIC_LIMIT,
-    REVOLUTE_LIMIT,
-    BatchResult,
-    Evaluation,
-    Joint,
-    JointBatch,
-    JointResult,
-    Request,
-)
+from jointlimits.client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, BatchResult, Evaluation, Joint, JointBatch
+from jointlimits.client.model import JointResult, Request
 from jointlimits.client.robot import Reading, Robot
 from jointlimits.client.scene import Scene, dofs, request_from_arrays
 from jointlimits.client.session import SessionClosed
 from jointlimits.client.sync import Client
 
 __all__ = [
-    "PRISMATIC_LIMIT",
-    "REVOLUTE_LIMIT",
-    "AsyncClient",
-    "BatchResult",
-    "Busy",
-    "Client",
-    "Evaluation",
-    "Fault",
-    "InvalidInput",
-    "Joint",
-    "JointBatch",
-    "JointResult",
-    "LocalClient",
-    "Reading",
-    "Request",
-    "Robot",
-    "Scene",
-    "ServiceError",
-    "SessionClosed",
-    "TooLarge",
-    "Unreachable",
-    "WrongURL",
-    "dofs",
-    "request_from_arrays",
+    "PRISMATIC_LIMIT", "REVOLUTE_LIMIT", "AsyncClient", "BatchResult", "Busy", "Client", "Evaluation", "Fault",
+    "InvalidInput", "Joint", "JointBatch", "JointResult", "LocalClient", "Reading", "Request", "Robot", "Scene",
+    "ServiceError", "SessionClosed", "TooLarge", "Unreachable", "WrongURL", "dofs", "request_from_arrays",
 ]

@@ -10,9 +10,8 @@ import httpx
 
 from jointlimits.client import split, transport
 from jointlimits.client.accept import as_request
-from jointlimits.client.base import DEFAULT_URL, BaseClient
 from jointlimits.client.model import Evaluation, Request
-from jointlimits.client.progress import ProgressCallback
+from jointlimits.client.transport import DEFAULT_URL, BaseClient, ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest
 
 
@@ -24,38 +23,18 @@ class AsyncClient(BaseClient):
     """Async twin of `client.Client` (same arguments, same results and errors); `concurrency`
     bounds how many parts of a split request are in flight at once."""
 
+    _HTTP = httpx.AsyncClient
     _http: httpx.AsyncClient
 
-    def __init__(
-        self,
-        base_url: str = DEFAULT_URL,
-        *,
-        binary: bool = True,
-        timeout: float | httpx.Timeout = 60.0,
-        connect_timeout: float = transport.CONNECT_TIMEOUT,
-        retries: int = 3,
-        backoff: float = 0.2,
-        token: str | None = None,
-        max_joints_per_request: int | None = None,
-        progress: bool | ProgressCallback = False,
-        max_retry_after: float = transport.MAX_RETRY_AFTER,
-        concurrency: int = 4,
-        http_transport: httpx.AsyncBaseTransport | None = None,
-    ) -> None:
-        super().__init__(
-            base_url,
-            binary=binary,
-            timeout=timeout,
-            connect_timeout=connect_timeout,
-            retries=retries,
-            backoff=backoff,
-            token=token,
-            max_joints_per_request=max_joints_per_request,
-            progress=progress,
-            max_retry_after=max_retry_after,
-        )
+    # Spelled out, as `Client`'s (tests/sdk/test_client_sdk.py holds them to the same), plus `concurrency`.
+    def __init__(self, base_url: str = DEFAULT_URL, *, binary: bool = True, timeout: float | httpx.Timeout = 60.0,
+                 connect_timeout: float = transport.CONNECT_TIMEOUT, retries: int = 3, backoff: float = 0.2,
+                 token: str | None = None, max_joints_per_request: int | None = None,
+                 progress: bool | ProgressCallback = False, max_retry_after: float = transport.MAX_RETRY_AFTER,
+                 concurrency: int = 4, http_transport: httpx.AsyncBaseTransport | None = None) -> None:
+        options = {k: v for k, v in locals().items() if k not in ("self", "concurrency", "__class__")}
+        super().__init__(**options)
         self.concurrency = concurrency
-        self._http = httpx.AsyncClient(**self._http_options, transport=http_transport)
 
     async def constitutions(self) -> ConstitutionsResponse:
         return transport.constitutions(await self._send(self._constitutions_request()))
@@ -81,12 +60,9 @@ class AsyncClient(BaseClient):
 
     def session(self, request: Request | dict | EvaluateRequest, *, resume: bool = True) -> AsyncSession:
         """`async with client.session(r) as s:` (or `s = await client.session(r)`): `Client.session`, awaitable."""
-        from jointlimits.client.session import connection_options  # imported here: HTTP alone never loads websockets
-        from jointlimits.client.session_aio import AsyncSession
+        from jointlimits.client.session_aio import AsyncSession  # imported here: HTTP alone never loads websockets
 
-        o = connection_options(dict(self._http_options))
-        return AsyncSession(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"],
-                            retries=self.retries, backoff=self.backoff, resume=resume)
+        return AsyncSession(request=request, resume=resume, **self._session_options())
 
     async def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry(request)

@@ -8,14 +8,11 @@ import numpy as np
 import orjson
 
 from jointlimits.client.errors import ServiceError
-from jointlimits.client.model import Assembled, BatchResult, Evaluation, Request
+from jointlimits.client.model import NEEDED, OPTIONAL, Assembled, BatchResult, Evaluation, Request
 from jointlimits.schemas import binary as wire
 
 JSON = "application/json"
 BINARY = wire.MEDIA_TYPE
-_PER_JOINT = ("lower", "upper", "strength")
-_OPTIONAL = ("edges", "local_edges", "offset", "prev_coordinate")  # one of the edges; v1.1's, sent only when given
-_SHAPES = {1: (-1,), 2: (-1, 24), 3: (-1, 24, 24)}  # x / energy / index, gradient, hessian
 
 
 def encode(request: Request, binary: bool) -> tuple[bytes, str]:
@@ -40,8 +37,8 @@ def _document(request: Request, f64: Any, i64: Any) -> dict[str, Any]:
                 "constitution_uid": int(b.constitution_uid),
                 "base_uid": int(b.base_uid if b.base_uid is not None else -1),
                 "body_ids": i64(b.body_ids),
-                **{k: f64(getattr(b, k)) for k in _PER_JOINT},
-                **{k: f64(a) for k in _OPTIONAL if (a := getattr(b, k, None)) is not None},
+                **{k: f64(getattr(b, k)) for k in NEEDED[1:]},
+                **{k: f64(a) for k in OPTIONAL if (a := getattr(b, k, None)) is not None},  # sent when given
                 **({"origin": b.origin} if b.origin != "q_ref" else {}),  # the default stays off the wire
             }
             for b in request.batches
@@ -55,47 +52,25 @@ def _document(request: Request, f64: Any, i64: Any) -> dict[str, Any]:
 
 def decode(content: bytes, content_type: str) -> Evaluation:
     """An `Evaluation` from a 200 body of either encoding (binary arrays are read-only views, no copy)."""
-    if content_type.split(";")[0].strip().lower() in wire.MEDIA_TYPES:
-        doc = wire.loads(content)
-        arr = lambda v, ndim, dtype=wire.FLOAT64: wire.unpack_array(v, dtype, ndim)  # noqa: E731
-    else:
-        doc = orjson.loads(content)
-        arr = lambda v, ndim, dtype=wire.FLOAT64: np.asarray(v, dtype=np.dtype(dtype)).reshape(  # noqa: E731
-            _SHAPES[ndim]
-        )
-    return Evaluation(
-        assembled=_assembled(doc.get("assembled"), content_type),
-        total_energy=float(doc["total_energy"]),
-        batches=[
-            BatchResult(
-                constitution_uid=int(b["constitution_uid"]),
-                index=arr(b["index"], 1, wire.INT64),
-                x=arr(b["x"], 1),
-                energy=arr(b["energy"], 1),
-                gradient=arr(b["gradient"], 2) if "gradient" in b else None,
-                hessian=arr(b["hessian"], 3) if "hessian" in b else None,
-                coordinate=arr(b["coordinate"], 1) if "coordinate" in b else None,
-            )
-            for b in doc["batches"]
-        ],
-    )
-
-
-def _assembled(a: dict[str, Any] | None, content_type: str) -> Assembled | None:
-    """`layout="bodies"`: the per-body answer; `n_bodies` is set by the caller (from its Request)."""
-    if a is None:
-        return None
     binary = content_type.split(";")[0].strip().lower() in wire.MEDIA_TYPES
+    doc = wire.loads(content) if binary else orjson.loads(content)
 
-    def arr(k: str, tail: tuple[int, ...], dtype: str = wire.FLOAT64) -> np.ndarray | None:
-        if k not in a:
-            return None
+    def arr(v: Any, tail: tuple[int, ...] = (), dtype: str = wire.FLOAT64) -> np.ndarray:
         if binary:
-            return wire.unpack_array(a[k], dtype, 1 + len(tail))
-        return np.asarray(a[k], dtype=np.dtype(dtype)).reshape((-1, *tail))
+            return wire.unpack_array(v, dtype, 1 + len(tail))
+        return np.asarray(v, dtype=np.dtype(dtype)).reshape((-1, *tail))
 
-    return Assembled(-1, arr("gradient", (12,)), arr("rows", (), wire.INT64), arr("cols", (), wire.INT64),
-                     arr("blocks", (12, 12)))
+    def given(d: dict[str, Any], k: str, tail: tuple[int, ...] = (), dtype: str = wire.FLOAT64) -> np.ndarray | None:
+        return arr(d[k], tail, dtype) if k in d else None
+
+    batches = [BatchResult(int(b["constitution_uid"]), arr(b["index"], (), wire.INT64), arr(b["x"]), arr(b["energy"]),
+                           given(b, "gradient", (24,)), given(b, "hessian", (24, 24)), given(b, "coordinate"))
+               for b in doc["batches"]]
+    # layout="bodies": the per-body answer; `n_bodies` is set by the caller (from its Request).
+    a = doc.get("assembled")
+    assembled = None if a is None else Assembled(-1, given(a, "gradient", (12,)), given(a, "rows", (), wire.INT64),
+                                                 given(a, "cols", (), wire.INT64), given(a, "blocks", (12, 12)))
+    return Evaluation(float(doc["total_energy"]), batches, assembled)
 
 
 def error(status: int, content: bytes) -> ServiceError:

@@ -42,11 +42,8 @@ class ServiceError(Exception):
     def from_body(cls, status: int, body: Any) -> ServiceError:
         detail = body.get("detail") if isinstance(body, dict) else None
         if isinstance(detail, list):
-            faults = [
-                Fault(tuple(d.get("loc", ())), str(d.get("msg", "")), str(d.get("type", "")))
-                for d in detail
-                if isinstance(d, dict)
-            ]
+            faults = [Fault(tuple(d.get("loc", ())), str(d.get("msg", "")), str(d.get("type", "")))
+                      for d in detail if isinstance(d, dict)]
         else:
             faults = [Fault((), str(detail if detail is not None else body), "http_error")]
         kind = _BY_TYPE.get((status, faults[0].type)) if faults else None
@@ -99,16 +96,8 @@ class Busy(ServiceError):
     is never retried.)
     """
 
-    def __init__(
-        self,
-        status: int,
-        faults: list[Fault],
-        where: str | None = None,
-        *,
-        retry_after: float | None = None,
-        attempts: int = 1,
-        max_retry_after: float | None = None,
-    ) -> None:
+    def __init__(self, status: int, faults: list[Fault], where: str | None = None, *,
+                 retry_after: float | None = None, attempts: int = 1, max_retry_after: float | None = None) -> None:
         """`max_retry_after`: set when the server's `Retry-After` was over it (the reason to stop)."""
         super().__init__(status, faults, where)
         self.retry_after, self.attempts = retry_after, attempts

@@ -2,25 +2,22 @@
 
 from __future__ import annotations
 
+import inspect
 from types import TracebackType
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from jointlimits.client.accept import as_request
-from jointlimits.client.errors import Fault, InvalidInput
-from jointlimits.client.model import BatchResult, Evaluation, Request, null_arrays
-from jointlimits.client.progress import ProgressCallback
+from jointlimits.client.aio import AsyncClient
+from jointlimits.client.model import NEEDED, OPTIONAL, BatchResult, Evaluation, Request, in_body, null_arrays
+from jointlimits.client.transport import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from jointlimits.schemas.constitutions import describe
 from jointlimits.service import core
 from jointlimits.service.core import registry
 
-
-HTTP_OPTIONS = frozenset(
-    {"binary", "timeout", "connect_timeout", "retries", "backoff", "token", "max_joints_per_request", "progress",
-     "concurrency", "http_transport", "max_retry_after"}
-)
+HTTP_OPTIONS = frozenset(inspect.signature(AsyncClient).parameters) - {"base_url"}
 """Keywords of `Client` / `AsyncClient` that `LocalClient` accepts and ignores."""
 
 
@@ -32,20 +29,11 @@ def core_batches(request: Request, copy: bool = False) -> list[core.Joints]:
     if missing := null_arrays(request):
         raise core.InputError(missing)
     own = np.array if copy else (lambda a: a)
-    c = lambda a: None if a is None else own(a)  # noqa: E731
     return [
         core.Joints(
-            constitution_uid=b.constitution_uid,
+            constitution_uid=b.constitution_uid, origin=b.origin,
             base_uid=b.base_uid if b.base_uid is not None else -1,  # None only for an unknown constitution: refused
-            body_ids=c(b.body_ids),
-            edges=c(b.edges),
-            local_edges=c(b.local_edges),
-            origin=b.origin,
-            lower=c(b.lower),
-            upper=c(b.upper),
-            strength=c(b.strength),
-            offset=c(b.offset),
-            prev_coordinate=c(b.prev_coordinate),
+            **{k: None if (a := getattr(b, k)) is None else own(a) for k in NEEDED + OPTIONAL},
         )
         for b in request.batches
     ]
@@ -53,14 +41,9 @@ def core_batches(request: Request, copy: bool = False) -> list[core.Joints]:
 
 def result(ev: core.Evaluation) -> Evaluation:
     """The core's answer as the SDK's `Evaluation` (the same arrays, no copy)."""
-    return Evaluation(
-        assembled=ev.assembled,
-        total_energy=ev.total_energy,
-        batches=[
-            BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate)
-            for r in ev.batches
-        ],
-    )
+    batches = [BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate)
+               for r in ev.batches]
+    return Evaluation(ev.total_energy, batches, ev.assembled)
 
 
 if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
@@ -78,21 +61,17 @@ class LocalClient:
         """`threads` > 1 lets the core use that many threads (bitwise the same numbers). The HTTP
         clients' options (`binary`, `timeout`, ...) are accepted and ignored, so switching mode is
         one word; any other keyword is a `TypeError`."""
-        unknown = sorted(set(http_options) - HTTP_OPTIONS)
-        if unknown:
-            raise TypeError(
-                f"LocalClient() got an unexpected keyword argument {unknown[0]!r}; it takes threads=N "
-                f"(and ignores the HTTP clients' {', '.join(sorted(HTTP_OPTIONS))})"
-            )
+        if unknown := sorted(set(http_options) - HTTP_OPTIONS):
+            raise TypeError(f"LocalClient() got an unexpected keyword argument {unknown[0]!r}; it takes threads=N "
+                            f"(and ignores the HTTP clients' {', '.join(sorted(HTTP_OPTIONS))})")
         self.threads = threads
 
     def constitutions(self) -> ConstitutionsResponse:
         infos = [describe(f) for f in sorted(registry.CONSTITUTIONS.values(), key=lambda f: -f.uid)]
         return ConstitutionsResponse(constitutions=infos, limits=Limits(max_body_bytes=2**63 - 1, max_joints=2**63 - 1))
 
-    def evaluate(
-        self, request: Request | dict | EvaluateRequest, *, progress: bool | ProgressCallback | None = None
-    ) -> Evaluation:
+    def evaluate(self, request: Request | dict | EvaluateRequest, *,
+                 progress: bool | ProgressCallback | None = None) -> Evaluation:
         """`Client.evaluate` in-process: the same arguments, results and bit-identical numbers.
 
         Input faults raise `InvalidInput` (no HTTP involved: its message starts "invalid input",
@@ -100,18 +79,12 @@ class LocalClient:
         """
         request = as_request(request)
         try:
-            joints = core_batches(request)
-            ev = core.evaluate(
-                bodies=core.Bodies(request.q, request.q_prev, request.q_ref),
-                batches=joints,
-                outputs=request.outputs,
-                hessian_mode=request.hessian_mode,
-                active_only=request.active_only,
-                threads=self.threads,
-                layout=request.layout,
-            )
+            ev = core.evaluate(bodies=core.Bodies(request.q, request.q_prev, request.q_ref),
+                               batches=core_batches(request), outputs=request.outputs,
+                               hessian_mode=request.hessian_mode, active_only=request.active_only,
+                               threads=self.threads, layout=request.layout)
         except core.InputError as e:
-            raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in e.faults], where="invalid input") from None
+            raise in_body(e.faults) from None
         if callable(progress):
             progress(request.n_joints, request.n_joints)
         return result(ev).sized(request)

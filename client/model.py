@@ -24,6 +24,11 @@ def invalid(faults: list[CoreFault], where: str) -> InvalidInput:
     return InvalidInput(422, [Fault(f.loc, f.msg, f.type) for f in faults[:MAX_FAULTS]], where=f"invalid input ({where})")
 
 
+def in_body(faults: list[CoreFault]) -> InvalidInput:
+    """Faults named before or instead of the service, as the `InvalidInput` it would answer (`loc`s after "body")."""
+    return InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in faults], where="invalid input")
+
+
 def as_outputs(outputs: Any) -> tuple[str, ...]:
     """`outputs` as the wire's list: a list, tuple or array of names, or one name alone (a bare string asks for that
     output: `outputs="energy"`); anything else is the wire's fault for a value where a list belongs, on every path
@@ -48,7 +53,11 @@ def _array(value: ArrayLike, name: str, faults: list[CoreFault], integer: bool =
 def _wrong_shape(name: str, a: np.ndarray, want: tuple[int, ...], faults: list[CoreFault]) -> None:
     faults.append(CoreFault((name,), f"must have shape {want} (one row per joint of body_ids), got {a.shape}"))
     return None
+
+
 REVOLUTE_LIMIT, PRISMATIC_LIMIT = revolute.FACTS.uid, prismatic.FACTS.uid
+NEEDED, OPTIONAL = ("body_ids", "lower", "upper", "strength"), ("edges", "local_edges", "offset", "prev_coordinate")
+"""A `JointBatch`'s arrays: those it needs, and those it may leave None (one of the edges; v1.1's)."""
 
 
 @dataclass
@@ -78,20 +87,10 @@ class JointBatch:
             self.base_uid = registry.base_uid_of(self.constitution_uid)
 
     @classmethod
-    def of(
-        cls,
-        constitution_uid: int,
-        body_ids: ArrayLike,
-        edges: ArrayLike | None,
-        lower: ArrayLike,
-        upper: ArrayLike,
-        strength: ArrayLike = 1.0,
-        *,
-        offset: ArrayLike | None = None,
-        prev_coordinate: ArrayLike | None = None,
-        local_edges: ArrayLike | None = None,
-        origin: str = "q_ref",
-    ) -> JointBatch:
+    def of(cls, constitution_uid: int, body_ids: ArrayLike, edges: ArrayLike | None, lower: ArrayLike,
+           upper: ArrayLike, strength: ArrayLike = 1.0, *, offset: ArrayLike | None = None,
+           prev_coordinate: ArrayLike | None = None, local_edges: ArrayLike | None = None,
+           origin: str = "q_ref") -> JointBatch:
         """From array-likes; scalar `lower`, `upper`, `strength`, `offset`, `prev_coordinate` apply to every joint.
 
         Give the joints' geometry as world `edges` (N, 2, 3) at q_ref, or as body-local `local_edges`
@@ -120,18 +119,11 @@ class JointBatch:
                 return a
             return np.broadcast_to(a, (n,)).copy() if a.shape in ((), (1,), (n,)) else _wrong_shape(name, a, (n,), faults)
 
-        batch = cls(
-            constitution_uid=constitution_uid,
-            body_ids=ids,  # type: ignore[arg-type]
-            edges=shaped("edges", edges, 2, 3),
-            local_edges=shaped("local_edges", local_edges, 2, 2, 3),
-            origin=origin,
-            lower=per_joint("lower", lower),  # type: ignore[arg-type]
-            upper=per_joint("upper", upper),  # type: ignore[arg-type]
-            strength=per_joint("strength", strength),  # type: ignore[arg-type]
-            offset=per_joint("offset", offset),
-            prev_coordinate=per_joint("prev_coordinate", prev_coordinate),
-        )
+        numbers = {"lower": lower, "upper": upper, "strength": strength, "offset": offset,
+                   "prev_coordinate": prev_coordinate}
+        batch = cls(constitution_uid, ids, shaped("edges", edges, 2, 3),  # type: ignore[arg-type]
+                    local_edges=shaped("local_edges", local_edges, 2, 2, 3), origin=origin,
+                    **{k: per_joint(k, v) for k, v in numbers.items()})  # type: ignore[arg-type]
         if faults:
             raise invalid(faults, "JointBatch.of")
         return batch
@@ -167,11 +159,10 @@ def null_arrays(request: Request) -> list[CoreFault]:
     """None or a scalar where an array is needed (a state of the bodies, a batch's `body_ids`, `lower`, `upper`,
     `strength`; a given `edges`, `offset`, ...), named as the service names a `null` or a number there (a None
     optional array is an absent one)."""
-    needed, optional = ("body_ids", "lower", "upper", "strength"), ("edges", "local_edges", "offset", "prev_coordinate")
     not_a_list = lambda a, need: (a is None and need) or (a is not None and np.ndim(a) == 0)  # noqa: E731
     faults = [CoreFault(("bodies", k), *NOT_A_LIST) for k in ("q", "q_prev", "q_ref") if not_a_list(getattr(request, k), True)]
     return faults + [CoreFault(("batches", b, k), *NOT_A_LIST) for b, batch in enumerate(request.batches)
-                     for k in needed + optional if not_a_list(getattr(batch, k), k in needed)]
+                     for k in NEEDED + OPTIONAL if not_a_list(getattr(batch, k), k in NEEDED)]
 
 
 class Joint(int):

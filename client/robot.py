@@ -29,7 +29,7 @@ import numpy as np
 
 from jointlimits.client.errors import InvalidInput
 from jointlimits.client.model import Evaluation, Joint, Request
-from jointlimits.client.scene import Scene
+from jointlimits.client.scene import Scene, transforms_to_q
 from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
 
 JointVector = Union[Sequence[float], np.ndarray, Mapping[str, float]]
@@ -156,8 +156,7 @@ class Robot:
 
     def poses(self, q: JointVector | None) -> np.ndarray:
         """Every body's 12 DOFs (B, 12) at the joint vector `q`: what a session's `evaluate` and `commit` take."""
-        T = self._fk(dict(zip(self.names, self.vector(q))))
-        return np.array([np.concatenate([t[:3, 3], t[:3, :3].reshape(9)]) for t in T])
+        return transforms_to_q(self._fk(dict(zip(self.names, self.vector(q)))))
 
     def scene(self, q: JointVector, q_prev: JointVector | None = None, reference: JointVector | None = None,
               strength: float | Mapping[str, float] = STRENGTH_DEFAULT) -> tuple[Scene, dict[str, Joint]]:

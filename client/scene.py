@@ -24,6 +24,12 @@ from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
 Pose = Union[ArrayLike, tuple[ArrayLike, ArrayLike]]
 
 
+def transforms_to_q(T: ArrayLike) -> np.ndarray:
+    """Transforms (I, 4, 4) as DOFs (I, 12), `[T[0:3, 3], T[0, :3], T[1, :3], T[2, :3]]` (libuipc's transform_to_q)."""
+    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
+    return np.concatenate([T[:, :3, 3], T[:, :3, :3].reshape(-1, 9)], axis=1)
+
+
 def dofs(pose: Pose, loc: tuple[str | int, ...] = ("pose",), where: str = "dofs") -> np.ndarray:
     """The 12 DOFs (12,) of one pose; `InvalidInput` naming `loc` for anything else."""
     faults: list[CoreFault] = []
@@ -36,7 +42,7 @@ def dofs(pose: Pose, loc: tuple[str | int, ...] = ("pose",), where: str = "dofs"
     else:
         a = _array(pose, "pose", faults)
         if a is not None and a.shape == (4, 4):
-            return np.concatenate([a[:3, 3], a[:3, :3].reshape(9)])
+            return transforms_to_q(a)[0]
         if a is not None and a.shape == (12,):
             return a.astype(np.float64, copy=True)
         msg = f"a pose is a 4x4 transform, a (p, A) pair or 12 DOFs, got shape {None if a is None else a.shape}"
@@ -79,42 +85,19 @@ class Scene:
         self._q_prev.append(q_prev)
         return len(self._q) - 1
 
-    def add_limit(
-        self,
-        uid: int,
-        i: int,
-        j: int,
-        p0: ArrayLike | None = None,
-        p1: ArrayLike | None = None,
-        lower: float | None = None,
-        upper: float | None = None,
-        strength: float = STRENGTH_DEFAULT,
-        *,
-        offset: float = 0.0,
-        local_edge: ArrayLike | None = None,
-        origin: str = "q_ref",
-        prev_coordinate: float | None = None,
-    ) -> Joint:
+    def add_limit(self, uid: int, i: int, j: int, p0: ArrayLike | None = None, p1: ArrayLike | None = None,
+                  lower: float | None = None, upper: float | None = None, strength: float = STRENGTH_DEFAULT, *,
+                  offset: float = 0.0, local_edge: ArrayLike | None = None, origin: str = "q_ref",
+                  prev_coordinate: float | None = None) -> Joint:
         """A limit of the constitution `uid` (any registered one, `LocalClient().constitutions()`) on the joint of
         bodies `i`, `j`, as `add_revolute_limit` describes; `prev_coordinate` for a stateful one only."""
         return self._add(uid, "Scene.add_limit", i, j, p0, p1, local_edge, origin, lower, upper, strength, offset,
                          prev=prev_coordinate)
 
-    def add_revolute_limit(
-        self,
-        i: int,
-        j: int,
-        p0: ArrayLike | None = None,
-        p1: ArrayLike | None = None,
-        lower: float | None = None,
-        upper: float | None = None,
-        strength: float = STRENGTH_DEFAULT,
-        *,
-        offset: float = 0.0,
-        local_edge: ArrayLike | None = None,
-        origin: str = "q_ref",
-        prev_coordinate: float | None = None,
-    ) -> Joint:
+    def add_revolute_limit(self, i: int, j: int, p0: ArrayLike | None = None, p1: ArrayLike | None = None,
+                           lower: float | None = None, upper: float | None = None, strength: float = STRENGTH_DEFAULT,
+                           *, offset: float = 0.0, local_edge: ArrayLike | None = None, origin: str = "q_ref",
+                           prev_coordinate: float | None = None) -> Joint:
         """#670 on the revolute joint of bodies `i`, `j` about the edge `p0 -> p1` (world, at ref); angles in rad.
         Or, instead of `p0`, `p1`, `local_edge` `[[l0, l1], [r0, r1]]`: the edge in body i's and body j's own
         coordinates (v1.2). `origin` "absolute" measures x from the reference engine's zero (v1.2).
@@ -128,36 +111,25 @@ class Scene:
         return self._add(REVOLUTE_LIMIT, "Scene.add_revolute_limit", i, j, p0, p1, local_edge, origin, lower, upper,
                          strength, offset, prev=prev_coordinate)
 
-    def add_prismatic_limit(
-        self,
-        i: int,
-        j: int,
-        p0: ArrayLike | None = None,
-        p1: ArrayLike | None = None,
-        lower: float | None = None,
-        upper: float | None = None,
-        strength: float = STRENGTH_DEFAULT,
-        *,
-        offset: float = 0.0,
-        local_edge: ArrayLike | None = None,
-        origin: str = "q_ref",
-    ) -> Joint:
+    def add_prismatic_limit(self, i: int, j: int, p0: ArrayLike | None = None, p1: ArrayLike | None = None,
+                            lower: float | None = None, upper: float | None = None,
+                            strength: float = STRENGTH_DEFAULT, *, offset: float = 0.0,
+                            local_edge: ArrayLike | None = None, origin: str = "q_ref") -> Joint:
         """#669 on the prismatic joint of bodies `i`, `j` sliding along `p0 -> p1`, or along `local_edge`
         (anchors `l0` on body i, `r0` on body j); `offset` is the spec's `init_distance` (as for
         `add_revolute_limit`). Returns its handle (its row in its batch)."""
         return self._add(PRISMATIC_LIMIT, "Scene.add_prismatic_limit", i, j, p0, p1, local_edge, origin, lower, upper,
                          strength, offset)
 
-    def _add(
-        self, uid: int, where: str, i: int, j: int, p0: ArrayLike | None, p1: ArrayLike | None,
-        local_edge: ArrayLike | None, origin: str, lower: float | None, upper: float | None, *rest: float,
-        prev: float | None = None,
-    ) -> Joint:
+    def _add(self, uid: int, where: str, i: int, j: int, p0: ArrayLike | None, p1: ArrayLike | None,
+             local_edge: ArrayLike | None, origin: str, lower: float | None, upper: float | None, *rest: float,
+             prev: float | None = None) -> Joint:
         if lower is None or upper is None:
             raise TypeError("a joint limit needs lower and upper")
         if (local_edge is None) == (p0 is None or p1 is None):
             raise TypeError("give the joint's edge either as p0, p1 (world, at ref) or as local_edge, not both")
-        kind, edge = ("edges", self._edge(p0, p1)) if local_edge is None else ("local_edges", self._local_edge(local_edge))
+        given = {"p0": p0, "p1": p1} if local_edge is None else {"local_edge": local_edge}
+        kind, edge = "edges" if local_edge is None else "local_edges", self._edge(given)  # type: ignore[arg-type]
         ids = (int(i), int(j))
         lower, upper, *rest = self._check(uid, where, ids, kind, edge, origin, (lower, upper, *rest), prev)
         key = (uid, kind, origin, prev is not None)
@@ -211,30 +183,21 @@ class Scene:
         return nums
 
     @staticmethod
-    def _edge(p0: ArrayLike, p1: ArrayLike) -> np.ndarray:
+    def _edge(given: dict[str, ArrayLike]) -> np.ndarray:
+        """`p0`, `p1` as the edge (2, 3), or `local_edge` (2, 2, 3); else `InvalidInput` naming the argument."""
         faults: list[CoreFault] = []
-        points = [_array(p, name, faults) for name, p in (("p0", p0), ("p1", p1))]
-        for name, p in zip(("p0", "p1"), points):
-            if p is not None and p.shape != (3,):
-                faults.append(CoreFault((name,), f"must be a point (3,), got shape {p.shape}"))
+        arrays = {name: _array(v, name, faults) for name, v in given.items()}
+        for name, a in arrays.items():
+            local = name == "local_edge"
+            want, what = ((2, 2, 3), "[[l0, l1], [r0, r1]] (2, 2, 3)") if local else ((3,), "a point (3,)")
+            if a is not None and a.shape != want:
+                faults.append(CoreFault((name,), f"must be {what}, got shape {a.shape}"))
         if faults:
-            raise invalid(faults, "Scene: a joint's edge")
-        return np.stack(points)  # type: ignore[arg-type]
+            raise invalid(faults, "Scene: a joint's " + ("local edge" if "local_edge" in given else "edge"))
+        return arrays["local_edge"] if "local_edge" in arrays else np.stack([arrays["p0"], arrays["p1"]])
 
-    @staticmethod
-    def _local_edge(local_edge: ArrayLike) -> np.ndarray:
-        faults: list[CoreFault] = []
-        edge = _array(local_edge, "local_edge", faults)
-        if edge is not None and edge.shape != (2, 2, 3):
-            faults.append(CoreFault(("local_edge",), f"must be [[l0, l1], [r0, r1]] (2, 2, 3), got shape {edge.shape}"))
-        if faults:
-            raise invalid(faults, "Scene: a joint's local edge")
-        return edge  # type: ignore[return-value]
-
-    def request(
-        self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False,
-        layout: str = "joints",
-    ) -> Request:
+    def request(self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False,
+                layout: str = "joints") -> Request:
         """The request: one batch per constitution (and per edge kind, origin, and whether the joints were
         given `prev_coordinate`), in the order first used; bodies in the order added.
 
@@ -247,30 +210,15 @@ class Scene:
             geometry = {kind: np.stack(edges)}
             batches.append(JointBatch.of(uid, ids, geometry.pop("edges", None), lower, upper, strength, offset=off,
                                          prev_coordinate=prev[0] if stated else None, origin=origin, **geometry))
-        stack = lambda rows: np.array(rows, dtype=np.float64).reshape(-1, 12)  # noqa: E731
-        return Request(
-            q=stack(self._q),
-            q_prev=stack(self._q_prev),
-            q_ref=stack(self._q_ref),
-            batches=batches,
-            outputs=outputs,  # type: ignore[arg-type] (one name alone too: Request.outputs)
-            hessian_mode=hessian_mode,
-            active_only=active_only,
-            layout=layout,
-        )
+        states = (self._q, self._q_prev, self._q_ref)
+        q, q_prev, q_ref = (np.array(rows, dtype=np.float64).reshape(-1, 12) for rows in states)
+        # `outputs`: one name alone too (Request.outputs).
+        return Request(q, q_prev, q_ref, batches, outputs, hessian_mode, active_only, layout)  # type: ignore[arg-type]
 
 
-def request_from_arrays(
-    q: ArrayLike,
-    joints: Sequence[JointBatch],
-    *,
-    q_prev: ArrayLike | None = None,
-    q_ref: ArrayLike | None = None,
-    outputs: Sequence[str] = OUTPUTS,
-    hessian_mode: str = "exact",
-    active_only: bool = False,
-    layout: str = "joints",
-) -> Request:
+def request_from_arrays(q: ArrayLike, joints: Sequence[JointBatch], *, q_prev: ArrayLike | None = None,
+                        q_ref: ArrayLike | None = None, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact",
+                        active_only: bool = False, layout: str = "joints") -> Request:
     """The vectorised builder: bodies' DOFs (B, 12) (`q_ref` defaults to `q`, `q_prev` to `q_ref`) and
     batches made with `JointBatch.of(uid, body_ids, edges, lower, upper, strength)`; `layout` as in `Scene.request`."""
     faults: list[CoreFault] = []

@@ -1,16 +1,15 @@
 """What every session (WebSocket sync and async, in-process) shares, free of I/O (docs/sessions.md, "Sessions").
 
-A session keeps, client-side, what reopening needs: the scene as last updated, the last
-committed `q` (the server's `q_prev`) and the committed coordinates. `request_for_reopen()`
-is a request that opens a new session in exactly that state, and `reopen()` (on each kind of
-session) does so, after a dropped connection too.
+A session keeps, client-side, what reopening needs: the scene as last updated, the last committed `q` (the
+server's `q_prev`) and the committed coordinates; `reopen()` opens a new session in exactly that state.
 """
 
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable, Generator
 from dataclasses import replace
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import orjson
@@ -19,7 +18,7 @@ from numpy.typing import ArrayLike
 from jointlimits.client import codec
 from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, InvalidInput, ServiceError, Unreachable
-from jointlimits.client.model import Array, Evaluation, Request, as_outputs
+from jointlimits.client.model import Array, Evaluation, Request, as_outputs, in_body
 from jointlimits.client.transport import delays
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
@@ -28,6 +27,9 @@ from jointlimits.service.core.errors import Fault as CoreFault
 from jointlimits.service.core.validate import NOT_AN_INTEGER, as_array
 
 Frame = bytes | str
+T = TypeVar("T")
+Steps = Generator[tuple[str, Any], Any, T]
+"""A session's step, free of I/O: it yields the I/O it needs (`Exchange`) and is sent each one's result."""
 _BINARY_ERROR = b"\xa4kind\xa5error"
 _JSON_ERROR = '{"kind":"error"'
 
@@ -80,25 +82,6 @@ class Resume:
         raise first from e
 
 
-def connection_options(http_options: dict[str, Any]) -> dict[str, Any]:
-    """A session's URL, upgrade headers (the bearer token, if any) and timeout from an HTTP client's options."""
-    t = http_options["timeout"]
-    return {
-        "url": ws_url(str(http_options["base_url"])),
-        "headers": {k: v for k, v in http_options["headers"].items() if k == "Authorization"},
-        "timeout": getattr(t, "read", t),  # an httpx.Timeout's read timeout, or the number itself
-    }
-
-
-def ws_url(base_url: str) -> str:
-    """The sessions endpoint of an HTTP base URL: http -> ws, https -> wss."""
-    base = base_url.rstrip("/")
-    scheme, sep, rest = base.partition("://")
-    if not sep:
-        scheme, rest = "http", base
-    return {"http": "ws", "https": "wss"}.get(scheme, scheme) + "://" + rest + proto.PATH
-
-
 class SessionState:
     """The protocol of one session: frames to send, replies read, and the state kept for reopening."""
 
@@ -119,17 +102,13 @@ class SessionState:
         return self._out(content if self.binary else content.decode())
 
     def evaluate_frame(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Frame:
-        doc: dict[str, Any] = {"kind": proto.EVALUATE, "q": self._q(q)}
-        if outputs is not None:
-            doc["outputs"] = list(as_outputs(outputs))
-        if hessian_mode is not None:
-            doc["hessian_mode"] = hessian_mode
-        if active_only is not None:
-            doc["active_only"] = bool(active_only)
-        return self._encode(doc)
+        given = {"outputs": None if outputs is None else list(as_outputs(outputs)), "hessian_mode": hessian_mode,
+                 "active_only": None if active_only is None else bool(active_only)}
+        return self._encode({"kind": proto.EVALUATE, "q": message_array(q, "q"),
+                             **{k: v for k, v in given.items() if v is not None}})  # None: the opening's
 
     def commit_frame(self, q: ArrayLike) -> Frame:
-        return self._encode({"kind": proto.COMMIT, "q": self._q(q)})
+        return self._encode({"kind": proto.COMMIT, "q": message_array(q, "q")})
 
     def update_frame(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Frame:
         doc: dict[str, Any] = {"kind": proto.UPDATE, "batch": batch_number(batch), "index": message_array(index, "index", integer=True)}
@@ -138,9 +117,6 @@ class SessionState:
 
     def close_frame(self) -> Frame:
         return self._encode({"kind": proto.CLOSE})
-
-    def _q(self, q: ArrayLike) -> Array:
-        return message_array(q, "q")
 
     def _encode(self, doc: dict[str, Any]) -> Frame:
         if self.binary:
@@ -229,7 +205,7 @@ def message_array(value: Any, name: str, integer: bool = False) -> np.ndarray:
     no cast (an index of 0.5 is not joint 0); else `InvalidInput`, the service's fault, before anything is sent."""
     a, faults = as_array(value, (name,), integer)
     if faults:
-        raise InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in faults], where="invalid input")
+        raise in_body(faults)
     return a
 
 
@@ -252,7 +228,7 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
     }
 
 
-__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "connection_options", "message_array", "options", "resumable", "ws_url"]
+__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "message_array", "options", "resumable"]
 
 
 class StateView:
@@ -273,3 +249,91 @@ class StateView:
     def coordinates(self) -> list[Array]:
         """The committed coordinates, one (N,) array per batch (as opened, before any commit)."""
         return self.state.coordinates
+
+    def request_for_reopen(self) -> Request:
+        """A request that opens a session in this one's committed state (`SessionState.request_for_reopen`)."""
+        return self.state.request_for_reopen()
+
+
+class Exchange(StateView):
+    """A WebSocket session's steps, free of I/O (the sans-I/O pattern): each a generator of the I/O it needs,
+    `("connect", None)`, `("send", frame)` (sent the reply), `("sleep", seconds)`, `("drop", None)`, which
+    `session_sync.Session` runs blocking and `session_aio.AsyncSession` awaited (their `_run`)."""
+
+    _ws: Any
+
+    def __init__(self, url: str, request: Request, *, binary: bool = True, timeout: float | None = 60.0,
+                 headers: dict[str, str] | None = None, retries: int = 3, backoff: float = 0.2,
+                 resume: bool = True) -> None:
+        self.state = SessionState(request, url, binary)
+        self.timeout, self.headers = timeout, dict(headers or {})
+        self.retries, self.backoff, self.resume = retries, backoff, resume
+        self._ws = None
+        self._closed = False  # by `close()`: no more resuming
+        self._begin()
+
+    def _begin(self) -> None:
+        """The constructor's last step: the blocking session opens here, the asyncio one when awaited."""
+
+    def _resuming(self, step: Callable[[], Steps[T]]) -> Steps[T]:
+        """`step()`, tried again after a failure another server can take over (`Resume`)."""
+        resume = Resume(self.retries, self.backoff, self.resume)
+        while True:
+            try:
+                return (yield from step())
+            except ServiceError as e:  # SessionClosed, Unreachable, a refused upgrade, a fault
+                yield "sleep", resume.pause(e)
+
+    def _opening(self) -> Steps[None]:
+        try:
+            yield from self._resuming(self._open)
+        except BaseException:
+            # A refused opening (a fault, 4429, ...): close the connection before raising, so that the server has
+            # let go of it (its session slot, its budget) by the time the caller tries again.
+            yield "drop", None
+            raise
+
+    def _open(self) -> Steps[None]:
+        yield "drop", None  # a connection whose opening was refused (a busy 503 reply) before trying again
+        yield "connect", None
+        self.state.opened((yield "send", self.state.open_frame()))
+
+    def _reopen(self) -> Steps[None]:
+        self._closed = False
+        self.state.request = self.state.request_for_reopen()
+        yield from self._open()
+
+    def _exchange(self, frame: Frame) -> Steps[Frame]:
+        """`frame`'s reply; with `resume`, on a new connection in the committed state where the last one was lost."""
+        def attempt() -> Steps[Frame]:
+            if self._ws is None and self.resume and not self._closed:
+                yield from self._reopen()
+            if self._ws is None:
+                raise SessionClosed(self.url, None, "", "the session is closed")
+            return (yield "send", frame)
+
+        return (yield from self._resuming(attempt))
+
+    def _evaluate(self, q: ArrayLike, outputs: Any, hessian_mode: str | None,
+                  active_only: bool | None) -> Steps[Evaluation]:
+        frame = self.state.evaluate_frame(q, outputs, hessian_mode, active_only)
+        return self.state.evaluation((yield from self._exchange(frame)))
+
+    def _commit(self, q: ArrayLike) -> Steps[list[Array]]:
+        return self.state.committed((yield from self._exchange(self.state.commit_frame(q))), q)
+
+    def _update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Steps[None]:
+        reply = yield from self._exchange(self.state.update_frame(batch, index, values))
+        self.state.updated(reply, batch, index, values)
+
+    def _close(self) -> Steps[None]:
+        self._closed = True
+        if self._ws is not None:
+            try:
+                yield "send", self.state.close_frame()  # the server answers by closing (code 1000)
+            except SessionClosed:
+                pass
+            yield "drop", None
+
+    def _no_reply(self) -> SessionClosed:
+        return SessionClosed(self.url, None, "", f"no reply within {self.timeout} s")

@@ -73,9 +73,6 @@ class LocalSession(StateView):
         if offset is not None:  # a new offset moves the batch's committed coordinates with it
             self.state.coordinates[batch] = np.array(scene.coordinates()[batch])
 
-    def request_for_reopen(self) -> Request:
-        return self.state.request_for_reopen()
-
     def reopen(self) -> None:
         self.state.request = self.state.request_for_reopen()
         self._open()

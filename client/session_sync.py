@@ -3,22 +3,19 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from contextlib import ExitStack
 from types import TracebackType
 from typing import Any, TypeVar
 
 from numpy.typing import ArrayLike
-import orjson
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidMessage, InvalidStatus
-from websockets.sync.client import ClientConnection, connect
+from websockets.sync.client import connect
 
 from jointlimits.client import codec
-from jointlimits.client.errors import Fault, ServiceError, Unreachable, WrongURL
-from jointlimits.client.model import Array, Evaluation, Request
-from jointlimits.client.session import RESUMED_CLOSES, Frame, Resume, SessionClosed, SessionState, StateView
-from jointlimits.client.transport import PROXY_STATUSES, proxy_page
-from jointlimits.schemas import session as proto
+from jointlimits.client.errors import Unreachable
+from jointlimits.client.model import Array, Evaluation
+from jointlimits.client.session import RESUMED_CLOSES, Exchange, SessionClosed, Steps
+from jointlimits.client.transport import PROXY_STATUSES, is_fault_list, proxy_page, wrong_url
 
 T = TypeVar("T")
 
@@ -28,33 +25,16 @@ def handshake_error(url: str, e: Exception) -> Exception:
     or a server that is not this service), else the service's refusal (401, ...) as the `ServiceError` HTTP raises."""
     if isinstance(e, InvalidStatus):
         status, body = e.response.status_code, bytes(e.response.body or b"")
-        if status in PROXY_STATUSES and not _is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
+        if status in PROXY_STATUSES and not is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
             return Unreachable(url, 1, status=status, proxy=proxy_page(body))
-        if status == 404 or not _is_fault_list(body):
-            return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade")
+        if status == 404 or not is_fault_list(body):
+            return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade", 404)
         return codec.error(status, body)
     if isinstance(e, (InvalidHandshake, InvalidMessage)):  # a server that speaks something else (HTTP/1.0, TLS, ...)
-        return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})")
+        return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})", 404)
     if isinstance(e, (OSError, TimeoutError)):  # refused, unresolvable host, no answer within the open timeout
         return Unreachable(url, 1, e)
     return SessionClosed(url, None, "", f"{type(e).__name__}: {e}")
-
-
-def _is_fault_list(body: bytes) -> bool:
-    try:
-        detail = orjson.loads(body).get("detail")
-    except (orjson.JSONDecodeError, AttributeError):
-        return False
-    return isinstance(detail, list)
-
-
-def wrong_url(url: str, what: str) -> WrongURL:
-    """Say that the client's base URL is not the service's root (the usual slip: a trailing `/v1`)."""
-    root = url.removesuffix(proto.PATH).replace("ws://", "http://", 1).replace("wss://", "https://", 1)
-    hint = " (drop the trailing /v1: the client adds it)" if root.rstrip("/").endswith("/v1") else ""
-    msg = (f"{url} {what}: no joint-limit service at base_url {root!r}{hint}; "
-           "base_url is the service's root, e.g. http://127.0.0.1:8000")
-    return WrongURL(404, [Fault((), msg, "wrong_url")])
 
 
 def closed_error(url: str, e: ConnectionClosed) -> SessionClosed:
@@ -70,7 +50,7 @@ CONNECT_OPTIONS: dict[str, Any] = dict(
 )
 
 
-class Session(StateView):
+class Session(Exchange):
     """A prepared scene on the server, held by one WebSocket connection (see `jointlimits.client.session`).
 
     `evaluate(q, ...)` answers as `Client.evaluate` does; `commit(q)` ends a time step and
@@ -82,108 +62,73 @@ class Session(StateView):
     else, or past them, a lost connection raises `SessionClosed`, and `reopen()` continues.
     """
 
-    def __init__(self, url: str, request: Request, *, binary: bool = True, timeout: float | None = 60.0,
-                 headers: dict[str, str] | None = None, retries: int = 3, backoff: float = 0.2,
-                 resume: bool = True) -> None:
-        self.state = SessionState(request, url, binary)
-        self.timeout, self.headers = timeout, dict(headers or {})
-        self.retries, self.backoff, self.resume = retries, backoff, resume
-        self._ws: ClientConnection | None = None
+    def _begin(self) -> None:
         self._stack = ExitStack()
-        self._closed = False  # by `close()`: no more resuming
-        try:
-            self._resuming(self._open)
-        except BaseException:
-            # A refused opening (a fault, 4429, ...): close the connection before raising, so that the server has
-            # let go of it (its session slot, its budget) by the time the caller tries again.
-            self._drop()
-            raise
+        self._run(self._opening())
 
-    def _resuming(self, step: Callable[[], T]) -> T:
-        """`step()`, tried again after a failure another server can take over (`Resume`)."""
-        resume = Resume(self.retries, self.backoff, self.resume)
+    def _run(self, steps: Steps[T]) -> T:
+        """`steps` run to the end, each I/O it asks for done here, blocking, and its result (or failure) sent back."""
+        reply: Any = None
+        error: BaseException | None = None
         while True:
             try:
-                return step()
-            except ServiceError as e:  # SessionClosed, Unreachable, a refused upgrade, a fault
-                time.sleep(resume.pause(e))
+                op, arg = steps.throw(error) if error is not None else steps.send(reply)
+            except StopIteration as done:
+                return done.value
+            reply, error = None, None
+            try:
+                reply = self._io(op, arg)
+            except BaseException as e:  # thrown into `steps`, where it is handled or raised on
+                error = e
 
-    def _open(self) -> None:
-        self._drop()  # a connection whose opening was refused (a busy 503 reply) before trying again
-        try:
-            # websockets 17 wants its connection used as a context manager: entered here, exited by `_drop`.
-            self._stack = ExitStack()
-            self._ws = self._stack.enter_context(
-                connect(self.url, additional_headers=self.headers, open_timeout=self.timeout, **CONNECT_OPTIONS))
-        except Exception as e:
-            raise handshake_error(self.url, e) from None
-        self.state.opened(self._send(self.state.open_frame()))
-
-    def _exchange(self, frame: Frame) -> Frame:
-        """`frame`'s reply; with `resume`, on a new connection in the committed state where the last one was lost."""
-        def attempt() -> Frame:
-            if self._ws is None and self.resume and not self._closed:
-                self._reopen()
-            return self._send(frame)
-
-        return self._resuming(attempt)
-
-    def _send(self, frame: Frame) -> Frame:
-        if self._ws is None:
-            raise SessionClosed(self.url, None, "", "the session is closed")
-        try:
-            self._ws.send(frame)
-            return self._ws.recv(timeout=self.timeout)
-        except ConnectionClosed as e:
-            self._drop()
-            raise closed_error(self.url, e) from None
-        except TimeoutError:
-            self._drop()
-            raise SessionClosed(self.url, None, "", f"no reply within {self.timeout} s") from None
+    def _io(self, op: str, arg: Any) -> Any:
+        if op == "sleep":
+            time.sleep(arg)
+        elif op == "drop":
+            if self._ws is not None:
+                self._ws = None
+                self._stack.close()
+        elif op == "connect":
+            try:
+                # websockets 17 wants its connection used as a context manager: entered here, exited by "drop".
+                self._stack = ExitStack()
+                self._ws = self._stack.enter_context(
+                    connect(self.url, additional_headers=self.headers, open_timeout=self.timeout, **CONNECT_OPTIONS))
+            except Exception as e:
+                raise handshake_error(self.url, e) from None
+        else:  # "send": the reply
+            try:
+                self._ws.send(arg)
+                return self._ws.recv(timeout=self.timeout)
+            except ConnectionClosed as e:
+                self._io("drop", None)
+                raise closed_error(self.url, e) from None
+            except TimeoutError:
+                self._io("drop", None)
+                raise self._no_reply() from None
+        return None
 
     def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
                  active_only: bool | None = None) -> Evaluation:
         """Energy, gradient, Hessian at `q` (B, 12); options default to the opening request's."""
-        return self.state.evaluation(self._exchange(self.state.evaluate_frame(q, outputs, hessian_mode, active_only)))
+        return self._run(self._evaluate(q, outputs, hessian_mode, active_only))
 
     def commit(self, q: ArrayLike) -> list[Array]:
         """End the time step at the accepted `q`: the committed coordinates; `q` becomes `q_prev`."""
-        return self.state.committed(self._exchange(self.state.commit_frame(q)), q)
+        return self._run(self._commit(q))
 
     def update(self, batch: int, index: ArrayLike, *, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
         """Change per-joint values of joints `index` of `batch` (each given array: one entry per index)."""
-        values = {"lower": lower, "upper": upper, "strength": strength, "offset": offset}
-        self.state.updated(self._exchange(self.state.update_frame(batch, index, values)), batch, index, values)
-
-    def request_for_reopen(self) -> Request:
-        return self.state.request_for_reopen()
+        self._run(self._update(batch, index, {"lower": lower, "upper": upper, "strength": strength, "offset": offset}))
 
     def reopen(self) -> None:
         """A new connection in the committed state (after a drop, or to move to another server)."""
-        self._resuming(self._reopen)
-
-    def _reopen(self) -> None:
-        self._closed = False
-        self.state.request = self.state.request_for_reopen()
-        self._open()
-
-    def _drop(self) -> None:
-        if self._ws is not None:
-            self._ws = None
-            self._stack.close()
+        self._run(self._resuming(self._reopen))
 
     def close(self) -> None:
         """Ask the server to close (code 1000); closing a closed session does nothing."""
-        self._closed = True
-        if self._ws is None:
-            return
-        try:
-            self._ws.send(self.state.close_frame())
-            self._ws.recv(timeout=self.timeout)
-        except (ConnectionClosed, TimeoutError):
-            pass
-        self._drop()
+        self._run(self._close())
 
     def __enter__(self) -> Session:
         return self

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from jointlimits.client.errors import Fault, ServiceError
-from jointlimits.client.model import Assembled, BatchResult, Evaluation, JointBatch, Request
+from jointlimits.client.model import NEEDED, OPTIONAL, Assembled, BatchResult, Evaluation, JointBatch, Request
 from jointlimits.service.core.assembled import reduce_pairs
 
 
@@ -67,18 +67,7 @@ def _part(request: Request, pieces: list[tuple[int, int, int]]) -> Part:
 
 
 def _rows(b: JointBatch, start: int, stop: int) -> JointBatch:
-    optional = lambda a: None if a is None else np.asarray(a)[start:stop]  # noqa: E731
-    return replace(
-        b,
-        body_ids=np.asarray(b.body_ids)[start:stop],
-        edges=optional(b.edges),
-        local_edges=optional(b.local_edges),
-        lower=np.asarray(b.lower)[start:stop],
-        upper=np.asarray(b.upper)[start:stop],
-        strength=np.asarray(b.strength)[start:stop],
-        offset=optional(b.offset),
-        prev_coordinate=optional(b.prev_coordinate),
-    )
+    return replace(b, **{k: np.asarray(a)[start:stop] for k in NEEDED + OPTIONAL if (a := getattr(b, k)) is not None})
 
 
 def merge(request: Request, parts: list[Part], results: list[Evaluation]) -> Evaluation:
@@ -92,20 +81,9 @@ def merge(request: Request, parts: list[Part], results: list[Evaluation]) -> Eva
             pieces[k].append(replace(r, index=r.index + start))
     merged = []
     for b, rs in zip(request.batches, pieces):
-        cat = lambda name: (  # noqa: E731
-            np.concatenate([getattr(r, name) for r in rs]) if getattr(rs[0], name) is not None else None
-        )
-        merged.append(
-            BatchResult(
-                constitution_uid=b.constitution_uid,
-                index=cat("index"),
-                x=cat("x"),
-                energy=cat("energy"),
-                gradient=cat("gradient"),
-                hessian=cat("hessian"),
-                coordinate=cat("coordinate"),
-            )
-        )
+        cat = {k: None if getattr(rs[0], k) is None else np.concatenate([getattr(r, k) for r in rs])
+               for k in ("index", "x", "energy", "gradient", "hessian", "coordinate")}
+        merged.append(BatchResult(b.constitution_uid, **cat))
     return Evaluation(total_energy=float(sum(ev.total_energy for ev in results)), batches=merged, assembled=assembled)
 
 

@@ -10,9 +10,8 @@ import httpx
 
 from jointlimits.client import transport
 from jointlimits.client.accept import as_request
-from jointlimits.client.base import DEFAULT_URL, BaseClient
 from jointlimits.client.model import Evaluation, Request
-from jointlimits.client.progress import ProgressCallback
+from jointlimits.client.transport import BaseClient, ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest
 
 
@@ -39,38 +38,8 @@ class Client(BaseClient):
     server's setting of that name) when set and not empty; `token=""` sends none.
     """
 
+    _HTTP = httpx.Client
     _http: httpx.Client
-
-    # The arguments are spelled out (not forwarded as **kwargs) so that signatures and type
-    # checkers show them; tests/sdk/test_client_sdk.py holds AsyncClient's to the same.
-    def __init__(
-        self,
-        base_url: str = DEFAULT_URL,
-        *,
-        binary: bool = True,
-        timeout: float | httpx.Timeout = 60.0,
-        connect_timeout: float = transport.CONNECT_TIMEOUT,
-        retries: int = 3,
-        backoff: float = 0.2,
-        token: str | None = None,
-        max_joints_per_request: int | None = None,
-        progress: bool | ProgressCallback = False,
-        max_retry_after: float = transport.MAX_RETRY_AFTER,
-        http_transport: httpx.BaseTransport | None = None,
-    ) -> None:
-        super().__init__(
-            base_url,
-            binary=binary,
-            timeout=timeout,
-            connect_timeout=connect_timeout,
-            retries=retries,
-            backoff=backoff,
-            token=token,
-            max_joints_per_request=max_joints_per_request,
-            progress=progress,
-            max_retry_after=max_retry_after,
-        )
-        self._http = httpx.Client(**self._http_options, transport=http_transport)
 
     def constitutions(self) -> ConstitutionsResponse:
         """The supported constitutions (UIDs, attribute names, defaults, units) and the server's limits."""
@@ -117,12 +86,9 @@ class Client(BaseClient):
         "Sessions"): `with client.session(r) as s:`. `resume`: a session closed by a server that stops (1012,
         1001) or dropped is reopened in its committed state and the message in flight sent again, and an
         open that reaches no server, or one that drains, is tried again: `retries` times with `backoff`."""
-        from jointlimits.client.session import connection_options  # imported here: HTTP alone never loads websockets
-        from jointlimits.client.session_sync import Session
+        from jointlimits.client.session_sync import Session  # imported here: HTTP alone never loads websockets
 
-        o = connection_options(dict(self._http_options))
-        return Session(o["url"], request, binary=self.binary, timeout=o["timeout"], headers=o["headers"],
-                       retries=self.retries, backoff=self.backoff, resume=resume)
+        return Session(request=request, resume=resume, **self._session_options())
 
     def _send(self, request: httpx.Request) -> httpx.Response:
         retry = self._retry(request)

@@ -1,73 +1,140 @@
-"""What the sync and async clients share: headers, retry policy, part size, response handling."""
+"""What the sync and async HTTP clients share, free of I/O: settings, headers, retries, part size, answers.
+
+As in httpx's own `BaseClient`, the subclasses only send (blocking or awaited), sleep between retries (as
+long as `Retry` says), and run the parts of a split in turn or concurrently.
+"""
 
 from __future__ import annotations
 
 import os
 import re
-from collections.abc import Sequence
+import sys
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import httpx
 import orjson
 
-from jointlimits.client import codec
-from jointlimits.client.errors import Busy, Fault, Unreachable, WrongURL
-from jointlimits.client.model import Evaluation
+from jointlimits.client import codec, split
+from jointlimits.client.errors import Busy, Fault, ServiceError, Unreachable, WrongURL
+from jointlimits.client.model import Evaluation, Request, in_body, null_arrays
 from jointlimits.schemas import OUTPUTS, ConstitutionsResponse, answer
+from jointlimits.schemas import session as proto
 
-RETRYABLE = (
-    httpx.ConnectError,
-    httpx.ConnectTimeout,
-    httpx.RemoteProtocolError,
-    httpx.ReadError,
-    httpx.WriteError,
-)
-"""Connection failures: the request never reached the server, or the connection was dropped or
-reset before an answer (the clients' calls, `GET /v1/constitutions` and `POST /v1/evaluate`, are
-idempotent: sending one again is safe). Besides these, a busy 503 and a proxy's 502/503/504 are
-retried (`Retry.again`); timeouts while the server computes, and every other answer, are never
-retried."""
-
+DEFAULT_URL = "http://127.0.0.1:8000"
+RETRYABLE = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError, httpx.WriteError)
+"""Connection failures: the request never reached the server, or was dropped before an answer (both calls are
+idempotent). A busy 503 and a proxy's 502/503/504 are retried too (`Retry.again`); nothing else is."""
 PROXY_STATUSES = frozenset({502, 503, 504})
-"""What a proxy or load balancer answers in the service's stead (no upstream, upstream reset or
-timed out): retried when the body is not the service's own error (`from_proxy`)."""
-
 MAX_RETRY_AFTER = 30.0
 """Longest `Retry-After` (seconds) the clients sleep for; a server asking more raises `Busy` at once."""
-
 CONNECT_TIMEOUT = 5.0
 """Seconds to open a connection: a host that drops packets fails in seconds, not in `timeout`."""
-
 DEFAULT_PART_JOINTS = 20_000
 """Joints per request when splitting (each Hessian is 4.6 kB: ~90 MB of answer per part)."""
-
 # Worst-case request bytes per joint: its arrays plus two bodies' three 12-DOF rows.
 _BYTES_PER_JOINT = {True: 8 * (2 + 6 + 3) + 2 * 3 * 12 * 8 + 64, False: 2 * 3 * 12 * 25 + 11 * 25 + 64}
-
-
-_JSON_VALUES_PER_JOINT = 11 + 2 * 3 * 12 + 8
-"""Worst-case values of one joint in a JSON body: its 11 numbers, two bodies' three 12-DOF rows, separators."""
-
-
+_JSON_VALUES_PER_JOINT = 11 + 2 * 3 * 12 + 8  # its 11 numbers, two bodies' three 12-DOF rows, separators
 TOKEN_ENV = "JOINTLIMITS_TOKEN"
-"""The bearer token when a client is given none: the server's own setting (service/settings.py), so a
-client beside the server, or a job with the secret in its environment, needs no token in its code."""
+"""The bearer token when a client is given none: the server's own setting (service/settings.py)."""
+ProgressCallback = Callable[[int, int], None]
+"""Called with `(joints_done, joints_total)` after each part of a split request."""
 
 
-def headers(token: str | None, binary: bool) -> dict[str, str]:
-    """`token` None: `$JOINTLIMITS_TOKEN` (empty or unset: none); "": none."""
-    h = {"Accept": codec.BINARY if binary else codec.JSON}
-    if token is None:
-        token = os.environ.get(TOKEN_ENV)
-    if token:
-        h["Authorization"] = f"Bearer {token}"
-    return h
+class BaseClient:
+    """Settings and request logic of the HTTP clients; a subclass names its httpx client (`_HTTP`) and does the I/O."""
+
+    _HTTP: Any
+    _http: Any
+
+    def __init__(self, base_url: str = DEFAULT_URL, *, binary: bool = True, timeout: float | httpx.Timeout = 60.0,
+                 connect_timeout: float = CONNECT_TIMEOUT, retries: int = 3, backoff: float = 0.2,
+                 token: str | None = None, max_joints_per_request: int | None = None,
+                 progress: bool | ProgressCallback = False, max_retry_after: float = MAX_RETRY_AFTER,
+                 http_transport: httpx.BaseTransport | httpx.AsyncBaseTransport | None = None) -> None:
+        self.binary = binary
+        self.retries, self.backoff = retries, backoff
+        self.max_retry_after = max_retry_after
+        self.max_joints_per_request = max_joints_per_request
+        self.progress = progress
+        self._limits: ConstitutionsResponse | None = None
+        if not isinstance(timeout, httpx.Timeout):  # `timeout` reads, writes and waits; `connect_timeout` connects
+            timeout = httpx.Timeout(timeout, connect=connect_timeout)
+        self._headers = {"Accept": codec.BINARY if binary else codec.JSON}
+        token = os.environ.get(TOKEN_ENV) if token is None else token  # "": none, as an empty variable
+        if token:
+            self._headers["Authorization"] = f"Bearer {token}"
+        self._http = self._HTTP(base_url=base_url, timeout=timeout, headers=self._headers, transport=http_transport)
+
+    def _session_options(self) -> dict[str, Any]:
+        """A session's URL (http -> ws, https -> wss), upgrade headers (the token) and settings from this client's."""
+        base = str(self._http.base_url).rstrip("/")
+        scheme, _, rest = base.partition("://")
+        t = self._http.timeout
+        return dict(url={"http": "ws", "https": "wss"}.get(scheme, scheme) + "://" + rest + proto.PATH,
+                    headers={k: v for k, v in self._headers.items() if k == "Authorization"},
+                    timeout=t.read, binary=self.binary, retries=self.retries, backoff=self.backoff)
+
+    def _constitutions_request(self) -> httpx.Request:
+        return self._http.build_request("GET", "/v1/constitutions")
+
+    def _evaluate_request(self, part: split.Part) -> httpx.Request:
+        content, content_type = codec.encode(part.request, self.binary)
+        return self._http.build_request("POST", "/v1/evaluate", content=content, headers={"Content-Type": content_type})
+
+    def _retry(self, request: httpx.Request) -> Retry:
+        return Retry(self.retries, self.backoff, f"{request.method} {request.url}", self.max_retry_after)
+
+    def _job(self, request: Request, progress: bool | ProgressCallback | None) -> Job:
+        """`request` in parts that fit `self._limits` (fetched by the caller: that is I/O); a None array
+        is refused here, as the service would (it cannot be counted, split or encoded)."""
+        if missing := null_arrays(request):
+            raise in_body(missing)
+        n = part_joints(self._limits, self.binary, self.max_joints_per_request, request.outputs, len(request.batches))
+        parts = split.plan(request, n)
+        progress = self.progress if progress is None else progress
+        report = progress if callable(progress) else Bar() if progress and len(parts) > 1 else None
+        return Job(request, parts, report)
 
 
-def timeouts(timeout: float | httpx.Timeout, connect_timeout: float) -> httpx.Timeout:
-    """`timeout` for reading, writing and the pool; `connect_timeout` for opening a connection."""
-    if isinstance(timeout, httpx.Timeout):
-        return timeout
-    return httpx.Timeout(timeout, connect=connect_timeout)
+class Job:
+    """One `evaluate` call: its parts, their answers in whatever order they arrive, the progress so far."""
+
+    def __init__(self, request: Request, parts: list[split.Part], report: ProgressCallback | None) -> None:
+        self.request, self.parts = request, parts
+        self._report = report
+        self._done = 0
+
+    def receive(self, part: split.Part, response: httpx.Response) -> Evaluation:
+        """The part's evaluation; a server error is raised with `loc`s in the numbering of the whole request."""
+        try:
+            result = _result(response)
+        except ServiceError as e:
+            raise split.relocate(part, e) from None
+        self._done += part.n_joints
+        if self._report:
+            self._report(self._done, self.request.n_joints)
+        return result
+
+    def merge(self, results: list[Evaluation]) -> Evaluation:
+        """The parts' evaluations, in the order of `parts`, as one."""
+        return split.merge(self.request, self.parts, results).sized(self.request)
+
+
+class Bar:
+    """A tiny stderr progress bar (no dependency): `done / total` joints of a split request."""
+
+    def __init__(self, width: int = 30) -> None:
+        self.width = width
+        self.t0 = time.perf_counter()
+
+    def __call__(self, done: int, total: int) -> None:
+        filled = int(self.width * (done / total if total else 1.0))
+        elapsed = time.perf_counter() - self.t0
+        sys.stderr.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] {done}/{total} joints {elapsed:5.1f}s")
+        sys.stderr.write("\n" if done >= total else "")
+        sys.stderr.flush()
 
 
 def delays(retries: int, backoff: float) -> list[float]:
@@ -75,20 +142,23 @@ def delays(retries: int, backoff: float) -> list[float]:
     return [backoff * 2**k for k in range(retries)]
 
 
-_SECONDS = re.compile(r"[0-9]+(\.[0-9]+)?")
-
-
 def retry_after(response: httpx.Response) -> float | None:
-    """The seconds of `response`'s `Retry-After` header (digits, with or without a decimal part),
-    else None (absent, an HTTP-date, or anything else)."""
+    """The seconds of `response`'s `Retry-After` header (digits, with or without a decimal part), else None."""
     value = response.headers.get("retry-after", "").strip()
-    return float(value) if _SECONDS.fullmatch(value) else None
+    return float(value) if re.fullmatch(r"[0-9]+(\.[0-9]+)?", value) else None
+
+
+def is_fault_list(body: bytes) -> bool:
+    """Whether `body` is the service's error (a JSON object whose `detail` is a list)."""
+    try:
+        return isinstance(orjson.loads(body).get("detail"), list)
+    except (orjson.JSONDecodeError, AttributeError):
+        return False
 
 
 def from_proxy(response: httpx.Response) -> bool:
-    """True for a 502/503/504 that is not the service's own answer: its body is not the service's
-    error (a JSON object with `detail`, as every error of the service is), e.g. an HTML page of
-    HAProxy, nginx, Envoy or a cloud load balancer that had no upstream to hand the request to."""
+    """True for a 502/503/504 that is not the service's own answer: e.g. an HTML page of HAProxy, nginx, Envoy
+    or a cloud load balancer that had no upstream to hand the request to (every error of the service has `detail`)."""
     if response.status_code not in PROXY_STATUSES:
         return False
     try:
@@ -102,17 +172,13 @@ def proxy_page(content: bytes) -> str:
     """A proxy's error page in a few words: its `<title>`, else its text without tags (at most 120 characters)."""
     text = content[:4096].decode("utf-8", "replace")
     title = re.search(r"<title[^>]*>(.*?)</title>", text, re.IGNORECASE | re.DOTALL)
-    text = title.group(1) if title else re.sub(r"<[^>]*>", " ", text)
-    text = " ".join(text.split())
+    text = " ".join((title.group(1) if title else re.sub(r"<[^>]*>", " ", text)).split())
     return (text[:117] + "...") if len(text) > 120 else (text or "an empty body")
 
 
 class Retry:
-    """The retries of one request: the pause before each next try, until `retries` are spent.
-
-    Connection errors, busy 503s and a proxy's 502/503/504 draw on the same budget and the same
-    backoff steps: each retry, whatever its cause, spends the next step.
-    """
+    """The retries of one request: connection errors, busy 503s and a proxy's 502/503/504 draw on the same
+    budget and the same backoff steps: each retry, whatever its cause, spends the next step."""
 
     def __init__(self, retries: int, backoff: float, url: str, max_retry_after: float = MAX_RETRY_AFTER) -> None:
         self._pauses = iter(delays(retries, backoff))
@@ -129,19 +195,15 @@ class Retry:
         return pause
 
     def again(self, response: httpx.Response) -> float | None:
-        """None if `response` is an answer to hand on; else (a busy 503, or a proxy's 502/503/504:
-        nothing was computed) seconds to sleep before the next try: its `Retry-After`, at least the
-        backoff step. When no retry is left, or the answer asks to wait more than `max_retry_after`
-        seconds: `Busy` for the service's busy 503, `Unreachable` (with the proxy's `status`) for a
-        proxy's answer."""
-        if from_proxy(response):
-            error = None
-        elif response.status_code == 503:
-            error = codec.error(response.status_code, response.content)
+        """None if `response` is an answer to hand on; else (a busy 503, or a proxy's 502/503/504: nothing was
+        computed) seconds to sleep before the next try: its `Retry-After`, at least the backoff step. When no
+        retry is left, or the answer asks to wait more than `max_retry_after`: `Busy` for the service's busy
+        503, `Unreachable` (with the proxy's `status`) for a proxy's answer."""
+        error = None
+        if not from_proxy(response):
+            error = codec.error(response.status_code, response.content) if response.status_code == 503 else None
             if not isinstance(error, Busy):  # the deadline's 503 ran for the whole timeout: not retried
                 return None
-        else:
-            return None
         self.attempts += 1
         after = retry_after(response)
         too_long = after is not None and after > self.max_retry_after
@@ -155,23 +217,15 @@ class Retry:
         return max(step, after or 0.0)
 
 
-def part_joints(
-    limits: ConstitutionsResponse | None,
-    binary: bool,
-    user_max: int | None,
-    outputs: Sequence[str] = OUTPUTS,
-    batches: int = 1,
-) -> int:
-    """Joints per request: the user's cap, else the default, within the server's limits.
-
-    Those are its joints and body bytes, and where the server tells them, the bound of the
-    answer to `outputs` in this client's encoding (over `batches` batches) and a JSON body's values.
-    """
+def part_joints(limits: ConstitutionsResponse | None, binary: bool, user_max: int | None,
+                outputs: Sequence[str] = OUTPUTS, batches: int = 1) -> int:
+    """Joints per request: the user's cap, else the default, within the server's limits: its joints and body
+    bytes, and where the server tells them, the bound of the answer to `outputs` in this client's encoding
+    (over `batches` batches) and a JSON body's values."""
     n = user_max or DEFAULT_PART_JOINTS
     if limits is not None:
         lim = limits.limits
-        by_bytes = max(1, lim.max_body_bytes // _BYTES_PER_JOINT[binary])
-        n = min(n, lim.max_joints, by_bytes)
+        n = min(n, lim.max_joints, max(1, lim.max_body_bytes // _BYTES_PER_JOINT[binary]))
         if lim.max_answer_bytes is not None:
             n = min(n, answer.joints_within(lim.max_answer_bytes, outputs, binary, max(1, batches)))
         if lim.max_json_values is not None and not binary:
@@ -179,7 +233,7 @@ def part_joints(
     return max(1, n)
 
 
-def result(response: httpx.Response) -> Evaluation:
+def _result(response: httpx.Response) -> Evaluation:
     """The evaluation of a 200, else the server's error as a `ServiceError` (with its `loc`s)."""
     if response.status_code != 200:
         raise _error(response)
@@ -192,20 +246,20 @@ def constitutions(response: httpx.Response) -> ConstitutionsResponse:
     try:
         return ConstitutionsResponse.model_validate_json(response.content)
     except ValueError:  # a 200 from some other server (a web page, another API)
-        raise _wrong_url(response, "answered 200 with something that is not this service's discovery document") from None
+        msg = "answered 200 with something that is not this service's discovery document"
+        raise wrong_url(str(response.request.url), msg, 200) from None
 
 
 def _error(response: httpx.Response) -> Exception:
     if response.status_code == 404:
-        return _wrong_url(response, "answered 404")
+        return wrong_url(str(response.request.url), "answered 404", 404)
     return codec.error(response.status_code, response.content)
 
 
-def _wrong_url(response: httpx.Response, what: str) -> WrongURL:
-    """Say that `base_url` is not the service's root (the usual slip: a trailing `/v1`)."""
-    url = response.request.url
-    root = str(url.copy_with(path=url.path.rsplit("/v1/", 1)[0] or "/", query=None)).rstrip("/")
+def wrong_url(url: str, what: str, status: int) -> WrongURL:
+    """Say that `url` (HTTP or WebSocket) is not under the service's root (the usual slip: a trailing `/v1`)."""
+    root = url.rsplit("/v1/", 1)[0].replace("ws://", "http://", 1).replace("wss://", "https://", 1).rstrip("/")
     hint = " (drop the trailing /v1: the client adds it)" if root.endswith("/v1") else ""
     msg = (f"{url} {what}: no joint-limit service at base_url {root!r}{hint}; "
            "base_url is the service's root, e.g. http://127.0.0.1:8000")
-    return WrongURL(response.status_code, [Fault((), msg, "wrong_url")])
+    return WrongURL(status, [Fault((), msg, "wrong_url")])

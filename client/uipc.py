@@ -1,52 +1,27 @@
 """Read a libuipc scene (`uipc.core.Scene`, the `pyuipc` package) into a request, and write committed angles back.
 
-    from jointlimits.client import LocalClient
-    from jointlimits.client.uipc import reference, request_from_scene, write_back
-
     snapshot = reference(scene)                          # where you call world.init(): the engine's q_ref
-    ...                                                  # time steps
     req, joints = request_from_scene(scene, reference=snapshot)   # every #670 / #669 joint edge
     ev = LocalClient().evaluate(req)                     # or Client / AsyncClient / .session(req)
     write_back(scene, [b.coordinate for b in ev.batches], joints)
 
-It needs the extra `jointlimits[uipc]` (pyuipc). Nothing here starts a simulation: it reads the
-scene's geometries and attributes only (CONTRACT v1.2, "Reading an engine scene"):
-
-- Bodies: every affine-body geometry's instances, numbered as the engine numbers them: geometries
-  in slot (id) order, stable-sorted by constitution UID, instances consecutive. `q` is each
-  instance's current `transform`. `q_ref` is what the engine builds its joint frames from: the
-  transforms at `world.init()` (`AffineBodyRevoluteJoint::do_init` / `AffineBodyPrismaticJoint::do_init`
-  read the scene's current transforms then). Take them with `snapshot = reference(scene)` where you
-  call `world.init()` and pass `reference=snapshot` to every later read; without one the rest
-  geometries' transforms stand in, and a scene where they can only be a guess (every rest transform
-  the identity while a current one is not, or a `UrdfIO` link posed after it was created) raises
-  `SceneError` (`reference="rest"` takes them as they are). `q_prev` is the transforms the
-  published `angle` belongs to, the current ones, when `angle` is read (the engine's next step
-  takes them as `q_prev`), else `q_ref`. A body geometry that carries the engine's
-  `backend_abd_body_offset` must agree with that numbering.
-- Joints: one per edge of every joint geometry (meta `constitution_uid` 18 / 20) whose
-  `extra_constitution_uids` holds 670 / 669; world edges (vertex positions) or local edges
-  (`l_position0/1`, `r_position0/1`, the engine's test: all four present). `origin="absolute"`
-  (the engine's zero), `offset` = `init_angle` / `init_distance`, `strength` = `limit/strength`
-  as is, `hessian_mode="psd"` (the engine's only mode). `prev_coordinate` = `angle` (670),
-  per `committed`.
-- `joints[k][r]` is the `(geometry id, edge index)` of batch `k`'s row `r` (the id is the joint
-  geometry slot's `id()`); `write_back` uses it.
-
-A scene the adapter cannot read raises `SceneError` before anything is built or written.
+It needs the extra `jointlimits[uipc]` (pyuipc) and only reads the scene's geometries and attributes (CONTRACT
+v1.2, "Reading an engine scene"; docs/uipc.md maps each engine attribute to its wire field). A scene the adapter
+cannot read raises `SceneError` before anything is built or written.
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from jointlimits.client.model import Array, BatchResult, Evaluation, JointBatch, Request
+from jointlimits.client.scene import transforms_to_q
 from jointlimits.service.core import registry
 from jointlimits.service.core.constitution import Facts
 
@@ -84,18 +59,16 @@ def _uipc() -> Any:
 
 def _slots(scene: Any) -> list[tuple[int, Any, Any]]:
     """Every geometry as `(id, slot, rest_slot)`, in the engine's slot order (ascending id)."""
-    objects = scene.objects()
-    ids: set[int] = set()
-    for oid in range(objects.created_count()):  # object ids are 0..created_count-1, destroyed ones gone
-        obj = objects.find(oid)
-        if obj is not None:
-            ids.update(int(i) for i in np.asarray(obj.geometries().ids()).ravel())
-    out = []
-    for gid in sorted(ids):
-        slot, rest = scene.geometries().find(gid)
-        if slot is not None:
-            out.append((gid, slot, rest))
-    return out
+    objects = scene.objects()  # object ids are 0..created_count-1, destroyed ones gone
+    found = (objects.find(oid) for oid in range(objects.created_count()))
+    ids = {int(i) for obj in found if obj is not None for i in np.asarray(obj.geometries().ids()).ravel()}
+    slots = [(gid, *scene.geometries().find(gid)) for gid in sorted(ids)]
+    return [(gid, slot, rest) for gid, slot, rest in slots if slot is not None]
+
+
+def _transforms(geo: Any) -> Array:
+    """A geometry's instance transforms (I, 4, 4), a copy."""
+    return np.array(geo.transforms().view(), dtype=np.float64).reshape(-1, 4, 4)
 
 
 def _meta_uid(geo: Any) -> int | None:
@@ -125,19 +98,9 @@ def _is_affine_body(uid: int | None) -> bool:
     return bool(reg.exists(uid)) and reg.find(uid).type == "AffineBody"
 
 
-def _transforms_to_q(T: ArrayLike) -> Array:
-    """(I, 4, 4) -> (I, 12): `q = [T[0:3, 3], T[0, 0:3], T[1, 0:3], T[2, 0:3]]` (the engine's `transform_to_q`)."""
-    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
-    return np.concatenate([T[:, :3, 3], T[:, :3, :3].reshape(-1, 9)], axis=1)
-
-
-IDENTITY = np.eye(4)
-
-
 def _limits_by_base() -> dict[int, Facts]:
     """The registered constitutions by the UID of the base joint they limit (a joint geometry's meta
-    `constitution_uid`), in the order registered; each names the engine's edge attributes (`offset_name`,
-    `state_name`: the committed coordinate it publishes, the angle of 670, the slide of 669)."""
+    `constitution_uid`), in the order registered; each names the engine's edge attributes."""
     return {f.base_uid: f for f in registry.CONSTITUTIONS.values()}
 
 
@@ -160,7 +123,7 @@ def reference(scene: Any) -> Reference:
     for gid, slot, _ in _slots(scene):
         geo = slot.geometry()
         if _is_affine_body(_meta_uid(geo)):
-            out[gid] = np.array(geo.transforms().view(), dtype=np.float64).reshape(-1, 4, 4)
+            out[gid] = _transforms(geo)
     return Reference(out)
 
 
@@ -187,7 +150,7 @@ def _bodies(slots: list[tuple[int, Any, Any]], snapshot: Reference | None = None
     all_identity, moved, urdf_posed = True, False, []
     for gid, slot, rest, _ in geos:
         geo = slot.geometry()
-        T = np.asarray(geo.transforms().view(), dtype=np.float64).reshape(-1, 4, 4)
+        T = _transforms(geo)
         if snapshot is not None:
             if gid not in snapshot.transforms:
                 raise SceneError("the body geometry is not in the reference snapshot", gid,
@@ -196,10 +159,10 @@ def _bodies(slots: list[tuple[int, Any, Any]], snapshot: Reference | None = None
             if T_ref.shape != T.shape:
                 raise SceneError(f"body geometry has {T.shape[0]} instances but {T_ref.shape[0]} in the reference snapshot", gid)
         else:
-            T_ref = np.asarray(rest.geometry().transforms().view(), dtype=np.float64).reshape(-1, 4, 4) if rest is not None else T
+            T_ref = _transforms(rest.geometry()) if rest is not None else T
             if T_ref.shape != T.shape:
                 raise SceneError(f"body geometry has {T.shape[0]} instances but its rest geometry {T_ref.shape[0]}", gid)
-            identity = bool(np.all(T_ref == IDENTITY))
+            identity = bool(np.all(T_ref == np.eye(4)))
             all_identity &= identity
             moved |= not np.array_equal(T, T_ref)
             link = geo.meta().find("urdf/type")
@@ -214,8 +177,8 @@ def _bodies(slots: list[tuple[int, Any, Any]], snapshot: Reference | None = None
                     f"the engine numbers this body geometry's first body {theirs}, the adapter {at}", gid,
                     hint="geometries created or destroyed after world.init() and not yet rebuilt by the engine?")
         offset[gid], count[gid] = at, T.shape[0]
-        qs.append(_transforms_to_q(T))
-        q_refs.append(_transforms_to_q(T_ref))
+        qs.append(transforms_to_q(T))
+        q_refs.append(transforms_to_q(T_ref))
         at += T.shape[0]
     guess = ""
     if snapshot is None and urdf_posed:
@@ -236,22 +199,6 @@ def _edge_attr(geo: Any, name: str, gid: int, required: bool = True) -> NDArray[
             raise SceneError(f"the joint edges have no `{name}` attribute", gid)
         return None
     return np.asarray(attr.view())
-
-
-@dataclass
-class _Rows:
-    """Joints of one batch (one constitution, one edge variant), gathered geometry by geometry."""
-
-    uid: int
-    local: bool
-    refs: list[JointRef] = field(default_factory=list)
-    body_ids: list[NDArray[np.int64]] = field(default_factory=list)
-    edges: list[Array] = field(default_factory=list)
-    lower: list[Array] = field(default_factory=list)
-    upper: list[Array] = field(default_factory=list)
-    strength: list[Array] = field(default_factory=list)
-    offset: list[Array] = field(default_factory=list)
-    prev: list[Array] = field(default_factory=list)
 
 
 def _body_ids(bodies: _Bodies, gid: int, geo_ids: NDArray[Any], inst_ids: NDArray[Any], side: str) -> NDArray[np.int64]:
@@ -336,16 +283,10 @@ def _read_joints(gid: int, geo: Any, limit: Facts, bodies: _Bodies, use_angle: b
     )
 
 
-def request_from_scene(
-    scene: Any,
-    q: ArrayLike | None = None,
-    q_prev: ArrayLike | None = None,
-    q_ref: ArrayLike | None = None,
-    committed: bool | None = None,
-    outputs: Sequence[str] = ("energy", "gradient", "hessian"),
-    *,
-    reference: Reference | str | None = None,
-) -> tuple[Request, list[list[JointRef]]]:
+def request_from_scene(scene: Any, q: ArrayLike | None = None, q_prev: ArrayLike | None = None,
+                       q_ref: ArrayLike | None = None, committed: bool | None = None,
+                       outputs: Sequence[str] = ("energy", "gradient", "hessian"), *,
+                       reference: Reference | str | None = None) -> tuple[Request, list[list[JointRef]]]:
     """The request that evaluates every #670 / #669 joint of a `uipc.core.Scene` as the engine does,
     and `joints`: `joints[k][r]` = (joint geometry id, edge index) of batch `k`'s row `r`.
 
@@ -370,10 +311,10 @@ def request_from_scene(
     that cannot be read, and ImportError without pyuipc.
     """
     _uipc()
-    if isinstance(reference, str) and reference != "rest":
-        raise SceneError(f"`reference` is a snapshot from reference(scene), \"rest\" or None, got {reference!r}")
-    if reference is not None and not isinstance(reference, (Reference, str)):
-        raise SceneError(f"`reference` is a snapshot from reference(scene), \"rest\" or None, got {type(reference).__name__}")
+    given_rest = isinstance(reference, str) and reference == "rest"
+    if not (reference is None or given_rest or isinstance(reference, Reference)):
+        got = repr(reference) if isinstance(reference, str) else type(reference).__name__
+        raise SceneError(f"`reference` is a snapshot from reference(scene), \"rest\" or None, got {got}")
     if reference is not None and q_ref is not None:
         raise SceneError("give the transforms at world.init() once: `reference` or `q_ref`, not both")
     slots = _slots(scene)
@@ -407,18 +348,14 @@ def request_from_scene(
                 "refuses this scene at world.init()", bare[base][0],
                 hint=f"apply the limit to every UID-{base} joint geometry (a wide range leaves a joint free)")
 
-    rows: dict[tuple[int, bool], _Rows] = {}
+    rows: dict[tuple[int, bool], dict[str, list[Any]]] = {}  # (uid, local edges) -> the batch's arrays in parts
     for base, limit in limit_of.items():
-        uid = limit.uid
         for gid, geo in limited[base]:
             local, arrays = _read_joints(gid, geo, limit, bodies, use_angle)
-            r = rows.setdefault((uid, local), _Rows(uid, local))
-            r.refs += arrays["refs"]
-            for name in ("body_ids", "edges", "lower", "upper", "strength", "offset"):
-                getattr(r, name).append(arrays[name])
-            if arrays["prev"] is not None:
-                r.prev.append(arrays["prev"])
-    rows = {k: r for k, r in rows.items() if r.refs}
+            r = rows.setdefault((limit.uid, local), {})
+            for name, v in arrays.items():
+                r.setdefault(name, []).extend([] if v is None else [v])  # `prev`: a state read, or none
+    rows = {k: r for k, r in rows.items() if any(r["refs"])}
     if not rows:
         which = " or ".join(f"#{f.uid}" for f in limit_of.values())
         raise SceneError(f"the scene has no joint edge with a {which} limit (zero edges to evaluate)")
@@ -439,14 +376,12 @@ def request_from_scene(
 
     batches, joints = [], []
     for (uid, local), r in rows.items():
-        cat = lambda parts: np.concatenate(parts, axis=0)  # noqa: E731
-        edges = cat(r.edges)
+        a = {name: np.concatenate(parts) for name, parts in r.items() if name != "refs" and parts}
         batches.append(JointBatch.of(
-            uid, cat(r.body_ids), None if local else edges, cat(r.lower), cat(r.upper), cat(r.strength),
-            offset=cat(r.offset), prev_coordinate=cat(r.prev) if r.prev else None,
-            local_edges=edges if local else None, origin="absolute",
-        ))
-        joints.append(r.refs)
+            uid, a["body_ids"], None if local else a["edges"], a["lower"], a["upper"], a["strength"],
+            offset=a["offset"], prev_coordinate=a.get("prev"), local_edges=a["edges"] if local else None,
+            origin="absolute"))
+        joints.append([ref for refs in r["refs"] for ref in refs])
     req = Request(q=q_, q_prev=q_prev_, q_ref=q_ref_, batches=batches, outputs=tuple(outputs), hessian_mode="psd")
     return req, joints
 
@@ -454,11 +389,8 @@ def request_from_scene(
 # ------------------------------------------------------------------------------------- write back
 
 
-def write_back(
-    scene: Any,
-    coordinates: Evaluation | Sequence[ArrayLike | BatchResult],
-    joints: Sequence[Sequence[JointRef]],
-) -> None:
+def write_back(scene: Any, coordinates: Evaluation | Sequence[ArrayLike | BatchResult],
+               joints: Sequence[Sequence[JointRef]]) -> None:
     """Write committed coordinates into the joint edges: `angle` (670, what the engine reads as
     `prev_coordinate`) and `distance` (669, the engine's published slide), row `r` of batch `k`
     into `joints[k][r]`.

@@ -2,30 +2,10 @@
 
 from jointlimits.schemas.constitutions import Attribute, ConstitutionInfo, ConstitutionsResponse, Limits
 from jointlimits.schemas.errors import ErrorItem, ErrorResponse
-from jointlimits.schemas.evaluate import (
-    OUTPUTS,
-    BatchResult,
-    Bodies,
-    EvaluateRequest,
-    EvaluateResponse,
-    HessianMode,
-    JointBatch,
-    Output,
-)
+from jointlimits.schemas.evaluate import OUTPUTS, BatchResult, Bodies, EvaluateRequest, EvaluateResponse, HessianMode
+from jointlimits.schemas.evaluate import JointBatch, Output
 
 __all__ = [
-    "OUTPUTS",
-    "Attribute",
-    "BatchResult",
-    "Bodies",
-    "ConstitutionInfo",
-    "ConstitutionsResponse",
-    "ErrorItem",
-    "ErrorResponse",
-    "EvaluateRequest",
-    "EvaluateResponse",
-    "HessianMode",
-    "JointBatch",
-    "Limits",
-    "Output",
+    "OUTPUTS", "Attribute", "BatchResult", "Bodies", "ConstitutionInfo", "ConstitutionsResponse", "ErrorItem",
+    "ErrorResponse", "EvaluateRequest", "EvaluateResponse", "HessianMode", "JointBatch", "Limits", "Output",
 ]

@@ -1,12 +1,8 @@
 """The binary encoding of contract v1: msgpack with raw little-endian arrays (docs/http-api.md, "Binary transport").
 
-The document has exactly the JSON body's structure and keys. Every numeric array
-(`bodies.q`, `body_ids`, `edges`, `lower`, ..., `offset`, `prev_coordinate`, `x`,
-`coordinate`, `gradient`, `hessian`) is
-instead a map `{"dtype": "<f8" | "<i8", "shape": [d0, d1, ...], "data": bin}`,
-`data` holding the C-order (row-major) elements, little-endian. Scalars stay
-msgpack scalars (float64 for `total_energy`). Nothing here is numerics: only
-bytes <-> `np.ndarray` views.
+The document has exactly the JSON body's structure and keys; every numeric array is instead a map
+`{"dtype": "<f8" | "<i8", "shape": [d0, d1, ...], "data": bin}`, `data` holding the C-order elements,
+little-endian. Nothing here is numerics: only bytes <-> `np.ndarray` views.
 """
 
 from __future__ import annotations

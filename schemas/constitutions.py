@@ -53,86 +53,36 @@ STRENGTH_DEFAULT = 1.0
 """The reference engine's default `limit/strength` (`apply_to(sc, lower, upper, strength = 1)`)."""
 
 
+def _attribute(name: str, field: str, unit: str, default: float | None, description: str) -> Attribute:
+    return Attribute(name=name, field=field, unit=unit, default=default, description=description)
+
+
 def describe(facts: Any) -> ConstitutionInfo:
     """The discovery entry of one constitution, in the specs' attribute names and units, from its facts (the
     core's `Facts`, read here by attribute: the wire imports nothing of the service)."""
-    unit = facts.unit
-    return ConstitutionInfo(
-        uid=facts.uid,
-        name=facts.name,
-        base_uid=facts.base_uid,
-        base_name=facts.base_name,
-        coordinate=f"{facts.coordinate} [{unit}]",
-        origin=facts.origin,
-        attributes=[
-            *_geometry_attributes(),
-            Attribute(
-                name="limit/lower",
-                field="lower",
-                unit=unit,
-                default=None,
-                description="lower bound of the coordinate x + offset (absolute); lower <= upper",
-            ),
-            Attribute(
-                name="limit/upper", field="upper", unit=unit, default=None, description="upper bound of the coordinate x + offset"
-            ),
-            Attribute(
-                name="limit/strength",
-                field="strength",
-                unit="energy unit",
-                default=STRENGTH_DEFAULT,
-                description="penalty strength s >= 0 of E = s (gap / (u - l))^3 (s |x - l|^3 when u == l), "
-                "l = lower - offset, u = upper - offset",
-            ),
-            *_state_attributes(facts),
-        ],
-    )
-
-
-def _geometry_attributes() -> list[Attribute]:
-    """The joint's edge, in either of the engine's two variants (exactly one per batch, v1.2)."""
-    return [
-        Attribute(
-            name="position",
-            field="edges",
-            unit="length unit of the DOFs",
-            default=None,
-            description="(N, 2, 3) the edge p0 -> p1 in world space at q_ref (the engine's world create_geometry); "
-            "or local_edges",
-        ),
-        Attribute(
-            name="l_position0, l_position1, r_position0, r_position1",
-            field="local_edges",
-            unit="length unit of the DOFs",
-            default=None,
-            description="(N, 2, 2, 3) [[l0, l1], [r0, r1]]: the edge in body i's and body j's own coordinates (the "
-            "engine's local create_geometry); or edges (v1.2)",
-        ),
-    ]
-
-
-def _state_attributes(facts: Any) -> list[Attribute]:
-    """v1.1: the offset (`init_angle` / `init_distance`) and, for a stateful joint (the revolute), its unwrapped
-    committed coordinate (`angle`)."""
-    out = [
-        Attribute(
-            name=facts.offset_name,
-            field="offset",
-            unit=facts.unit,
-            default=0.0,
-            description="the coordinate at q_ref: the reported coordinate is x + offset (v1.1)",
-        )
+    unit, length = facts.unit, "length unit of the DOFs"
+    attributes = [
+        # The joint's edge, in either of the engine's two variants (exactly one per batch, v1.2).
+        _attribute("position", "edges", length, None, "(N, 2, 3) the edge p0 -> p1 in world space at q_ref (the "
+                   "engine's world create_geometry); or local_edges"),
+        _attribute("l_position0, l_position1, r_position0, r_position1", "local_edges", length, None,
+                   "(N, 2, 2, 3) [[l0, l1], [r0, r1]]: the edge in body i's and body j's own coordinates (the "
+                   "engine's local create_geometry); or edges (v1.2)"),
+        _attribute("limit/lower", "lower", unit, None,
+                   "lower bound of the coordinate x + offset (absolute); lower <= upper"),
+        _attribute("limit/upper", "upper", unit, None, "upper bound of the coordinate x + offset"),
+        _attribute("limit/strength", "strength", "energy unit", STRENGTH_DEFAULT,
+                   "penalty strength s >= 0 of E = s (gap / (u - l))^3 (s |x - l|^3 when u == l), "
+                   "l = lower - offset, u = upper - offset"),
+        # v1.1: the offset (`init_angle` / `init_distance`) and a stateful joint's committed coordinate (`angle`).
+        _attribute(facts.offset_name, "offset", unit, 0.0,
+                   "the coordinate at q_ref: the reported coordinate is x + offset (v1.1)"),
     ]
     if facts.stateful:
-        out.append(
-            Attribute(
-                name=facts.state_name,
-                field="prev_coordinate",
-                unit=facts.unit,
-                default=None,
-                description="optional: the committed, continuously unwrapped coordinate at q_prev (any number of "
-                "turns); x = (prev_coordinate - offset) + DeltaTheta(q, q_prev). Without it x starts from "
-                "DeltaTheta(q_prev, q_ref) (v1.1)",
-            )
-        )
-    return out
+        attributes.append(_attribute(
+            facts.state_name, "prev_coordinate", unit, None,
+            "optional: the committed, continuously unwrapped coordinate at q_prev (any number of turns); "
+            "x = (prev_coordinate - offset) + DeltaTheta(q, q_prev). Without it x starts from "
+            "DeltaTheta(q_prev, q_ref) (v1.1)"))
+    return ConstitutionInfo(uid=facts.uid, name=facts.name, base_uid=facts.base_uid, base_name=facts.base_name,
+                            coordinate=f"{facts.coordinate} [{unit}]", origin=facts.origin, attributes=attributes)

@@ -1,20 +1,8 @@
-"""Messages of the session protocol (`/v1/sessions`, docs/sessions.md, "Sessions"): shared by the service and the client.
+"""Messages of the session protocol (`/v1/sessions`), shared by the service and the client; no numerics.
 
-A session is one WebSocket connection. Its first message is a full evaluate request
-document (exactly `POST /v1/evaluate`'s body, JSON or msgpack): it opens the scene. Every
-later client message is a small map whose `kind` says what it asks:
-
-- `evaluate`: `q` (B, 12), optional `outputs`, `hessian_mode`, `active_only` -> `evaluation`
-  (the answer document of `POST /v1/evaluate` plus `kind`);
-- `commit`: `q` (B, 12) -> `committed` (`coordinates`: per batch, one number per joint);
-- `update`: `batch`, `index` (K,), any of `lower`, `upper`, `strength`, `offset` (K,) -> `updated`;
-- `close` -> the server closes the connection with code 1000.
-
-Any message, the opening one too, may carry an `id` (an integer or a string); its reply repeats it. A fault is a
-reply `{"kind": "error", "status": 422 | 413, "detail": [...]}` in the format of HTTP's 4xx
-bodies and leaves the session as it was. Replies use the encoding of the message they
-answer: a text frame (JSON) is answered in JSON, a binary frame (msgpack) in msgpack, its
-arrays as the binary transport's array maps (`schemas/binary.py`). No numerics here.
+docs/sessions.md, "The protocol, byte by byte", is its reference: the opening message is `POST /v1/evaluate`'s
+body, then each message is a small map whose `kind` (below) says what it asks, answered in its own encoding; a
+fault is a reply `{"kind": "error", "status", "detail"}` and leaves the session as it was.
 """
 
 from __future__ import annotations
@@ -100,15 +88,3 @@ KEYS: dict[str, dict[str, bool]] = {
     m.model_fields["kind"].annotation.__args__[0]: {k: f.is_required() for k, f in m.model_fields.items()}
     for m in (EvaluateMessage, CommitMessage, UpdateMessage, CloseMessage)
 }
-
-__all__ = [
-    "CLIENT_MESSAGE",
-    "KEYS",
-    "OpeningRequest",
-    "PATH",
-    "ClientMessage",
-    "CloseMessage",
-    "CommitMessage",
-    "EvaluateMessage",
-    "UpdateMessage",
-]

@@ -21,7 +21,7 @@ U (I + E^2 / 2 + O(E^3)), so the step just taken left an error of about half its
 
 
 SMALL = 256
-"""Bodies up to which `_cofactors_t` forms its nine entries in whole (9, M) passes: their call overhead,
+"""Bodies up to which `cofactors` forms its nine entries in whole (9, M) passes: their call overhead,
 not the M numbers, is the cost there (as `kinematics.SMALL`)."""
 # Cofactor (3 r + k) = a[_P] a[_Q] - a[_S] a[_T]: row r of the cofactors is row r+1 x row r+2.
 _P, _Q, _S, _T = (np.array(i) for i in zip(*(
@@ -30,7 +30,7 @@ _P, _Q, _S, _T = (np.array(i) for i in zip(*(
 )))
 
 
-def _cofactors_t(a: Array, out: Array | None = None) -> tuple[Array, Array]:
+def cofactors(a: Array, out: Array | None = None) -> tuple[Array, Array]:
     """Cofactors and determinant in component-major layout: `a` (9, M) -> `C` (9, M), det (M,).
 
     Row i of the cofactor matrix is row (i+1) x row (i+2); contiguous (M,) components
@@ -89,7 +89,7 @@ def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Arr
     m = a.shape[1]
     ratio = np.zeros(m)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        C, det = _cofactors_t(a)
+        C, det = cofactors(a)
         nA = _frobenius_t(a)
         nC = _frobenius_t(C)
         est = np.abs(det) / (nA * nC)
@@ -131,7 +131,7 @@ def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Arr
         if going.shape[0] == 0:
             break
         X = X_new
-        C, det = _cofactors_t(X, out=C if C.shape == X.shape else None)
+        C, det = cofactors(X, out=C if C.shape == X.shape else None)
     R = np.empty_like(a) if R is None else R
     svd = np.concatenate([(~good).nonzero()[0], going])
     if svd.shape[0]:

@@ -69,15 +69,6 @@ FACTS = Facts(
     engine_zero_axis=1e-24,  # AffineBodyRevoluteJoint refuses |t|^2 <= 1e-24
 )
 
-# Constant second derivatives of the bilinear cos and sin in the (4 x 4) block
-# layout of F; each block is a multiple of the 3 x 3 identity.
-_COS_PAIRS = np.zeros((4, 4))
-_COS_PAIRS[0, 2] = _COS_PAIRS[2, 0] = _COS_PAIRS[1, 3] = _COS_PAIRS[3, 1] = 0.5
-_SIN_PAIRS = np.zeros((4, 4))
-_SIN_PAIRS[0, 3] = _SIN_PAIRS[3, 0] = 0.5
-_SIN_PAIRS[1, 2] = _SIN_PAIRS[2, 1] = -0.5
-
-
 COLLAPSE_RATIO = 1e-12
 """A frame collapses where `cos^2 + sin^2 <= 2 COLLAPSE_RATIO^2 (|B_i|^2 |B_j|^2 + |N_i|^2 |N_j|^2)`:
 (cos, sin) within rounding of zero relative to the frame vectors' size, whatever their scale
@@ -123,36 +114,26 @@ def _pair_size(F: Array, side: int) -> Array:
 
 
 def _careful_angle(careful: CarefulFrames) -> Array:
-    """x (M,) of the careful joints: each step in the form with the smaller rounding bound.
-
-    The frames are scaled per body and state (the angle depends only on their directions).
-    Step form: `(cos, sin)` at the end is the start's plus the increment, whose rounding is
-    bounded by `(|B_i'| + |N_i'|)(|dB_j| + |dN_j|) + (|dB_i| + |dN_i|)(|B_j| + |N_j|)`: right
-    when the step is small against the frame. Direct form: `(cos, sin)` from the end state's own
-    frames, rounding bounded by `(|B_i| + |N_i|)(|B_j| + |N_j|)` there and at the start: right when
-    the step is as large as the frame (a frame shrunk by 1e-12 in one step). Each bound is taken
-    relative to `hypot(cos, sin)`, the angle's rounding bound up to a constant.
+    """x (M,) of the careful joints: each step in the form with the smaller rounding bound, relative to
+    `hypot(cos, sin)` (the angle's, up to a constant). Step form: `(cos, sin)` at the end is the start's plus the
+    increment, rounding bounded by `(|B_i'| + |N_i'|)(|dB_j| + |dN_j|) + (|dB_i| + |dN_i|)(|B_j| + |N_j|)`: right
+    when the step is small against the frame. Direct form: `(cos, sin)` of each state's own frames (scaled on
+    their own), bounded by `(|B_i| + |N_i|)(|B_j| + |N_j|)` at both ends: right for a frame shrunk by 1e-12 in
+    one step (in the step's common scaling it would keep few digits, or none).
     """
-    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # a bound of inf or NaN loses the choice
-        return _careful_steps(careful)
-
-
-def _careful_steps(careful: CarefulFrames) -> Array:
     x = 0.0
-    for k, (F, dF) in enumerate(zip(careful.starts, careful.steps)):
-        c, s = _cos_sin(F)
-        turn_step, (c2, s2) = _step(F, dF, (c, s))
-        F2 = F + dF
-        bound_step = (_pair_size(F2, 0) * _pair_size(dF, 1) + _pair_size(dF, 0) * _pair_size(F, 1)) / np.hypot(c2, s2)
-        # Each state's own frames, scaled on their own: in the step's common scaling a frame 1e18
-        # times smaller than the other state's would keep few digits (or none), whatever the bound says.
-        S, E = careful.states[k], careful.states[k + 1]
-        ca, sa = _cos_sin(S)
-        ce, se = _cos_sin(E)
-        turn_direct = np.arctan2(se * ca - ce * sa, ce * ca + se * sa)
-        bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se) + _pair_size(S, 0) * _pair_size(S, 1) / np.hypot(ca, sa)
-        steady = (np.abs(careful.exponents[k] - careful.exponents[k + 1]) <= _STEADY_EXPONENTS).all(axis=1)
-        x = x + np.where(steady & (bound_step <= bound_direct), turn_step, turn_direct)
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # a bound of inf or NaN loses the choice
+        for k, (F, dF) in enumerate(zip(careful.starts, careful.steps)):
+            c, s = _cos_sin(F)
+            turn_step, (c2, s2) = _step(F, dF, (c, s))
+            bound_step = (_pair_size(F + dF, 0) * _pair_size(dF, 1) + _pair_size(dF, 0) * _pair_size(F, 1)) / np.hypot(c2, s2)
+            S, E = careful.states[k], careful.states[k + 1]
+            ca, sa = _cos_sin(S)
+            ce, se = _cos_sin(E)
+            turn_direct = np.arctan2(se * ca - ce * sa, ce * ca + se * sa)
+            bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se) + _pair_size(S, 0) * _pair_size(S, 1) / np.hypot(ca, sa)
+            steady = (np.abs(careful.exponents[k] - careful.exponents[k + 1]) <= _STEADY_EXPONENTS).all(axis=1)
+            x = x + np.where(steady & (bound_step <= bound_direct), turn_step, turn_direct)
     return x
 
 
@@ -169,20 +150,13 @@ def _unsafe(F: Array, cs: tuple[Array, Array]) -> NDArray[np.bool_]:
 
 
 @dataclass
-class _Scaled:
-    """Rows `rows` (M,) of a curvature were formed from frames scaled per body by `2^-exponents` (M, 2),
-    `curvature` their curvature there (`Revolute.derivatives`): what `projected_curvature` needs for them."""
-
-    rows: NDArray[np.intp]
-    exponents: NDArray[np.int32]
-    curvature: Curvature
-
-
-@dataclass
 class _RescaledCurvature(Curvature):
-    """A revolute curvature with some rows formed from scaled frames (`_Scaled`)."""
+    """A revolute curvature whose rows `rows` (M,) were formed from frames scaled per body by `2^-exponents`
+    (M, 2), `scaled` their curvature there (`Revolute.derivatives`): what `_rescaled_projection` needs."""
 
-    scaled: _Scaled | None = None
+    rows: NDArray[np.intp] | None = None
+    exponents: NDArray[np.int32] | None = None
+    scaled: Curvature | None = None
 
 
 _G_BLOCKS = np.array([2, 3, 0, 1, 3, 2, 1, 0])
@@ -248,8 +222,7 @@ class Revolute:
         turn, cs = _step(F, dF, progress.state)
         return Progress((0.0 if progress.x is None else progress.x) + turn, cs, [*progress.known, cs])
 
-    def careful_coordinate(self, careful: CarefulFrames) -> Array:
-        return _careful_angle(careful)
+    careful_coordinate = staticmethod(_careful_angle)
 
     def collapsed(self, F: Array, known: tuple[Array, Array] | None = None, size_bound: Array | None = None) -> np.ndarray:
         # Squares of frames from A inside kinematics.plain_range (or scaled) stay normal numbers
@@ -297,7 +270,7 @@ class Revolute:
                 curvature.basis[bad] = np.ldexp(cv_b.basis, -eb[:, None, :, None])
                 curvature.coef[bad], curvature.dx_coef[bad] = cv_b.coef, cv_b.dx_coef
                 # The PSD projection of these rows needs their scaled frames' quantities (`_rescaled_projection`).
-                curvature = _RescaledCurvature(**vars(curvature), scaled=_Scaled(bad, e, cv_b))
+                curvature = _RescaledCurvature(**vars(curvature), rows=bad, exponents=e, scaled=cv_b)
         return dx, curvature
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
@@ -307,10 +280,10 @@ class Revolute:
         frame with r > 0, which validation guarantees (collapsed frames are rejected): no eigensolver.
         Returns kron (N, 4, 4), basis (N, 3, 4, 3) = (h1, h3, d), coef (N, 3, 3) diagonal.
         """
-        scaled = getattr(curvature, "scaled", None)
+        rescaled = isinstance(curvature, _RescaledCurvature)
         x_c, x_s = curvature.dx_coef[:, 0], curvature.dx_coef[:, 1]  # -s / r^2, c / r^2
         # The rows `scaled` names hold nothing meaningful here (their r^2 is not a normal number): overwritten below.
-        with np.errstate(all="ignore") if scaled is not None else nullcontext():  # else: the caller's error state
+        with np.errstate(all="ignore") if rescaled else nullcontext():  # else: the caller's error state
             r = 1.0 / np.hypot(x_c, x_s)
             g_c = curvature.basis[:, 0]
             rho2 = np.einsum("nkc,nkc->n", g_c, g_c)  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
@@ -323,9 +296,9 @@ class Revolute:
             # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
             kron = (0.5 * dE)[:, None, None] * curvature.kron
             kron += (mu / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
-        if scaled is not None:
-            rows = scaled.rows
-            kron[rows], basis[rows], coef[rows] = _rescaled_projection(dE[rows], scaled)
+        if rescaled:
+            rows = curvature.rows
+            kron[rows], basis[rows], coef[rows] = _rescaled_projection(dE[rows], curvature)
         return Curvature(kron=kron, basis=basis, coef=coef, diagonal=True)
 
 
@@ -356,7 +329,7 @@ def _psd_vectors(sign: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> Arr
     return basis
 
 
-def _rescaled_projection(dE: Array, scaled: _Scaled) -> tuple[Array, Array, Array]:
+def _rescaled_projection(dE: Array, scaled: _RescaledCurvature) -> tuple[Array, Array, Array]:
     """kron, basis, coef of `projected_curvature` for rows differentiated from scaled frames.
 
     The frames are F = D F_s, body k's scaled by 2^e_k; the projection is taken at F / 2^m, m = max(e_i, e_j),
@@ -369,7 +342,7 @@ def _rescaled_projection(dE: Array, scaled: _Scaled) -> tuple[Array, Array, Arra
     an answer beyond float64 becomes inf (the caller's overflow error), never a wrong finite number.
     """
     e = scaled.exponents.astype(np.int64)
-    cv = scaled.curvature
+    cv = scaled.scaled
     x_c, x_s = cv.dx_coef[:, 0], cv.dx_coef[:, 1]
     r = 1.0 / np.hypot(x_c, x_s)  # r_s: O(1) frames, far from collapse (validation)
     top = e.max(axis=1)

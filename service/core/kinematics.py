@@ -31,8 +31,8 @@ STEPS = {PREV_STEP: (0, 1), STEP: (1, 2), TOTAL_STEP: (0, 2)}
 """Each increment row of `A` as (from, to) states: 0 q_ref, 1 q_prev, 2 q."""
 
 
-def solve3(A: Array, b: Array) -> list[Array]:
-    """Components of `A^-1 b` (each (...,)) for `A` (..., 3, 3), `b` (..., 3), by cofactors (`polar.cofactors`:
+def solve3(A: Array, b: Array) -> Array:
+    """`A^-1 b` (..., 3), component-major, for `A` (..., 3, 3), `b` (..., 3), by cofactors (`polar.cofactors`:
     a LAPACK call per system costs more). Where `det` or a product leaves float64's comfortable range
     (|A| beyond ~1e+-100), those systems are solved again with `A` scaled by a power of two (exact)."""
     lead = b.shape[:-1]
@@ -46,7 +46,7 @@ def solve3(A: Array, b: Array) -> list[Array]:
         if bad.shape[0]:  # det ~|A|^3 inside 2^+-900 keeps the cofactors (~det^(2/3)) normal numbers
             e = np.frexp(np.abs(a[:, bad]).max(axis=0))[1]
             x[:, bad] = np.ldexp(_solve3(np.ldexp(a[:, bad], -e), y[:, bad])[0], -e)
-    return [c.reshape(lead[::-1]).T for c in x]
+    return x.reshape(3, *lead[::-1]).T
 
 
 def _solve3(a: Array, y: Array) -> tuple[Array, Array]:

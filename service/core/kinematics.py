@@ -86,17 +86,9 @@ class BodyTable:
     absolute: a joint differences its two bodies' positions within one state first, then across states.
     """
 
-    def __init__(
-        self,
-        bodies: Bodies,
-        dtype: type = np.float64,
-        rows: Iterable[int] = STEPS,
-        used: NDArray[np.bool_] | None = None,
-        rotate: bool = True,
-    ) -> None:
+    def __init__(self, bodies: Bodies, dtype: type = np.float64, rows: Iterable[int] = STEPS, rotate: bool = True) -> None:
         """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage);
-        `plain` is taken over `rows`. `used` (B,): the bodies sure to get a polar factor (`polar_rotation`);
-        `rotate` False: the polar factors wait for `rotate`."""
+        `plain` is taken over `rows`. `rotate` False: the polar factors wait for `rotate`."""
         n = bodies.q.shape[0]
         filled = tuple(sorted(set(rows)))
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
@@ -109,20 +101,19 @@ class BodyTable:
             transpose_into(dofs[s], q[s])
         self._subtract(filled)
         # Squared norms (`_plain_bodies`), kept until their rows change: taken now, while in cache.
-        self._norms: dict[tuple[str, int], Array] = {
-            **{("state", s): squared_norms(self.states[s]) for s in spanned},
-            **{("row", row): squared_norms(self.linear[row]) for row in filled},
-        }
+        self._norms = {("state", s): squared_norms(self.states[s]) for s in spanned}
+        self._norms |= {("row", row): squared_norms(self.linear[row]) for row in filled}
         self._plains: dict[frozenset[int], NDArray[np.bool_]] = {}  # `plain_over`'s, until the rows change
         self.dtype = np.dtype(dtype)
         self.plain = self.plain_over(filled)
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         self._A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
         if rotate:
-            self.rotate(used)
+            self.rotate()
 
     def rotate(self, used: NDArray[np.bool_] | None = None) -> None:
-        """The polar factors `rotation` (9, B) and the conditioning `ratio` (B,) of each `A_ref`."""
+        """The polar factors `rotation` (9, B) and the conditioning `ratio` (B,) of each `A_ref`; `used` (B,): the
+        bodies sure to get one (`polar_rotation`)."""
         R, self.ratio = polar_rotation(self._A_ref, used)
         self.rotation = R.astype(self.dtype, copy=False)
 
@@ -188,9 +179,9 @@ class BodyTable:
         return g.reshape(3, 3, *g.shape[1:]).transpose(3, 2, 0, 1)
 
 
-def squared_norms(a: Array, out: Array | None = None) -> Array:
-    """Squared Frobenius norms (B,) of bodies' rows `a` (K, B) (or into `out`): one fused pass."""
-    return np.einsum("ij,ij->j", a, a, out=out)
+def squared_norms(a: Array) -> Array:
+    """Squared Frobenius norms (B,) of bodies' rows `a` (K, B): one fused pass."""
+    return np.einsum("ij,ij->j", a, a)
 
 
 def _norm(norms: dict[tuple[str, int], Array], key: tuple[str, int], a: Array) -> Array:
@@ -213,9 +204,8 @@ PLAIN_STEP = 2.0
 scale (`|R - I| <= sqrt(8) < 2 |R|`), not a body shrunk or grown by orders of magnitude in one step."""
 
 
-def _plain_bodies(
-    states: Array, linear: Sequence[Array], rows: Iterable[int], norms: dict[tuple[str, int], Array] | None = None
-) -> NDArray[np.bool_]:
+def _plain_bodies(states: Array, linear: Sequence[Array], rows: Iterable[int],
+                  norms: dict[tuple[str, int], Array] | None = None) -> NDArray[np.bool_]:
     """(B,) True for a body whose frames the common path (`F_a + dF` at each state) forms well: each step's
     increment at most `PLAIN_STEP` times `A` where it ends, and `A` inside `plain_range` in every state. Then
     `F_a + dF` and the increment forms round within a small factor (~16) of the direct `F(A_b)`; every other
@@ -241,10 +231,9 @@ class CarefulFrames:
     """Frames of joints `idx` (M,) from `A` scaled by powers of two (exact), for configurations at the edge of
     float64 or with steps as large as the frames (`_plain_bodies` says which).
 
-    `states[s]` (M, 4, 3): the frames in state `s` with body i's and j's scaled by `2^-exponents[s]` (M, 2)
-    (largest |2^-e A_s| entry in [0.5, 1); frames with points are not scaled, every exponent 0). `starts[k]`,
-    `steps[k]`: step `k`'s starting frames and increment, in one scaling common to its two states.
-    """
+    `states[s]` (M, 4, 3): the frames in state `s`, body i's and j's scaled by `2^-exponents[s]` (M, 2) (largest
+    |2^-e A_s| entry in [0.5, 1); with points, unscaled). `starts[k]`, `steps[k]`: step `k`'s starting frames
+    and increment, in one scaling common to its two states."""
 
     idx: NDArray[np.intp]
     exponents: list[NDArray[np.int_]]
@@ -268,9 +257,8 @@ def scaled_frames(r: Array | None, A: Array, e: NDArray[np.int_], alpha: Array, 
     return frame_quantities(rs, np.ldexp(A, -e[:, :, None, None]), alpha, v)
 
 
-def careful_frames(
-    table: BodyTable, pairs: NDArray[np.intp], rows: tuple[int, ...], alpha: Array, v: Array, idx: NDArray[np.intp]
-) -> CarefulFrames:
+def careful_frames(table: BodyTable, pairs: NDArray[np.intp], rows: tuple[int, ...], alpha: Array, v: Array,
+                   idx: NDArray[np.intp]) -> CarefulFrames:
     """`CarefulFrames` of joints `idx` (M,) of `pairs` (2, N) with local vectors `v` (N, 4, 3), over the steps `rows`."""
     sub = np.ascontiguousarray(pairs[:, idx])
     v = v[idx]
@@ -290,21 +278,11 @@ def careful_frames(
     return CarefulFrames(idx, [e[s] for s in states], direct, starts, steps)
 
 
-def state_frames(
-    table: BodyTable,
-    pairs: NDArray[np.intp],
-    rows: tuple[int, ...],
-    alpha: Array,
-    v: Array,
-    F_ref: Array,
-    steps: list[Array],
-) -> tuple[list[Array], CarefulFrames | None]:
-    """Each state's frames (N, 4, 3) (`q_ref`, then the end of each step in `rows`), and the careful frames.
-
-    A state's frames are the previous state's plus the step (no extra gather), except for joints of bodies
-    not `plain`: theirs are the direct ones, from `A_s` scaled (a step as large as the frame, e.g.
-    `A_ref = 1e300 I` and `q_prev = I`, leaves nothing of `F_a + dF`).
-    """
+def state_frames(table: BodyTable, pairs: NDArray[np.intp], rows: tuple[int, ...], alpha: Array, v: Array,
+                 F_ref: Array, steps: list[Array]) -> tuple[list[Array], CarefulFrames | None]:
+    """Each state's frames (N, 4, 3) (`q_ref`, then the end of each step in `rows`), and the careful frames: the
+    previous state's plus the step, except for joints of bodies not `plain`, whose are the direct ones from `A_s`
+    scaled (a step as large as the frame, `A_ref = 1e300 I` to `q_prev = I`, leaves nothing of `F_a + dF`)."""
     states = [F_ref]
     with np.errstate(over="ignore", invalid="ignore"):  # only where `careful` replaces them below
         for dF in steps:

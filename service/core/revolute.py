@@ -70,11 +70,9 @@ FACTS = Facts(
 )
 
 COLLAPSE_RATIO = 1e-12
-"""A frame collapses where `cos^2 + sin^2 <= 2 COLLAPSE_RATIO^2 (|B_i|^2 |B_j|^2 + |N_i|^2 |N_j|^2)`:
-(cos, sin) within rounding of zero relative to the frame vectors' size, whatever their scale
-(the same ratio as `polar.SINGULAR_RATIO`). Above it the angle is as exact as its conditioning
-allows: a few roundings times size / hypot(cos, sin), up to ~1e-3 rad right at the threshold
-(body j nearly flipped over an in-plane axis; `tests/core/test_degenerate_scales.py`)."""
+"""A frame collapses where `cos^2 + sin^2 <= 2 COLLAPSE_RATIO^2 (|B_i|^2 |B_j|^2 + |N_i|^2 |N_j|^2)`: (cos, sin)
+within rounding of zero relative to the frames' size, at any scale (as `polar.SINGULAR_RATIO`). Above it the
+angle is as exact as its conditioning allows (up to ~1e-3 rad at the threshold; test_degenerate_scales.py)."""
 
 
 def _cos_sin(F: Array) -> tuple[Array, Array]:
@@ -83,11 +81,8 @@ def _cos_sin(F: Array) -> tuple[Array, Array]:
 
 
 def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Array, Array]]:
-    """DeltaTheta(F + dF, F) and (cos, sin) at F + dF, from (cos, sin) `cs` at F.
-
-    `sin_a cos_b - cos_a sin_b` is `dsin cos_b - dcos sin_b` with the increments `dcos`, `dsin`
-    of the bilinear cos and sin taken term by term: no cancellation of two O(1) products.
-    """
+    """DeltaTheta(F + dF, F) and (cos, sin) at F + dF, from (cos, sin) `cs` at F: `sin_a cos_b - cos_a sin_b` is
+    `dsin cos_b - dcos sin_b`, the increments of the bilinear cos and sin taken term by term (no cancellation)."""
     if F.shape[0] <= SMALL:  # a few joints: the eight dots in whole passes (the same products and sums, in order)
         i2, di, j, dj = F[:, :2] + dF[:, :2], dF[:, :2], F[:, 2:], dF[:, 2:]  # [B, N] of body i after the step, ...
         p = np.empty((F.shape[0], 4, 2, 3), dtype=np.result_type(F, dF))
@@ -234,28 +229,20 @@ class Revolute:
             c, s = _cos_sin(F) if known is None else known
             r2 = c * c + s * s
             ratio2 = 2.0 * COLLAPSE_RATIO * COLLAPSE_RATIO
-            rows = slice(None)
             if size_bound is not None:
                 # size2 <= 2 |A_i|^2 |A_j|^2 (|b_k| = |n_k| = 1) <= size_bound / 2: a joint above the bound's
                 # threshold is above the test's own; only the others (none, commonly) form their sizes.
                 rows = (~(r2 > ratio2 * size_bound)).nonzero()[0]
-                if rows.shape[0] == 0:
-                    return np.zeros(F.shape[0], dtype=bool)
-                F, r2 = F[rows], r2[rows]
+                out = np.zeros(F.shape[0], dtype=bool)
+                if rows.shape[0]:
+                    out[rows] = self.collapsed(F[rows], (c[rows], s[rows]))
+                return out
             B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-            size2 = dot(B_i, B_i) * dot(B_j, B_j) + dot(N_i, N_i) * dot(N_j, N_j)
-            bad = r2 <= ratio2 * size2
-            if size_bound is None:
-                return bad
-            out = np.zeros(size_bound.shape[0], dtype=bool)
-            out[rows] = bad
-            return out
+            return r2 <= ratio2 * (dot(B_i, B_i) * dot(B_j, B_j) + dot(N_i, N_i) * dot(N_j, N_j))
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
-        # Rows whose r^4 would under- or overflow (frames beyond ~1e+-36): the same from each body's
-        # frames scaled by a power of two, then scaled back block by block (exact). `r^4` of a
-        # frame of 1e-80 is 0 and `r^2` of 1e-160 subnormal: the plain formula would answer inf or
-        # a number with few digits. (Only those rows can overflow in the first pass.)
+        # Rows whose r^4 would under- or overflow (frames beyond ~1e+-36; only those can overflow in the first
+        # pass): the same from each body's frames scaled by a power of two, scaled back block by block (exact).
         cs = _cos_sin(F)
         bad = _unsafe(F, cs).nonzero()[0]
         with np.errstate(all="ignore") if bad.shape[0] else nullcontext():  # else: the caller's error state
@@ -274,12 +261,8 @@ class Revolute:
         return dx, curvature
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
-        """The PSD part of `dE d2x/dF2` in closed form (derivation in the PSD notes of the module docstring).
-
-        `curvature` as `derivatives` returns it (g_c, g_s in `basis`, K in `kron`). Holds for every
-        frame with r > 0, which validation guarantees (collapsed frames are rejected): no eigensolver.
-        Returns kron (N, 4, 4), basis (N, 3, 4, 3) = (h1, h3, d), coef (N, 3, 3) diagonal.
-        """
+        """The PSD part of `dE d2x/dF2` in closed form (the PSD notes above), for every frame with r > 0 (collapsed
+        ones are refused): kron (N, 4, 4), basis (N, 3, 4, 3) = (h1, h3, d), coef (N, 3, 3) diagonal."""
         rescaled = isinstance(curvature, _RescaledCurvature)
         x_c, x_s = curvature.dx_coef[:, 0], curvature.dx_coef[:, 1]  # -s / r^2, c / r^2
         # The rows `scaled` names hold nothing meaningful here (their r^2 is not a normal number): overwritten below.

@@ -39,10 +39,6 @@ def _distance(x: Array, lower: Array, upper: Array, above: NDArray[np.bool_], be
     return a
 
 
-def width(lower: Array, upper: Array) -> Array:
-    return np.where(upper > lower, upper - lower, 1.0)
-
-
 def distance(x: Array, lower: Array, upper: Array) -> Array:
     """`gap`'s g (N,) alone (the side is not needed): `x - upper` above, `lower - x` below, else +0."""
     return _distance(x, lower, upper, x > upper, x < lower)
@@ -118,9 +114,12 @@ def _relative(g: Array, x: Array, lower: Array, upper: Array) -> tuple[Array, Ar
     where `g` or `w` overflowed from finite inputs, there from halves (exact for such magnitudes: 1.5e308 against
     [-1e308, 1e308] is 0.25, not 5e307 / inf = 0). Every other joint keeps the plain quotient's bits.
     """
-    w = width(lower, upper)
+    w = np.where(upper > lower, upper - lower, 1.0)
     r = np.asarray(g / w)
-    wide = _overflowed(g, w, x, lower, upper)
+    # The usual case: two reductions, no temporaries (g >= 0 and w > 0 are never NaN: only +inf can be there).
+    wide = np.zeros(0, dtype=np.intp)
+    if g.size and not (g.max() < np.inf and w.max() < np.inf):  # overflowed differences of finite inputs
+        wide = np.flatnonzero((np.isinf(g) | np.isinf(w)) & np.isfinite(x) & np.isfinite(lower) & np.isfinite(upper))
     if not wide.size:
         return r, w, (wide, w[:0])
     x_w, l_w, u_w = (np.asarray(a)[wide] for a in (x, lower, upper))
@@ -130,12 +129,3 @@ def _relative(g: Array, x: Array, lower: Array, upper: Array) -> tuple[Array, Ar
     half_w = np.where(us > ls, us - ls, 0.5).astype(w.dtype, copy=False)
     r[wide] = half_g / half_w  # a ratio beyond float64 stays inf: the core's overflow check names the joint
     return r, w, (wide, half_w)
-
-
-def _overflowed(g: Array, w: Array, x: Array, lower: Array, upper: Array) -> NDArray[np.intp]:
-    """Positions where `g` or `w` is infinite though `x`, `lower`, `upper` are finite (an overflowed difference)."""
-    # The usual case: two reductions, no temporaries (g >= 0 and w > 0 are never NaN: only +inf can be there).
-    if g.size == 0 or (g.max() < np.inf and w.max() < np.inf):
-        return np.zeros(0, dtype=np.intp)
-    finite = np.isfinite(x) & np.isfinite(lower) & np.isfinite(upper)
-    return np.flatnonzero((np.isinf(g) | np.isinf(w)) & finite)

@@ -30,22 +30,15 @@ def cofactors(a: Array, out: Array | None = None) -> tuple[Array, Array]:
     if a.shape[1] <= SMALL:  # a few bodies: all nine entries in two passes (the same products, the same order)
         C = np.multiply(a[_P], a[_Q], out=out)
         C -= a[_S] * a[_T]
-        det = np.multiply(a[0], C[0])
-        det += a[1] * C[1]
-        det += a[2] * C[2]
-        return C, det
-    C = np.empty_like(a) if out is None else out
-    tmp = np.empty_like(a[0])
-    for r in range(3):
-        u0, u1, u2 = a[3 * ((r + 1) % 3) : 3 * ((r + 1) % 3) + 3]
-        w0, w1, w2 = a[3 * ((r + 2) % 3) : 3 * ((r + 2) % 3) + 3]
-        for k, (p, q, s, t) in enumerate(((u1, w2, u2, w1), (u2, w0, u0, w2), (u0, w1, u1, w0))):
-            c = C[3 * r + k]
-            np.multiply(p, q, out=c)
-            c -= np.multiply(s, t, out=tmp)
+    else:  # a pass per entry, in place: no (9, M) gathers
+        C = np.empty_like(a) if out is None else out
+        tmp = np.empty_like(a[0])
+        for i in range(9):
+            np.multiply(a[_P[i]], a[_Q[i]], out=C[i])
+            C[i] -= np.multiply(a[_S[i]], a[_T[i]], out=tmp)
     det = np.multiply(a[0], C[0])
-    det += np.multiply(a[1], C[1], out=tmp)
-    det += np.multiply(a[2], C[2], out=tmp)
+    det += a[1] * C[1]
+    det += a[2] * C[2]
     return C, det
 
 

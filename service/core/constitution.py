@@ -20,13 +20,11 @@ Array = NDArray[np.float64]
 
 @dataclass
 class Curvature:
-    """A second derivative in `F` (12 x 12 per joint) in structured form, `d2x/dF2 = kron(K, I_3) + U^T C U`:
-    `kron` K (N, 4, 4) symmetric, `basis` U (N, k, 4, 3), `coef` C (N, k, k) symmetric (`diagonal`: diagonal).
-    `dx_coef` (N, k): `dx/dF = dx_coef . U` when the gradient lies in span(U) (None otherwise), so the
-    `E'' dx dx^T` term needs no extra factor. `kron_factors` = (w (N, m), f (N or 1, m, 4)) with
-    `K = sum_e w_e f_e f_e^T` when known (else the assembly takes K's eigen-decomposition); `kron` may then be
-    None. The Hessian is assembled from such signed rank-1 factors in one product, never as 12 x 12.
-    """
+    """`d2x/dF2 = kron(K, I_3) + U^T C U` (12 x 12 per joint, never formed on the fast paths): `kron` K (N, 4, 4)
+    symmetric, `basis` U (N, k, 4, 3), `coef` C (N, k, k) symmetric (`diagonal`: diagonal); `dx_coef` (N, k):
+    `dx/dF = dx_coef . U` if the gradient lies in span(U) (else None). `kron_factors` = (w (N, m), f (N or 1,
+    m, 4)) with `K = sum_e w_e f_e f_e^T` when known (else the assembly takes K's eigen-decomposition; `kron`
+    may then be None)."""
 
     kron: Array | None
     basis: Array

@@ -1,7 +1,5 @@
-"""The cubic limit penalty shared by every joint-limit constitution.
-
-    E(x) = s (g / w)^3,   g = x - u above the range, l - x below it, 0 inside,
-    w = u - l, or 1 for a degenerate range (u == l: the fallback s |x - l|^3).
+"""The cubic limit penalty of every joint-limit constitution: `E(x) = s (g / w)^3`, with `g = x - u` above the
+range, `l - x` below it, 0 inside, and `w = u - l`, or 1 for a degenerate range (u == l: `s |x - l|^3`).
 
 `g / w` is finite wherever the true ratio is: where `u - l` or `x - u` overflows float64 both are taken from
 halves (`_relative`), never `5e307 / inf = 0`. An energy or derivative beyond float64 is inf, which the core

@@ -1,14 +1,11 @@
 """#669 AffineBodyPrismaticJointLimit: the slide of a prismatic joint (base UID 20).
 
-F = [C_i, T_i, C_j, T_j], with C_k = p_k + A_k c_k (the anchor) and T_k = A_k t_k
-(the axis), and
+F = [C_i, T_i, C_j, T_j], with C_k = p_k + A_k c_k (the anchor) and T_k = A_k t_k (the axis), and
 
-    theta = (C_j - C_i) . (T_i + T_j) / 2,   x = theta(q) - theta(q_ref).
+    theta = (C_j - C_i) . (T_i + T_j) / 2,   x = theta(q) - theta(q_ref)
 
-The incremental form of the spec telescopes exactly to this difference, taken from the frames at
-q_ref and their increment `F(q - q_ref)` (`Prismatic.advance`); `origin: "absolute"` takes
-theta(q) itself (the engine's formula), from the frames at q (`PreparedScene._step`).
-theta is bilinear in F, so d2x/dF2 is a constant, `kron(PAIRS, I_3)`.
+(the spec's incremental form telescopes to it), from the frames at q_ref and their increment `F(q - q_ref)`;
+`origin: "absolute"` takes theta(q) itself (the engine's formula). d2x/dF2 is constant, `kron(PAIRS, I_3)`.
 """
 
 from __future__ import annotations

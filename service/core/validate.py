@@ -252,6 +252,7 @@ def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, sha
     for name in (geometry, "lower", "upper", "strength", "offset", "prev_coordinate"):
         if name in shaped:
             faults += nonfinite_faults(getattr(joints, name), "batches", b, name)
+    finite = not faults  # the common case: the range checks need no masks of finite rows
     if "body_ids" in shaped:
         ids = joints.body_ids
         outside = (ids < 0) | (ids >= n_bodies)
@@ -263,13 +264,15 @@ def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, sha
     # The range checks read finite rows only: a row with a NaN or an infinity is named above, once.
     lo, up, s = joints.lower, joints.upper, joints.strength
     if {"lower", "upper"} <= shaped:
-        both = np.isfinite(lo) & np.isfinite(up)
-        faults += _empty_ranges(b, lo, up, both & (lo > up))
-        if "offset" in shaped:
+        both = None if finite else np.isfinite(lo) & np.isfinite(up)
+        faults += _empty_ranges(b, lo, up, lo > up if finite else both & (lo > up))
+        if "offset" in shaped and finite:
+            faults += check_offset(b, lo, up, joints.offset)
+        elif "offset" in shaped:
             rows = (both & np.isfinite(joints.offset)).nonzero()[0]
             faults += check_offset(b, lo[rows], up[rows], joints.offset[rows], rows)
     if "strength" in shaped:
-        faults += _negative_strengths(b, s, np.isfinite(s) & (s < 0))
+        faults += _negative_strengths(b, s, s < 0 if finite else np.isfinite(s) & (s < 0))
     if geometry in shaped:
         faults += _check_edges(b, joints, geometry)
     return faults
@@ -282,16 +285,17 @@ def _check_edges(b: int, joints: Joints, geometry: str) -> list[Fault]:
     p0, p1 = ("p0", "p1") if geometry == "edges" else ("l0", "l1")
     with np.errstate(over="ignore", invalid="ignore"):
         size = max_abs(edge_vector(edge))
-    # A non-finite edge is named as such (above), not as too long: no per-row reduction unless one is there.
-    unsized = ~np.isfinite(size)
-    if unsized.any():
-        size[unsized & ~np.isfinite(edge).all(axis=(1, 2))] = 1.0
+    if ((size > 0) & (size < np.inf)).all():  # the common case: every edge has an axis
+        return []
+    # A non-finite edge is named as such (above), not as too long.
+    size[~np.isfinite(size) & ~np.isfinite(edge).all(axis=(1, 2))] = 1.0
     return _rows(b, geometry, size == 0, lambda j: f"zero-length edge: {p0} == {p1} gives no joint axis") + _rows(
         b, geometry, ~np.isfinite(size), lambda j: f"edge too long: {p1} - {p0} overflows float64")
 
 
-def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarray, index: NDArray[np.int64]) -> list[Fault]:
-    """Joints `index` (M,) whose bounds relative to the offset (`lower - offset`, `upper - offset`) overflow."""
+def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarray,
+                 index: NDArray[np.int64] | None = None) -> list[Fault]:
+    """Joints `index` (M,) (default: every one) whose bounds relative to the offset (`lower - offset`, `upper - offset`) overflow."""
     with np.errstate(over="ignore", invalid="ignore"):
         bad = ~(np.isfinite(lower - offset) & np.isfinite(upper - offset))
     return _rows(b, "offset", bad, lambda j: "lower - offset or upper - offset overflows float64", index)

@@ -11,9 +11,7 @@ from __future__ import annotations
 import ctypes
 import sys
 
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
-_M_ARENA_MAX = -8
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8  # glibc's mallopt options
 MMAP_THRESHOLD = 1 << 30
 """Blocks over 1 GiB (a 2e5-joint Hessian) still get their own mapping, returned on free."""
 TRIM_THRESHOLD = 1 << 31

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from jointlimits.service.core.constitution import Array, Constitution
-from jointlimits.service.core.kinematics import SMALL, axis, component_major, edge_axis, edge_vector, from_local, solve3
+from jointlimits.service.core.kinematics import SMALL, axis, component_major, edge_vector, from_local, solve3
 
 
 def axis_and_anchors(
@@ -23,7 +23,7 @@ def axis_and_anchors(
     component-major. `p_ref` (N, 2, 3), `A_ref` and `R_ref` (N, 2, 3, 3) of bodies i, j."""
     points = c.facts.points
     if local_edges is None:
-        return edge_axis(edges), (_world_anchors(edges, p_ref, A_ref) if points else None)
+        return axis(edge_vector(edges)), (_world_anchors(edges, p_ref, A_ref) if points else None)
     d = edge_vector(local_edges[:, 0])  # l1 - l0, in body i's coordinates
     # Both factors scaled by powers of two (exact; the direction is all that counts): `M d` then
     # neither overflows nor underflows for any finite, nonzero `d` and a nonsingular `A_ref`.

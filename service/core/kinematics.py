@@ -366,11 +366,6 @@ def _apply(M: Array, w: Array, out: Array | None = None) -> Array:
     return out
 
 
-def edge_axis(edges: Array) -> Array:
-    """Unit joint axis `t` (N, 3), component-major, of edges `p0 -> p1` (N, 2, 3) (`axis`)."""
-    return axis(edge_vector(edges))
-
-
 def axis(d: Array) -> Array:
     """`d / |d|` (N, 3), component-major, of nonzero, finite vectors `d` (N, 3) (`validate.check_joints` refuses
     the others). Where `dot(d, d)` leaves float64's comfortable range (an edge of 1e-160 or 1e160), `d` is scaled

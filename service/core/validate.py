@@ -101,14 +101,6 @@ def _element_faults(value: Any, loc: Loc, integer: bool, row: tuple[int, ...] | 
     return shape if isinstance(shape, list) else []
 
 
-def _is_number(x: Any, integer: bool) -> bool:
-    if isinstance(x, bool):
-        return False
-    if integer:  # pydantic's strict integers: 0.0 is a float, on every path (issue 27)
-        return isinstance(x, (int, np.integer))
-    return x is None or isinstance(x, (int, float, np.integer, np.floating))
-
-
 def _shape_of(value: list | tuple, loc: Loc, integer: bool, row: tuple[int, ...] | None = None) -> tuple[int, ...] | list[Fault]:
     """The shape of nested lists `value` (of items of shape `row`, if given), or a fault: an item not a number
     (or list), or ragged rows."""
@@ -116,8 +108,10 @@ def _shape_of(value: list | tuple, loc: Loc, integer: bool, row: tuple[int, ...]
         return (0,)
     nested = isinstance(value[0], (list, tuple, np.ndarray)) if row is None else len(row) > 0
     if not nested:
+        # pydantic's strict integers: 0.0 is a float, on every path (issue 27); None is a NaN, a bool no number
+        kinds = (int, np.integer) if integer else (int, float, np.integer, np.floating, type(None))
         for i, x in enumerate(value):
-            if not _is_number(x, integer):
+            if isinstance(x, bool) or not isinstance(x, kinds):
                 return [Fault((*loc, i), *(NOT_AN_INTEGER if integer else NOT_A_NUMBER))]
             if integer and not -(2**63) <= x < 2**63:  # pydantic's words for JSON's int64 bounds
                 words = ("less_than_equal", "less than or equal to", 2**63 - 1) if x > 0 else ("greater_than_equal", "greater than or equal to", -(2**63))

@@ -57,8 +57,10 @@ def _solve3(a: Array, y: Array) -> tuple[Array, Array]:
 def component_major(n: int, shape: tuple[int, ...], dtype: type = np.float64) -> Array:
     """An empty (N, *shape) array in which every `a[:, i, ..]` is a contiguous (N,) row: the kernels run along
     the joints (broadcasting over trailing 3-vectors is 5x slower). Elementwise ufuncs keep it (order K)."""
-    k = len(shape)
-    return np.empty(shape + (n,), dtype=dtype).transpose((k, *range(k)))  # moveaxis, less its checks (~3 us)
+    return np.empty(shape + (n,), dtype=dtype).transpose(_LAST_FIRST[len(shape)])  # moveaxis, less its checks (~3 us)
+
+
+_LAST_FIRST = [(k, *range(k)) for k in range(6)]
 
 
 GATHER = "wrap"

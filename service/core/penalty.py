@@ -27,7 +27,7 @@ def _distance(x: Array, lower: Array, upper: Array, above: NDArray[np.bool_], be
     `lower - x` where below, else +0 (a NaN `x` too). The very bits `np.where` would select, blended with integer
     masks: `np.where` branches per element and mispredicts on random sides (3x slower with every joint out)."""
     a, b = np.asarray(np.subtract(x, upper)), np.asarray(np.subtract(lower, x))
-    if a.dtype.kind != "f" or b.dtype != a.dtype:
+    if a.dtype.kind != "f" or b.dtype != a.dtype or a.size <= 256:  # a few joints: two calls, not eight
         return np.where(above, a, np.where(below, b, 0.0))
     bits = np.dtype(f"i{a.dtype.itemsize}")
     take_a = np.negative(above, dtype=bits)  # all ones where above, else 0

@@ -154,6 +154,7 @@ class _RescaledCurvature(Curvature):
     scaled: Curvature | None = None
 
 
+_EYE4 = np.eye(4)
 _G_BLOCKS = np.array([2, 3, 0, 1, 3, 2, 1, 0])
 _G_HALVES = np.array([0.5, 0.5, 0.5, 0.5, 0.5, -0.5, -0.5, 0.5])[:, None]
 """d cos/dF (blocks 0-3) and d sin/dF (4-7): each the block `_G_BLOCKS` of F times `_G_HALVES`."""
@@ -185,7 +186,9 @@ def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = 
     kron[:, 0, 2] = kron[:, 2, 0] = kron[:, 1, 3] = kron[:, 3, 1] = half_c
     kron[:, 0, 3] = kron[:, 3, 0] = half_s
     kron[:, 1, 2] = kron[:, 2, 1] = -half_s
-    return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1))
+    dx_coef = np.empty((n, 2), dtype=F.dtype)  # (x_c, x_s), C order as np.stack's (without its Python)
+    dx_coef[:, 0], dx_coef[:, 1] = x_c, x_s
+    return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=dx_coef)
 
 
 class Revolute:
@@ -270,7 +273,7 @@ class Revolute:
             r = 1.0 / np.hypot(x_c, x_s)
             g_c = curvature.basis[:, 0]
             rho2 = np.einsum("nkc,nkc->n", g_c, g_c)  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
-            sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype)
+            sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
             mu = np.abs(dE)
             basis = _psd_vectors(sign, curvature.basis, x_c, x_s, r)
             coef = np.zeros((dE.shape[0], 3, 3), dtype=dE.dtype)
@@ -278,7 +281,7 @@ class Revolute:
             coef[:, 2, 2] = mu / (2.0 * r * r)
             # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
             kron = (0.5 * dE)[:, None, None] * curvature.kron
-            kron += (mu / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
+            kron += (mu / (4.0 * r))[:, None, None] * _EYE4.astype(dE.dtype, copy=False)
         if rescaled:
             rows = curvature.rows
             kron[rows], basis[rows], coef[rows] = _rescaled_projection(dE[rows], curvature)
@@ -334,7 +337,7 @@ def _rescaled_projection(dE: Array, scaled: _RescaledCurvature) -> tuple[Array, 
     g = np.ldexp(cv.basis, shift[:, None, :, None])
     g_c = g[:, 0]
     rho2 = np.einsum("nkc,nkc->n", g_c, g_c)
-    sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype)
+    sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
     mant, p = np.frexp(np.abs(dE))  # |E'| = mant 2^p, mant in [1/2, 1) (or 0, inf, NaN as |E'|)
     basis = _psd_vectors(sign, g, x_c, x_s, r)
     # P(F) = P(F / 2^m) / 4^m: each coefficient at F / 2^m (r there is r_s 2^spread), times 4^-m.
@@ -343,7 +346,7 @@ def _rescaled_projection(dE: Array, scaled: _RescaledCurvature) -> tuple[Array, 
     coef[:, 0, 0] = coef[:, 1, 1] = -np.ldexp(mant / (2.0 * r * (rho2 + np.ldexp(r, spread))), ij)
     coef[:, 2, 2] = np.ldexp(mant / (2.0 * r * r), p - 2 * e.min(axis=1))  # 2^(-2 spread - 2m) = 4^-min(e_i, e_j)
     kron = (0.5 * sign * mant)[:, None, None] * cv.kron  # K_s = K 2^(e_i + e_j)
-    kron += (mant / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
+    kron += (mant / (4.0 * r))[:, None, None] * _EYE4.astype(dE.dtype, copy=False)
     return np.ldexp(kron, ij[:, None, None]), basis, coef
 
 

@@ -155,7 +155,6 @@ class _RescaledCurvature(Curvature):
 
 
 _EYE4 = np.eye(4)
-_J_SIGNS = np.array([1.0, -1.0, -1.0, 1.0])[:, None]
 _G_BLOCKS = np.array([2, 3, 0, 1, 3, 2, 1, 0])
 _G_HALVES = np.array([0.5, 0.5, 0.5, 0.5, 0.5, -0.5, -0.5, 0.5])[:, None]
 """d cos/dF (blocks 0-3) and d sin/dF (4-7): each the block `_G_BLOCKS` of F times `_G_HALVES`."""
@@ -180,14 +179,13 @@ def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = 
     coef[:, 0, 0] = 2.0 * c * s / r4
     coef[:, 1, 1] = -coef[:, 0, 0]
     coef[:, 0, 1] = coef[:, 1, 0] = (s * s - c * c) / r4
-    # K (N, 4, 4): x_c / 2 in the blocks of d2 cos (B_i.B_j, N_i.N_j), x_s / 2 in those of d2 sin (B_i.N_j, minus
-    # N_i.B_j); component-major (the assembly reads it entry by entry): its entries 4 r + c are rows of `K`.
+    # K (N, 4, 4) = x_c COS_PAIRS + x_s SIN_PAIRS, component-major (the assembly reads it entry by entry).
+    kron = component_major(n, (4, 4), F.dtype)
+    kron[...] = 0.0
     half_c, half_s = 0.5 * x_c, 0.5 * x_s
-    K = np.zeros((16, n), dtype=F.dtype)
-    K[[2, 8, 7, 13]] = half_c
-    K[[3, 12]] = half_s
-    K[[6, 9]] = -half_s
-    kron = K.reshape(4, 4, n).transpose(2, 0, 1)
+    kron[:, 0, 2] = kron[:, 2, 0] = kron[:, 1, 3] = kron[:, 3, 1] = half_c
+    kron[:, 0, 3] = kron[:, 3, 0] = half_s
+    kron[:, 1, 2] = kron[:, 2, 1] = -half_s
     dx_coef = np.empty((n, 2), dtype=F.dtype)  # (x_c, x_s), C order as np.stack's (without its Python)
     dx_coef[:, 0], dx_coef[:, 1] = x_c, x_s
     return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=dx_coef)
@@ -302,9 +300,13 @@ def _psd_vectors(sign: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> Arr
     d = b - sign * a
 
     def J(v: Array) -> Array:
-        """`(K / lambda0) (x) I_3` on v (N, 4, 3), an involution (eigenvalues +-1): block k is
-        `+-cos_t v[3 - k] - sin_t v[k ^ 2]` (the signs exact)."""
-        return _J_SIGNS.astype(v.dtype, copy=False) * (cos_t * v[:, [3, 2, 1, 0]]) - sin_t * v[:, [2, 3, 0, 1]]
+        """`(K / lambda0) (x) I_3` on v (N, 4, 3): an involution, eigenvalues +-1."""
+        out = np.empty_like(v)
+        out[:, 0] = cos_t[:, 0] * v[:, 3] - sin_t[:, 0] * v[:, 2]
+        out[:, 1] = -cos_t[:, 0] * v[:, 2] - sin_t[:, 0] * v[:, 3]
+        out[:, 2] = -cos_t[:, 0] * v[:, 1] - sin_t[:, 0] * v[:, 0]
+        out[:, 3] = cos_t[:, 0] * v[:, 0] - sin_t[:, 0] * v[:, 1]
+        return out
 
     basis = component_major(g.shape[0], (3, 4, 3), g.dtype)
     basis[:, 0] = 0.5 * (u + sign * J(u))  # h1 = P_sigma u

@@ -88,9 +88,10 @@ class BodyTable:
     absolute: a joint differences its two bodies' positions within one state first, then across states.
     """
 
-    def __init__(self, bodies: Bodies, dtype: type = np.float64, rows: Iterable[int] = STEPS, rotate: bool = True) -> None:
+    def __init__(self, bodies: Bodies, dtype: type = np.float64, rows: Iterable[int] = STEPS,
+                 used: NDArray[np.bool_] | None = None, rotate: bool = True) -> None:
         """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage);
-        `plain` is taken over `rows`. `rotate` False: the polar factors wait for `rotate`."""
+        `plain` is taken over `rows`. `used`: as `rotate` takes it; `rotate` False: the polar factors wait for `rotate`."""
         n = bodies.q.shape[0]
         filled = tuple(sorted(set(rows)))
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
@@ -111,7 +112,7 @@ class BodyTable:
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         self._A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
         if rotate:
-            self.rotate()
+            self.rotate(used)
 
     def rotate(self, used: NDArray[np.bool_] | None = None) -> None:
         """The polar factors `rotation` (9, B) and the conditioning `ratio` (B,) of each `A_ref`; `used` (B,): the

@@ -36,7 +36,7 @@ def solve3(A: Array, b: Array) -> Array:
     a LAPACK call per system costs more). Where `det` or a product leaves float64's comfortable range
     (|A| beyond ~1e+-100), those systems are solved again with `A` scaled by a power of two (exact)."""
     lead = b.shape[:-1]
-    a = A.transpose(A.ndim - 2, A.ndim - 1, *range(A.ndim - 3, -1, -1)).reshape(9, -1)  # (9, M): a view of the table's A
+    a = A.transpose(A.ndim - 2, A.ndim - 1, *range(A.ndim - 3, -1, -1)).reshape(9, -1)  # (9, M): the table's A, a view
     y = b.transpose(b.ndim - 1, *range(b.ndim - 2, -1, -1)).reshape(3, -1)
     # Overflow is expected on the first pass (redone below) and legitimate on the second (an
     # anchor beyond float64: the coordinate overflows and `validate` names the joint).
@@ -91,7 +91,7 @@ class BodyTable:
     def __init__(self, bodies: Bodies, dtype: type = np.float64, rows: Iterable[int] = STEPS,
                  used: NDArray[np.bool_] | None = None, rotate: bool = True) -> None:
         """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage);
-        `plain` is taken over `rows`. `used`: as `rotate` takes it; `rotate` False: the polar factors wait for `rotate`."""
+        `plain` is taken over `rows`. `used`: as `rotate` takes it; `rotate` False: the polar factors wait."""
         n = bodies.q.shape[0]
         filled = tuple(sorted(set(rows)))
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
@@ -262,7 +262,7 @@ def scaled_frames(r: Array | None, A: Array, e: NDArray[np.int_], alpha: Array, 
 
 def careful_frames(table: BodyTable, pairs: NDArray[np.intp], rows: tuple[int, ...], alpha: Array, v: Array,
                    idx: NDArray[np.intp]) -> CarefulFrames:
-    """`CarefulFrames` of joints `idx` (M,) of `pairs` (2, N) with local vectors `v` (N, 4, 3), over the steps `rows`."""
+    """`CarefulFrames` of joints `idx` (M,) of `pairs` (2, N), local vectors `v` (N, 4, 3), over the steps `rows`."""
     sub = np.ascontiguousarray(pairs[:, idx])
     v = v[idx]
     states = sorted({s for row in rows for s in STEPS[row]})

@@ -121,12 +121,14 @@ def _careful_angle(careful: CarefulFrames) -> Array:
         for k, (F, dF) in enumerate(zip(careful.starts, careful.steps)):
             c, s = _cos_sin(F)
             turn_step, (c2, s2) = _step(F, dF, (c, s))
-            bound_step = (_pair_size(F + dF, 0) * _pair_size(dF, 1) + _pair_size(dF, 0) * _pair_size(F, 1)) / np.hypot(c2, s2)
+            bound_step = _pair_size(F + dF, 0) * _pair_size(dF, 1) + _pair_size(dF, 0) * _pair_size(F, 1)
+            bound_step = bound_step / np.hypot(c2, s2)
             S, E = careful.states[k], careful.states[k + 1]
             ca, sa = _cos_sin(S)
             ce, se = _cos_sin(E)
             turn_direct = np.arctan2(se * ca - ce * sa, ce * ca + se * sa)
-            bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se) + _pair_size(S, 0) * _pair_size(S, 1) / np.hypot(ca, sa)
+            bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se)
+            bound_direct = bound_direct + _pair_size(S, 0) * _pair_size(S, 1) / np.hypot(ca, sa)
             steady = (np.abs(careful.exponents[k] - careful.exponents[k + 1]) <= _STEADY_EXPONENTS).all(axis=1)
             x = x + np.where(steady & (bound_step <= bound_direct), turn_step, turn_direct)
     return x

@@ -180,8 +180,10 @@ def _rows(b: int, name: str, mask: np.ndarray, msg: Callable[[int], str], index:
     return [Fault(("batches", b, name, j if index is None else int(index[j])), msg(j), type) for j in _where(mask)]
 
 
-def _empty_ranges(b: int, lower: np.ndarray, upper: np.ndarray, mask: np.ndarray, index: np.ndarray | None = None) -> list[Fault]:
-    return _rows(b, "lower", mask, lambda j: f"lower {float(lower[j])!r} > upper {float(upper[j])!r}: the range is empty", index)
+def _empty_ranges(b: int, lower: np.ndarray, upper: np.ndarray, mask: np.ndarray,
+                  index: np.ndarray | None = None) -> list[Fault]:
+    return _rows(b, "lower", mask, lambda j: f"lower {float(lower[j])!r} > upper {float(upper[j])!r}: the range is empty",
+                 index)
 
 
 def _negative_strengths(b: int, strength: np.ndarray, mask: np.ndarray, index: np.ndarray | None = None) -> list[Fault]:
@@ -289,7 +291,7 @@ def _check_edges(b: int, joints: Joints, geometry: str) -> list[Fault]:
 
 def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarray,
                  index: NDArray[np.int64] | None = None) -> list[Fault]:
-    """Joints `index` (M,) (default: every one) whose bounds relative to the offset (`lower - offset`, `upper - offset`) overflow."""
+    """Joints `index` (M,) (default: all) whose bounds relative to the offset (`lower - offset`, ...) overflow."""
     with np.errstate(over="ignore", invalid="ignore"):
         bad = ~(np.isfinite(lower - offset) & np.isfinite(upper - offset))
     return _rows(b, "offset", bad, lambda j: "lower - offset or upper - offset overflows float64", index)

@@ -39,11 +39,6 @@ class FaultLog:
     def add(self, faults: list[Fault]) -> None:
         self.faults += faults[: MAX_FAULTS - len(self.faults)]
 
-    @property
-    def full(self) -> bool:
-        """True once the cap is reached: the pipeline stops checking."""
-        return len(self.faults) >= MAX_FAULTS
-
     def raise_if_any(self) -> None:
         if self.faults:
             raise InputError(self.faults)

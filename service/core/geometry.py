@@ -1,14 +1,11 @@
-"""A joint's geometry at `q_ref`: its world axis `t` and its anchors in the two bodies' own coordinates.
+"""A joint's geometry at `q_ref`: its world axis `t` and its anchors in the two bodies' own coordinates, from
+which each constitution makes its body-local vectors (`Constitution.local_vectors`). CONTRACT.md v1.2:
 
-Two ways to give a joint (CONTRACT.md v1.2) lead here, and from here one code path: each
-constitution turns `(t, anchors)` into its body-local vectors (`Constitution.local_vectors`).
-
-- `edges` (N, 2, 3), an edge `p0 -> p1` in world space at `q_ref` (v1): `t = (p1 - p0) / |p1 - p0|`,
-  anchors `c_k = A_ref_k^{-1} (p0 - p_ref_k)`.
-- `local_edges` (N, 2, 2, 3), `[[l0, l1], [r0, r1]]` in body i's and body j's coordinates (the
-  reference engine's local variant): `t` is `l1 - l0` carried to the world by body i at `q_ref`,
-  by its rotation `R_i` or by `A_ref_i` itself (`Facts.axis_by_rotation`, as the engine
-  does for each), anchors `c_i = l0`, `c_j = r0` as given.
+- `edges` (N, 2, 3), `p0 -> p1` in world space at `q_ref`: `t = (p1 - p0) / |p1 - p0|`,
+  anchors `c_k = A_ref_k^{-1} (p0 - p_ref_k)`;
+- `local_edges` (N, 2, 2, 3), `[[l0, l1], [r0, r1]]` in body i's and body j's coordinates (the engine's local
+  variant): `t` is `l1 - l0` carried to the world by body i's `R_i` or `A_ref_i` (`Facts.axis_by_rotation`),
+  anchors `c_i = l0`, `c_j = r0`.
 """
 
 from __future__ import annotations
@@ -16,17 +13,17 @@ from __future__ import annotations
 import numpy as np
 
 from jointlimits.service.core.constitution import Array, Constitution
-from jointlimits.service.core.kinematics import SMALL, axis, component_major, edge_axis, edge_vector, from_local, solve3
+from jointlimits.service.core.kinematics import SMALL, axis, component_major, edge_vector, from_local, solve3
 
 
 def axis_and_anchors(
     c: Constitution, edges: Array | None, local_edges: Array | None, p_ref: Array | None, A_ref: Array, R_ref: Array
 ) -> tuple[Array, Array | None]:
-    """The unit world axis `t` (N, 3) and, for a constitution with points, the body-local anchors (N, 2, 3)
-    (else None), both component-major. `p_ref` (N, 2, 3), `A_ref` and `R_ref` (N, 2, 3, 3) of bodies i, j."""
+    """The unit world axis `t` (N, 3) and, with points, the body-local anchors (N, 2, 3) (else None), both
+    component-major. `p_ref` (N, 2, 3), `A_ref` and `R_ref` (N, 2, 3, 3) of bodies i, j."""
     points = c.facts.points
     if local_edges is None:
-        return edge_axis(edges), (_world_anchors(edges, p_ref, A_ref) if points else None)
+        return axis(edge_vector(edges)), (_world_anchors(edges, p_ref, A_ref) if points else None)
     d = edge_vector(local_edges[:, 0])  # l1 - l0, in body i's coordinates
     # Both factors scaled by powers of two (exact; the direction is all that counts): `M d` then
     # neither overflows nor underflows for any finite, nonzero `d` and a nonsingular `A_ref`.
@@ -54,7 +51,4 @@ def _world_anchors(edges: Array, p_ref: Array, A_ref: Array) -> Array:
     else:
         for r in range(3):
             np.subtract(edges[:, 0, r, None], p_ref[:, :, r], out=d[:, :, r])
-    anchors = component_major(n, (2, 3), edges.dtype)
-    for r, c in enumerate(solve3(A_ref, d)):
-        anchors[:, :, r] = c
-    return anchors
+    return solve3(A_ref, d)

@@ -1,11 +1,9 @@
 """Keep freed memory in the process heap instead of giving it back to the OS after every call.
 
-An evaluation allocates tens to hundreds of MB of short-lived arrays. glibc serves blocks
-over its mmap threshold with fresh mappings and returns them on free, so every call
-page-faults all of it in again: on the virtual machines this runs on, ~4 us per 4 KiB page,
-half of an energy evaluation at 1e5 joints (12k faults, ~50 ms). Raising the mmap and trim
-thresholds lets the heap keep and reuse those pages, as JAX's own allocator does. The
-price: a process keeps its high-water mark of memory (a worker's peak request).
+An evaluation allocates tens to hundreds of MB of short-lived arrays; glibc maps blocks over its mmap threshold
+afresh and returns them on free, so every call page-faults all of it in again (~4 us per 4 KiB page here, half of
+an energy evaluation at 1e5 joints). Raised thresholds keep and reuse those pages, as JAX's allocator does; the
+price is that a process keeps its high-water mark of memory (a worker's peak request).
 """
 
 from __future__ import annotations
@@ -13,9 +11,7 @@ from __future__ import annotations
 import ctypes
 import sys
 
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
-_M_ARENA_MAX = -8
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8  # glibc's mallopt options
 MMAP_THRESHOLD = 1 << 30
 """Blocks over 1 GiB (a 2e5-joint Hessian) still get their own mapping, returned on free."""
 TRIM_THRESHOLD = 1 << 31

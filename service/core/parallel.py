@@ -23,12 +23,9 @@ def _pool(threads: int) -> ThreadPoolExecutor:
 
 
 def run_all(tasks: Sequence[Callable[[], T]], threads: int) -> list[T]:
-    """Each task's result, in order; the first task's exception (in order) is raised, once every task has
-    ended (a caller that retries or reports then never races a task still reading its arrays).
-
-    Every task runs in a copy of the caller's context, so `np.errstate` (a context
-    variable) holds in the workers as it does in the caller.
-    """
+    """Each task's result, in order; the first task's exception (in order) is raised once every task has ended
+    (a caller never races a task still reading its arrays). Each task runs in a copy of the caller's context,
+    so `np.errstate` (a context variable) holds in the workers too."""
     if threads <= 1 or len(tasks) <= 1:
         return [task() for task in tasks]
     pool = _pool(threads)

@@ -1,13 +1,9 @@
-"""The cubic limit penalty shared by every joint-limit constitution.
+"""The cubic limit penalty of every joint-limit constitution: `E(x) = s (g / w)^3`, with `g = x - u` above the
+range, `l - x` below it, 0 inside, and `w = u - l`, or 1 for a degenerate range (u == l: `s |x - l|^3`).
 
-    E(x) = s (g / w)^3,   g = x - u above the range, l - x below it, 0 inside,
-    w = u - l, or 1 for a degenerate range (u == l: the fallback s |x - l|^3).
-
-`g / w` is finite wherever the true ratio is: where `u - l` or `x - u` overflows float64 (bounds near
-+-1.8e308) both are computed from halves (`_relative`), never `5e307 / inf = 0`. An energy or derivative
-beyond float64 is inf, which the core reports as a 422 naming the joint.
-
-Boundary points are in range. All arrays are (N,).
+`g / w` is finite wherever the true ratio is: where `u - l` or `x - u` overflows float64 both are taken from
+halves (`_relative`), never `5e307 / inf = 0`. An energy or derivative beyond float64 is inf, which the core
+reports as a 422 naming the joint. Boundary points are in range. All arrays are (N,).
 """
 
 from __future__ import annotations
@@ -27,14 +23,11 @@ def gap(x: Array, lower: Array, upper: Array) -> tuple[Array, Array]:
 
 
 def _distance(x: Array, lower: Array, upper: Array, above: NDArray[np.bool_], below: NDArray[np.bool_]) -> Array:
-    """`gap`'s g (N,) from its sides `above` (x > upper) and `below` (x < lower): `x - upper` where
-    above, else `lower - x` where below, else +0 (a NaN `x` too).
-
-    The very bits `np.where` would select, blended with integer masks: `np.where` branches per element
-    and mispredicts on the random sides of a scene with every joint out of range (3x slower there).
-    """
+    """`gap`'s g (N,) from its sides `above` (x > upper) and `below` (x < lower): `x - upper` where above, else
+    `lower - x` where below, else +0 (a NaN `x` too). The very bits `np.where` would select, blended with integer
+    masks: `np.where` branches per element and mispredicts on random sides (3x slower with every joint out)."""
     a, b = np.asarray(np.subtract(x, upper)), np.asarray(np.subtract(lower, x))
-    if a.dtype.kind != "f" or b.dtype != a.dtype:
+    if a.dtype.kind != "f" or b.dtype != a.dtype or a.size <= 256:  # a few joints: two calls, not eight
         return np.where(above, a, np.where(below, b, 0.0))
     bits = np.dtype(f"i{a.dtype.itemsize}")
     take_a = np.negative(above, dtype=bits)  # all ones where above, else 0
@@ -42,10 +35,6 @@ def _distance(x: Array, lower: Array, upper: Array, above: NDArray[np.bool_], be
     g = np.bitwise_and(a.view(bits), take_a, out=a.view(bits))
     g |= np.bitwise_and(b.view(bits), take_b, out=b.view(bits))
     return a
-
-
-def width(lower: Array, upper: Array) -> Array:
-    return np.where(upper > lower, upper - lower, 1.0)
 
 
 def distance(x: Array, lower: Array, upper: Array) -> Array:
@@ -58,25 +47,22 @@ def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
 
 
 def energy_and_relative(g: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array, Array, bool]:
-    """`s (g / w)^3` (N,) of the gaps `g` (N,) (`distance`) of `x` (N,), with the relative gap `g / w` and the
-    width `w` (N,) it took, and whether either overflowed somewhere (then `slopes` does not apply:
-    `derivatives` forms them from halves). One gap serves the energy, the active joints and their slopes."""
+    """`s (g / w)^3` of the gaps `g` (`distance`) of `x`, with the relative gap `g / w`, the width `w`, and whether
+    either overflowed somewhere (then `derivatives`, from halves, not `slopes`)."""
     r, w, (wide, _) = _relative(g, x, lower, upper)
     return strength * (r * r * r), r, w, bool(wide.size)
 
 
 def slopes(r: Array, w: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array]:
-    """`derivatives`' `dE/dx`, `d2E/dx2` (N,) from the relative gap `r` and width `w` (N,) that
-    `energy_and_relative` took where nothing overflowed: the very operations, so the very bits."""
+    """`derivatives`' `dE/dx`, `d2E/dx2` from the `r`, `w` that `energy_and_relative` took where nothing
+    overflowed: the very operations, so the very bits."""
     side = (x > upper).astype(np.float64) - (x < lower).astype(np.float64)
     sw = strength / w
     sww = sw / w
     return side * 3.0 * sw * (r * r), 6.0 * sww * r
 
 
-def derivatives(
-    x: Array, lower: Array, upper: Array, strength: Array
-) -> tuple[Array, Array, Array]:
+def derivatives(x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array, Array]:
     """`(E, dE/dx, d2E/dx2)`, each (N,)."""
     above, below = x > upper, x < lower
     side = above.astype(np.float64) - below.astype(np.float64)
@@ -91,15 +77,12 @@ def derivatives(
 
 
 def scale_up(dE: Array, d2E: Array, x: Array, lower: Array, upper: Array, strength: Array) -> NDArray[np.int_] | None:
-    """Exponents `k >= 0` (N,), with `dE`, `d2E` (`derivatives` of joints outside their range, (N,)) replaced in
-    place by `2^k E'`, `2^k E''` where either is below `2^(minexp + 22)` (subnormal, or 0 though the joint
-    is out: 2^-1000 in float64); None where no joint is (the common case: nothing changed).
+    """Exponents `k >= 0` (N,), with `dE`, `d2E` (`derivatives` of joints outside their range) replaced in place
+    by `2^k E'`, `2^k E''` where either is below `2^(minexp + 22)` (2^-1000 in float64); None where no joint is.
 
-    E'' alone underflows where the Hessian's `E'' dx dx^T` need not: a joint 1e300 outside a range 1e300
-    wide has E'' ~ 1e-600, and a frame of 1e150 makes the term ~1e-300. So the scaled E', E'' are formed
-    from the exponents of s, g and w (`6 s r / w^2`, `3 s r^2 / w`, r = g / w, each at least 2^-1000, at
-    most ~2^75: k is the least that lifts the smaller), the derivatives from them, and the caller scales
-    those back by 2^-k (exact, or one rounding where they are subnormal).
+    E'' alone underflows where the Hessian's `E'' dx dx^T` need not (1e300 outside a range 1e300 wide: E'' ~
+    1e-600; with a frame of 1e150 the term is ~1e-300). So 2^k E', 2^k E'' are formed from the exponents of s,
+    g and w (k the least that lifts the smaller), and the caller scales the derivatives back by 2^-k.
     """
     target = np.finfo(dE.dtype).minexp + 22
     rows = ((np.abs(dE) < 2.0**target) | (d2E < 2.0**target)).nonzero()[0]
@@ -125,17 +108,16 @@ def scale_up(dE: Array, d2E: Array, x: Array, lower: Array, upper: Array, streng
 
 
 def _relative(g: Array, x: Array, lower: Array, upper: Array) -> tuple[Array, Array, tuple[NDArray[np.intp], Array]]:
-    """`(g / w, w, (wide, w / 2 at wide))` of the gaps `g` (`_distance`): the relative gap, the width and the
-    joints `wide` where `g` or `w` overflowed from finite inputs (`u - l` or `x - u` beyond float64), there
-    computed from halves.
-
-    Halving is exact for the magnitudes that overflow, so `(x/2 - u/2) / (u/2 - l/2)` is the ratio rounded
-    once more at most, finite wherever the true ratio is: 1.5e308 against [-1e308, 1e308] is 0.25, not
-    5e307 / inf = 0. Every other joint keeps the plain quotient's bits (the scaled one is only for these).
+    """`(g / w, w, (wide, w / 2 at wide))` of the gaps `g`: the relative gap, the width and the joints `wide`
+    where `g` or `w` overflowed from finite inputs, there from halves (exact for such magnitudes: 1.5e308 against
+    [-1e308, 1e308] is 0.25, not 5e307 / inf = 0). Every other joint keeps the plain quotient's bits.
     """
-    w = width(lower, upper)
+    w = np.where(upper > lower, upper - lower, 1.0)
     r = np.asarray(g / w)
-    wide = _overflowed(g, w, x, lower, upper)
+    # The usual case: two reductions, no temporaries (g >= 0 and w > 0 are never NaN: only +inf can be there).
+    wide = np.zeros(0, dtype=np.intp)
+    if g.size and not (g.max() < np.inf and w.max() < np.inf):  # overflowed differences of finite inputs
+        wide = np.flatnonzero((np.isinf(g) | np.isinf(w)) & np.isfinite(x) & np.isfinite(lower) & np.isfinite(upper))
     if not wide.size:
         return r, w, (wide, w[:0])
     x_w, l_w, u_w = (np.asarray(a)[wide] for a in (x, lower, upper))
@@ -145,12 +127,3 @@ def _relative(g: Array, x: Array, lower: Array, upper: Array) -> tuple[Array, Ar
     half_w = np.where(us > ls, us - ls, 0.5).astype(w.dtype, copy=False)
     r[wide] = half_g / half_w  # a ratio beyond float64 stays inf: the core's overflow check names the joint
     return r, w, (wide, half_w)
-
-
-def _overflowed(g: Array, w: Array, x: Array, lower: Array, upper: Array) -> NDArray[np.intp]:
-    """Positions where `g` or `w` is infinite though `x`, `lower`, `upper` are finite (an overflowed difference)."""
-    # The usual case: two reductions, no temporaries (g >= 0 and w > 0 are never NaN: only +inf can be there).
-    if g.size == 0 or (g.max() < np.inf and w.max() < np.inf):
-        return np.zeros(0, dtype=np.intp)
-    finite = np.isfinite(x) & np.isfinite(lower) & np.isfinite(upper)
-    return np.flatnonzero((np.isinf(g) | np.isinf(w)) & finite)

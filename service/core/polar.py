@@ -10,19 +10,13 @@ Array = NDArray[np.float64]
 SINGULAR_RATIO = 1e-12
 """`A_ref` is singular when its smallest singular value is below this times its largest."""
 
-_NEWTON_RATIO = 1e-4
-"""Below this estimated conditioning ratio the polar factor comes from an SVD, not Newton's iteration."""
-_SUBSET_FRACTION = 0.5
-"""`polar_rotation(a, used)` iterates on the used bodies alone when they are fewer than this fraction."""
+_NEWTON_RATIO = 1e-4  # below this estimated conditioning ratio: an SVD, not Newton's iteration
+_SUBSET_FRACTION = 0.5  # `polar_rotation(a, used)` iterates on the used bodies alone below this fraction
 _NEWTON_STEPS = 12
 _NEWTON_TOL = 1e-8
 """Stop once a step changes no entry by more than this: near the factor, X = U (I + E) steps to
 U (I + E^2 / 2 + O(E^3)), so the step just taken left an error of about half its square (< 1e-16)."""
-
-
-SMALL = 256
-"""Bodies up to which `_cofactors_t` forms its nine entries in whole (9, M) passes: their call overhead,
-not the M numbers, is the cost there (as `kinematics.SMALL`)."""
+SMALL = 256  # matrices up to which `cofactors` takes its nine entries in whole (9, M) passes (`kinematics.SMALL`)
 # Cofactor (3 r + k) = a[_P] a[_Q] - a[_S] a[_T]: row r of the cofactors is row r+1 x row r+2.
 _P, _Q, _S, _T = (np.array(i) for i in zip(*(
     (u + (k + 1) % 3, w + (k + 2) % 3, u + (k + 2) % 3, w + (k + 1) % 3)
@@ -30,32 +24,21 @@ _P, _Q, _S, _T = (np.array(i) for i in zip(*(
 )))
 
 
-def _cofactors_t(a: Array, out: Array | None = None) -> tuple[Array, Array]:
-    """Cofactors and determinant in component-major layout: `a` (9, M) -> `C` (9, M), det (M,).
-
-    Row i of the cofactor matrix is row (i+1) x row (i+2); contiguous (M,) components
-    make every product a SIMD pass (strided views of (M, 3, 3) are 10x slower). Each
-    entry is written in place (`out`, else a new array): no copy of a temporary.
-    """
+def cofactors(a: Array, out: Array | None = None) -> tuple[Array, Array]:
+    """Cofactors and determinant, component-major: `a` (9, M) -> `C` (9, M) (into `out` if given), det (M,).
+    Row i of the cofactor matrix is row (i+1) x row (i+2); contiguous (M,) rows make every product a SIMD pass."""
     if a.shape[1] <= SMALL:  # a few bodies: all nine entries in two passes (the same products, the same order)
         C = np.multiply(a[_P], a[_Q], out=out)
         C -= a[_S] * a[_T]
-        det = np.multiply(a[0], C[0])
-        det += a[1] * C[1]
-        det += a[2] * C[2]
-        return C, det
-    C = np.empty_like(a) if out is None else out
-    tmp = np.empty_like(a[0])
-    for r in range(3):
-        u0, u1, u2 = a[3 * ((r + 1) % 3) : 3 * ((r + 1) % 3) + 3]
-        w0, w1, w2 = a[3 * ((r + 2) % 3) : 3 * ((r + 2) % 3) + 3]
-        for k, (p, q, s, t) in enumerate(((u1, w2, u2, w1), (u2, w0, u0, w2), (u0, w1, u1, w0))):
-            c = C[3 * r + k]
-            np.multiply(p, q, out=c)
-            c -= np.multiply(s, t, out=tmp)
+    else:  # a pass per entry, in place: no (9, M) gathers
+        C = np.empty_like(a) if out is None else out
+        tmp = np.empty_like(a[0])
+        for i in range(9):
+            np.multiply(a[_P[i]], a[_Q[i]], out=C[i])
+            C[i] -= np.multiply(a[_S[i]], a[_T[i]], out=tmp)
     det = np.multiply(a[0], C[0])
-    det += np.multiply(a[1], C[1], out=tmp)
-    det += np.multiply(a[2], C[2], out=tmp)
+    det += a[1] * C[1]
+    det += a[2] * C[2]
     return C, det
 
 
@@ -71,25 +54,20 @@ def _frobenius_t(a: Array) -> Array:
 def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Array, Array]:
     """Orthogonal polar factor `R` (9, M) of each `A` and its conditioning ratio `s_min / s_max` (M,).
 
-    Component-major in and out: `a[3 r + c]` is `A[r, c]` of all M matrices. `used` (M,): where
-    fewer than half the bodies are used, Newton's iteration only for these (the bodies some joint
-    reads; the others' columns of `R` are 0 unless the SVD below took them); the ratio of every one,
-    exactly as without `used` (a singular `A_ref` is refused whether a joint reads it or not).
+    Component-major in and out: `a[3 r + c]` is `A[r, c]`. `used` (M,): where fewer than half the bodies are
+    used, Newton's iteration only for these (the others' columns of `R` are 0 unless the SVD took them); the
+    ratio of every one (a singular `A_ref` is refused whether a joint reads it or not).
 
-    Why not an SVD for every body: it was 95% of an energy-only evaluation. Newton's
-    iteration `X <- (g X + X^-T / g) / 2`, with cofactor inverses (`X^-T = C / det`), converges
-    quadratically to the same factor. The scaling is the determinant's, `g = |det X|^(-1/3)`
-    (Byers; Higham, Functions of Matrices 8.9): as quick as the Frobenius scaling on these
-    matrices, and free once `det` is known, where the Frobenius one took two norms (a quarter of
-    each step's passes). Bodies it is not good
-    for (estimated ratio below 1e-4, or not converged in 12 steps) take the SVD. The
-    returned ratio is exact from the SVD where it decides anything; elsewhere it is the
-    bound `1 / (|A|_F |A^-1|_F)`, which lies in `[ratio / 3, ratio]`, far above `SINGULAR_RATIO`.
+    An SVD for every body was 95% of an energy-only evaluation. Newton's iteration `X <- (g X + X^-T / g) / 2`
+    (`X^-T = C / det`) converges quadratically to the same factor, with the determinant's scaling
+    `g = |det X|^(-1/3)` (Byers; Higham, Functions of Matrices 8.9), free once `det` is known. Bodies with an
+    estimated ratio below 1e-4, or not converged in 12 steps, take the SVD. The ratio is exact from the SVD
+    where it decides anything; elsewhere the bound `1 / (|A|_F |A^-1|_F)` in `[ratio / 3, ratio]`.
     """
     m = a.shape[1]
     ratio = np.zeros(m)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        C, det = _cofactors_t(a)
+        C, det = cofactors(a)
         nA = _frobenius_t(a)
         nC = _frobenius_t(C)
         est = np.abs(det) / (nA * nC)
@@ -131,7 +109,7 @@ def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Arr
         if going.shape[0] == 0:
             break
         X = X_new
-        C, det = _cofactors_t(X, out=C if C.shape == X.shape else None)
+        C, det = cofactors(X, out=C if C.shape == X.shape else None)
     R = np.empty_like(a) if R is None else R
     svd = np.concatenate([(~good).nonzero()[0], going])
     if svd.shape[0]:

@@ -1,21 +1,18 @@
 """#669 AffineBodyPrismaticJointLimit: the slide of a prismatic joint (base UID 20).
 
-F = [C_i, T_i, C_j, T_j], with C_k = p_k + A_k c_k (the anchor) and T_k = A_k t_k
-(the axis), and
+F = [C_i, T_i, C_j, T_j], with C_k = p_k + A_k c_k (the anchor) and T_k = A_k t_k (the axis), and
 
-    theta = (C_j - C_i) . (T_i + T_j) / 2,   x = theta(q) - theta(q_ref).
+    theta = (C_j - C_i) . (T_i + T_j) / 2,   x = theta(q) - theta(q_ref)
 
-The incremental form of the spec telescopes exactly to this difference, taken from the frames at
-q_ref and their increment `F(q - q_ref)` (`Prismatic.advance`); `origin: "absolute"` takes
-theta(q) itself (the engine's formula), from the frames at q (`PreparedScene._step`).
-theta is bilinear in F, so d2x/dF2 is a constant, `kron(PAIRS, I_3)`.
+(the spec's incremental form telescopes to it), from the frames at q_ref and their increment `F(q - q_ref)`;
+`origin: "absolute"` takes theta(q) itself (the engine's formula). d2x/dF2 is constant, `kron(PAIRS, I_3)`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
+from jointlimits.service.core.constitution import Array, Constitution, Curvature, Facts, Progress
 from jointlimits.service.core.kinematics import CarefulFrames, component_major, dot, to_local
 from jointlimits.service.core.registry import register
 
@@ -41,6 +38,7 @@ FACTS = Facts(
 _D = np.array([-1.0, 0.0, 1.0, 0.0])
 _S = np.array([0.0, 1.0, 0.0, 1.0])
 _PAIRS = 0.5 * (np.outer(_D, _S) + np.outer(_S, _D))  # (4, 4) block coefficients of d2theta/dF2
+_SIGNS = np.array([1.0, -1.0])
 _UU = np.stack([0.5 * (_D + _S), 0.5 * (_D - _S)])[None]  # (1, 2, 4): PAIRS = u+ u+^T - u- u-^T, the chain rule's factors
 
 # The engine's PSD projection (contract v1.2) is taken in the 9 quantities F01 = [D, T_i, -T_j], where
@@ -57,7 +55,7 @@ def _theta2(F: Array) -> Array:
     return dot(F[:, 2] - F[:, 0], F[:, 1] + F[:, 3])
 
 
-class Prismatic:
+class Prismatic(Constitution):  # its frames never collapse (`Constitution.collapsed`)
     facts = FACTS
 
     def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
@@ -74,30 +72,19 @@ class Prismatic:
         return Progress(None, (F[:, 2] - F[:, 0], F[:, 1] + F[:, 3]), [None])
 
     def advance(self, progress: Progress, F: Array, dF: Array) -> Progress:
-        # The one step q_ref -> q (the slide telescopes), in increment form: D2.S2 - D.S = D2.dS + dD.S,
-        # no two products of the frames' size cancelled. From the computed D, S, dD, dS (u = 2^-53, first
-        # order): D2 = D + dD rounds by u|D2|, each 3-term dot by 3u of its sum of |products|, their sum by
-        # u|2x|, halving is exact, so (Cauchy-Schwarz)
-        #     |x - x_exact| <= 2u (|D2| |dS| + |dD| |S|) + u|x|,
-        # relative to the step. The difference of the two thetas (theta(q) - theta(q_ref) as it reads: the
-        # engine's formula) rounds by 1.5u (|D2| |S2| + |D| |S|) + u|x|, relative to the frames: where the
-        # step is small, far more (anchors 1e3 apart turned by 1e-3: hundreds of times); where it is as
-        # large as the frames (|dD| <= |D| + |D2|, alike for S), within a small factor of ours. The frames'
-        # own rounding adds to both, to ours relative to the step but for the relative positions' (the
-        # whole bound: tests/core/test_prismatic_scales.py, `_bound`).
+        # The one step q_ref -> q (the slide telescopes) in increment form, D2.S2 - D.S = D2.dS + dD.S: it
+        # rounds by 2u (|D2| |dS| + |dD| |S|) + u|x| (u = 2^-53, first order), relative to the step; the
+        # difference of the two thetas (the engine's formula) by 1.5u (|D2| |S2| + |D| |S|) + u|x|, relative
+        # to the frames: hundreds of times more for anchors 1e3 apart turned by 1e-3, within a small factor
+        # for a step as large as the frames (the whole bound: tests/core/test_prismatic_scales.py, `_bound`).
         D, S = progress.state
         dD, dS = dF[:, 2] - dF[:, 0], dF[:, 1] + dF[:, 3]
         x = 0.5 * (dot(D + dD, dS) + dot(dD, S))
         return Progress(x if progress.x is None else progress.x + x, (), [*progress.known, None])
 
     def careful_coordinate(self, careful: CarefulFrames) -> Array:
-        # A step as large as the frames (or frames at the edge of float64): D and S at q from
-        # A(q) itself, formed scaled and unscaled once (state_frames), and theta at q_ref likewise.
-        F0, F1 = careful.unscaled(0), careful.unscaled(1)
-        return 0.5 * (_theta2(F1) - _theta2(F0))
-
-    def collapsed(self, F: Array, known: object = None, size_bound: Array | None = None) -> np.ndarray:
-        return np.zeros(F.shape[0], dtype=bool)
+        # A step as large as the frames (or frames at the edge of float64): theta at q from A(q) itself.
+        return 0.5 * (_theta2(careful.unscaled(1)) - _theta2(careful.unscaled(0)))
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
         n = F.shape[0]
@@ -110,8 +97,8 @@ class Prismatic:
         if not second:
             return dx, None
         # Rank-1 factor for E'' dx dx^T is dx itself (coefficient 0 in d2x).
-        kron = np.broadcast_to(_PAIRS.astype(F.dtype), (n, 4, 4))
-        factors = (np.broadcast_to(np.array([1.0, -1.0], F.dtype), (n, 2)), _UU.astype(F.dtype))
+        kron = np.broadcast_to(_PAIRS.astype(F.dtype, copy=False), (n, 4, 4))  # read-only views of the constants
+        factors = (np.broadcast_to(_SIGNS.astype(F.dtype, copy=False), (n, 2)), _UU.astype(F.dtype, copy=False))
         return dx, Curvature(kron=kron, basis=dx[:, None], coef=np.zeros((n, 1, 1), F.dtype),
                              dx_coef=np.ones((n, 1), F.dtype), kron_factors=factors)
 

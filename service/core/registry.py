@@ -1,10 +1,8 @@
 """The constitutions the service evaluates, by limit UID: each module registers itself (`register`).
 
-Everything that knows a constitution reads its facts here (`CONSTITUTIONS`): validation (`core/validate.py`),
-discovery and OpenAPI, the SDK's `Scene`, `LocalClient` and sessions, the libuipc adapter; the pipeline
-(`core/prepared.py`) takes its numerics (`numerics`). The two of the specs register when
-`jointlimits.service.core` is imported (670, then 669); a module of anyone's, inside the package or not, adds
-another with `register` (and takes it away with `unregister`).
+Everything that knows a constitution reads its facts here (`CONSTITUTIONS`): validation, discovery and OpenAPI,
+the SDK, the libuipc adapter; the pipeline takes its numerics (`numerics`). The specs' two register when
+`jointlimits.service.core` is imported (670, then 669); any module may add another (`register`, `unregister`).
 """
 
 from __future__ import annotations
@@ -17,8 +15,7 @@ _NUMERICS: dict[int, Constitution] = {}
 
 
 def register(c: Constitution) -> Constitution:
-    """Serve `c` under its limit UID (`c.facts.uid`) from now on, on every path; returns `c`. A UID already
-    served is refused."""
+    """Serve `c` under its limit UID from now on, on every path; returns `c`. A UID already served is refused."""
     uid = c.facts.uid
     if uid in CONSTITUTIONS:
         raise ValueError(f"constitution {uid} is already registered ({CONSTITUTIONS[uid].name})")

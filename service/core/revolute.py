@@ -69,21 +69,10 @@ FACTS = Facts(
     engine_zero_axis=1e-24,  # AffineBodyRevoluteJoint refuses |t|^2 <= 1e-24
 )
 
-# Constant second derivatives of the bilinear cos and sin in the (4 x 4) block
-# layout of F; each block is a multiple of the 3 x 3 identity.
-_COS_PAIRS = np.zeros((4, 4))
-_COS_PAIRS[0, 2] = _COS_PAIRS[2, 0] = _COS_PAIRS[1, 3] = _COS_PAIRS[3, 1] = 0.5
-_SIN_PAIRS = np.zeros((4, 4))
-_SIN_PAIRS[0, 3] = _SIN_PAIRS[3, 0] = 0.5
-_SIN_PAIRS[1, 2] = _SIN_PAIRS[2, 1] = -0.5
-
-
 COLLAPSE_RATIO = 1e-12
-"""A frame collapses where `cos^2 + sin^2 <= 2 COLLAPSE_RATIO^2 (|B_i|^2 |B_j|^2 + |N_i|^2 |N_j|^2)`:
-(cos, sin) within rounding of zero relative to the frame vectors' size, whatever their scale
-(the same ratio as `polar.SINGULAR_RATIO`). Above it the angle is as exact as its conditioning
-allows: a few roundings times size / hypot(cos, sin), up to ~1e-3 rad right at the threshold
-(body j nearly flipped over an in-plane axis; `tests/core/test_degenerate_scales.py`)."""
+"""A frame collapses where `cos^2 + sin^2 <= 2 COLLAPSE_RATIO^2 (|B_i|^2 |B_j|^2 + |N_i|^2 |N_j|^2)`: (cos, sin)
+within rounding of zero relative to the frames' size, at any scale (as `polar.SINGULAR_RATIO`). Above it the
+angle is as exact as its conditioning allows (up to ~1e-3 rad at the threshold; test_degenerate_scales.py)."""
 
 
 def _cos_sin(F: Array) -> tuple[Array, Array]:
@@ -92,11 +81,8 @@ def _cos_sin(F: Array) -> tuple[Array, Array]:
 
 
 def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Array, Array]]:
-    """DeltaTheta(F + dF, F) and (cos, sin) at F + dF, from (cos, sin) `cs` at F.
-
-    `sin_a cos_b - cos_a sin_b` is `dsin cos_b - dcos sin_b` with the increments `dcos`, `dsin`
-    of the bilinear cos and sin taken term by term: no cancellation of two O(1) products.
-    """
+    """DeltaTheta(F + dF, F) and (cos, sin) at F + dF, from (cos, sin) `cs` at F: `sin_a cos_b - cos_a sin_b` is
+    `dsin cos_b - dcos sin_b`, the increments of the bilinear cos and sin taken term by term (no cancellation)."""
     if F.shape[0] <= SMALL:  # a few joints: the eight dots in whole passes (the same products and sums, in order)
         i2, di, j, dj = F[:, :2] + dF[:, :2], dF[:, :2], F[:, 2:], dF[:, 2:]  # [B, N] of body i after the step, ...
         p = np.empty((F.shape[0], 4, 2, 3), dtype=np.result_type(F, dF))
@@ -123,36 +109,28 @@ def _pair_size(F: Array, side: int) -> Array:
 
 
 def _careful_angle(careful: CarefulFrames) -> Array:
-    """x (M,) of the careful joints: each step in the form with the smaller rounding bound.
-
-    The frames are scaled per body and state (the angle depends only on their directions).
-    Step form: `(cos, sin)` at the end is the start's plus the increment, whose rounding is
-    bounded by `(|B_i'| + |N_i'|)(|dB_j| + |dN_j|) + (|dB_i| + |dN_i|)(|B_j| + |N_j|)`: right
-    when the step is small against the frame. Direct form: `(cos, sin)` from the end state's own
-    frames, rounding bounded by `(|B_i| + |N_i|)(|B_j| + |N_j|)` there and at the start: right when
-    the step is as large as the frame (a frame shrunk by 1e-12 in one step). Each bound is taken
-    relative to `hypot(cos, sin)`, the angle's rounding bound up to a constant.
+    """x (M,) of the careful joints: each step in the form with the smaller rounding bound, relative to
+    `hypot(cos, sin)` (the angle's, up to a constant). Step form: `(cos, sin)` at the end is the start's plus the
+    increment, rounding bounded by `(|B_i'| + |N_i'|)(|dB_j| + |dN_j|) + (|dB_i| + |dN_i|)(|B_j| + |N_j|)`: right
+    when the step is small against the frame. Direct form: `(cos, sin)` of each state's own frames (scaled on
+    their own), bounded by `(|B_i| + |N_i|)(|B_j| + |N_j|)` at both ends: right for a frame shrunk by 1e-12 in
+    one step (in the step's common scaling it would keep few digits, or none).
     """
-    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # a bound of inf or NaN loses the choice
-        return _careful_steps(careful)
-
-
-def _careful_steps(careful: CarefulFrames) -> Array:
     x = 0.0
-    for k, (F, dF) in enumerate(zip(careful.starts, careful.steps)):
-        c, s = _cos_sin(F)
-        turn_step, (c2, s2) = _step(F, dF, (c, s))
-        F2 = F + dF
-        bound_step = (_pair_size(F2, 0) * _pair_size(dF, 1) + _pair_size(dF, 0) * _pair_size(F, 1)) / np.hypot(c2, s2)
-        # Each state's own frames, scaled on their own: in the step's common scaling a frame 1e18
-        # times smaller than the other state's would keep few digits (or none), whatever the bound says.
-        S, E = careful.states[k], careful.states[k + 1]
-        ca, sa = _cos_sin(S)
-        ce, se = _cos_sin(E)
-        turn_direct = np.arctan2(se * ca - ce * sa, ce * ca + se * sa)
-        bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se) + _pair_size(S, 0) * _pair_size(S, 1) / np.hypot(ca, sa)
-        steady = (np.abs(careful.exponents[k] - careful.exponents[k + 1]) <= _STEADY_EXPONENTS).all(axis=1)
-        x = x + np.where(steady & (bound_step <= bound_direct), turn_step, turn_direct)
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # a bound of inf or NaN loses the choice
+        for k, (F, dF) in enumerate(zip(careful.starts, careful.steps)):
+            c, s = _cos_sin(F)
+            turn_step, (c2, s2) = _step(F, dF, (c, s))
+            bound_step = _pair_size(F + dF, 0) * _pair_size(dF, 1) + _pair_size(dF, 0) * _pair_size(F, 1)
+            bound_step = bound_step / np.hypot(c2, s2)
+            S, E = careful.states[k], careful.states[k + 1]
+            ca, sa = _cos_sin(S)
+            ce, se = _cos_sin(E)
+            turn_direct = np.arctan2(se * ca - ce * sa, ce * ca + se * sa)
+            bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se)
+            bound_direct = bound_direct + _pair_size(S, 0) * _pair_size(S, 1) / np.hypot(ca, sa)
+            steady = (np.abs(careful.exponents[k] - careful.exponents[k + 1]) <= _STEADY_EXPONENTS).all(axis=1)
+            x = x + np.where(steady & (bound_step <= bound_direct), turn_step, turn_direct)
     return x
 
 
@@ -169,22 +147,16 @@ def _unsafe(F: Array, cs: tuple[Array, Array]) -> NDArray[np.bool_]:
 
 
 @dataclass
-class _Scaled:
-    """Rows `rows` (M,) of a curvature were formed from frames scaled per body by `2^-exponents` (M, 2),
-    `curvature` their curvature there (`Revolute.derivatives`): what `projected_curvature` needs for them."""
-
-    rows: NDArray[np.intp]
-    exponents: NDArray[np.int32]
-    curvature: Curvature
-
-
-@dataclass
 class _RescaledCurvature(Curvature):
-    """A revolute curvature with some rows formed from scaled frames (`_Scaled`)."""
+    """A revolute curvature whose rows `rows` (M,) were formed from frames scaled per body by `2^-exponents`
+    (M, 2), `scaled` their curvature there (`Revolute.derivatives`): what `_rescaled_projection` needs."""
 
-    scaled: _Scaled | None = None
+    rows: NDArray[np.intp] | None = None
+    exponents: NDArray[np.int32] | None = None
+    scaled: Curvature | None = None
 
 
+_EYE4 = np.eye(4)
 _G_BLOCKS = np.array([2, 3, 0, 1, 3, 2, 1, 0])
 _G_HALVES = np.array([0.5, 0.5, 0.5, 0.5, 0.5, -0.5, -0.5, 0.5])[:, None]
 """d cos/dF (blocks 0-3) and d sin/dF (4-7): each the block `_G_BLOCKS` of F times `_G_HALVES`."""
@@ -216,7 +188,9 @@ def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = 
     kron[:, 0, 2] = kron[:, 2, 0] = kron[:, 1, 3] = kron[:, 3, 1] = half_c
     kron[:, 0, 3] = kron[:, 3, 0] = half_s
     kron[:, 1, 2] = kron[:, 2, 1] = -half_s
-    return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=np.stack([x_c, x_s], axis=1))
+    dx_coef = np.empty((n, 2), dtype=F.dtype)  # (x_c, x_s), C order as np.stack's (without its Python)
+    dx_coef[:, 0], dx_coef[:, 1] = x_c, x_s
+    return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=dx_coef)
 
 
 class Revolute:
@@ -248,8 +222,7 @@ class Revolute:
         turn, cs = _step(F, dF, progress.state)
         return Progress((0.0 if progress.x is None else progress.x) + turn, cs, [*progress.known, cs])
 
-    def careful_coordinate(self, careful: CarefulFrames) -> Array:
-        return _careful_angle(careful)
+    careful_coordinate = staticmethod(_careful_angle)
 
     def collapsed(self, F: Array, known: tuple[Array, Array] | None = None, size_bound: Array | None = None) -> np.ndarray:
         # Squares of frames from A inside kinematics.plain_range (or scaled) stay normal numbers
@@ -261,28 +234,20 @@ class Revolute:
             c, s = _cos_sin(F) if known is None else known
             r2 = c * c + s * s
             ratio2 = 2.0 * COLLAPSE_RATIO * COLLAPSE_RATIO
-            rows = slice(None)
             if size_bound is not None:
                 # size2 <= 2 |A_i|^2 |A_j|^2 (|b_k| = |n_k| = 1) <= size_bound / 2: a joint above the bound's
                 # threshold is above the test's own; only the others (none, commonly) form their sizes.
                 rows = (~(r2 > ratio2 * size_bound)).nonzero()[0]
-                if rows.shape[0] == 0:
-                    return np.zeros(F.shape[0], dtype=bool)
-                F, r2 = F[rows], r2[rows]
+                out = np.zeros(F.shape[0], dtype=bool)
+                if rows.shape[0]:
+                    out[rows] = self.collapsed(F[rows], (c[rows], s[rows]))
+                return out
             B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-            size2 = dot(B_i, B_i) * dot(B_j, B_j) + dot(N_i, N_i) * dot(N_j, N_j)
-            bad = r2 <= ratio2 * size2
-            if size_bound is None:
-                return bad
-            out = np.zeros(size_bound.shape[0], dtype=bool)
-            out[rows] = bad
-            return out
+            return r2 <= ratio2 * (dot(B_i, B_i) * dot(B_j, B_j) + dot(N_i, N_i) * dot(N_j, N_j))
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
-        # Rows whose r^4 would under- or overflow (frames beyond ~1e+-36): the same from each body's
-        # frames scaled by a power of two, then scaled back block by block (exact). `r^4` of a
-        # frame of 1e-80 is 0 and `r^2` of 1e-160 subnormal: the plain formula would answer inf or
-        # a number with few digits. (Only those rows can overflow in the first pass.)
+        # Rows whose r^4 would under- or overflow (frames beyond ~1e+-36; only those can overflow in the first
+        # pass): the same from each body's frames scaled by a power of two, scaled back block by block (exact).
         cs = _cos_sin(F)
         bad = _unsafe(F, cs).nonzero()[0]
         with np.errstate(all="ignore") if bad.shape[0] else nullcontext():  # else: the caller's error state
@@ -297,24 +262,20 @@ class Revolute:
                 curvature.basis[bad] = np.ldexp(cv_b.basis, -eb[:, None, :, None])
                 curvature.coef[bad], curvature.dx_coef[bad] = cv_b.coef, cv_b.dx_coef
                 # The PSD projection of these rows needs their scaled frames' quantities (`_rescaled_projection`).
-                curvature = _RescaledCurvature(**vars(curvature), scaled=_Scaled(bad, e, cv_b))
+                curvature = _RescaledCurvature(**vars(curvature), rows=bad, exponents=e, scaled=cv_b)
         return dx, curvature
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
-        """The PSD part of `dE d2x/dF2` in closed form (derivation in the PSD notes of the module docstring).
-
-        `curvature` as `derivatives` returns it (g_c, g_s in `basis`, K in `kron`). Holds for every
-        frame with r > 0, which validation guarantees (collapsed frames are rejected): no eigensolver.
-        Returns kron (N, 4, 4), basis (N, 3, 4, 3) = (h1, h3, d), coef (N, 3, 3) diagonal.
-        """
-        scaled = getattr(curvature, "scaled", None)
+        """The PSD part of `dE d2x/dF2` in closed form (the PSD notes above), for every frame with r > 0 (collapsed
+        ones are refused): kron (N, 4, 4), basis (N, 3, 4, 3) = (h1, h3, d), coef (N, 3, 3) diagonal."""
+        rescaled = isinstance(curvature, _RescaledCurvature)
         x_c, x_s = curvature.dx_coef[:, 0], curvature.dx_coef[:, 1]  # -s / r^2, c / r^2
         # The rows `scaled` names hold nothing meaningful here (their r^2 is not a normal number): overwritten below.
-        with np.errstate(all="ignore") if scaled is not None else nullcontext():  # else: the caller's error state
+        with np.errstate(all="ignore") if rescaled else nullcontext():  # else: the caller's error state
             r = 1.0 / np.hypot(x_c, x_s)
             g_c = curvature.basis[:, 0]
             rho2 = np.einsum("nkc,nkc->n", g_c, g_c)  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
-            sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype)
+            sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
             mu = np.abs(dE)
             basis = _psd_vectors(sign, curvature.basis, x_c, x_s, r)
             coef = np.zeros((dE.shape[0], 3, 3), dtype=dE.dtype)
@@ -322,10 +283,10 @@ class Revolute:
             coef[:, 2, 2] = mu / (2.0 * r * r)
             # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
             kron = (0.5 * dE)[:, None, None] * curvature.kron
-            kron += (mu / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
-        if scaled is not None:
-            rows = scaled.rows
-            kron[rows], basis[rows], coef[rows] = _rescaled_projection(dE[rows], scaled)
+            kron += (mu / (4.0 * r))[:, None, None] * _EYE4.astype(dE.dtype, copy=False)
+        if rescaled:
+            rows = curvature.rows
+            kron[rows], basis[rows], coef[rows] = _rescaled_projection(dE[rows], curvature)
         return Curvature(kron=kron, basis=basis, coef=coef, diagonal=True)
 
 
@@ -356,7 +317,7 @@ def _psd_vectors(sign: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> Arr
     return basis
 
 
-def _rescaled_projection(dE: Array, scaled: _Scaled) -> tuple[Array, Array, Array]:
+def _rescaled_projection(dE: Array, scaled: _RescaledCurvature) -> tuple[Array, Array, Array]:
     """kron, basis, coef of `projected_curvature` for rows differentiated from scaled frames.
 
     The frames are F = D F_s, body k's scaled by 2^e_k; the projection is taken at F / 2^m, m = max(e_i, e_j),
@@ -369,7 +330,7 @@ def _rescaled_projection(dE: Array, scaled: _Scaled) -> tuple[Array, Array, Arra
     an answer beyond float64 becomes inf (the caller's overflow error), never a wrong finite number.
     """
     e = scaled.exponents.astype(np.int64)
-    cv = scaled.curvature
+    cv = scaled.scaled
     x_c, x_s = cv.dx_coef[:, 0], cv.dx_coef[:, 1]
     r = 1.0 / np.hypot(x_c, x_s)  # r_s: O(1) frames, far from collapse (validation)
     top = e.max(axis=1)
@@ -378,7 +339,7 @@ def _rescaled_projection(dE: Array, scaled: _Scaled) -> tuple[Array, Array, Arra
     g = np.ldexp(cv.basis, shift[:, None, :, None])
     g_c = g[:, 0]
     rho2 = np.einsum("nkc,nkc->n", g_c, g_c)
-    sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype)
+    sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
     mant, p = np.frexp(np.abs(dE))  # |E'| = mant 2^p, mant in [1/2, 1) (or 0, inf, NaN as |E'|)
     basis = _psd_vectors(sign, g, x_c, x_s, r)
     # P(F) = P(F / 2^m) / 4^m: each coefficient at F / 2^m (r there is r_s 2^spread), times 4^-m.
@@ -387,7 +348,7 @@ def _rescaled_projection(dE: Array, scaled: _Scaled) -> tuple[Array, Array, Arra
     coef[:, 0, 0] = coef[:, 1, 1] = -np.ldexp(mant / (2.0 * r * (rho2 + np.ldexp(r, spread))), ij)
     coef[:, 2, 2] = np.ldexp(mant / (2.0 * r * r), p - 2 * e.min(axis=1))  # 2^(-2 spread - 2m) = 4^-min(e_i, e_j)
     kron = (0.5 * sign * mant)[:, None, None] * cv.kron  # K_s = K 2^(e_i + e_j)
-    kron += (mant / (4.0 * r))[:, None, None] * np.eye(4, dtype=dE.dtype)
+    kron += (mant / (4.0 * r))[:, None, None] * _EYE4.astype(dE.dtype, copy=False)
     return np.ldexp(kron, ij[:, None, None]), basis, coef
 
 

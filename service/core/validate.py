@@ -1,15 +1,14 @@
 """Checks that need arithmetic, vectorised over joints; each fault names batch, field and joint.
 
-The numeric arrays of every path (JSON, msgpack, sessions, the in-process API) are checked here:
-their shapes too, since the decoders hand them over unchecked and the in-process API takes any array. The checks are
-leaves: they return faults and evaluate nothing; the pipeline (`jointlimits.service.core.prepared`)
-calls them in order and caps the faults of a request (`errors.FaultLog`).
+The numeric arrays (and their shapes) of every path (JSON, msgpack, sessions, the in-process API) are checked
+here. The checks are leaves: they return faults and evaluate nothing; the pipeline (`prepared`) calls them
+in order and caps the faults of a request (`errors.FaultLog`).
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -73,14 +72,9 @@ ROWS: dict[str | int, tuple[int, ...]] = {
 
 
 def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | None, list[Fault]]:
-    """`value` (nested lists of numbers, or an array) as a float64 (int64) array of whatever shape it has,
-    else the faults that prevent it, each at its element: not a list, not a number, rows of different
-    lengths. The shape is then the validator's to judge (`check_dofs`, `check_joints`), on every path.
-    An array the wire names (`ROWS`, by the last key of `loc`): lists that make an array of another shape are
-    left to the shape checks, as an array map or a NumPy array of that shape is; among lists that make no
-    array, an item at another depth, or the first row of another shape, is named where the wire's schema
-    names it.
-
+    """`value` (nested lists of numbers, or an array) as a float64 (int64) array of whatever shape it has (the
+    shape checks judge it), else the faults that prevent it, each at its element: not a list, not a number,
+    ragged rows (for an array the wire names, `ROWS` by the last key of `loc`, where its schema names them).
     JSON's `null` is NaN (named as non-finite later), as a NaN-less JSON writer means it."""
     if isinstance(value, (list, tuple)):
         try:  # numbers only, rectangular: NumPy builds it at C speed (the Python walk below names a fault)
@@ -101,21 +95,10 @@ def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | 
 
 
 def _element_faults(value: Any, loc: Loc, integer: bool, row: tuple[int, ...] | None = None) -> list[Fault]:
-    """The first element fault of each list of `value` (up to the cap), or the first mismatch of row shapes."""
-    if isinstance(value, np.ndarray):
-        value = value.tolist()
-    if not isinstance(value, (list, tuple)):
-        return [Fault(loc, *NOT_A_LIST)]
-    shape = _shape_of(value, loc, integer, row)
+    """The first element fault of `value`, or the first mismatch of row shapes."""
+    value = value.tolist() if isinstance(value, np.ndarray) else value
+    shape = _shape_of(value, loc, integer, row) if isinstance(value, (list, tuple)) else [Fault(loc, *NOT_A_LIST)]
     return shape if isinstance(shape, list) else []
-
-
-def _is_number(x: Any, integer: bool) -> bool:
-    if isinstance(x, bool):
-        return False
-    if integer:  # pydantic's strict integers: 0.0 is a float, on every path (issue 27)
-        return isinstance(x, (int, np.integer))
-    return x is None or isinstance(x, (int, float, np.integer, np.floating))
 
 
 def _shape_of(value: list | tuple, loc: Loc, integer: bool, row: tuple[int, ...] | None = None) -> tuple[int, ...] | list[Fault]:
@@ -125,8 +108,10 @@ def _shape_of(value: list | tuple, loc: Loc, integer: bool, row: tuple[int, ...]
         return (0,)
     nested = isinstance(value[0], (list, tuple, np.ndarray)) if row is None else len(row) > 0
     if not nested:
+        # pydantic's strict integers: 0.0 is a float, on every path (issue 27); None is a NaN, a bool no number
+        kinds = (int, np.integer) if integer else (int, float, np.integer, np.floating, type(None))
         for i, x in enumerate(value):
-            if not _is_number(x, integer):
+            if isinstance(x, bool) or not isinstance(x, kinds):
                 return [Fault((*loc, i), *(NOT_AN_INTEGER if integer else NOT_A_NUMBER))]
             if integer and not -(2**63) <= x < 2**63:  # pydantic's words for JSON's int64 bounds
                 words = ("less_than_equal", "less than or equal to", 2**63 - 1) if x > 0 else ("greater_than_equal", "greater than or equal to", -(2**63))
@@ -188,49 +173,60 @@ def check_rotations(rotation_ratio: np.ndarray) -> list[Fault]:
     ]
 
 
+def _rows(b: int, name: str, mask: np.ndarray, msg: Callable[[int], str], index: np.ndarray | None = None,
+          type: str = "value_error") -> list[Fault]:
+    """A fault at ("batches", b, name, joint) per True row `j` of `mask` (the first `MAX_FAULTS`), in the words
+    `msg(j)`; the joint is `index[j]` if given, else `j`."""
+    return [Fault(("batches", b, name, j if index is None else int(index[j])), msg(j), type) for j in _where(mask)]
+
+
+def _empty_ranges(b: int, lower: np.ndarray, upper: np.ndarray, mask: np.ndarray,
+                  index: np.ndarray | None = None) -> list[Fault]:
+    return _rows(b, "lower", mask, lambda j: f"lower {float(lower[j])!r} > upper {float(upper[j])!r}: the range is empty",
+                 index)
+
+
+def _negative_strengths(b: int, strength: np.ndarray, mask: np.ndarray, index: np.ndarray | None = None) -> list[Fault]:
+    return _rows(b, "strength", mask, lambda j: f"strength {float(strength[j])!r} < 0: must be >= 0", index)
+
+
 def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     """Every fault of batch `b`, of every class at once (structure, indices, ranges, geometry), up to the cap.
 
     A field of the wrong shape is named once and its rows are not read; the rows of the others are still
-    checked, so a body index out of range does not hide `lower > upper` of another joint. Any fault
-    refuses the request before its evaluation starts (`prepared._prepare`).
+    checked, so a body index out of range does not hide `lower > upper` of another joint.
     """
-    faults = _check_kind(b, joints)
-    geometry = next((k for k in EDGE_SHAPES if getattr(joints, k) is not None), None)
-    if sum(getattr(joints, k) is not None for k in EDGE_SHAPES) != 1:
-        geometry = None  # named by _check_kind
+    given = [k for k in EDGE_SHAPES if getattr(joints, k) is not None]
+    geometry = given[0] if len(given) == 1 else None
+    faults = _check_kind(b, joints, given)
     shaped = _check_shapes(b, joints, geometry, faults)
-    faults += _check_rows(b, joints, n_bodies, geometry, shaped)
-    return faults[:MAX_FAULTS]
+    return (faults + _check_rows(b, joints, n_bodies, geometry, shaped))[:MAX_FAULTS]
 
 
-def _check_kind(b: int, joints: Joints) -> list[Fault]:
-    """The batch's constitution, base, geometry kind, origin and state fields."""
-    at = lambda *loc: ("batches", b, *loc)  # noqa: E731
+def _check_kind(b: int, joints: Joints, given: list[str]) -> list[Fault]:
+    """The batch's constitution, base, geometry kind (`given`: its edge fields), origin and state fields."""
     faults: list[Fault] = []
     c = CONSTITUTIONS.get(joints.constitution_uid)
     if c is None:
         known = ", ".join(str(f.uid) for f in CONSTITUTIONS.values())
-        faults.append(Fault(at("constitution_uid"), f"unknown constitution {joints.constitution_uid}; supported: {known}"))
+        faults.append(Fault(("batches", b, "constitution_uid"), f"unknown constitution {joints.constitution_uid}; supported: {known}"))
     elif joints.base_uid != c.base_uid:
         msg = f"constitution {c.uid} ({c.name}) needs base_uid {c.base_uid}, got {joints.base_uid}"
-        faults.append(Fault(at("base_uid"), msg))
-    given = [k for k in EDGE_SHAPES if getattr(joints, k) is not None]
+        faults.append(Fault(("batches", b, "base_uid"), msg))
     if len(given) != 1:
         said = "both" if given else "neither"
-        faults.append(Fault(at(), f"give exactly one of edges and local_edges (world edges (N, 2, 3) at q_ref, or body-local (N, 2, 2, 3)); got {said}"))
+        faults.append(Fault(("batches", b), f"give exactly one of edges and local_edges (world edges (N, 2, 3) at q_ref, or body-local (N, 2, 2, 3)); got {said}"))
     if joints.origin not in ORIGINS:
-        faults.append(Fault(at("origin"), "Input should be 'q_ref' or 'absolute'", "literal_error"))
+        faults.append(Fault(("batches", b, "origin"), "Input should be 'q_ref' or 'absolute'", "literal_error"))
     if joints.prev_coordinate is not None and c is not None and not c.stateful:
         which = ", ".join(f"{f.kind} joints ({f.uid})" for f in CONSTITUTIONS.values() if f.stateful)
         msg = f"applies to {which} only: the {c.name} coordinate is absolute and has no state"
-        faults.append(Fault(at("prev_coordinate"), msg))
+        faults.append(Fault(("batches", b, "prev_coordinate"), msg))
     return faults
 
 
 def _check_shapes(b: int, joints: Joints, geometry: str | None, faults: list[Fault]) -> set[str]:
-    """Appends a fault per per-joint field whose shape is not one row per joint of `body_ids`; returns
-    the fields of the right shape (their rows are checked next)."""
+    """Appends a fault per per-joint field that is not one row per joint of `body_ids`; returns the others."""
     n = joints.body_ids.shape[0] if joints.body_ids.ndim == 2 else -1
     want = {"body_ids": (n, 2), "lower": (n,), "upper": (n,), "strength": (n,)}
     if geometry is not None:
@@ -248,93 +244,82 @@ def _check_shapes(b: int, joints: Joints, geometry: str | None, faults: list[Fau
 
 def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, shaped: set[str]) -> list[Fault]:
     """Per-joint faults of the fields in `shaped`: non-finite numbers, indices, ranges, edges."""
-    at = lambda *loc: ("batches", b, *loc)  # noqa: E731
     faults: list[Fault] = []
     for name in (geometry, "lower", "upper", "strength", "offset", "prev_coordinate"):
         if name in shaped:
-            faults += nonfinite_faults(getattr(joints, name), *at(name))
+            faults += nonfinite_faults(getattr(joints, name), "batches", b, name)
+    finite = not faults  # the common case: the range checks need no masks of finite rows
     if "body_ids" in shaped:
         ids = joints.body_ids
         outside = (ids < 0) | (ids >= n_bodies)
-        faults += [
-            Fault(at("body_ids", j), f"body index {ids[j].tolist()} out of range [0, {n_bodies}) ({'there is 1 body' if n_bodies == 1 else f'there are {n_bodies} bodies'})")
-            for j in (_where(outside.any(axis=1)) if outside.any() else [])  # a flat test first: a per-row reduction is 10x slower
-        ]
-        faults += [Fault(at("body_ids", j), f"joint couples body {ids[j, 0]} to itself") for j in _where(ids[:, 0] == ids[:, 1])]
+        there = "there is 1 body" if n_bodies == 1 else f"there are {n_bodies} bodies"
+        # A flat test first: a per-row reduction is 10x slower.
+        faults += _rows(b, "body_ids", outside.any(axis=1) if outside.any() else outside[:, 0],
+                        lambda j: f"body index {ids[j].tolist()} out of range [0, {n_bodies}) ({there})")
+        faults += _rows(b, "body_ids", ids[:, 0] == ids[:, 1], lambda j: f"joint couples body {ids[j, 0]} to itself")
     # The range checks read finite rows only: a row with a NaN or an infinity is named above, once.
     lo, up, s = joints.lower, joints.upper, joints.strength
     if {"lower", "upper"} <= shaped:
-        both = np.isfinite(lo) & np.isfinite(up)
-        faults += [
-            Fault(at("lower", j), f"lower {float(lo[j])!r} > upper {float(up[j])!r}: the range is empty")
-            for j in _where(both & (lo > up))
-        ]
-        if "offset" in shaped:
+        both = None if finite else np.isfinite(lo) & np.isfinite(up)
+        faults += _empty_ranges(b, lo, up, lo > up if finite else both & (lo > up))
+        if "offset" in shaped and finite:
+            faults += check_offset(b, lo, up, joints.offset)
+        elif "offset" in shaped:
             rows = (both & np.isfinite(joints.offset)).nonzero()[0]
             faults += check_offset(b, lo[rows], up[rows], joints.offset[rows], rows)
     if "strength" in shaped:
-        faults += [Fault(at("strength", j), f"strength {float(s[j])!r} < 0: must be >= 0") for j in _where(np.isfinite(s) & (s < 0))]
+        faults += _negative_strengths(b, s, s < 0 if finite else np.isfinite(s) & (s < 0))
     if geometry in shaped:
         faults += _check_edges(b, joints, geometry)
     return faults
 
 
 def _check_edges(b: int, joints: Joints, geometry: str) -> list[Fault]:
-    """Exactly the edges `kinematics.edge_axis` (and `geometry.axis_and_anchors`) cannot normalise: they
-    scale the edge vector by a power of two first, so any nonzero, finite difference (even 5e-324)
-    has an axis; a body-local one is then carried by a nonsingular A_ref (check_rotations)."""
+    """Exactly the edges `kinematics.axis` cannot normalise (it scales the edge vector by a power of two first:
+    any nonzero, finite difference has an axis; a body-local one is then carried by a nonsingular A_ref)."""
     edge = joints.edges if geometry == "edges" else joints.local_edges[:, 0]  # p0 -> p1, or l0 -> l1 on body i
     p0, p1 = ("p0", "p1") if geometry == "edges" else ("l0", "l1")
     with np.errstate(over="ignore", invalid="ignore"):
         size = max_abs(edge_vector(edge))
-    # A non-finite edge is named as such, not as too long. Its size is not finite either (inf - inf, NaN):
-    # where every size is finite (the common case), no per-row reduction.
-    unsized = ~np.isfinite(size)
-    if unsized.any():
-        size[unsized & ~np.isfinite(edge).all(axis=(1, 2))] = 1.0
-    at = ("batches", b, geometry)
-    faults = [Fault((*at, j), f"zero-length edge: {p0} == {p1} gives no joint axis") for j in _where(size == 0)]
-    return faults + [Fault((*at, j), f"edge too long: {p1} - {p0} overflows float64") for j in _where(~np.isfinite(size))]
+    if ((size > 0) & (size < np.inf)).all():  # the common case: every edge has an axis
+        return []
+    # A non-finite edge is named as such (above), not as too long.
+    size[~np.isfinite(size) & ~np.isfinite(edge).all(axis=(1, 2))] = 1.0
+    return _rows(b, geometry, size == 0, lambda j: f"zero-length edge: {p0} == {p1} gives no joint axis") + _rows(
+        b, geometry, ~np.isfinite(size), lambda j: f"edge too long: {p1} - {p0} overflows float64")
 
 
-def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarray, index: NDArray[np.int64]) -> list[Fault]:
-    """Joints `index` (M,) whose bounds relative to the offset (`lower - offset`, `upper - offset`) overflow."""
+def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarray,
+                 index: NDArray[np.int64] | None = None) -> list[Fault]:
+    """Joints `index` (M,) (default: all) whose bounds relative to the offset (`lower - offset`, ...) overflow."""
     with np.errstate(over="ignore", invalid="ignore"):
         bad = ~(np.isfinite(lower - offset) & np.isfinite(upper - offset))
-    return [
-        Fault(("batches", b, "offset", int(index[j])), "lower - offset or upper - offset overflows float64")
-        for j in _where(bad)
-    ]
+    return _rows(b, "offset", bad, lambda j: "lower - offset or upper - offset overflows float64", index)
 
 
 def check_update_index(b: int, n_batches: int, n_joints: int, index: np.ndarray) -> list[Fault]:
     """The joints `index` of an update of batch `b`: distinct, in range (the batch has `n_joints`)."""
-    at = lambda *loc: ("batches", b, *loc)  # noqa: E731
     if not 0 <= b < n_batches:
         return [Fault(("batches", b), f"no batch {b}: the scene has {n_batches} batch{'' if n_batches == 1 else 'es'}")]
     if index.ndim != 1 or not np.issubdtype(index.dtype, np.integer):
-        return [Fault(at("index"), f"must be a 1-d array of joint indices, got {index.dtype} of shape {index.shape}")]
-    faults = [
-        Fault(at("index", i), f"joint index {int(index[i])} out of range [0, {n_joints})")
-        for i in _where((index < 0) | (index >= n_joints))
-    ]
+        return [Fault(("batches", b, "index"), f"must be a 1-d array of joint indices, got {index.dtype} of shape {index.shape}")]
+    faults = _rows(b, "index", (index < 0) | (index >= n_joints), lambda i: f"joint index {int(index[i])} out of range [0, {n_joints})")
     if not faults and np.unique(index).shape[0] != index.shape[0]:
-        faults.append(Fault(at("index"), "names a joint more than once"))
+        faults.append(Fault(("batches", b, "index"), "names a joint more than once"))
     return faults
 
 
 def check_update_values(b: int, index: np.ndarray, values: dict[str, np.ndarray]) -> list[Fault]:
     """The new `values` (name -> (M,)) of joints `index` (M,) of batch `b`: one finite number per index."""
-    at = lambda *loc: ("batches", b, *loc)  # noqa: E731
     faults = [
-        Fault(at(name), f"must have shape {index.shape} (one entry per index), got {a.shape}")
+        Fault(("batches", b, name), f"must have shape {index.shape} (one entry per index), got {a.shape}")
         for name, a in values.items()
         if a.shape != index.shape
     ]
     if faults:
         return faults
     for name, a in values.items():
-        faults += [Fault(at(name, int(index[j])), NONFINITE_MSG, NONFINITE_TYPE) for j in nonfinite_rows(a)]
+        faults += _rows(b, name, ~np.isfinite(a), lambda j: NONFINITE_MSG, index, NONFINITE_TYPE)
     return faults
 
 
@@ -342,30 +327,16 @@ def check_update_ranges(
     b: int, index: np.ndarray, lower: np.ndarray, upper: np.ndarray, strength: np.ndarray, offset: np.ndarray
 ) -> list[Fault]:
     """Joints `index` (M,) of batch `b` with their values after an update, each (M,): the request's range checks."""
-    at = lambda *loc: ("batches", b, *loc)  # noqa: E731
-    faults = [
-        Fault(at("lower", int(index[j])), f"lower {float(lower[j])!r} > upper {float(upper[j])!r}: the range is empty")
-        for j in _where(lower > upper)
-    ]
-    faults += [
-        Fault(at("strength", int(index[j])), f"strength {float(strength[j])!r} < 0: must be >= 0")
-        for j in _where(strength < 0)
-    ]
+    faults = _empty_ranges(b, lower, upper, lower > upper, index) + _negative_strengths(b, strength, strength < 0, index)
     return faults + check_offset(b, lower, upper, offset, index)
 
 
 def check_evaluation(ev: Evaluation) -> list[Fault]:
-    """Faults of a finished evaluation that would put NaN or Infinity in an answer.
-
-    The core names overflowing energies and derivatives itself; this also catches a
-    joint coordinate `x` that overflowed in an otherwise inactive joint (x = NaN has
-    no gap, so zero energy), so that no answer ever carries a non-finite number.
-    """
+    """Faults of a finished evaluation that would put NaN or Infinity in an answer: the core names overflowing
+    energies and derivatives itself; this also catches an overflowed `x` of an inactive joint (x = NaN has no
+    gap, so zero energy)."""
     faults = [
-        Fault(
-            ("batches", b, "body_ids", int(r.index[i])),
-            "the joint coordinate x overflows float64 at this configuration (positions or edge too large)",
-        )
+        Fault(("batches", b, "body_ids", int(r.index[i])), "the joint coordinate x overflows float64 at this configuration (positions or edge too large)")
         for b, r in enumerate(ev.batches)
         for i in nonfinite_rows(r.x)
     ]

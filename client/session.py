@@ -39,8 +39,8 @@ class SessionClosed(ServiceError):
 
     `status` is the WebSocket close code (None when there was none). The session object still
     holds the committed state: `reopen()` continues where the last commit left off. `resumable`: the
-    server went away (1001, 1012) or the connection dropped, so another server (or this one, back) can
-    take the session over: a session with `resume` on (the default) has tried to already.
+    server went away (1001, 1012), was full for now (1013, 4429) or the connection dropped, so another server
+    (or this one, later) can take the session over: a session with `resume` on (the default) has tried to already.
     """
 
     def __init__(self, url: str, code: int | None, reason: str, cause: str = "", resumable: bool = False) -> None:
@@ -50,8 +50,9 @@ class SessionClosed(ServiceError):
         Exception.__init__(self, f"session at {url} {what}; reopen() continues from the last commit")
 
 
-RESUMED_CLOSES = (proto.GOING_AWAY, proto.SERVICE_RESTART)
-"""Close codes of a server that stops (a rollout, a scale-down): the session goes on elsewhere."""
+RESUMED_CLOSES = (proto.GOING_AWAY, proto.SERVICE_RESTART, proto.TRY_AGAIN_LATER, proto.TOO_MANY_SESSIONS)
+"""Close codes after which the session goes on, after a pause, on a new connection: a server that stops (a rollout,
+a scale-down), a worker whose upload budget (1013) or session slots (4429) are full for now."""
 
 
 def resumable(e: Exception) -> bool:

@@ -57,7 +57,7 @@ class Session(Exchange):
     returns the committed coordinates (one (N,) array per batch); `update(batch, index, lower=...)`
     changes limits, strengths or offsets of some joints. A fault raises `InvalidInput` and the
     session stays open. With `resume` (the default), a connection closed by a server that stops
-    (1012, 1001) or dropped is reopened in the committed state and the message in flight sent
+    (1012, 1001), full for now (1013, 4429) or dropped is reopened in the committed state and the message in flight sent
     again, `retries` times at most with `backoff` (behind a load balancer, on another server);
     else, or past them, a lost connection raises `SessionClosed`, and `reopen()` continues.
     """

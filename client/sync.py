@@ -84,8 +84,9 @@ class Client(BaseClient):
     def session(self, request: Request | dict | EvaluateRequest, *, resume: bool = True) -> Session:
         """A session on the server's prepared scene of `request` (what `evaluate` takes; docs/sessions.md,
         "Sessions"): `with client.session(r) as s:`. `resume`: a session closed by a server that stops (1012,
-        1001) or dropped is reopened in its committed state and the message in flight sent again, and an
-        open that reaches no server, or one that drains, is tried again: `retries` times with `backoff`."""
+        1001) or is full for now (1013, 4429), or dropped, is reopened in its committed state and the message
+        in flight sent again, and an open that reaches no server, or one that drains, is tried again: `retries`
+        times with `backoff`."""
         from jointlimits.client.session_sync import Session  # imported here: HTTP alone never loads websockets
 
         return Session(request=request, resume=resume, **self._session_options())

@@ -472,13 +472,22 @@ class Server:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"server exited with {self.proc.returncode}:\n{self.log()[-3000:]}")
             if self.workers == 1 or len(worker_pids(self.proc.pid)) >= self.workers:
-                if get(self.port, "/healthz", timeout=1.0)[0] == 200:
+                if get(self.port, "/healthz", timeout=1.0)[0] == 200 and self._all_started():
                     # Every worker up: ask a few times so each has imported and served once.
                     for _ in range(4 * self.workers):
                         get(self.port, "/healthz", timeout=5.0)
                     return
             time.sleep(0.1)
         raise RuntimeError(f"server not ready in {timeout} s:\n{self.log()[-3000:]}")
+
+    def _all_started(self) -> bool:
+        """Every worker past its lifespan's start (uvicorn logs it once per worker, at info level). One worker's
+        answer is not enough: the others may still be importing, and a SIGTERM before a worker's lifespan stops it
+        without the drain (nothing to drain there, but a test of every worker's drain would see one missing)."""
+        if self.workers == 1:
+            return True
+        log = self.log()
+        return "Started server process" not in log or log.count("Application startup complete") >= self.workers
 
     def worker_pids(self) -> list[int]:
         return worker_pids(self.proc.pid) if self.workers > 1 else [self.proc.pid]

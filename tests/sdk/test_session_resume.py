@@ -184,8 +184,8 @@ def test_a_proxys_page_to_the_upgrade_is_unreachable_and_resumable():
     e = handshake_error("ws://lb/v1/sessions", InvalidStatus(Response(401, "Unauthorized", Headers(), body)))
     assert e.status == 401 and not resumable(e)
     for code, expected in ((proto.SERVICE_RESTART, True), (proto.GOING_AWAY, True), (None, True),
-                           (proto.IDLE_TIMEOUT, False), (proto.MESSAGE_TOO_BIG, False), (proto.TOO_MANY_SESSIONS, False),
-                           (proto.TRY_AGAIN_LATER, False), (proto.INTERNAL_ERROR, False)):
+                           (proto.IDLE_TIMEOUT, False), (proto.MESSAGE_TOO_BIG, False), (proto.TOO_MANY_SESSIONS, True),
+                           (proto.TRY_AGAIN_LATER, True), (proto.INTERNAL_ERROR, False)):
         lost = ConnectionClosedError(None if code is None else Close(code, "why"), None)
         assert resumable(closed_error("ws://x", lost)) == expected, code
 

@@ -132,6 +132,26 @@ def test_the_bearer_token_on_the_upgrade():
             assert s.evaluate(req.q).total_energy > 0
 
 
+def test_a_full_worker_is_waited_for_then_the_session_opens():
+    """4429 (the worker holds its maximum of sessions) means "retry later": with `resume` (the default) the opening
+    is tried again after `backoff`, doubling, and lands once a slot is free; with `resume=False` it raises at once."""
+    import threading
+
+    req, _ = chain()
+    settings = Settings(max_body_bytes=2_000_000, max_joints=20, token=None, cors_origins=(), max_sessions=1)
+    with serve(settings) as url:
+        client = Client(url, retries=6, backoff=0.05)
+        first = client.session(req)
+        t0 = time.monotonic()
+        with pytest.raises(SessionClosed) as e:
+            client.session(req, resume=False)
+        assert e.value.code == proto.TOO_MANY_SESSIONS and time.monotonic() - t0 < 1.0
+        threading.Timer(0.3, first.close).start()  # a slot frees while the second one waits
+        with client.session(req) as second:
+            assert time.monotonic() - t0 >= 0.3
+            assert second.evaluate(req.q).total_energy == pytest.approx(LocalClient().evaluate(req).total_energy, rel=1e-15)
+
+
 def test_bounds_close_the_session_with_their_code():
     req, _ = chain()
     big, _ = chain(50)

@@ -142,9 +142,10 @@ def wire(sizes: tuple[int, ...] = WIRE_SIZES, reps: int = 2001) -> list[dict[str
         assert srv.proc is not None
         for n in sizes:
             bodies, batches = make_scene(n, outside=1.0, seed=n % 89)
-            request = Request(q=bodies.q, q_prev=bodies.q_prev, q_ref=bodies.q_ref, outputs=("energy", "gradient", "hessian"),
-                              hessian_mode="psd", batches=[JointBatch(j.constitution_uid, j.body_ids, j.edges, j.lower,
-                                                                      j.upper, j.strength, j.base_uid) for j in batches])
+            sdk_batches = [JointBatch(j.constitution_uid, j.body_ids, j.edges, j.lower, j.upper, j.strength, j.base_uid)
+                           for j in batches]
+            request = Request(q=bodies.q, q_prev=bodies.q_prev, q_ref=bodies.q_ref, batches=sdk_batches,
+                              outputs=("energy", "gradient", "hessian"), hessian_mode="psd")
             with client.session(request) as s:
                 s.evaluate(bodies.q)  # warm-up
                 sent, received = s.state.bytes_sent, s.state.bytes_received
@@ -209,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.robot_scale", description=__doc__.split("\n\n")[0])
     ap.add_argument("--joints", type=int, nargs="+", default=list(SIZES), help="scene sizes (default 1 10 100 1000)")
     ap.add_argument("--reps", type=int, default=301, help="timed calls per column (default 301)")
-    ap.add_argument("--wire-joints", type=int, nargs="+", default=list(WIRE_SIZES), help="session sizes (default 1 10 100)")
+    ap.add_argument("--wire-joints", type=int, nargs="+", default=list(WIRE_SIZES),
+                    help="session sizes (default 1 10 100)")
     ap.add_argument("--wire-reps", type=int, default=2001, help="messages per measurement over the wire (default 2001)")
     ap.add_argument("--no-wire", action="store_true", help="no server: the in-process table alone")
     args = ap.parse_args(argv)

@@ -7,6 +7,7 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -29,18 +30,21 @@ def _free_port() -> int:
 
 
 class Server:
-    """`with Server() as srv:` the service under uvicorn on a free loopback port (`srv.url`), stopped on exit."""
+    """`with Server() as srv:` the service under uvicorn on a free loopback port (`srv.url`), stopped on exit;
+    `serve`: Python code run instead (in the repository's root, `port` bound), which serves on that port."""
 
-    def __init__(self) -> None:
+    def __init__(self, serve: str | None = None) -> None:
+        self.serve = serve
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.proc: subprocess.Popen | None = None
 
     def __enter__(self) -> Server:
+        argv = ([sys.executable, "-c", f"port = {self.port}\n{self.serve}"] if self.serve else
+                [sys.executable, "-m", "uvicorn", "jointlimits.service.app:app", "--host", "127.0.0.1", "--port",
+                 str(self.port), "--log-level", "warning"])
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "jointlimits.service.app:app", "--host", "127.0.0.1", "--port", str(self.port),
-             "--log-level", "warning"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=Path(__file__).resolve().parents[1],
             env={**os.environ, "JOINTLIMITS_SHUTDOWN_DELAY": "0"},  # no drain phase: stopping is not measured
         )
         for _ in range(200):

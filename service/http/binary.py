@@ -130,17 +130,30 @@ def decode(body: bytes, max_batches: int | None = None, opening: bool = False,
     return r.request(_unpack(body, r, max_batches), opening)
 
 
-def pack(doc: Any) -> Any:
-    """`doc` with each array an array map (integers as int64, the rest float64), for `wire.dumps`."""
+SMALL_ARRAYS = 1 << 20
+"""A document whose arrays hold at most this many bytes (a robot's answer, a session's step) is written by one
+msgpack call: byte for byte `wire.dumps`' output at a fifth of its time; a larger one by `wire.dumps`, which copies
+each array once where msgpack's own buffer would copy it several times."""
+
+
+def dumps(doc: Any) -> bytes:
+    """`doc` in msgpack, each array an array map (integers as int64, the rest float64)."""
+    sizes: list[int] = []
+    packed = _pack(doc, sizes)
+    return msgpack.packb(packed, use_bin_type=True) if sum(sizes) <= SMALL_ARRAYS else wire.dumps(packed)
+
+
+def _pack(doc: Any, sizes: list[int]) -> Any:
     if isinstance(doc, np.ndarray):
+        sizes.append(doc.nbytes)
         return wire.pack_array(doc, wire.INT64 if doc.dtype.kind in "iu" else wire.FLOAT64)
     if isinstance(doc, dict):
-        return {k: pack(v) for k, v in doc.items()}
+        return {k: _pack(v, sizes) for k, v in doc.items()}
     if isinstance(doc, list):
-        return [pack(v) for v in doc]
+        return [_pack(v, sizes) for v in doc]
     return doc
 
 
 def encode(ev: Evaluation) -> bytes:
     """The answer document (`convert.to_wire`), arrays as raw little-endian buffers (one copy each)."""
-    return wire.dumps(pack(to_wire(ev)))
+    return dumps(to_wire(ev))

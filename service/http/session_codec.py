@@ -81,7 +81,7 @@ def message_id(e: Exception) -> int | str | None:
 def encode(doc: dict[str, Any], binary_frame: bool) -> Frame:
     """A reply in the encoding of the message it answers: arrays as array maps (msgpack) or lists of shortest
     round-trip floats (JSON), written as `POST /v1/evaluate`'s answers are."""
-    return wire.dumps(binary.pack(doc)) if binary_frame else convert.dumps(doc).decode()
+    return binary.dumps(doc) if binary_frame else convert.dumps(doc).decode()
 
 
 def encode_evaluation(ev: Evaluation, binary_frame: bool, id: int | str | None) -> Frame:

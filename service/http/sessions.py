@@ -13,7 +13,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, TypeVar
 
 from fastapi import APIRouter, WebSocket
@@ -76,6 +76,7 @@ class Session:
     defaults: dict[str, Any] | None = None
     joints: int = 0
     weight: int = 0
+    costs: dict[tuple[frozenset[str], bool], int] = field(default_factory=dict)  # an evaluate's admitted cost
 
 
 @router.websocket(proto.PATH)
@@ -174,8 +175,9 @@ async def _receive(websocket: WebSocket, settings: Settings) -> codec.Frame:
     """The next message's payload; `Closing` on idle time or an oversized frame, `WebSocketDisconnect` when gone."""
     idle = settings.session_idle_seconds
     try:
-        message = await asyncio.wait_for(websocket.receive(), idle)
-    except asyncio.TimeoutError:
+        async with asyncio.timeout(idle):  # not `wait_for`: no task per message
+            message = await websocket.receive()
+    except TimeoutError:
         raise Closing(proto.IDLE_TIMEOUT, f"no message for {idle:g} s: session closed", "idle") from None
     if message["type"] == "websocket.disconnect":
         raise WebSocketDisconnect(message.get("code", 1000), message.get("reason"))
@@ -203,10 +205,10 @@ async def _close(websocket: WebSocket, code: int, reason: str) -> None:
 
 async def _send(websocket: WebSocket, reply: codec.Frame, settings: Settings) -> None:
     """Send a reply; a client that reads nothing for the idle time (the server's send buffer stays full) is closed."""
-    send = websocket.send_bytes(reply) if isinstance(reply, bytes) else websocket.send_text(reply)
     try:
-        await asyncio.wait_for(send, settings.session_idle_seconds)
-    except asyncio.TimeoutError:
+        async with asyncio.timeout(settings.session_idle_seconds):
+            await (websocket.send_bytes(reply) if isinstance(reply, bytes) else websocket.send_text(reply))
+    except TimeoutError:
         msg = f"no reply read for {settings.session_idle_seconds:g} s: session closed"
         raise Closing(proto.IDLE_TIMEOUT, msg, "idle") from None
 
@@ -265,9 +267,14 @@ async def _answer(session: Session, m: codec.Message, binary_frame: bool, settin
     assert scene is not None and session.defaults is not None
     if m.kind == proto.EVALUATE:
         options = {**session.defaults, **m.options}
-        batch_sizes = list(scene.batch_sizes)
-        admit(joints=batch_sizes, outputs=options["outputs"], binary_answer=binary_frame, settings=settings)
-        cost = sizing.request_cost(0, None, batch_sizes, scene.n_bodies, options["outputs"], binary_frame, settings)
+        # Admitted once per set of outputs (all the bound reads; at most 16 keys): the scene's joints are fixed.
+        key = (frozenset(options["outputs"]), binary_frame)
+        cost = session.costs.get(key)
+        if cost is None:
+            batch_sizes = list(scene.batch_sizes)
+            admit(joints=batch_sizes, outputs=options["outputs"], binary_answer=binary_frame, settings=settings)
+            cost = session.costs[key] = sizing.request_cost(0, None, batch_sizes, scene.n_bodies, options["outputs"],
+                                                            binary_frame, settings)
         reservations.append(await budget.reserve(state.in_flight, cost, settings))
         ev = await _run(session, lambda: scene.evaluate(m.q, **options))
         return codec.encode_evaluation(ev, binary_frame, m.id)

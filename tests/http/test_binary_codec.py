@@ -73,3 +73,19 @@ def test_response_decoding_matches_local_bits():
     assert ev.total_energy == local.total_energy
     for a, b in zip(ev.batches, local.batches):
         assert np.array_equal(a.hessian, b.hessian) and a.index.dtype == np.int64
+
+
+@pytest.mark.parametrize("n_bytes", [0, 8, 248, 256, 65528, 65536, 1 << 20, (1 << 20) + 8])
+def test_service_dumps_is_wire_dumps_byte_for_byte(n_bytes):
+    """`service.http.binary.dumps` writes small documents with one msgpack call, large ones with `wire.dumps`:
+    either way the bytes are `wire.dumps`' (bin 8/16/32 headers at 255/65535, ints, floats, nesting)."""
+    from jointlimits.service.http import binary
+
+    rng = np.random.default_rng(n_bytes)
+    doc = {"kind": "evaluation", "id": -(2**40), "total_energy": float(rng.normal()),
+           "batches": [{"constitution_uid": 670, "index": np.arange(3), "x": rng.normal(size=n_bytes // 8),
+                        "hessian": rng.normal(size=(0, 24, 24)), "energy": np.float64(1.5)}, {"shape": [2, None, True]}],
+           "assembled": {"rows": np.arange(4, dtype=np.int32)}}
+    expected = wire.dumps(binary._pack(doc, []))
+    assert binary.dumps(doc) == expected
+    assert wire.loads(expected)["batches"][0]["x"]["data"] == doc["batches"][0]["x"].tobytes()

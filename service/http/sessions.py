@@ -163,7 +163,8 @@ async def _messages(websocket: WebSocket, settings: Settings, metrics: Metrics, 
             if kind == "open" and isinstance(e, HttpError) and e.status == 413:
                 await _send(websocket, reply, settings)
                 metrics.session_messages.labels(kind, outcome).inc()
-                raise Closing(proto.SCENE_TOO_LARGE, "the scene is over this service's joint limit", "scene_too_large")
+                # The reason names the bound that is over (joints, values, batches, answer, session joints).
+                raise Closing(proto.SCENE_TOO_LARGE, e.faults[0].msg, "scene_too_large")
         await _send(websocket, reply, settings)
         # Sent is not gone: the reply's bytes stay counted until the write buffer drains (its arrays are free now).
         budget.hold_until_drained(websocket.scope, reservations, len(reply))

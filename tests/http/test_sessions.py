@@ -272,7 +272,8 @@ def test_scene_over_the_joint_limit_is_refused_and_closed():
         reply = Json(ws).send(BODY)
         assert reply["kind"] == "error" and reply["status"] == 413
         assert reply["detail"][0]["loc"] == ["body", "batches"] and "at most 5" in reply["detail"][0]["msg"]
-        assert closed(ws)["code"] == proto.SCENE_TOO_LARGE
+        close = closed(ws)
+        assert close["code"] == proto.SCENE_TOO_LARGE and "request has 6 joints; this service accepts at most 5" in close["reason"]
     assert_counted(c, "scene_too_large")
 
 

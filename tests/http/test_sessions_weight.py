@@ -92,7 +92,8 @@ def test_a_sessions_json_messages_are_bounded_in_values_before_they_are_parsed(m
         reply = Json(ws).send({**doc, "id": 4})
         assert reply["status"] == 413 and reply["detail"][0]["loc"] == ["body"] and "id" not in reply, reply
         assert f"holds up to {values + 1} values" in reply["detail"][0]["msg"]  # the `id` adds one
-        assert closed(ws)["code"] == proto.SCENE_TOO_LARGE  # an opening over a request's bounds, as over its joints
+        close = closed(ws)  # an opening over a request's bounds, as over its joints; the reason names the bound
+        assert close["code"] == proto.SCENE_TOO_LARGE and f"holds up to {values + 1} values" in close["reason"], close
     c = app(max_json_values=values, max_batches=len(doc["batches"]) - 1)
     with c.websocket_connect(PATH) as ws:
         reply = Json(ws).send(doc)

@@ -28,21 +28,11 @@ def server():
         yield s
 
 
-@pytest.fixture(scope="module")
-def shared():
-    """One server for the mixed load and the flood, which leave it as they found it (each asserts that no worker
-    was replaced and the server still runs, and measures its own deltas: RSS, /metrics, throughput); a start of
-    `jointlimits serve --workers 2` fewer. The SIGTERM drill stops its server: it has its own."""
-    with lt.Server(workers=2, extra_args=LIMITS) as s:
-        yield s
-
-
 def show(name: str, report: dict) -> None:
     print(f"\n{name}: " + json.dumps({k: v for k, v in report.items() if k != "by_kind"}))
 
 
-def test_mixed_load_two_workers_sixteen_clients(shared):
-    server = shared
+def test_mixed_load_two_workers_sixteen_clients(server):
     r = lt.scenario_mixed(server, clients=16, duration=LOAD_SECONDS)
     show("mixed", r)
     assert r["requests"] > 0 and r["throughput_rps"] > 0
@@ -58,8 +48,7 @@ def test_mixed_load_two_workers_sixteen_clients(shared):
     assert server.proc.poll() is None
 
 
-def test_flood_of_oversized_requests_neither_downs_nor_starves(shared):
-    server = shared
+def test_flood_of_oversized_requests_neither_downs_nor_starves(server):
     pids = server.worker_pids()
     r = lt.scenario_flood(server, clients=16, duration=8, max_body_bytes=MAX_BODY_BYTES, max_joints=MAX_JOINTS)
     for part in ("valid_alone", "valid_under_flood", "flood"):

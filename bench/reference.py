@@ -202,13 +202,14 @@ def _theta(F: Sequence[Sequence[Any]]) -> Any:
 
 @dataclass
 class JointResult:
-    """One joint at 50 digits: `gradient` (24), Hessians (24 x 24) in both modes (zeros inside the range)."""
+    """One joint at 50 digits: `gradient` (24), Hessians (24 x 24) in both modes (zeros inside the range; None when
+    not asked for: `evaluate(..., hessians=False)`)."""
 
     x: Any
     energy: Any
     gradient: list
-    hessian_exact: Mat
-    hessian_psd: Mat
+    hessian_exact: Mat | None
+    hessian_psd: Mat | None
     coordinate: Any = None
     """x + offset (v1.1)."""
 
@@ -219,8 +220,8 @@ class JointResult:
             coordinate=float(self.x if self.coordinate is None else self.coordinate),
             energy=float(self.energy),
             gradient=f(self.gradient),
-            hessian_exact=f(self.hessian_exact),
-            hessian_psd=f(self.hessian_psd),
+            hessian_exact=None if self.hessian_exact is None else f(self.hessian_exact),
+            hessian_psd=None if self.hessian_psd is None else f(self.hessian_psd),
         )
 
 
@@ -360,9 +361,11 @@ class JointRef:
         offset: float = 0.0,
         prev_coordinate: float | None = None,
         origin: str = "q_ref",
+        hessians: bool = True,
     ) -> JointResult:
         """x, E and (if asked) the gradient and both Hessians w.r.t. [q_i, q_j]; v1.1's `offset` and
-        `prev_coordinate` (670 only) and v1.2's `origin` as CONTRACT.md defines them."""
+        `prev_coordinate` (670 only) and v1.2's `origin` as CONTRACT.md defines them. `hessians=False`: the
+        gradient without the Hessians (None), whose eigen-decomposition and congruences are most of the cost."""
         with mp.workdps(DPS):
             off = mpf(float(offset))
             theta_prev = None if prev_coordinate is None else mpf(float(prev_coordinate)) - off
@@ -370,21 +373,24 @@ class JointRef:
             x = self._x_value(F, self.frames(*q_prev), self.frames(*q_ref), theta_prev, origin == "absolute")
             E, dE, d2E = penalty_jet(x, mpf(float(lower)) - off, mpf(float(upper)) - off, strength)
             zero_g = [mpf(0)] * 24
-            zero_h = [[mpf(0)] * 24 for _ in range(24)]
+            zero_h = [[mpf(0)] * 24 for _ in range(24)] if hessians else None
             if not derivatives or dE == 0:
-                return JointResult(x, E, zero_g, zero_h, [row[:] for row in zero_h], x + off)
+                return JointResult(x, E, zero_g, zero_h, zero_h and [row[:] for row in zero_h], x + off)
             xj = self._x_jet(F)
-            dx, Hx = xj.grad(12), xj.hess(12)
-            rank1 = [[d2E * dx[a] * dx[b] for b in range(12)] for a in range(12)]
-            curv = [[dE * Hx[a][b] for b in range(12)] for a in range(12)]
-            M_exact = [[rank1[a][b] + curv[a][b] for b in range(12)] for a in range(12)]
-            P = _psd(curv) if self.uid == 670 else _prismatic_psd(dE, F)
-            M_psd = [[rank1[a][b] + P[a][b] for b in range(12)] for a in range(12)]
+            dx = xj.grad(12)
             J = self.J()
             grad = [mpf(0)] * 24
             for f, row in enumerate(J):
                 for col, coef in row:
                     grad[col] += dE * dx[f] * coef
+            if not hessians:
+                return JointResult(x, E, grad, None, None, x + off)
+            Hx = xj.hess(12)
+            rank1 = [[d2E * dx[a] * dx[b] for b in range(12)] for a in range(12)]
+            curv = [[dE * Hx[a][b] for b in range(12)] for a in range(12)]
+            M_exact = [[rank1[a][b] + curv[a][b] for b in range(12)] for a in range(12)]
+            P = _psd(curv) if self.uid == 670 else _prismatic_psd(dE, F)
+            M_psd = [[rank1[a][b] + P[a][b] for b in range(12)] for a in range(12)]
             return JointResult(x, E, grad, _congruence(J, M_exact), _congruence(J, M_psd), x + off)
 
 
@@ -438,11 +444,11 @@ def _congruence(J: list[list[tuple[int, Any]]], M: Mat) -> Mat:
 # ---------------------------------------------------------------- whole requests
 
 
-def reference_request(request: Mapping[str, Any], derivatives: bool = True) -> list[dict[str, Any]]:
+def reference_request(request: Mapping[str, Any], derivatives: bool = True, hessians: bool = True) -> list[dict[str, Any]]:
     """Every joint of a CONTRACT v1 / v1.1 / v1.2 request dict, per batch, as float64 arrays rounded from 50 digits.
 
     Each batch: `x`, `coordinate`, `energy` (N,), `gradient` (N, 24), `hessian_exact`, `hessian_psd`
-    (N, 24, 24), and `mp` (the `JointResult`s). Inactive joints have exact zeros.
+    (N, 24, 24; absent with `hessians=False`), and `mp` (the `JointResult`s). Inactive joints have exact zeros.
     """
     bodies = request["bodies"]
     q, q_prev, q_ref = (np.asarray(bodies[k], dtype=np.float64) for k in ("q", "q_prev", "q_ref"))
@@ -461,7 +467,7 @@ def reference_request(request: Mapping[str, Any], derivatives: bool = True) -> l
             ref = JointRef(int(batch["constitution_uid"]), q_ref[i], q_ref[j], **geometry)
             res.append(
                 ref.evaluate((q[i], q[j]), (q_prev[i], q_prev[j]), (q_ref[i], q_ref[j]), lo, up, s, derivatives, off, pc,
-                             batch.get("origin", "q_ref"))
+                             batch.get("origin", "q_ref"), hessians)
             )
         flo = [r.as_float() for r in res]
         n = len(flo)
@@ -472,11 +478,12 @@ def reference_request(request: Mapping[str, Any], derivatives: bool = True) -> l
                 coordinate=np.array([f["coordinate"] for f in flo]),
                 energy=np.array([f["energy"] for f in flo]),
                 gradient=np.array([f["gradient"] for f in flo]).reshape(n, 24),
-                hessian_exact=np.array([f["hessian_exact"] for f in flo]).reshape(n, 24, 24),
-                hessian_psd=np.array([f["hessian_psd"] for f in flo]).reshape(n, 24, 24),
                 mp=res,
             )
         )
+        if hessians:
+            for key in ("hessian_exact", "hessian_psd"):
+                out[-1][key] = np.array([f[key] for f in flo]).reshape(n, 24, 24)
     return out
 
 

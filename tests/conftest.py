@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -30,3 +31,32 @@ def golden_case(request):
 # of a wholly slow module, `@pytest.mark.slow` on a test, each with its reason (live servers in subprocesses, the load
 # and fault drills, the Dockerfile's replay, the bench, fuzzers, timers that wait on purpose, property tests over random
 # scenes). tests/test_slow_marks.py checks that the tests known slow stay marked and that a test starting a process is.
+
+
+# ---------------------------------------------------------------- one CA bundle per test run
+# httpx builds an SSL context for every client it makes (the SDK's `Client`, each `httpx.get`/`httpx.post`), loading
+# the system's CA bundle: `load_verify_locations` takes 40 ms on a quiet core and 170-290 ms on the loaded 2-core
+# machine, and the suite makes thousands of clients, all to plain-HTTP servers on loopback that never use TLS. The test
+# process builds that default context once and gives the same object to every client that asks for it (verify=True,
+# no client certificate); any other request builds its own as before. What the clients send and receive is unchanged.
+@pytest.fixture(scope="session", autouse=True)
+def _one_default_ssl_context():
+    try:
+        from httpx._transports import default as transports  # where httpx's transports call it
+    except ImportError:  # another httpx layout: every client builds its own context, as without this fixture
+        yield
+        return
+    build = transports.create_ssl_context
+    built: dict[tuple, object] = {}
+
+    def create_ssl_context(verify=True, cert=None, trust_env=True):  # noqa: ANN001, ANN202 (httpx's signature)
+        if verify is not True or cert is not None:
+            return build(verify=verify, cert=cert, trust_env=trust_env)
+        key = (trust_env, os.environ.get("SSL_CERT_FILE"), os.environ.get("SSL_CERT_DIR"))
+        if key not in built:
+            built[key] = build(verify=verify, cert=cert, trust_env=trust_env)
+        return built[key]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(transports, "create_ssl_context", create_ssl_context)
+        yield

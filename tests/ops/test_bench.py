@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import bench.__main__ as bench_cli
 from bench import measure as M
 from bench import report
 from bench.__main__ import main as bench_main
@@ -285,8 +286,13 @@ def test_warp_targets_are_issue_22s():
 # ------------------------------------------------------------------ end to end
 
 
-def test_bench_runs_end_to_end_at_tiny_sizes(tmp_path: Path, capsys: pytest.CaptureFixture[str]):
+def test_bench_runs_end_to_end_at_tiny_sizes(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                             monkeypatch: pytest.MonkeyPatch):
     results = {p: p.stat().st_mtime_ns for p in report.RESULTS.glob("*")} if report.RESULTS.exists() else {}
+    # The full run's every section at tiny sizes, its accuracy cases too: --quick's list (the golden cases and 40
+    # generated joints, each family present) rather than the full run's 120 generated joints, whose 50-digit
+    # reference (mpmath, a few ms per joint) was 2/3 of this test's time. The cases' code path is the same.
+    monkeypatch.setattr(bench_cli, "case_list", lambda quick, full=bench_cli.case_list: full(True))
     assert bench_main(["--sizes", "40", "80", "--no-jax", "--no-http", "--no-plot", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out.rstrip("\n").split("\n")
     assert SPEEDUP_LINE.fullmatch(out[-1]), out[-1]

@@ -135,6 +135,13 @@ def test_keep_alive_clients_spread_again_onto_a_restarted_replica(age):
     with replica("a") as (_, a_port):
         front = drills.free_port()
         lb = drills.haproxy(TCP_BALANCER.format(front=front, a=a_port, b=b_port), front)
+        # HAProxy counts b up until its first check fails (100 ms): until then a connection it hands b is refused
+        # and closed ("Server disconnected without sending a response"). Out of the rotation: fresh connections
+        # answered four times in a row (round robin would give every other one to b).
+        deadline, answered = time.monotonic() + 10, 0
+        while answered < 4:
+            answered = answered + 1 if drills.get(front, "/healthz", timeout=1.0)[0] == 200 else 0
+            assert time.monotonic() < deadline, "HAProxy still hands connections to the replica that is down"
         clients = [httpx.Client(base_url=f"http://127.0.0.1:{front}", trust_env=False) for _ in range(4)]
         try:
             for c in clients:

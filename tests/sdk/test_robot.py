@@ -10,6 +10,7 @@ a live server's WebSocket. The same revolute robot read by pyuipc's UrdfIO gives
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from pathlib import Path
@@ -66,13 +67,20 @@ def vec(robot: Robot, pose: dict[str, float]) -> np.ndarray:
     return np.array([pose.get(n, 0.0) for n in robot.names])
 
 
-def wire(request) -> dict:
-    return orjson.loads(codec.encode(request, binary=False)[0])
+@functools.cache
+def _reference(body: bytes) -> list[dict]:
+    return reference_request(orjson.loads(body), hessians=False)
+
+
+def reference(request) -> list[dict]:
+    """The 50-digit reference's x, energy and gradient of `request` (what these tests compare: no Hessian), once per
+    request in the module: the in-process, HTTP and session tests ask it of the same requests (~1 s each)."""
+    return _reference(codec.encode(request, binary=False)[0])
 
 
 def check(robot: Robot, request, result, q: np.ndarray) -> None:
     """x and coordinate equal q (zero reference); energies and gradients the 50-digit reference's."""
-    want = reference_request(wire(request))
+    want = reference(request)
     for name, handle in robot.handles.items():
         k = robot.names.index(name)
         got = result.joint(handle)
@@ -211,7 +219,7 @@ def test_a_reference_configuration_moves_x_not_the_coordinate(arm):
     ref = vec(arm, POSES["inside"])
     req = arm.request(q, reference=ref)
     result = LocalClient().evaluate(req)
-    want = reference_request(wire(req))
+    want = reference(req)
     for name, h in arm.handles.items():
         k = arm.names.index(name)
         assert abs(result.joint(h).coordinate - q[k]) <= 1e-12 and abs(result.joint(h).x - (q[k] - ref[k])) <= 1e-12

@@ -275,3 +275,31 @@ def test_split_carries_the_v11_state_per_joint(live):
         np.testing.assert_array_equal(r.coordinate, l.coordinate)
     off = request.batches[0].offset
     np.testing.assert_array_equal(local.batches[0].coordinate, local.batches[0].x + off)
+
+
+def test_clients_share_one_tls_context_that_still_verifies(monkeypatch):
+    """httpx builds an SSL context per client (40-170 ms loading the CA bundle); the SDK's clients share one per
+    bundle, which still verifies certificates and host names, and a different SSL_CERT_FILE gets its own."""
+    import ssl
+
+    import certifi
+
+    from httpx import _config
+    from httpx._transports import default as transports
+
+    from jointlimits.client import AsyncClient, transport
+
+    monkeypatch.setattr(transports, "create_ssl_context", _config.create_ssl_context)  # not the tests' shared one
+    transport._ssl_context.cache_clear()
+
+    def context(c) -> ssl.SSLContext:
+        return c._http._transport._pool._ssl_context
+
+    a, b, s = Client("http://127.0.0.1:1"), Client("https://example.invalid"), AsyncClient("https://example.invalid")
+    assert context(a) is context(b) is context(s)
+    assert context(a).verify_mode == ssl.CERT_REQUIRED and context(a).check_hostname
+    monkeypatch.setenv("SSL_CERT_FILE", certifi.where())
+    other = Client("https://example.invalid")
+    assert context(other) is not context(a) and context(other).verify_mode == ssl.CERT_REQUIRED
+    for c in (a, b, other):
+        c.close()

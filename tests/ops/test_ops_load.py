@@ -59,8 +59,13 @@ def test_flood_of_oversized_requests_neither_downs_nor_starves(server):
     assert {"oversized_declared", "oversized_chunked", "too_many_joints"} <= flood["by_kind"].keys()
     assert valid["requests"] > 0 and set(valid["statuses"]) == {"200"}
     assert valid["dropped"] == 0 and valid["connection_errors"] == 0
-    # Not starved: valid clients keep a useful share of their throughput and a bounded p99.
-    assert valid["throughput_rps"] > 0.25 * r["valid_alone"]["throughput_rps"]
+    # Not starved: valid clients keep a useful share of their throughput and a bounded p99. The share is bounded
+    # from below by 10%, not more: the 8 flooders run in the valid clients' own process and event loop, on the same
+    # 2 cores as the 2 workers, so sending 1 MB bodies takes the valid clients' CPU as much as the server's. Measured
+    # on a quiet machine (2026-11-28, this tree and the tree before that day's changes alike): 0.20, 0.22, 0.23, 0.33,
+    # 0.86 of a 4 s baseline that itself moved 90-313 rps between runs; a starved worker (a blocked loop) answers
+    # nothing, which this bound and the p99 bound below both catch.
+    assert valid["throughput_rps"] > 0.1 * r["valid_alone"]["throughput_rps"]
     assert valid["p99_ms"] < max(2000.0, 5 * r["valid_alone"]["p99_ms"])
     assert r["healthz_after"] == 200 and server.proc.poll() is None
     assert server.worker_pids() == pids  # nothing crashed and was respawned

@@ -19,7 +19,7 @@ COPY service ./service
 COPY schemas ./schemas
 COPY client ./client
 COPY jointlimits ./jointlimits
-RUN python -m venv "$VIRTUAL_ENV" && "$VIRTUAL_ENV/bin/pip" install --no-compile . && "$VIRTUAL_ENV/bin/python" -m compileall -q "$VIRTUAL_ENV/lib"
+RUN python -m venv "$VIRTUAL_ENV" && "$VIRTUAL_ENV/bin/pip" install --no-compile . && "$VIRTUAL_ENV/bin/python" -m compileall -q -j 0 "$VIRTUAL_ENV/lib"
 
 # ---- runtime: the venv only, as an unprivileged user
 FROM python:3.11-slim

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from types import TracebackType
 from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from jointlimits.client.errors import Fault, InvalidInput
-from jointlimits.client.model import Array, Evaluation, Request
+from jointlimits.client.model import Array, Evaluation, Request, in_body
 from jointlimits.client.local import core_batches, result
 from jointlimits.client.session import SessionClosed, SessionState, StateView, batch_number, message_array, options
 from jointlimits.service import core
@@ -21,14 +21,13 @@ URL = "local://in-process"
 
 
 def _call(fn: Callable[[], T]) -> T:
-    """`fn()`, its input faults raised as the server would answer them (`loc` starting with "body")."""
+    """`fn()`, its input faults raised as `LocalClient` raises them (`loc` starting with "body", as the server's)."""
     try:
         with np.errstate(all="ignore"):
             return fn()
     except core.InputError as e:
         # A session message's `q` is a top-level field, as the server names it: ("bodies", "q", i) -> ("q", i).
-        locs = [f.loc[1:] if f.loc[:2] == ("bodies", "q") else f.loc for f in e.faults]
-        raise InvalidInput(422, [Fault(("body", *loc), f.msg, f.type) for loc, f in zip(locs, e.faults)]) from None
+        raise in_body([replace(f, loc=f.loc[1:]) if f.loc[:2] == ("bodies", "q") else f for f in e.faults]) from None
 
 
 class LocalSession(StateView):

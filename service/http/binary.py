@@ -24,6 +24,7 @@ MEDIA_TYPE = wire.MEDIA_TYPE
 
 _MAP_HEADERS = frozenset(range(0x80, 0x90)) | {0xDE, 0xDF}  # fixmap, map 16, map 32
 _ARRAY_HEADERS = frozenset(range(0x90, 0xA0)) | {0xDC, 0xDD}
+_STR_HEADERS = frozenset(range(0xA0, 0xC0)) | {0xD9, 0xDA, 0xDB}  # fixstr, str 8, 16, 32
 
 
 MAX_CONTAINERS = 64
@@ -127,7 +128,28 @@ def decode(body: bytes, max_batches: int | None = None, opening: bool = False,
     `opening`: a session's opening document, whose optional `id` is returned too, under "id".
     """
     r = checker or document.Checker(binary=True)
-    return r.request(_unpack(body, r, max_batches), opening)
+    try:
+        doc = _unpack(body, r, max_batches)
+    except InputError:
+        if opening:  # the fault cap stops the read inside `batches`, before the `id` is read or kept: find it
+            r.message_id = document.readable_id(_top_level_id(body))
+        raise
+    return r.request(doc, opening)
+
+
+def _top_level_id(body: bytes) -> Any:
+    """The top-level `id` of a msgpack map unless it is a map or an array (every other value walked, never built:
+    a C-speed pass over bytes already received); None when absent, or when the body breaks before it."""
+    u = msgpack.Unpacker(io.BytesIO(body), read_size=2**23, max_buffer_size=max(len(body), 2**23), raw=False)
+    try:
+        for _ in range(u.read_map_header()):
+            key = u.unpack() if body[u.tell()] in _STR_HEADERS else u.skip()
+            if key == "id" and body[u.tell()] not in _MAP_HEADERS | _ARRAY_HEADERS:
+                return u.unpack()
+            u.skip()
+    except Exception:  # msgpack raises several unrelated types for malformed input
+        pass
+    return None
 
 
 SMALL_ARRAYS = 1 << 20

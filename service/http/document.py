@@ -44,6 +44,12 @@ NOT_OPEN = (
 )
 
 
+def readable_id(v: Any) -> int | str | None:
+    """`v` if it is a valid `id` (an int64 or a string of at most 128 characters), else None."""
+    ok = (isinstance(v, int) and not isinstance(v, bool) and v in INT64) or (isinstance(v, str) and len(v) <= 128)
+    return v if ok else None
+
+
 class Repeated(dict):
     """A map that repeated a key (the last value kept, as `dict` does); `repeated` lists those keys."""
 
@@ -89,9 +95,7 @@ class Checker:
     def _start(self, doc: Any) -> None:
         """Before any fault: the readable `id`; and `true`/`false` other than `active_only`'s may be in an array."""
         if isinstance(doc, dict):
-            v = doc.get("id")
-            ok = (isinstance(v, int) and not isinstance(v, bool) and v in INT64) or (isinstance(v, str) and len(v) <= 128)
-            self.message_id = v if ok else None
+            self.message_id = readable_id(doc.get("id"))
             self.booleans = max(0, self.booleans - isinstance(doc.get("active_only"), bool))
 
     def fault(self, loc: Loc, msg: str, type: str = "value_error") -> None:

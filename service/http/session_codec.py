@@ -36,13 +36,11 @@ def decode_open(frame: Frame, max_values: int, max_batches: int) -> dict[str, An
         raise_if(check_options(kwargs["outputs"], kwargs["hessian_mode"]) + check_layout(kwargs["layout"])
                  + check_bodies(kwargs["bodies"]))
         return kwargs
-    except InputError as e:
+    except (InputError, HttpError) as e:
         # A later kind of message sent first: one fault that says so, not the opening document's five.
-        if any(f.loc == ("kind",) and f.type == "extra_forbidden" for f in e.faults):
+        if isinstance(e, InputError) and any(f.loc == ("kind",) and f.type == "extra_forbidden" for f in e.faults):
             e = InputError([Fault(("kind",), NOT_OPEN, "session_not_open")])
-        raise _with_id(e, checker) from None
-    except HttpError as e:
-        raise _with_id(e, checker) from None
+        raise with_id(e, checker.message_id) from None
 
 
 def decode(frame: Frame, max_values: int) -> Message:
@@ -62,11 +60,12 @@ def decode(frame: Frame, max_values: int) -> Message:
                 raise InputError([Fault((), str(e).replace("body is", "message is"), "msgpack_invalid")]) from None
         return checker.message(doc)
     except (InputError, HttpError) as e:
-        raise _with_id(e, checker) from None
+        raise with_id(e, checker.message_id) from None
 
 
-def _with_id(e: Exception, checker: document.Checker) -> Exception:
-    e.id = checker.message_id  # type: ignore[attr-defined]
+def with_id(e: Exception, id: int | str | None) -> Exception:
+    """`e`, carrying the `id` its fault reply repeats (`message_id`)."""
+    e.id = id  # type: ignore[attr-defined]
     return e
 
 

@@ -240,14 +240,17 @@ def _open(frame: codec.Frame, settings: Settings, state: Any, session: Session) 
     """Open the session's scene from its opening document (in a worker thread); the `opened` reply."""
     kwargs = codec.decode_open(frame, settings.max_json_values, settings.max_batches)
     batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
-    admit(joints=batch_joints, outputs=kwargs["outputs"], binary_answer=isinstance(frame, bytes), settings=settings)
     joints, bodies = sum(batch_joints), int(kwargs["bodies"].q.shape[0])
-    _reserve(state, session, joints, settings.max_session_joints, bodies)  # everything the scene will hold
     try:
-        scene = prepare(kwargs["bodies"], kwargs["batches"])
-    except BaseException:
-        _reserve(state, session, 0, settings.max_session_joints)  # a refused scene holds nothing
-        raise
+        admit(joints=batch_joints, outputs=kwargs["outputs"], binary_answer=isinstance(frame, bytes), settings=settings)
+        _reserve(state, session, joints, settings.max_session_joints, bodies)  # everything the scene will hold
+        try:
+            scene = prepare(kwargs["bodies"], kwargs["batches"])
+        except BaseException:
+            _reserve(state, session, 0, settings.max_session_joints)  # a refused scene holds nothing
+            raise
+    except (InputError, HttpError) as e:
+        raise codec.with_id(e, kwargs["id"])  # its fault repeats the opening's id, as its reply would
     # Every evaluate option of the opening document is the session's default; `layout` too, which a later
     # message cannot change (schemas/session.py has no such field): a solver opens with the layout it needs.
     session.scene, session.joints = scene, joints

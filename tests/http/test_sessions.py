@@ -412,6 +412,56 @@ def test_the_opening_may_carry_an_id_that_its_reply_repeats(Side):
         assert s.send({"kind": "evaluate", "q": Q, "id": 43})["id"] == 43
 
 
+def faulty_opening(fault: str) -> dict:
+    """An opening document with `fault`: 25 faults of the document (an unknown key in each of 25 batches), 30 of the
+    core's (30 joints of negative strength), one of the core's, or 40 joints, over `max_joints=35` (a 413)."""
+    if fault == "document":
+        doc = scene(2, seed=3)
+        return doc | {"batches": [doc["batches"][0] | {"spare": 1}] * 25}
+    doc = scene({"core": 30, "admission": 40}.get(fault, 6), seed=3)
+    for b in doc["batches"]:
+        b["strength"] = [-1.0] * len(b["strength"]) if fault == "core" else b["strength"]
+    doc["batches"][0]["strength"][0] = -1.0 if fault == "core one" else doc["batches"][0]["strength"][0]
+    return doc
+
+
+def in_order(doc: dict) -> bytes:
+    """`doc` in msgpack, its keys in its own order, each numeric list an array map (`body_ids` int64)."""
+    def walk(v, k=None):
+        if isinstance(v, dict):
+            return {kk: walk(vv, kk) for kk, vv in v.items()}
+        if k == "batches":
+            return [walk(b) for b in v]
+        if isinstance(v, list) and k != "outputs":
+            return wire.pack_array(np.array(v, np.int64 if k == "body_ids" else np.float64), wire.INT64 if k == "body_ids" else wire.FLOAT64)
+        return v
+    return wire.dumps(walk(doc))
+
+
+@pytest.mark.parametrize("binary", [False, True], ids=["json", "msgpack"])
+@pytest.mark.parametrize("first", [True, False], ids=["id first", "id last"])
+@pytest.mark.parametrize("fault", ["document", "core", "core one", "admission"])
+def test_a_faulty_opening_gets_its_id_back_whatever_its_faults(binary, first, fault):
+    """The fault list is capped at MAX_FAULTS, and a msgpack opening's batches are checked as they are read: the cap
+    must not stop the read before its `id` (failed before: no `id` in msgpack at the cap, and none on either
+    encoding for a fault found by the core or by admission, after the document was read)."""
+    doc = faulty_opening(fault)
+    doc = {"id": "open-7", **doc} if first else {**doc, "id": "open-7"}
+    with app(max_joints=35).websocket_connect(PATH) as ws:
+        if binary:
+            ws.send_bytes(in_order(doc))
+            reply = msgpack.unpackb(ws.receive_bytes())
+        else:
+            ws.send_text(json.dumps(doc))
+            reply = json.loads(ws.receive_text())
+        assert reply["kind"] == "error" and reply["id"] == "open-7", reply
+        assert (reply["status"], len(reply["detail"])) == {"document": (422, 20), "core": (422, 20), "core one": (422, 1),
+                                                           "admission": (413, 1)}[fault], reply
+        if fault != "admission":  # the session still waits for its opening
+            opened = Json(ws).send({**scene(4, seed=3), "id": 8})
+            assert opened["kind"] == "opened" and opened["id"] == 8, opened
+
+
 @pytest.mark.parametrize("Side", [Json, Binary], ids=["json", "msgpack"])
 @pytest.mark.parametrize("kind", ["evaluate", "commit", "update", "close"])
 def test_a_message_before_the_opening_gets_one_clear_fault(Side, kind):

@@ -246,6 +246,7 @@ def test_image_shape():
     assert FINAL.last("EXPOSE") == final_env["JOINTLIMITS_PORT"]
     runs = " ".join(r for s in STAGES for r in s.all("RUN"))
     assert "[test]" not in runs and "pytest" not in runs  # runtime dependencies only
+    assert re.search(r"-m compileall [^&]*-j 0\b", runs), runs  # the venv's bytecode on every core (default: one)
     assert any(f"useradd" in r and user.split(":")[0] in r for r in FINAL.all("RUN"))
 
 

@@ -88,15 +88,33 @@ def test_local_client_refuses_unknown_keywords_and_takes_the_http_ones():
 
 
 def test_local_errors_do_not_mention_http(live):
+    """The same fault in the same words on each in-process path (LocalClient and its session: "invalid input") and
+    over HTTP (Client and its session: "HTTP 422"), at the opening and at a later message (failed before: the local
+    session said "HTTP 422")."""
     bad = base_request()
     bad.batches[1].lower[2] = 5.0
-    with pytest.raises(InvalidInput) as local:
-        LocalClient().evaluate(bad)
-    with pytest.raises(InvalidInput) as remote:
-        Client(live).evaluate(bad)
-    assert "HTTP" not in str(local.value) and str(local.value).startswith("invalid input: body.batches.1.lower.2: ")
-    assert str(remote.value).startswith("HTTP 422: body.batches.1.lower.2: ")
-    assert local.value.faults == remote.value.faults
+    good = base_request()
+    q = np.array(good.q)[:-1]  # a body short: the core's fault, at the message's `q`
+    errors: dict[tuple[str, str], InvalidInput] = {}
+    with Client(live) as client:
+        for name, c in (("local", LocalClient()), ("HTTP", client)):
+            def in_session(message):
+                with c.session(good) as s:
+                    message(s)
+            for path, call in (("evaluate", lambda: c.evaluate(bad)), ("opening", lambda: c.session(bad)),
+                               ("message", lambda: in_session(lambda s: s.evaluate(q))),
+                               ("update", lambda: in_session(lambda s: s.update(1, [7], upper=[1.0])))):
+                with pytest.raises(InvalidInput) as e:
+                    call()
+                errors[name, path] = e.value
+    assert str(errors["local", "evaluate"]).startswith("invalid input: body.batches.1.lower.2: ")
+    assert str(errors["local", "message"]).startswith("invalid input: body.q: ")
+    for path in ("evaluate", "opening", "message", "update"):
+        local, remote = errors["local", path], errors["HTTP", path]
+        assert (local.where, remote.where) == ("invalid input", "HTTP 422"), path
+        assert str(local) == str(remote).replace("HTTP 422", "invalid input", 1) and "HTTP" not in str(local), path
+        assert local.faults == remote.faults and local.status == remote.status == 422, path
+    assert str(errors["local", "opening"]) == str(errors["local", "evaluate"])
 
 
 def test_evaluate_has_a_real_docstring_and_its_example_runs():

@@ -10,7 +10,6 @@ most `max_json_values / 11` joints, so joints are counted once parsed.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable
 
 from fastapi import Request
@@ -79,11 +78,9 @@ def check_json(text: bytes, max_values: int, max_batches: int | None = None) -> 
     on its values (`commas + 1`: every value but the last of each list or object is followed by a comma).
 
     `max_batches` (a request document): each batch is an object, so it has a `{` (the document and `bodies` have
-    the two others). Over a bound, the `,` and `{` of a session message's `id` are taken off (`_id_string`):
-    the one string a valid document may fill freely (the others are the wire's words) is one value, not more."""
+    the two others; a `{` inside a string, which only a session opening's `id` may hold in a valid document,
+    overcounts)."""
     values = text.count(b",") + 1
-    if values > max_values:
-        values -= _id_string(text).count(b",")
     if values > max_values:
         raise _too_large(
             ("body",),
@@ -92,19 +89,5 @@ def check_json(text: bytes, max_values: int, max_batches: int | None = None) -> 
             "(Content-Type: application/msgpack, no per-value cost), or split the request",
         )
     if max_batches is not None:
-        batches = text.count(b"{") - 2
-        if batches > max_batches:
-            batches -= _id_string(text).count(b"{")
-        check_batches(batches, max_batches, "counted by their braces")
+        check_batches(text.count(b"{") - 2, max_batches, "counted by their braces")
     return values
-
-
-_ID = re.compile(rb'"id"\s*:\s*"([^"\\]{0,512})"')
-
-
-def _id_string(text: bytes) -> bytes:
-    """The characters of the text's first `"id": "..."` (at most 128 characters: 512 bytes of UTF-8; one written with
-    an escape is not found), else b"". A hostile text gains at most 512 values or batches by it, still bounded."""
-    i = text.find(b'"id"')
-    m = _ID.match(text, i) if i >= 0 else None
-    return m.group(1) if m else b""

@@ -72,18 +72,12 @@ LONGEST_FIRST = ("tests/ops/test_docker.py", "tests/ops/test_newcomer_bench.py",
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    # schemathesis (4.x, under pytest 9) names its items per API operation (`test_schemathesis_openapi[GET /healthz]`)
-    # but gives them all the function's node id; xdist schedules by node id, so 3 of the 4 operations never ran on
-    # the workers (and reports merged them). Each item gets its name as its node id, as any parametrized test has.
-    seen: dict[str, int] = {}
-    for item in items:
-        seen[item.nodeid] = seen.get(item.nodeid, 0) + 1
-    for item in items:
-        if seen[item.nodeid] > 1 and item.parent is not None:
-            item._id = item.parent.id.child(item.name)  # pytest 9's node id (Node.__init__ makes it so)
-    worker = hasattr(config, "workerinput")  # an xdist worker: the controller schedules in this order
-    if worker and len({item.nodeid for item in items}) != len(items):
-        raise pytest.UsageError("two tests share a node id: pytest-xdist would run only one of them")
-    if worker:
-        rank = {path: k for k, path in enumerate(LONGEST_FIRST)}
-        items.sort(key=lambda item: rank.get(item.nodeid.split("::", 1)[0], len(rank)))
+    if not hasattr(config, "workerinput"):  # not an xdist worker: the files' order, nothing to check
+        return
+    # xdist schedules by node id: two items with one id (schemathesis' per-operation items, under pytest 9) would run
+    # once. Such a test is marked `serial` (run without xdist); any other is refused here rather than lost.
+    ids = [item.nodeid for item in items if item.get_closest_marker("serial") is None]
+    if len(set(ids)) != len(ids):
+        raise pytest.UsageError("two tests share a node id: pytest-xdist would run only one of them (mark it serial)")
+    rank = {path: k for k, path in enumerate(LONGEST_FIRST)}  # the controller schedules in this order
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::", 1)[0], len(rank)))

@@ -16,7 +16,6 @@ HERE = Path(__file__).resolve().parent
 KNOWN_SLOW = (
     "ops/test_ops_load.py",
     "ops/test_newcomer_bench.py::test_readme_quick_bench_runs_on_a_fresh_venv_with_the_bench_extra",
-    "ops/test_newcomer_bench.py::test_readme_bench_install_makes_a_fresh_venv_with_the_bench_extra_alone",
     "ops/test_docker.py",
     "ops/test_write_drills.py",
     "http/test_write_timeouts.py",
@@ -62,7 +61,8 @@ KNOWN_SLOW = (
 
 # Every test that measures time, latency or throughput or waits on wall-clock bounds: CI runs the others on 2 worker
 # processes (`pytest -n 2 -m "not serial"`), then these alone (`pytest -m serial`), so that no other test shares the
-# 2 cores with them (the `serial` marker in pyproject.toml).
+# 2 cores with them (the `serial` marker in pyproject.toml). Besides them, schemathesis' test: its items (one per API
+# operation) share one node id, and xdist, which schedules by node id, would run one of them (tests/conftest.py).
 KNOWN_SERIAL = (
     "ops/test_ops_load.py",
     "ops/test_lb_drill.py",
@@ -71,7 +71,7 @@ KNOWN_SERIAL = (
     "ops/test_bench.py",
     "ops/test_bench_sessions.py",
     "ops/test_robot_scale.py",
-    "ops/test_newcomer_bench.py::test_readme_quick_bench_runs_on_a_fresh_venv_with_the_bench_extra",
+    "http/test_fuzz_http.py::test_schemathesis_openapi",
     "http/test_read_timeouts.py",
     "http/test_write_timeouts.py",
     "http/test_drain.py",

@@ -60,3 +60,24 @@ def _one_default_ssl_context():
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(transports, "create_ssl_context", create_ssl_context)
         yield
+
+
+# ---------------------------------------------------------------- CI's two runs
+# CI runs `pytest -n 2 -m "not serial"` (pytest-xdist: 2 worker processes, each test module wholly on one worker,
+# `--dist loadfile` in pyproject.toml, so that a module's fixtures (a built venv, a live server) are made once), then
+# `pytest -m serial` alone: the tests that measure time or wait on wall-clock bounds (the `serial` marker). On the
+# workers the longest modules go first, so that neither worker is left with one of them at the end while the other
+# idles; a run without xdist keeps the files' order.
+LONGEST_FIRST = ("tests/ops/test_docker.py", "tests/ops/test_newcomer_bench.py", "tests/ops/test_wheel.py")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if not hasattr(config, "workerinput"):  # not an xdist worker: the files' order, nothing to check
+        return
+    # xdist schedules by node id: two items with one id (schemathesis' per-operation items, under pytest 9) would run
+    # once. Such a test is marked `serial` (run without xdist); any other is refused here rather than lost.
+    ids = [item.nodeid for item in items if item.get_closest_marker("serial") is None]
+    if len(set(ids)) != len(ids):
+        raise pytest.UsageError("two tests share a node id: pytest-xdist would run only one of them (mark it serial)")
+    rank = {path: k for k, path in enumerate(LONGEST_FIRST)}  # the controller schedules in this order
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::", 1)[0], len(rank)))

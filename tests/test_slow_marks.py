@@ -59,24 +59,54 @@ KNOWN_SLOW = (
     "http/test_session_bounds.py::test_a_message_over_the_limit_is_read_as_1009_with_its_reason_every_time",
 )
 
-def _is_slow(node: ast.expr) -> bool:
-    """`pytest.mark.slow`, or a list/tuple holding it (`pytestmark = [..., pytest.mark.slow]`)."""
+# Every test that measures time, latency or throughput or waits on wall-clock bounds: CI runs the others on 2 worker
+# processes (`pytest -n 2 -m "not serial"`), then these alone (`pytest -m serial`), so that no other test shares the
+# 2 cores with them (the `serial` marker in pyproject.toml). Besides them, schemathesis' test: its items (one per API
+# operation) share one node id, and xdist, which schedules by node id, would run one of them (tests/conftest.py).
+KNOWN_SERIAL = (
+    "ops/test_ops_load.py",
+    "ops/test_lb_drill.py",
+    "ops/test_write_drills.py",
+    "ops/test_worker_alive.py",
+    "ops/test_bench.py",
+    "ops/test_bench_sessions.py",
+    "ops/test_robot_scale.py",
+    "http/test_fuzz_http.py::test_schemathesis_openapi",
+    "http/test_read_timeouts.py",
+    "http/test_write_timeouts.py",
+    "http/test_drain.py",
+    "http/test_connection_age.py",
+    "http/test_budget.py",
+    "http/test_refused_upgrade_log.py",
+    "http/test_admission.py::test_past_the_deadline_is_503_with_retry_after",
+    "http/test_admission.py::test_a_real_evaluation_past_a_short_deadline_is_stopped",
+    "http/test_session_bounds.py::test_a_message_over_the_limit_is_read_as_1009_with_its_reason_every_time",
+    "http/test_session_bounds.py::test_a_reply_due_when_the_limit_closes_the_session_is_dropped_not_an_error",
+    "sdk/test_sessions_live.py",
+    "sdk/test_client_unreachable.py",
+    "sdk/test_client_faults_log.py",
+    "core/test_heap.py",
+)
+
+
+def _is_mark(node: ast.expr, mark: str = "slow") -> bool:
+    """`pytest.mark.<mark>`, or a list/tuple holding it (`pytestmark = [..., pytest.mark.slow]`)."""
     if isinstance(node, (ast.List, ast.Tuple)):
-        return any(_is_slow(e) for e in node.elts)
-    return ast.unparse(node) == "pytest.mark.slow"
+        return any(_is_mark(e, mark) for e in node.elts)
+    return ast.unparse(node) == f"pytest.mark.{mark}"
 
 
-def _module_slow(tree: ast.Module) -> bool:
-    return any(isinstance(n, ast.Assign) and any(ast.unparse(t) == "pytestmark" for t in n.targets) and _is_slow(n.value)
-               for n in tree.body)
+def _module_slow(tree: ast.Module, mark: str = "slow") -> bool:
+    return any(isinstance(n, ast.Assign) and any(ast.unparse(t) == "pytestmark" for t in n.targets)
+               and _is_mark(n.value, mark) for n in tree.body)
 
 
 def _functions(tree: ast.Module) -> dict[str, ast.FunctionDef | ast.AsyncFunctionDef]:
     return {n.name: n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
 
 
-def _marked(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
-    return any(_is_slow(d) for d in fn.decorator_list)
+def _marked(fn: ast.FunctionDef | ast.AsyncFunctionDef, mark: str = "slow") -> bool:
+    return any(_is_mark(d, mark) for d in fn.decorator_list)
 
 
 def _starters(tree: ast.Module) -> set[str]:
@@ -102,23 +132,42 @@ def _modules() -> list[Path]:
     return sorted(HERE.glob("*/test_*.py"))
 
 
-def test_every_known_slow_test_is_still_marked():
-    """A module of the list is marked whole; a test of the list is marked (or its module is). Renamed, moved or
-    unmarked, it fails here: the list is this test's data, the marks are in the modules."""
+def _unmarked(known: tuple[str, ...], mark: str) -> list[str]:
+    """The entries of `known` not marked `mark`: a module marked whole, a test marked (or its module)."""
     wrong = []
-    for entry in KNOWN_SLOW:
+    for entry in known:
         module, _, test = entry.partition("::")
         path = HERE / module
         if not path.exists():
             wrong.append(f"{entry}: no such module")
             continue
         tree = ast.parse(path.read_text())
-        if _module_slow(tree):
+        if _module_slow(tree, mark):
             continue
         fn = _functions(tree).get(test) if test else None
-        if fn is None or not _marked(fn):
-            wrong.append(f"{entry}: not marked slow")
-    assert wrong == []
+        if fn is None or not _marked(fn, mark):
+            wrong.append(f"{entry}: not marked {mark}")
+    return wrong
+
+
+def test_every_known_slow_test_is_still_marked():
+    """A module of the list is marked whole; a test of the list is marked (or its module is). Renamed, moved or
+    unmarked, it fails here: the list is this test's data, the marks are in the modules."""
+    assert _unmarked(KNOWN_SLOW, "slow") == []
+
+
+def test_every_known_serial_test_is_still_marked():
+    """The drills, timeouts and benches stay out of CI's parallel run, whatever moves or is renamed."""
+    assert _unmarked(KNOWN_SERIAL, "serial") == []
+
+
+def test_ci_runs_the_parallel_part_then_the_serial_part():
+    """The README's (and so .ci/run's) test command runs every test: those not `serial` on 2 workers, then the
+    `serial` ones alone, in one process without xdist's `-n`."""
+    readme = (HERE.parent / "README.md").read_text()
+    command = readme.split("```bash\n", 1)[1].split("```", 1)[0].splitlines()[1]
+    runs = [part.strip() for part in command.split("&&") if "-m pytest" in part]
+    assert runs == ['.venv/bin/python -m pytest -n 2 -m "not serial"', ".venv/bin/python -m pytest -m serial"], runs
 
 
 def test_every_test_that_starts_a_process_is_slow():
@@ -157,6 +206,6 @@ def test_every_test_module_sits_in_a_layer_folder():
     assert all((p.parent / "__init__.py").exists() for p in _modules())
 
 
-def test_the_marker_is_registered():
+def test_the_markers_are_registered():
     text = (HERE.parent / "pyproject.toml").read_text()
-    assert re.search(r'markers = \[\s*"slow: ', text)
+    assert re.search(r'markers = \[\s*"slow: [^\n]*\n\s*"serial: ', text)

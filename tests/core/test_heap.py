@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-pytestmark = pytest.mark.slow  # counts page faults of repeated evaluations: a performance measurement
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # counts page faults of repeated evaluations: a performance measurement
 
 SCRIPT = """
 import resource, sys

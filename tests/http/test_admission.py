@@ -258,6 +258,7 @@ def test_checked_evaluate_passes_the_deadline():
 
 
 @pytest.mark.slow  # evaluations held past the deadline
+@pytest.mark.serial  # a 0.3 s evaluation against a 0.1 s deadline
 @pytest.mark.parametrize("binary_request", [False, True])
 def test_past_the_deadline_is_503_with_retry_after(binary_request, monkeypatch):
     """The request timeout passes while the core runs: 503, Retry-After, the bound named."""
@@ -278,6 +279,7 @@ def test_past_the_deadline_is_503_with_retry_after(binary_request, monkeypatch):
 
 
 @pytest.mark.slow  # 3 x 1e4 joints with Hessians, stopped at a 1 ms deadline
+@pytest.mark.serial  # a deadline in wall-clock time
 def test_a_real_evaluation_past_a_short_deadline_is_stopped():
     """No mock: 3 x 1e4 joints with Hessians take far more than 1 ms; stopped after the parse or in the core."""
     c = client(request_timeout=0.001)

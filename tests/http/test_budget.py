@@ -26,7 +26,7 @@ from jointlimits.service.http.budget import Budget, Busy
 from jointlimits.service.settings import Settings
 from tests import drills as lt
 
-pytestmark = pytest.mark.slow  # concurrent requests at the limits (~10 s)
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # concurrent requests at the limits (~10 s)
 
 J, B = "application/json", "application/msgpack"
 DEPLOY = {  # deploy/deployment.yaml's limits (tests/ops/test_deploy.py keeps the manifest to the sizing rule)

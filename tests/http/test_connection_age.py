@@ -18,6 +18,8 @@ from jointlimits.service.settings import Settings
 from tests.inprocess import serve
 from tests.sdk.test_client_sdk import readme_scene
 
+pytestmark = pytest.mark.serial  # connections closed at their age, in seconds
+
 AGE = 0.5
 
 

@@ -22,6 +22,8 @@ from jointlimits.service.app import create_app, drain_on_sigterm
 from jointlimits.service.settings import Settings
 from tests.drills import LOOPBACK, Server, get, scene
 
+pytestmark = pytest.mark.serial  # drains timed against the shutdown delay
+
 DELAY = 1.5
 
 

@@ -57,6 +57,7 @@ def check_answer(r, allowed=ALLOWED) -> None:
 schema = schemathesis.openapi.from_dict(create_app(LIMITS).openapi())
 
 
+@pytest.mark.serial  # its items share one node id: on xdist's workers only one would run (tests/conftest.py)
 @schema.parametrize()
 @settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck), database=None)
 def test_schemathesis_openapi(case, live):

@@ -24,7 +24,7 @@ from tests.drills import scraped
 from tests.http.test_contract_live import running
 from tests.http.test_errors_http import _json
 
-pytestmark = pytest.mark.slow  # waits out header and body deadlines (~7 s)
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # waits out header and body deadlines (~7 s)
 
 HEADER_TIMEOUT, BODY_TIMEOUT = 1.0, 1.5
 SLACK = 1.5  # scheduling on a loaded 2-core machine; the timers themselves are exact

@@ -13,6 +13,8 @@ import pytest
 from jointlimits.service.settings import Settings
 from tests.inprocess import serve, upgrade
 
+pytestmark = pytest.mark.serial  # waits a fixed 0.2 s for a log line that must not come
+
 
 def _refused(caplog: pytest.LogCaptureFixture, settings: Settings, draining: bool) -> tuple[bytes, list[str]]:
     with caplog.at_level(logging.INFO), serve(settings) as live:

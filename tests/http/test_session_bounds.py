@@ -170,6 +170,7 @@ def limited():
 
 
 @pytest.mark.slow  # ~330 MiB over loopback a try (~8 s)
+@pytest.mark.serial  # races the server's read of a message against its close, in wall-clock time
 @pytest.mark.parametrize("opcode", [0x2, 0x1], ids=["binary", "text"])
 def test_a_message_over_the_limit_is_read_as_1009_with_its_reason_every_time(limited, opcode):
     """Issue 27: a Node client's `max_frame_bytes + 1` ended in 1006 (a reset) in 5 of 6 tries. A raw client
@@ -213,6 +214,7 @@ def test_the_drain_after_1009_is_bounded_in_bytes(limited):
     assert sent < (DRAIN_MESSAGES + 2) * LIMIT, sent  # what was drained, plus what the two kernels buffer
 
 
+@pytest.mark.serial  # sleeps 0.5 s for a header to arrive meanwhile
 def test_a_reply_due_when_the_limit_closes_the_session_is_dropped_not_an_error(limited, caplog, monkeypatch):
     """A message over the limit arriving while the session prepares its scene: the reply found the connection closed
     under it, and the session ended as an error ("session failed", a traceback, counted `error`, not

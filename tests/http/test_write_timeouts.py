@@ -19,7 +19,7 @@ from jointlimits.service.settings import Settings
 from tests import drills as lt
 from tests.inprocess import frame, read_close, read_frame, serve, upgrade
 
-pytestmark = pytest.mark.slow  # the write-side bounds one by one on in-process servers, each waits out a timeout
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # the write-side bounds one by one on in-process servers, each waits out a timeout
 
 WRITE_TIMEOUT, MESSAGE_TIMEOUT = 1.0, 1.5
 SLACK = 1.5  # scheduling on a loaded 2-core machine

@@ -18,7 +18,7 @@ from bench.__main__ import main as bench_main
 from bench.scenes import make_scene, shifted
 from jointlimits.service.core import evaluate
 
-pytestmark = pytest.mark.slow  # the bench end to end at tiny sizes, and bench.ab against a revision (~7 s)
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # the bench end to end at tiny sizes, and bench.ab against a revision (~7 s)
 
 FIELDS = ("energy", "gradient", "hessian")
 SPEEDUP_LINE = re.compile(r"speedup_vs_autodiff_egh=(nan|\d+\.\d\d) speedup_vs_autodiff_e=(nan|\d+\.\d\d) "

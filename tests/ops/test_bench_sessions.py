@@ -13,7 +13,7 @@ from bench.scenes import make_scene
 from jointlimits.service.core import evaluate
 from jointlimits.service.core.prepared import prepare
 
-pytestmark = pytest.mark.slow  # the sessions bench against a uvicorn subprocess (~3 s)
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # the sessions bench against a uvicorn subprocess (~3 s)
 
 
 def test_the_prepared_scene_timed_is_the_stateless_answer():

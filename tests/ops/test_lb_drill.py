@@ -28,6 +28,8 @@ from tests import drills
 from tests.sdk.test_client_sdk import readme_scene
 from tests.http.test_contract_live import serve
 
+pytestmark = pytest.mark.serial  # restarts behind HAProxy, drains and reconnections within bounded seconds
+
 
 def test_the_drill_runs_the_docs_haproxy_configuration_but_for_addresses_and_the_check_interval():
     page = drills.docs_block("haproxy")

@@ -15,7 +15,7 @@ import pytest
 
 from tests import drills as lt
 
-pytestmark = pytest.mark.slow  # the drills against `jointlimits serve --workers 2` (~95 s)
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # the drills against `jointlimits serve --workers 2` (~95 s)
 
 LOAD_SECONDS = float(os.environ.get("JOINTLIMITS_LOAD_SECONDS", "30"))
 MAX_BODY_BYTES, MAX_JOINTS = 1_000_000, 1_000

@@ -6,6 +6,8 @@ import pytest
 
 from bench import robot_scale
 
+pytestmark = pytest.mark.serial  # times every column of the bench's robot table
+
 
 def test_robot_scale_prints_its_table(monkeypatch, capsys):
     monkeypatch.setattr(robot_scale, "_peers", lambda: {})

@@ -26,7 +26,7 @@ from jointlimits.service.settings import Settings
 from tests import drills as lt
 from tests.http.test_admission import scene
 
-pytestmark = pytest.mark.slow  # the largest admitted bodies to a 2-worker server (~10 s)
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # the largest admitted bodies to a 2-worker server (~10 s)
 
 J, B = "application/json", "application/msgpack"
 

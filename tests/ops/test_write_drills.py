@@ -10,7 +10,7 @@ import pytest
 
 from tests import drills as lt
 
-pytestmark = pytest.mark.slow  # three drills, each its own `jointlimits serve` on loopback (~17 s)
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # three drills, each its own `jointlimits serve` on loopback (~17 s)
 
 MiB = 2**20
 # Answers of 64 MiB against a rule of ~600 MiB: eight of them unread would hold more than the rule.

@@ -15,6 +15,8 @@ from jointlimits.service.settings import Settings
 from tests.drills import scene
 from tests.inprocess import frame, read_close, serve, upgrade
 
+pytestmark = pytest.mark.serial  # waits fixed fractions of a second for log lines that must not come
+
 OPEN = json.dumps(scene(6, seed=3)).encode()
 
 

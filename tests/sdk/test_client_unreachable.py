@@ -21,7 +21,7 @@ from jointlimits.client import AsyncClient, Client, ServiceError, Unreachable, W
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
 from tests.sdk.test_client_sdk import readme_scene
 
-pytestmark = pytest.mark.slow  # connect timeouts, refused ports, unrelated servers (~4 s)
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # connect timeouts, refused ports, unrelated servers (~4 s)
 
 
 def closed_port() -> int:

@@ -17,7 +17,7 @@ from jointlimits.service.settings import Settings
 from tests.conftest import GOLDEN
 from tests.http.test_contract_live import sdk_request, serve
 
-pytestmark = pytest.mark.slow  # sessions over real WebSockets, the idle timer's waits (~22 s)
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # sessions over real WebSockets, the idle timer's waits (~22 s)
 
 FIELDS = ("index", "x", "coordinate", "energy", "gradient", "hessian")
 

@@ -57,18 +57,21 @@ class _Budget:
             raise _TooMany
 
 
-def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None) -> Any:
-    """The document, its top-level `batches` unpacked and checked one batch at a time.
+def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None, message: bool = False) -> Any:
+    """The document, its top-level `batches` unpacked and checked one batch at a time (`message`: a session's
+    later message, which has no batches, and whose faults say "message").
 
     A body of 30M empty maps as batches would otherwise become 30M dicts (~2 GB) before the
     first check; this way the validator's fault cap stops the unpacking after a few batches.
     Every other value is unpacked whole, but holds at most `MAX_CONTAINERS` maps and arrays
     of at most `MAX_ITEMS` items each: no value costs more than a bounded number of objects.
     """
+    what = "message" if message else "request"
     budget = _Budget()
-    # Read in 8 MiB steps from the body itself: `feed(body)` would hold a whole second copy.
+    # Read in steps of at most 8 MiB from the body itself: `feed(body)` would hold a whole second copy (and
+    # a small body, a session's step, allocates no more than its size).
     u = msgpack.Unpacker(
-        io.BytesIO(body), read_size=2**23, max_buffer_size=max(len(body), 2**23),
+        io.BytesIO(body), read_size=max(1, min(len(body), 2**23)), max_buffer_size=max(len(body), 2**23),
         raw=False, strict_map_key=True, object_pairs_hook=budget.pairs, list_hook=budget.items,
         max_map_len=MAX_ITEMS, max_array_len=MAX_ITEMS,
     )  # fmt: skip
@@ -78,12 +81,12 @@ def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None) ->
         try:
             return u.unpack()
         except _TooMany:
-            msg = f"holds more than {MAX_CONTAINERS} maps and arrays: not the structure of a request"
+            msg = f"holds more than {MAX_CONTAINERS} maps and arrays: not the structure of a {what}"
             raise InputError([*r.faults, Fault(loc, msg, "structure")]) from None
         except ValueError as e:
             if "exceeds max_" not in str(e):
                 raise
-            msg = f"holds a map or array of {str(e).split()[0]} items; a request's have at most {MAX_ITEMS}"
+            msg = f"holds a map or array of {str(e).split()[0]} items; a {what}'s have at most {MAX_ITEMS}"
             raise InputError([*r.faults, Fault(loc, msg, "structure")]) from None
 
     try:
@@ -100,7 +103,7 @@ def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None) ->
                 k = value(())
                 if k in doc:
                     repeated.append(k)
-                if k == "batches" and u.tell() < len(body) and body[u.tell()] in _ARRAY_HEADERS:
+                if k == "batches" and not message and u.tell() < len(body) and body[u.tell()] in _ARRAY_HEADERS:
                     n_batches = u.read_array_header()
                     if max_batches is not None:  # a 413 before any batch is read: each costs Python work
                         limits.check_batches(n_batches, max_batches)
@@ -115,8 +118,14 @@ def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None) ->
     except (InputError, HttpError):
         raise  # the fault cap, reached inside the batches; too many batches
     except Exception as e:  # msgpack raises several unrelated types for malformed input
-        raise InputError([Fault((), f"body is not a valid msgpack document ({type(e).__name__}: {e})", "msgpack_invalid")]) from None
+        noun = "message" if message else "body"
+        raise InputError([Fault((), f"{noun} is not a valid msgpack document ({type(e).__name__}: {e})", "msgpack_invalid")]) from None
     return doc
+
+
+def read_message(frame: bytes, checker: document.Checker) -> Any:
+    """A session's later message as plain data, each value within a body's bounds (`_unpack`); `InputError`."""
+    return _unpack(frame, checker, message=True)
 
 
 def decode(body: bytes, max_batches: int | None = None, opening: bool = False,

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core import Evaluation, Fault, InputError
 from jointlimits.service.core.assembled import check_layout
@@ -54,10 +53,7 @@ def decode(frame: Frame, max_values: int) -> Message:
             doc = convert.load(text)
             checker.booleans = convert.booleans(text)
         else:
-            try:
-                doc = wire.loads(frame, document.pairs)
-            except ValueError as e:
-                raise InputError([Fault((), str(e).replace("body is", "message is"), "msgpack_invalid")]) from None
+            doc = binary.read_message(frame, checker)
         return checker.message(doc)
     except (InputError, HttpError) as e:
         raise with_id(e, checker.message_id) from None

@@ -17,6 +17,7 @@ from jointlimits.client import Client, InvalidInput, LocalClient
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.app import create_app
+from jointlimits.service.core import InputError
 from jointlimits.service.settings import Settings
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
 from tests.http.test_one_fault_every_path import base_doc
@@ -159,3 +160,35 @@ def test_try_again_later_is_a_close_code_of_the_protocol():
 
     assert proto.TRY_AGAIN_LATER == timeouts.TRY_AGAIN_LATER == 1013
     assert sessions.DISCONNECT_REASONS[proto.TRY_AGAIN_LATER] == "uploads_full"
+
+
+@pytest.mark.parametrize(
+    ("flood", "loc"),
+    [
+        ({"kind": "evaluate", "q": None, "extra": [{}] * 3_000_000}, ("body", "extra")),  # 3 MB, 3M dicts once built
+        ({"kind": "evaluate", "id": [[[[]] * 60] * 60]}, ("body", "id")),  # 3600 nested arrays in 4 KB
+        ({"kind": "commit", "q": [0.0] * 100_000}, ("body", "q")),  # numbers travel as bin: 100k items is a flood
+    ],
+    ids=["3M_empty_maps", "nested_arrays", "100k_numbers"],
+)
+def test_a_msgpack_message_flood_is_refused_before_it_is_built(flood, loc):
+    """A later message is unpacked within a request body's bounds (`binary.MAX_CONTAINERS` maps and arrays of at
+    most `binary.MAX_ITEMS` items per value): a 3 MB frame of empty maps would otherwise be ~300 MB of dicts on
+    the event loop, a 64 MiB frame several GB. The fault names the key, and the session goes on."""
+    import tracemalloc
+
+    from jointlimits.service.http import session_codec
+
+    frame = msgpack.packb(flood)
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputError) as e:
+            session_codec.decode(frame, 10**9)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 * len(frame) + 2**20, peak  # nothing built beyond a few containers per value
+    assert any(f.loc == loc[1:] and f.type == "structure" for f in e.value.faults), e.value.faults
+    reply, after = replies([frame, msgpack.packb({"kind": "evaluate", "q": wire.pack_array(np.asarray(Q), wire.FLOAT64)})])
+    assert any(tuple(d["loc"]) == loc and d["type"] == "structure" for d in reply["detail"]), reply
+    assert after["kind"] == proto.EVALUATION

@@ -72,7 +72,7 @@ def test_write_back_without_pyuipc_raises_the_same_import_error(monkeypatch):
     import jointlimits.client.uipc as cu
 
     monkeypatch.setitem(sys.modules, "uipc", None)
-    with pytest.raises(ImportError, match=r"jointlimits\[uipc\]"):
+    with pytest.raises(ImportError, match=r"pip install pyuipc \(the uipc extra\)"):
         cu.write_back(object(), [], [])
 
 

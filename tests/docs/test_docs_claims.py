@@ -21,7 +21,7 @@ FLOOD = {"bodies": {}, "batches": [{}] * 300_000}
 
 @pytest.mark.parametrize("decoder", [convert, binary], ids=["json", "msgpack"])
 def test_300k_empty_batches_are_one_413_before_any_batch_is_read(decoder, monkeypatch):
-    """docs/http-api.md, "Hostile bodies": at the defaults one 413 naming JOINTLIMITS_MAX_BATCHES, no batch read."""
+    """docs/http-api.md, "Errors" (hostile bodies): at the defaults one 413 naming JOINTLIMITS_MAX_BATCHES, no batch read."""
     assert "300k empty batches (300 KB of msgpack, or its 1.2 MB JSON twin) are one\n413 fault" in \
         (ROOT / "docs" / "http-api.md").read_text()
 

@@ -126,7 +126,7 @@ class Robot:
         try:
             import yourdfpy
         except ImportError as e:  # pragma: no cover (the `robot` extra)
-            raise ImportError("reading a URDF needs yourdfpy: pip install 'jointlimits[robot]'") from e
+            raise ImportError("reading a URDF needs yourdfpy: pip install yourdfpy (the robot extra)") from e
         try:
             urdf = yourdfpy.URDF.load(str(path), load_meshes=False, build_collision_scene_graph=False)
         except Exception as e:  # yourdfpy's own exceptions (ValueError, KeyError, lxml's), said with the file's name
@@ -213,7 +213,7 @@ def plot(readings: Sequence[Reading], path: str | Path | None = None, title: str
     try:
         from matplotlib.figure import Figure
     except ImportError as e:  # pragma: no cover (the `plot` extra)
-        raise ImportError("the picture needs matplotlib: pip install 'jointlimits[plot]'") from e
+        raise ImportError("the picture needs matplotlib: pip install matplotlib (the plot extra)") from e
     fig = Figure(figsize=(10, 0.45 * len(readings) + 1.2))
     ax = fig.subplots()
     beside = ax.get_yaxis_transform()  # x in the axes' fraction, y in rows: the numbers' column right of the plot

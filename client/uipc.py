@@ -5,7 +5,7 @@
     ev = LocalClient().evaluate(req)                     # or Client / AsyncClient / .session(req)
     write_back(scene, [b.coordinate for b in ev.batches], joints)
 
-It needs the extra `jointlimits[uipc]` (pyuipc) and only reads the scene's geometries and attributes (CONTRACT
+It needs pyuipc (the `uipc` extra) and only reads the scene's geometries and attributes (CONTRACT
 v1.2, "Reading an engine scene"; docs/uipc.md maps each engine attribute to its wire field). A scene the adapter
 cannot read raises `SceneError` before anything is built or written.
 """
@@ -49,7 +49,7 @@ def _uipc() -> Any:
         import uipc
     except ImportError as e:
         raise ImportError(
-            "jointlimits.client.uipc reads libuipc scenes and needs the pyuipc package: pip install 'jointlimits[uipc]'"
+            "jointlimits.client.uipc reads libuipc scenes and needs pyuipc: pip install pyuipc (the uipc extra)"
         ) from e
     return uipc
 

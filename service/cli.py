@@ -22,7 +22,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from jointlimits.service.settings import ENV_PREFIX, TABLE, Setting, Settings, boolean, positive_int
+from jointlimits.service.settings import ENV_PREFIX, TABLE, Setting, Settings, boolean, positive_float, positive_int
 
 BOOL = "true|false"
 """What boolean options show; 1/0, yes/no, on/off are accepted too."""
@@ -69,9 +69,9 @@ FIRST = (
 LAST = (
     Setting("healthcheck_timeout", 30, positive_int, "seconds uvicorn's supervisor waits for a worker's health ping "
             "before killing it; above the longest step that holds the GIL (a JSON parse at --max-json-values)", True),
-    Setting("graceful_timeout", 30.0, float, "seconds in-flight requests get to finish after SIGTERM", True),
-    Setting("keepalive_timeout", 75.0, float, "seconds an idle keep-alive connection stays open; keep it above your "
-            "load balancer's idle timeout", True),
+    Setting("graceful_timeout", 30.0, positive_float, "seconds in-flight requests get to finish after SIGTERM", True),
+    Setting("keepalive_timeout", 75.0, positive_float, "seconds an idle keep-alive connection stays open; keep it "
+            "above your load balancer's idle timeout", True),
     Setting("backlog", 2048, positive_int, "listen backlog", True),
     Setting("log_level", "info", str, "log level", True),
     Setting("access_log", True, boolean, "one JSON line per request on stdout", True),

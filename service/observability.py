@@ -107,7 +107,7 @@ _METRICS: tuple[tuple[str, Any, str, str, tuple[str, ...], dict[str, Any]], ...]
      (), _LIVE),
     ("sessions", Counter, "jointlimits_sessions_total",
      "WebSocket sessions ended, by reason (client, disconnect, idle, frame_too_large, invalid_utf8, protocol_error, "
-     "scene_too_large, too_many_sessions, shutdown, error).", ("reason",), {}),
+     "slow_message, uploads_full, scene_too_large, too_many_sessions, shutdown, error).", ("reason",), {}),
     ("session_messages", Counter, "jointlimits_session_messages_total",
      "Session messages handled, by kind (open, evaluate, commit, update, close, invalid) and outcome (ok, fault).",
      ("kind", "outcome"), {}),

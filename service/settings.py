@@ -102,7 +102,7 @@ class Settings:
         64 * 2**20, positive_int, "largest session message; larger closes the session with code 1009"
     )
     session_idle_seconds: float = _setting(
-        300.0, float, "a session without a message for this long is closed with code 4408"
+        300.0, positive_float, "a session without a message for this long is closed with code 4408"
     )
     # Connection deadlines, enforced by the protocols of service/http/timeouts.py (`jointlimits serve` runs them).
     header_timeout: float = _setting(

@@ -4,7 +4,7 @@
 
 from the repository's root: a test module (the tests run the drills and import their helpers), not part of the
 installed package. `--spawn` starts `jointlimits serve` on a free loopback port for the run (and stops it);
-without it, `--url` names a service already running on 127.0.0.1. Scenarios:
+without it, `--port` names a service already running on 127.0.0.1. Scenarios:
 
 - `mixed`: N clients on keep-alive connections, valid and invalid requests mixed, for
   `--duration` seconds: throughput, p50/p99 latency per kind, 5xx count, dropped
@@ -23,7 +23,7 @@ without it, `--url` names a service already running on 127.0.0.1. Scenarios:
   server), the valid clients keep their 200s.
 - `peak`: the largest request each limit admits (answer bound in both encodings, JSON values,
   joints, body bytes, batches), each sent alone to a fresh 1-worker server: its time and the
-  worker's peak RSS (`VmHWM`), the figures behind the README's sizing rule. Builds its bodies
+  worker's peak RSS (`VmHWM`), the figures behind docs/deployment.md's sizing rule. Builds its bodies
   with NumPy and the SDK's codec (installed with the service).
 - `stalled`: `--clients` connections (at most 32) each send the costliest answer the limits admit
   and read nothing (4 KiB receive buffers): when each was dropped (`--write-timeout` of the

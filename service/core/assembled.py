@@ -44,7 +44,7 @@ class Assembled:
         try:
             from scipy import sparse
         except ImportError:
-            msg = "Assembled.matrix() needs scipy: pip install 'jointlimits[sparse]' (or pip install scipy)"
+            msg = "Assembled.matrix() needs scipy: pip install scipy (the sparse extra)"
             raise ImportError(msg) from None
         if self.blocks is None:
             raise ValueError("no Hessian: ask for the 'hessian' output")

@@ -180,3 +180,15 @@ def test_a_uid_is_written_in_its_constitution_module_alone():
     knowing = [m for m in _modules() if _names_a_constitution(ROOT / m)]
     assert "client/model.py" in knowing
     assert [m for m in knowing if f"`{m}" not in section] == []
+
+
+def test_the_middleware_is_named_in_its_order():
+    """"Before the route" names the middleware outermost first, as `create_app` stacks it (CORS by its word)."""
+    from jointlimits.service.app import create_app
+    from jointlimits.service.settings import Settings
+
+    walk = _text().split("**Before the route.**", 1)[1].split("**The route**", 1)[0].split("outermost first", 1)[1]
+    named = re.findall(r"`service/[\w/]+\.py:(\w+)`|\b(CORS)\b", walk)
+    named = [("CORSMiddleware" if cors else n) for n, cors in named if n != "create_app"]
+    app = create_app(Settings(token="t", cors_origins=("https://a.example",)))  # every optional layer on
+    assert named == [m.cls.__name__ for m in app.user_middleware]

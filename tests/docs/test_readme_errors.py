@@ -179,7 +179,7 @@ CASES: dict[str, Callable[[str], httpx.Response]] = {
 
 
 def table_rows(text: str) -> list[tuple[str, str, str]]:
-    """(class, status, example) of each row of the README's Errors table."""
+    """(class, status, example) of each row of the page's Errors table."""
     section = text.split("\n## Errors\n", 1)[1].split("\n## ", 1)[0]
     rows = [line for line in section.splitlines() if line.startswith("| ") and not line.startswith("| class")]
     return [tuple(c.strip() for c in re.split(r" \| ", row.strip("| "), maxsplit=2)) for row in rows]

@@ -19,7 +19,7 @@ def example_section() -> str:
 
 
 def curl_example() -> tuple[str, dict[str, str], bytes]:
-    """Path, headers and body of the README's curl command."""
+    """Path, headers and body of the page's curl command."""
     cmd = example_section().split("```bash\n", 1)[1].split("```", 1)[0]
     argv = shlex.split(cmd)
     assert argv[:2] == ["curl", "-s"], argv

@@ -1,7 +1,7 @@
-"""The README's bench commands, run the way a newcomer runs them: a fresh clone, a fresh venv, the `bench` extra only.
+"""docs/performance.md's bench commands, run the way a newcomer runs them: a fresh clone, a fresh venv, the `bench` extra only.
 
 Slow for a test (a fresh virtual environment with JAX from pip's cache, then the quick bench:
-88 s on the 2 loaded cores this was written on), but well under CI's few minutes, so the README's
+88 s on the 2 loaded cores this was written on), but well under CI's few minutes, so the page's
 command runs as written (`python -m bench --quick`, JAX and HTTP included) rather than trimmed:
 the import path is exactly the one a newcomer hits. The bench must find its 50-digit reference
 (mpmath) with the `bench` extra alone, not through `tests/` and the `test` extra.

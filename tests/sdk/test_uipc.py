@@ -65,14 +65,14 @@ def test_the_module_imports_without_pyuipc_and_says_which_extra_installs_it():
     )
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    assert "IMPORT-ERROR" in out.stdout and "jointlimits[uipc]" in out.stdout
+    assert "IMPORT-ERROR" in out.stdout and "pip install pyuipc (the uipc extra)" in out.stdout
 
 
 def test_write_back_without_pyuipc_raises_the_same_import_error(monkeypatch):
     import jointlimits.client.uipc as cu
 
     monkeypatch.setitem(sys.modules, "uipc", None)
-    with pytest.raises(ImportError, match=r"jointlimits\[uipc\]"):
+    with pytest.raises(ImportError, match=r"pip install pyuipc \(the uipc extra\)"):
         cu.write_back(object(), [], [])
 
 

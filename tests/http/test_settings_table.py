@@ -3,6 +3,7 @@ the CLI's flags, the workers' environment and docs/deployment.md's table all agr
 
 from __future__ import annotations
 
+import argparse
 import os
 import re
 from pathlib import Path
@@ -78,3 +79,15 @@ def test_a_bad_variable_names_itself_outside_the_cli(monkeypatch):
     monkeypatch.setenv("JOINTLIMITS_MAX_JOINTS", "-1")
     with pytest.raises(ValueError, match="JOINTLIMITS_MAX_JOINTS: must be a positive integer, got '-1'"):
         Settings()
+
+
+def test_every_duration_of_the_settings_table_is_a_number_of_seconds():
+    """docs/deployment.md's table gives each timeout and delay in seconds: a negative or NaN one, by flag or by
+    variable, is refused at start (`jointlimits serve: error: ...`), never taken (NaN crashed the CLI with a
+    traceback; a negative idle time closed every session at once)."""
+    rows = [r for r in (*cli.FIRST, *TABLE, *cli.LAST) if isinstance(r.default, float)]
+    assert {"session_idle_seconds", "graceful_timeout", "keepalive_timeout", "request_timeout"} <= {r.name for r in rows}
+    for row in rows:
+        for text in ("-1", "nan"):
+            with pytest.raises((ValueError, argparse.ArgumentTypeError)):
+                row.parse(text)

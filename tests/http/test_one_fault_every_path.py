@@ -1,6 +1,6 @@
-"""One fault per mistake, whatever the path (README, Errors; issue 20).
+"""One fault per mistake, whatever the path (docs/http-api.md, "Errors"; issue 20).
 
-Each malformed input of the README's errors table, as one wire document, goes through every path that can
+Each malformed input of the errors table (docs/http-api.md), as one wire document, goes through every path that can
 carry it: JSON and msgpack over HTTP, a session's opening (then an `evaluate`) in JSON and in msgpack, the
 local mode from the dict and from arrays. Every path answers the same `(loc, msg, type)` list. The rows
 of the table that only one encoding can carry (invalid JSON, a msgpack `bin` key, ...) are listed as such,
@@ -35,7 +35,7 @@ BATCH_ARRAYS = {"body_ids": I8, "edges": F8, "local_edges": F8, "lower": F8, "up
 
 
 def base_doc() -> Doc:
-    """The README table's base request (3 bodies; batch 0: 2 revolute joints, batch 1: 3 prismatic) as wire JSON."""
+    """The errors table's base request (3 bodies; batch 0: 2 revolute joints, batch 1: 3 prismatic) as wire JSON."""
     return json.loads(codec.encode(base_request(), binary=False)[0])
 
 
@@ -74,7 +74,7 @@ def q_of_rows_of(n: int) -> Callable[[Doc], None]:
     return lambda doc: doc["bodies"].__setitem__("q", [row[:n] + [0.0] * (n - 12) for row in doc["bodies"]["q"]])
 
 
-# The README table's row (its first column) -> the malformed input that shows it on every path.
+# The errors table's row (its first column) -> the malformed input that shows it on every path.
 CASES: dict[str, Callable[[Doc], None]] = {
     "non-finite number (`NaN`, `Infinity`, `1e400`, `null`), in JSON, msgpack or local": put("batches", 1, "lower", 2, value=float("nan")),
     "wrong row length / not a number / misspelt or missing field": q_of_rows_of(11),
@@ -249,7 +249,7 @@ def test_every_row_of_the_errors_table_is_compared_or_one_paths_own():
 
 
 def test_the_table_example_is_what_every_path_says(app):
-    """Where the README's example is the first fault of the case above, every path says exactly it."""
+    """Where the table's example is the first fault of the case above, every path says exactly it."""
     rows = {row[0]: row[2] for row in table_rows(README_PATH.read_text())}
     for name, change in CASES.items():
         example = json.loads(rows[name].strip("`"))

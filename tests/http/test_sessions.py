@@ -1,4 +1,4 @@
-"""The session protocol (`/v1/sessions`, README "Sessions") through FastAPI's TestClient: every message kind in
+"""The session protocol (`/v1/sessions`, docs/sessions.md) through FastAPI's TestClient: every message kind in
 JSON and msgpack, faults as messages that keep the session, auth on the upgrade, each bound's close code, metrics."""
 
 from __future__ import annotations

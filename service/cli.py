@@ -60,10 +60,18 @@ def _workers(value: str) -> int:
     return positive_int(value, "a positive integer or 'auto'")
 
 
+def _port(text: str) -> int:
+    """A TCP port, 0 (the system picks one) to 65535: uvicorn would bind 70000 as 4464 and log "70000"."""
+    n = int(text) if text.strip().lstrip("+-").isdigit() else -1
+    if not 0 <= n <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a TCP port, 0 to 65535, got {text!r}")
+    return n
+
+
 # The process's own options (uvicorn's), rows of the settings' shape: in --help before and after the application's.
 FIRST = (
     Setting("host", "127.0.0.1", str, "bind address; 0.0.0.0 in the container", True),
-    Setting("port", 8000, int, "TCP port", True),
+    Setting("port", 8000, _port, "TCP port", True),
     Setting("workers", "auto", _workers, "worker processes, or 'auto' = usable CPUs, cgroup quota included", True),
 )
 LAST = (

@@ -86,7 +86,8 @@ def test_auto_workers_follow_the_cpu_quota(monkeypatch):
     assert cli.available_cpus() == len(os.sched_getaffinity(0))
 
 
-@pytest.mark.parametrize("argv", [["--workers", "0"], ["--max-joints", "-1"], ["--access-log", "maybe"]])
+@pytest.mark.parametrize("argv", [["--workers", "0"], ["--max-joints", "-1"], ["--access-log", "maybe"],
+                                  ["--port", "70000"], ["--port", "-5"], ["--port", "http"]])  # 70000 bound 4464
 def test_bad_options_are_refused(argv, capsys):
     with pytest.raises(SystemExit) as e:
         parse(argv)

@@ -132,7 +132,7 @@ def _hessian_points(
 def _balance(alpha: Array, v: Array) -> Array:
     """(N, 4) powers of two, g on the points' blocks and 1/g on the directions' (g^2 ~ |v_dir| / |[1, v_point]|):
     factors of a K pairing only points with directions still sum to K, and a point's row [1, c_k] far larger
-    than a direction's [0, t_k] (an anchor 1/s body units away) no longer cancels ~u/s of the Hessian."""
+    than a direction's [0, t_k] (an anchor 1/s body units away) cancels no digits in their difference of squares."""
     pts = alpha.astype(bool)
     size = np.abs(v).max(axis=2)  # (N, 4)
     ratio = size[:, ~pts].max(axis=1) / np.maximum(size[:, pts].max(axis=1), 1.0)

@@ -89,6 +89,8 @@ def _hessian_points(
     else:
         w, f = curvature.kron_factors
         w = dE[:, None] * w
+    if curvature.balance:
+        f = f * _balance(alpha, v)[:, None, :]
     m, k = w.shape[1], mix.lam.shape[1]
     fs = component_major(n, (m, 2, 2, 1), dtype)  # sqrt|w_e| f_e, by body and block
     np.multiply(f, np.sqrt(np.abs(w))[:, :, None], out=fs.reshape(n, m, 4))
@@ -125,6 +127,19 @@ def _hessian_points(
         # X holds the values of Xl and t, and zeros (NaN fails the test).
         finite = finite and bool(max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0)) < finite_factor(dtype))
     return Jdx, finite
+
+
+def _balance(alpha: Array, v: Array) -> Array:
+    """(N, 4) powers of two, g on the points' blocks and 1/g on the directions' (g^2 ~ |v_dir| / |[1, v_point]|):
+    factors of a K pairing only points with directions still sum to K, and a point's row [1, c_k] far larger
+    than a direction's [0, t_k] (an anchor 1/s body units away) cancels no digits in their difference of squares."""
+    pts = alpha.astype(bool)
+    size = np.abs(v).max(axis=2)  # (N, 4)
+    ratio = size[:, ~pts].max(axis=1) / np.maximum(size[:, pts].max(axis=1), 1.0)
+    bound = np.finfo(v.dtype).maxexp // 4  # g and 1/g far inside the range
+    e = np.clip(np.round(0.5 * np.log2(ratio, where=ratio > 0, out=np.zeros_like(ratio))), -bound, bound)
+    g = np.ldexp(np.ones_like(ratio), e.astype(np.int32))[:, None]
+    return np.where(pts, g, 1.0 / g)
 
 
 def _hessian_directions(

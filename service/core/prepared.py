@@ -73,6 +73,7 @@ class _Batch:
     faults: list[Fault]  # the stateless call's collapsed frames at q_ref, q_prev: reported with those at q
     progress: dict[str, Progress]  # the coordinate's progress over the steps that do not depend on q ("whole":
     # from starts[0] over `fixed`; "last": from starts[-1]; "ref": from F_ref), kept until `starts` change
+    meets: bool = False  # world edges, points, telescoping: the anchors meet at q_ref, so x = theta(q) (`_to_q`)
 
 
 class PreparedScene:
@@ -174,8 +175,9 @@ class PreparedScene:
             return states[-1], _last_state(careful), jb.c.value(states[-1]), None
         p = jb.c.advance(_progress(jb.c, jb.progress, path, starts, fixed), states[-2], dF)
         x = p.x
-        if careful is not None:
-            x[careful.idx] = jb.c.careful_coordinate(careful)
+        if careful is not None:  # `meets`: theta(q_ref) is 0, its rounding (D_ref ~ 0 times a large S_ref) is not
+            last = len(careful.states) - 1
+            x[careful.idx] = jb.c.value(careful.unscaled(last)) if jb.meets else jb.c.careful_coordinate(careful)
         return states[-1], _last_state(careful), x, p.known[-1]
 
     def _step(self, jb: _Batch, row: int, r_start: Array | None) -> tuple[Array | None, Array | None]:
@@ -442,7 +444,7 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     lo, up = (a if offset is None else a - offset for a in (lower, upper))
     return _Batch(c, pairs, v, F_ref, starts, fixed, rows, prev_careful, r.get(start), held, lower, upper, strength,
                   offset, lo.astype(dtype, copy=False), up.astype(dtype, copy=False), strength.astype(dtype, copy=own),
-                  theta, absolute, x0, faults, progress)
+                  theta, absolute, x0, faults, progress, meets=points and c.facts.telescopes and joints.edges is not None)
 
 
 def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: list[Array], fixed: list[Array]) -> Progress:

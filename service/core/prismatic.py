@@ -100,7 +100,7 @@ class Prismatic(Constitution):  # its frames never collapse (`Constitution.colla
         kron = np.broadcast_to(_PAIRS.astype(F.dtype, copy=False), (n, 4, 4))  # read-only views of the constants
         factors = (np.broadcast_to(_SIGNS.astype(F.dtype, copy=False), (n, 2)), _UU.astype(F.dtype, copy=False))
         return dx, Curvature(kron=kron, basis=dx[:, None], coef=np.zeros((n, 1, 1), F.dtype),
-                             dx_coef=np.ones((n, 1), F.dtype), kron_factors=factors)
+                             dx_coef=np.ones((n, 1), F.dtype), kron_factors=factors, balance=True)
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
         """The engine's projection (contract v1.2, 9 quantities): `(|E'| / sqrt 2) f f^T` per joint (see `_F01_POS`)."""

@@ -73,6 +73,37 @@ def test_factors_match_the_dense_chain_rule(c, psd: bool, seed: int):
         assert not H[:, :, :3].any() and not H[:, :, :, :, :3].any()
 
 
+@pytest.mark.parametrize("psd", [False, True], ids=["exact", "psd"])
+def test_prismatic_anchor_far_in_body_units(psd: bool):
+    """A prismatic anchor far from its body's origin in body units (`A = s R` with s = 1e-6 .. 1e-150, so
+    |c_k| ~ 1/s and |T_k| ~ s): the Kronecker part pairs c_k ~ 1/s with t_k ~ 1, and the gradient stays O(1).
+    As a difference of squares of (D +- S)/2 it cancelled to ~u/s of the Hessian's norm (1e-10 at s = 1e-6,
+    1e+134 at 1e-150, with `finite` still True: a silent wrong answer). Balanced factors lose nothing."""
+    rng = np.random.default_rng(8)
+    n = 200
+    s = 10.0 ** rng.uniform(-150, 0, size=(n, 1))
+    F = rng.normal(size=(n, 4, 3))
+    F[:, 1::2] *= s[:, :, None]  # T_k = A t_k
+    dx, curvature = PRISMATIC.derivatives(F, True)
+    v = rng.normal(size=(n, 4, 3))
+    v[:, 0::2] /= s[:, :, None]  # c_k = A_ref^-1 (p0 - p_ref)
+    dE = rng.choice([-1.0, 1.0], size=n) * 10.0 ** rng.uniform(-3, 3, size=n)
+    d2E = 10.0 ** rng.uniform(-3, 3, size=n)
+    J = dense_J(PRISMATIC.facts.alpha, v)
+    dxv = dx.reshape(n, 12)
+    if psd:
+        curvature = PRISMATIC.projected_curvature(dE, curvature)
+        M, dE = curvature.dense(), np.ones(n)
+    else:
+        M = dE[:, None, None] * curvature.dense()
+    want = np.einsum("nai,nab,nbj->nij", J, M + d2E[:, None, None] * dxv[:, :, None] * dxv[:, None, :], J)
+    out = np.empty((n, 24, 24))
+    _, finite = assembly.hessian(PRISMATIC.facts.alpha, v, curvature, dE, d2E, out, dx=dx)
+    assert finite and np.array_equal(out, out.transpose(0, 2, 1))
+    err = np.abs(out - want).max(axis=(1, 2)) / np.abs(want).max(axis=(1, 2))
+    assert err.max() <= TOL, (err.max(), float(s[int(err.argmax()), 0]))
+
+
 def test_symmetric_at_extreme_magnitudes():
     """Joints whose entries span ~1e-100 .. 1e100 still give a bitwise symmetric product."""
     rng = np.random.default_rng(4)

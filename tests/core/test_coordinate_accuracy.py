@@ -48,3 +48,34 @@ def test_prismatic_slide_of_distant_bodies_keeps_its_digits() -> None:
 
 def test_revolute_small_turns_of_distant_bodies_keep_their_digits() -> None:
     assert _worst_relative_x_error(670, 18) <= 4e-15  # measured 1.3e-15
+
+
+def test_prismatic_slide_after_the_body_shrank_keeps_its_digits() -> None:
+    """World-edge anchors meet at q_ref (`C_i = C_j = p0`), so theta(q_ref) is exactly 0 and x = theta(q).
+    Bodies 2^k times larger at q_ref than at q (a step as large as the frames: the careful path) took x as
+    theta(q) - theta(q_ref), and theta(q_ref) is the rounding of `D_ref ~ 0` times `S_ref ~ 2^k`: measured
+    relative errors 4.7e-10 at 2^20, 5.6e-7 at 2^30, 1.9e-3 at 2^40, 0.1 at 2^50 on x ~ 1.
+
+    Exact reference: `A_ref = 2^k I` (so `R = I`, `c_k = 2^-k (p0 - p_ref_k)` exactly) and an axis along e_z
+    (t exact), so `x = (D . S) / 2` at q in rationals. Bound: theta(q) from q's own frames rounds by a few u
+    (|D| |S| + |x|), D, S ~ 1 here: 1e-14 relative (measured after the fix: <= 6e-16).
+    """
+    from fractions import Fraction
+
+    rng = np.random.default_rng(27)
+    for k in (10, 20, 30, 40, 50, 60):
+        for _ in range(4):
+            p_ref = rng.normal(size=(2, 3))
+            q_ref = np.array([_dof(p, 2.0**k * np.eye(3)) for p in p_ref])
+            q = np.array([_dof(rng.normal(size=3), rotation_about(rng.normal(size=3), rng.uniform(-3, 3))) for _ in range(2)])
+            p0 = rng.normal(size=3)
+            edge = np.array([p0, p0 + [0.0, 0.0, 0.75]])
+            joints = Joints(669, 20, np.array([[0, 1]]), edge[None], np.array([-10.0]), np.array([10.0]), np.array([1.0]))
+            x = evaluate(Bodies(q, q, q_ref), [joints], outputs=("energy",)).batches[0].x[0]
+            F = lambda a: [Fraction(float(v)) for v in a]  # noqa: E731
+            A = [[F(q[b, 3 + 3 * r : 6 + 3 * r]) for r in range(3)] for b in range(2)]
+            c = [[(Fraction(float(p0[r])) - Fraction(float(p_ref[b, r]))) / 2**k for r in range(3)] for b in range(2)]
+            C = [[Fraction(float(q[b, r])) + sum(A[b][r][m] * c[b][m] for m in range(3)) for r in range(3)] for b in range(2)]
+            S = [A[0][r][2] + A[1][r][2] for r in range(3)]  # A_i e_z + A_j e_z
+            exact = sum((C[1][r] - C[0][r]) * S[r] for r in range(3)) / 2
+            assert abs(Fraction(float(x)) - exact) <= Fraction(1e-14) * abs(exact), (k, x, float(exact))

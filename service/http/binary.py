@@ -57,6 +57,13 @@ class _Budget:
             raise _TooMany
 
 
+def _unpacker(body: bytes, **options: Any) -> msgpack.Unpacker:
+    """An unpacker reading `body` itself in steps of at most 8 MiB (`feed(body)` would hold a whole second copy;
+    a small body, a session's step, allocates no more than its size), strings as UTF-8."""
+    return msgpack.Unpacker(io.BytesIO(body), read_size=max(1, min(len(body), 2**23)),
+                            max_buffer_size=max(len(body), 2**23), raw=False, **options)
+
+
 def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None, message: bool = False) -> Any:
     """The document, its top-level `batches` unpacked and checked one batch at a time (`message`: a session's
     later message, which has no batches, and whose faults say "message").
@@ -68,13 +75,8 @@ def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None, me
     """
     what = "message" if message else "request"
     budget = _Budget()
-    # Read in steps of at most 8 MiB from the body itself: `feed(body)` would hold a whole second copy (and
-    # a small body, a session's step, allocates no more than its size).
-    u = msgpack.Unpacker(
-        io.BytesIO(body), read_size=max(1, min(len(body), 2**23)), max_buffer_size=max(len(body), 2**23),
-        raw=False, strict_map_key=True, object_pairs_hook=budget.pairs, list_hook=budget.items,
-        max_map_len=MAX_ITEMS, max_array_len=MAX_ITEMS,
-    )  # fmt: skip
+    u = _unpacker(body, strict_map_key=True, object_pairs_hook=budget.pairs, list_hook=budget.items,
+                  max_map_len=MAX_ITEMS, max_array_len=MAX_ITEMS)
 
     def value(loc: Loc) -> Any:
         budget.left = MAX_CONTAINERS
@@ -119,7 +121,8 @@ def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None, me
         raise  # the fault cap, reached inside the batches; too many batches
     except Exception as e:  # msgpack raises several unrelated types for malformed input
         noun = "message" if message else "body"
-        raise InputError([Fault((), f"{noun} is not a valid msgpack document ({type(e).__name__}: {e})", "msgpack_invalid")]) from None
+        msg = f"{noun} is not a valid msgpack document ({type(e).__name__}: {e})"
+        raise InputError([Fault((), msg, "msgpack_invalid")]) from None
     return doc
 
 
@@ -149,7 +152,7 @@ def decode(body: bytes, max_batches: int | None = None, opening: bool = False,
 def _top_level_id(body: bytes) -> Any:
     """The top-level `id` of a msgpack map unless it is a map or an array (every other value walked, never built:
     a C-speed pass over bytes already received); None when absent, or when the body breaks before it."""
-    u = msgpack.Unpacker(io.BytesIO(body), read_size=2**23, max_buffer_size=max(len(body), 2**23), raw=False)
+    u = _unpacker(body)
     try:
         for _ in range(u.read_map_header()):
             key = u.unpack() if body[u.tell()] in _STR_HEADERS else u.skip()

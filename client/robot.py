@@ -164,10 +164,13 @@ class Robot:
         at `q_prev` (default `q`) and at `reference` (the pose the joints were built at, default zero, the
         request's `q_ref`). Each limit's `offset` is its joint's reference position and a revolute limit's
         `prev_coordinate` its position in `q_prev`: so the coordinate is the position in `q` (exact past
-        +-pi and over turns, while `q` is less than pi from `q_prev`) and `x` = position - reference."""
+        +-pi and over turns; a revolute limit pi or more from `q_prev` is a ValueError) and `x` = position - reference.
+        `strength`: one number, or one per limited joint by name (others keep the default; an unknown name is refused)."""
         v = self.vector(q)
         v_prev = v if q_prev is None else self.vector(q_prev, "q_prev")
         v_ref = self.vector(reference, "reference")
+        if isinstance(strength, Mapping) and (unknown := sorted(set(strength) - set(self.handles))):
+            raise ValueError(f"strength: no limited joint named {unknown} (the limited joints are {list(self.handles)})")
         scene = Scene()
         for now, prev, ref in zip(self.poses(v), self.poses(v_prev), self.poses(v_ref)):
             scene.add_body(now, prev=prev, ref=ref)
@@ -178,6 +181,9 @@ class Robot:
                 s = strength.get(jt.name, STRENGTH_DEFAULT) if isinstance(strength, Mapping) else strength
                 add = scene.add_revolute_limit if kind == "revolute" else scene.add_prismatic_limit
                 state = {"prev_coordinate": v_prev[k]} if kind == "revolute" else {}  # 669's slide needs no state
+                if kind == "revolute" and not abs(v[k] - v_prev[k]) < math.pi:  # the turn between them is wrapped
+                    raise ValueError(f"joint {jt.name}: q is {abs(v[k] - v_prev[k]):.6g} rad from q_prev; the "
+                                     "coordinate is exact only for a step of less than pi")
                 try:
                     handles[jt.name] = add(*jt.body_ids, lower=jt.lower, upper=jt.upper, strength=s,
                                            offset=v_ref[k], local_edge=jt.local_edge, **state)

@@ -183,6 +183,26 @@ def test_a_joint_vector_of_the_wrong_size_or_names_is_refused(arm):
         arm.request({}, q_prev=vec(arm, {"joint2": math.nan}))
 
 
+def test_a_strength_for_no_limited_joint_is_refused(arm):
+    """A misspelt name (or one without a limit) in a strength mapping was dropped: that joint silently kept
+    strength 1 (energy 0.0034 instead of 0.34 for joint1 at 3.1 below)."""
+    with pytest.raises(ValueError, match=r"strength: no limited joint named \['jont1', 'wheel'\] \(the limited"):
+        arm.request({"joint1": 3.1}, strength={"jont1": 100.0, "wheel": 2.0, "joint2": 3.0})
+    r = LocalClient().evaluate(arm.request({"joint1": 3.1}, strength={"joint1": 100.0})).joint(arm.handles["joint1"])
+    assert r.energy == pytest.approx(100.0 * ((3.1 - 2.8973) / (2 * 2.8973)) ** 3, rel=1e-12)
+
+
+def test_a_previous_pose_pi_or_more_away_is_refused(arm):
+    """x = q_prev's position + the turn from q_prev to q wrapped into (-pi, pi]: with joint1 at 1.0 and
+    q_prev at 5.0 it read 7.28 (past the upper limit, penalised) instead of 1.0. Refused, naming the joint."""
+    with pytest.raises(ValueError, match=r"joint1: q is 4 rad from q_prev.*less than pi"):
+        arm.request({"joint1": 1.0}, q_prev={"joint1": 5.0})
+    with pytest.raises(ValueError, match=r"joint7: q is 3.14"):
+        arm.request({"joint7": -math.pi}, q_prev={})
+    ok = arm.request({"joint1": 1.0, "finger_left": 9.0, "wheel": 40.0}, q_prev={"joint1": 1.0 + 0.99 * math.pi})
+    assert abs(LocalClient().evaluate(ok).joint(arm.handles["joint1"]).coordinate - 1.0) <= 1e-12
+
+
 # ---------------------------------------------------------------------- x equals q, every path
 
 

@@ -77,7 +77,12 @@ class Robot:
         """From a loaded `yourdfpy.URDF` (built with its scene graph); `Robot.load` reads a file."""
         self.urdf = urdf
         self.unmodelled: list[str] = []
+        names = [jt.name for jt in urdf.robot.joints]  # yourdfpy reads repeated names; `q` by name cannot tell them
+        if twice := sorted({n for n in names if names.count(n) > 1}):
+            raise ValueError(f"{urdf.robot.name}: joint names must be unique: {twice} is more than one joint's")
         root = urdf.base_link
+        if root is None:  # yourdfpy reads a file whose joints close a loop, with no link at the root
+            raise ValueError(f"{urdf.robot.name}: no root link (each link is some joint's child: the joints close a loop)")
         kids: dict[str, list[Any]] = {}
         for jt in urdf.robot.joints:
             kids.setdefault(jt.parent, []).append(jt)
@@ -93,7 +98,7 @@ class Robot:
                 order += [] if jt.type == "fixed" else [jt.child]
                 todo.append(jt.child)
         for link in urdf.robot.links:
-            if link.name not in frame:  # yourdfpy hangs it on the root
+            if link.name not in frame:  # the FK leaves it where it is: at the root
                 frame[link.name] = root
                 self.unmodelled.append(f"link {link.name}: not joined to {root}, fixed to it")
         self.links = frame
@@ -109,6 +114,8 @@ class Robot:
             elif jt.type in ("floating", "planar"):
                 self.unmodelled.append(f"{jt.type} joint {jt.name}: not modelled, its child stays at the joint's origin")
             elif jt.type in MOVING:
+                if jt.child not in order:  # in another tree: yourdfpy's FK has no path to it
+                    raise ValueError(f"{urdf.robot.name}: joint {jt.name} moves link {jt.child}, not joined to {root}")
                 i, j = order.index(frame[jt.parent]), order.index(jt.child)
                 M = np.linalg.solve(zero[i], zero[j])  # the joint's frame at zero in the parent body's
                 edge = [[M[:3, 3], M[:3, 3] + M[:3, :3] @ jt.axis], [np.zeros(3), jt.axis]]

@@ -148,6 +148,21 @@ def test_floating_planar_and_unjoined_links_are_reported(tmp_path):
     assert "floating joint free" in str(w[0].message) and robot.names == [] and robot.handles == {}
 
 
+def test_a_moving_joint_not_joined_to_the_root_is_named_and_so_is_a_loop(tmp_path):
+    """A moving joint in a second tree (c -> d) failed at load with "'d' is not in list" (yourdfpy's FK has no
+    path from the root to d); a loop (a -> b -> a) the same way. Both are said, naming the joint or link."""
+    urdf = tmp_path / "two.urdf"
+    urdf.write_text("""<robot name="two"><link name="a"/><link name="b"/><link name="c"/><link name="d"/>
+      <joint name="j" type="revolute"><parent link="a"/><child link="b"/><limit lower="-1" upper="1"/></joint>
+      <joint name="k" type="revolute"><parent link="c"/><child link="d"/><limit lower="-1" upper="1"/></joint></robot>""")
+    with pytest.raises(ValueError, match="two: joint k moves link d, not joined to a"):
+        Robot.load(urdf)
+    urdf.write_text(urdf.read_text().replace('<link name="c"/><link name="d"/>', "").replace(
+        '<parent link="c"/><child link="d"/>', '<parent link="b"/><child link="a"/>'))
+    with pytest.raises(ValueError, match=r"two: no root link \(each link is some joint's child"):
+        Robot.load(urdf)
+
+
 def test_a_bad_limit_in_the_file_is_named_at_load(tmp_path):
     urdf = tmp_path / "bad.urdf"
     urdf.write_text("""<robot name="bad"><link name="a"/><link name="b"/><joint name="elbow" type="revolute">
@@ -163,6 +178,18 @@ def test_a_joint_without_a_direction_is_named(tmp_path):
     urdf.write_text("""<robot name="flat"><link name="a"/><link name="b"/><joint name="wrist" type="continuous">
       <parent link="a"/><child link="b"/><axis xyz="0 0 0"/></joint></robot>""")
     with pytest.raises(ValueError, match=r"joint wrist: its axis \[0.0, 0.0, 0.0\] has no direction"):
+        Robot.load(urdf)
+
+
+def test_two_joints_of_one_name_are_refused(tmp_path):
+    """yourdfpy reads them (urdfdom refuses: names must be unique); `q` by name or position then moved both by
+    the first one's position, so the second's energy was that of the wrong angle (0 at 3 rad past [-1, 1])."""
+    urdf = tmp_path / "twice.urdf"
+    urdf.write_text("""<robot name="twice"><link name="a"/><link name="b"/><link name="c"/>
+      <joint name="j" type="revolute"><parent link="a"/><child link="b"/><limit lower="-1" upper="1"/></joint>
+      <joint name="j" type="revolute"><parent link="b"/><child link="c"/><limit lower="-1" upper="1"/></joint>
+      </robot>""")
+    with pytest.raises(ValueError, match=r"twice: joint names must be unique: \['j'\] is more than one joint's"):
         Robot.load(urdf)
 
 

@@ -82,7 +82,7 @@ class Robot:
             raise ValueError(f"{urdf.robot.name}: joint names must be unique: {twice} is more than one joint's")
         root = urdf.base_link
         if root is None:  # yourdfpy reads a file whose joints close a loop, with no link at the root
-            raise ValueError(f"{urdf.robot.name}: no root link (each link is some joint's child: the joints close a loop)")
+            raise ValueError(f"{urdf.robot.name}: no root link (each link is some joint's child: a loop)")
         kids: dict[str, list[Any]] = {}
         for jt in urdf.robot.joints:
             kids.setdefault(jt.parent, []).append(jt)
@@ -172,12 +172,12 @@ class Robot:
         request's `q_ref`). Each limit's `offset` is its joint's reference position and a revolute limit's
         `prev_coordinate` its position in `q_prev`: so the coordinate is the position in `q` (exact past
         +-pi and over turns; a revolute limit pi or more from `q_prev` is a ValueError) and `x` = position - reference.
-        `strength`: one number, or one per limited joint by name (others keep the default; an unknown name is refused)."""
+        `strength`: one number, or one per limited joint by name (others keep the default; another name is refused)."""
         v = self.vector(q)
         v_prev = v if q_prev is None else self.vector(q_prev, "q_prev")
         v_ref = self.vector(reference, "reference")
         if isinstance(strength, Mapping) and (unknown := sorted(set(strength) - set(self.handles))):
-            raise ValueError(f"strength: no limited joint named {unknown} (the limited joints are {list(self.handles)})")
+            raise ValueError(f"strength: no limited joint named {unknown} (the limited joints: {list(self.handles)})")
         scene = Scene()
         for now, prev, ref in zip(self.poses(v), self.poses(v_prev), self.poses(v_ref)):
             scene.add_body(now, prev=prev, ref=ref)

@@ -98,7 +98,7 @@ class Robot:
                 order += [] if jt.type == "fixed" else [jt.child]
                 todo.append(jt.child)
         for link in urdf.robot.links:
-            if link.name not in frame:  # the FK leaves it where it is: at the root
+            if link.name not in frame:  # part of the root's body (yourdfpy's FK has no path to it)
                 frame[link.name] = root
                 self.unmodelled.append(f"link {link.name}: not joined to {root}, fixed to it")
         self.links = frame
@@ -171,8 +171,8 @@ class Robot:
         at `q_prev` (default `q`) and at `reference` (the pose the joints were built at, default zero, the
         request's `q_ref`). Each limit's `offset` is its joint's reference position and a revolute limit's
         `prev_coordinate` its position in `q_prev`: so the coordinate is the position in `q` (exact past
-        +-pi and over turns; a revolute limit pi or more from `q_prev` is a ValueError) and `x` = position - reference.
-        `strength`: one number, or one per limited joint by name (others keep the default; another name is refused)."""
+        +-pi and over turns; a revolute limit pi or more from `q_prev` is a ValueError) and `x` = position -
+        reference. `strength`: one number, or one per limited joint by name (others keep the default)."""
         v = self.vector(q)
         v_prev = v if q_prev is None else self.vector(q_prev, "q_prev")
         v_ref = self.vector(reference, "reference")

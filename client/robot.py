@@ -10,8 +10,8 @@ still poses the links); mimic, floating and planar joints are listed in `Robot.u
 about), never dropped silently: a mimic joint is posed by the FK from the joint it follows.
 
 The joint vector `q` has one position per joint of `Robot.names` (revolute, prismatic, continuous, in the
-file's order), or is a mapping from those names (a missing name stays at the reference). Each joint's
-reported `coordinate` is its position in `q`, exactly, at any angle: a revolute limit is given its known
+file's order), or is a mapping from those names (a missing name is at 0, in `reference` and `q_prev` too). Each
+joint's reported `coordinate` is its position in `q`, exactly, at any angle: a revolute limit is given its known
 coordinate at the previous pose (the wire's `prev_coordinate`), so nothing is wrapped into (-pi, pi].
 `x` is measured from the reference configuration (zero by default: then `x` is the position too).
 """

@@ -10,8 +10,8 @@ still poses the links); mimic, floating and planar joints are listed in `Robot.u
 about), never dropped silently: a mimic joint is posed by the FK from the joint it follows.
 
 The joint vector `q` has one position per joint of `Robot.names` (revolute, prismatic, continuous, in the
-file's order), or is a mapping from those names (a missing name stays at the reference). Each joint's
-reported `coordinate` is its position in `q`, exactly, at any angle: a revolute limit is given its known
+file's order), or is a mapping from those names (a missing name is at 0, in `reference` and `q_prev` too). Each
+joint's reported `coordinate` is its position in `q`, exactly, at any angle: a revolute limit is given its known
 coordinate at the previous pose (the wire's `prev_coordinate`), so nothing is wrapped into (-pi, pi].
 `x` is measured from the reference configuration (zero by default: then `x` is the position too).
 """
@@ -77,7 +77,12 @@ class Robot:
         """From a loaded `yourdfpy.URDF` (built with its scene graph); `Robot.load` reads a file."""
         self.urdf = urdf
         self.unmodelled: list[str] = []
+        names = [jt.name for jt in urdf.robot.joints]  # yourdfpy reads repeated names; `q` by name cannot tell them
+        if twice := sorted({n for n in names if names.count(n) > 1}):
+            raise ValueError(f"{urdf.robot.name}: joint names must be unique: {twice} is more than one joint's")
         root = urdf.base_link
+        if root is None:  # yourdfpy reads a file whose joints close a loop, with no link at the root
+            raise ValueError(f"{urdf.robot.name}: no root link (each link is some joint's child: a loop)")
         kids: dict[str, list[Any]] = {}
         for jt in urdf.robot.joints:
             kids.setdefault(jt.parent, []).append(jt)
@@ -93,7 +98,7 @@ class Robot:
                 order += [] if jt.type == "fixed" else [jt.child]
                 todo.append(jt.child)
         for link in urdf.robot.links:
-            if link.name not in frame:  # yourdfpy hangs it on the root
+            if link.name not in frame:  # part of the root's body (yourdfpy's FK has no path to it)
                 frame[link.name] = root
                 self.unmodelled.append(f"link {link.name}: not joined to {root}, fixed to it")
         self.links = frame
@@ -109,6 +114,8 @@ class Robot:
             elif jt.type in ("floating", "planar"):
                 self.unmodelled.append(f"{jt.type} joint {jt.name}: not modelled, its child stays at the joint's origin")
             elif jt.type in MOVING:
+                if jt.child not in order:  # in another tree: yourdfpy's FK has no path to it
+                    raise ValueError(f"{urdf.robot.name}: joint {jt.name} moves link {jt.child}, not joined to {root}")
                 i, j = order.index(frame[jt.parent]), order.index(jt.child)
                 M = np.linalg.solve(zero[i], zero[j])  # the joint's frame at zero in the parent body's
                 edge = [[M[:3, 3], M[:3, 3] + M[:3, :3] @ jt.axis], [np.zeros(3), jt.axis]]
@@ -164,10 +171,13 @@ class Robot:
         at `q_prev` (default `q`) and at `reference` (the pose the joints were built at, default zero, the
         request's `q_ref`). Each limit's `offset` is its joint's reference position and a revolute limit's
         `prev_coordinate` its position in `q_prev`: so the coordinate is the position in `q` (exact past
-        +-pi and over turns, while `q` is less than pi from `q_prev`) and `x` = position - reference."""
+        +-pi and over turns; a revolute limit pi or more from `q_prev` is a ValueError) and `x` = position -
+        reference. `strength`: one number, or one per limited joint by name (others keep the default)."""
         v = self.vector(q)
         v_prev = v if q_prev is None else self.vector(q_prev, "q_prev")
         v_ref = self.vector(reference, "reference")
+        if isinstance(strength, Mapping) and (unknown := sorted(set(strength) - set(self.handles))):
+            raise ValueError(f"strength: no limited joint named {unknown} (the limited joints: {list(self.handles)})")
         scene = Scene()
         for now, prev, ref in zip(self.poses(v), self.poses(v_prev), self.poses(v_ref)):
             scene.add_body(now, prev=prev, ref=ref)
@@ -178,6 +188,9 @@ class Robot:
                 s = strength.get(jt.name, STRENGTH_DEFAULT) if isinstance(strength, Mapping) else strength
                 add = scene.add_revolute_limit if kind == "revolute" else scene.add_prismatic_limit
                 state = {"prev_coordinate": v_prev[k]} if kind == "revolute" else {}  # 669's slide needs no state
+                if kind == "revolute" and not abs(v[k] - v_prev[k]) < math.pi:  # the turn between them is wrapped
+                    raise ValueError(f"joint {jt.name}: q is {abs(v[k] - v_prev[k]):.6g} rad from q_prev; the "
+                                     "coordinate is exact only for a step of less than pi")
                 try:
                     handles[jt.name] = add(*jt.body_ids, lower=jt.lower, upper=jt.upper, strength=s,
                                            offset=v_ref[k], local_edge=jt.local_edge, **state)

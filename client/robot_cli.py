@@ -64,7 +64,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         with Client(args.url) if args.url else LocalClient() as client:
             readings = robot.readings(client.evaluate(request), q)
     except ServiceError as e:  # a server that is not there, busy, or refuses: its words, not a traceback
-        print(f"jointlimits evaluate: {e}", file=sys.stderr)
+        loc = getattr(e, "loc", None) or ()  # a fault at ("body", "batches", b, field, row): say the joint's name
+        name = next((n for n, h in robot.handles.items() if loc[2:5:2] == (h.batch, h)), None) if len(loc) > 4 else None
+        print(f"jointlimits evaluate: {f'joint {name}: ' if name else ''}{e}", file=sys.stderr)
         return 1
     if args.plot:
         plot(readings, args.plot, title=f"{robot.urdf.robot.name} at the given joint vector")

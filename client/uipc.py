@@ -192,12 +192,10 @@ def _bodies(slots: list[tuple[int, Any, Any]], snapshot: Reference | None = None
                    published, len(geos), guess)
 
 
-def _edge_attr(geo: Any, name: str, gid: int, required: bool = True) -> NDArray[Any] | None:
+def _edge_attr(geo: Any, name: str, gid: int) -> NDArray[Any]:
     attr = geo.edges().find(name)
-    if attr is None:
-        if required:
-            raise SceneError(f"the joint edges have no `{name}` attribute", gid)
-        return None
+    if attr is None:  # the engine asserts each attribute read here at world.init()
+        raise SceneError(f"the joint edges have no `{name}` attribute", gid)
     return np.asarray(attr.view())
 
 
@@ -242,8 +240,7 @@ def _read_joints(gid: int, geo: Any, limit: Facts, bodies: _Bodies, use_angle: b
         raise SceneError(f"`l_geo_id`, `l_inst_id` = `r_geo_id`, `r_inst_id`: body (geometry {l_geo[e]}, "
                          f"instance {l_inst[e]}) is jointed to itself", gid, e)
     lim = {n: floats(f"limit/{n}") for n in ("lower", "upper", "strength")}
-    offset = _edge_attr(geo, limit.offset_name, gid, required=False)
-    offset = np.zeros(E) if offset is None else np.asarray(offset, dtype=np.float64).reshape(E)
+    offset = floats(limit.offset_name)  # the base joint's do_init asserts it, as the limit's attributes
     prev = floats(limit.state_name) if limit.stateful and use_angle else None
     if local:
         edges = np.stack([floats(n, 3) for n in LOCAL_ATTRS], axis=1).reshape(E, 2, 2, 3)  # [[l0, l1], [r0, r1]]

@@ -148,6 +148,22 @@ def test_floating_planar_and_unjoined_links_are_reported(tmp_path):
     assert "floating joint free" in str(w[0].message) and robot.names == [] and robot.handles == {}
 
 
+def test_a_moving_joint_not_joined_to_the_root_is_named_and_so_is_a_loop(tmp_path):
+    """A moving joint in a second tree (c -> d) failed at load with "'d' is not in list" (yourdfpy's FK has no
+    path from the root to d); a loop (a -> b -> a) the same way. Both are said, naming the joint or link."""
+    urdf = tmp_path / "two.urdf"
+    urdf.write_text("""<robot name="two"><link name="a"/><link name="b"/><link name="c"/><link name="d"/>
+      <joint name="j" type="revolute"><parent link="a"/><child link="b"/><limit lower="-1" upper="1"/></joint>
+      <joint name="k" type="revolute"><parent link="c"/><child link="d"/><limit lower="-1" upper="1"/></joint>
+      </robot>""")
+    with pytest.raises(ValueError, match="two: joint k moves link d, not joined to a"):
+        Robot.load(urdf)
+    urdf.write_text(urdf.read_text().replace('<link name="c"/><link name="d"/>', "").replace(
+        '<parent link="c"/><child link="d"/>', '<parent link="b"/><child link="a"/>'))
+    with pytest.raises(ValueError, match=r"two: no root link \(each link is some joint's child: a loop\)"):
+        Robot.load(urdf)
+
+
 def test_a_bad_limit_in_the_file_is_named_at_load(tmp_path):
     urdf = tmp_path / "bad.urdf"
     urdf.write_text("""<robot name="bad"><link name="a"/><link name="b"/><joint name="elbow" type="revolute">
@@ -166,6 +182,18 @@ def test_a_joint_without_a_direction_is_named(tmp_path):
         Robot.load(urdf)
 
 
+def test_two_joints_of_one_name_are_refused(tmp_path):
+    """yourdfpy reads them (urdfdom refuses: names must be unique); `q` by name or position then moved both by
+    the first one's position, so the second's energy was that of the wrong angle (0 at 3 rad past [-1, 1])."""
+    urdf = tmp_path / "twice.urdf"
+    urdf.write_text("""<robot name="twice"><link name="a"/><link name="b"/><link name="c"/>
+      <joint name="j" type="revolute"><parent link="a"/><child link="b"/><limit lower="-1" upper="1"/></joint>
+      <joint name="j" type="revolute"><parent link="b"/><child link="c"/><limit lower="-1" upper="1"/></joint>
+      </robot>""")
+    with pytest.raises(ValueError, match=r"twice: joint names must be unique: \['j'\] is more than one joint's"):
+        Robot.load(urdf)
+
+
 def test_a_file_yourdfpy_cannot_read_is_named(tmp_path):
     urdf = tmp_path / "xacro.urdf"  # a xacro leftover, as some published robots ship
     urdf.write_text("""<robot name="x"><link name="a"/><link name="b"/><joint name="j" type="revolute">
@@ -181,6 +209,26 @@ def test_a_joint_vector_of_the_wrong_size_or_names_is_refused(arm):
         arm.request({"finger_right": 0.01})
     with pytest.raises(ValueError, match=r"q_prev: not finite at \['joint2'\]"):
         arm.request({}, q_prev=vec(arm, {"joint2": math.nan}))
+
+
+def test_a_strength_for_no_limited_joint_is_refused(arm):
+    """A misspelt name (or one without a limit) in a strength mapping was dropped: that joint silently kept
+    strength 1 (energy 0.0034 instead of 0.34 for joint1 at 3.1 below)."""
+    with pytest.raises(ValueError, match=r"strength: no limited joint named \['jont1', 'wheel'\] \(the limited"):
+        arm.request({"joint1": 3.1}, strength={"jont1": 100.0, "wheel": 2.0, "joint2": 3.0})
+    r = LocalClient().evaluate(arm.request({"joint1": 3.1}, strength={"joint1": 100.0})).joint(arm.handles["joint1"])
+    assert r.energy == pytest.approx(100.0 * ((3.1 - 2.8973) / (2 * 2.8973)) ** 3, rel=1e-12)
+
+
+def test_a_previous_pose_pi_or_more_away_is_refused(arm):
+    """x = q_prev's position + the turn from q_prev to q wrapped into (-pi, pi]: with joint1 at 1.0 and
+    q_prev at 5.0 it read 7.28 (past the upper limit, penalised) instead of 1.0. Refused, naming the joint."""
+    with pytest.raises(ValueError, match=r"joint1: q is 4 rad from q_prev.*less than pi"):
+        arm.request({"joint1": 1.0}, q_prev={"joint1": 5.0})
+    with pytest.raises(ValueError, match=r"joint7: q is 3.14"):
+        arm.request({"joint7": -math.pi}, q_prev={})
+    ok = arm.request({"joint1": 1.0, "finger_left": 9.0, "wheel": 40.0}, q_prev={"joint1": 1.0 + 0.99 * math.pi})
+    assert abs(LocalClient().evaluate(ok).joint(arm.handles["joint1"]).coordinate - 1.0) <= 1e-12
 
 
 # ---------------------------------------------------------------------- x equals q, every path

@@ -112,6 +112,13 @@ def test_a_request_file_that_is_not_an_object_and_a_server_that_is_not_there(cap
     assert code == 1 and out == "" and err.startswith("jointlimits evaluate: ") and "Traceback" not in err
 
 
+def test_a_fault_of_the_service_names_the_joint(capsys):
+    """The service's fault (here an energy that overflows float64) was printed with its batch and row only
+    ("body.batches.1.strength.0"): the person at the terminal is told the joint's name too."""
+    code, out, err = run(capsys, ARM, *map(str, Q[:-1]), "1e200")
+    assert code == 1 and out == "" and err.startswith("jointlimits evaluate: joint finger_left: ") and "overflow" in err
+
+
 def test_the_picture(capsys, tmp_path):
     pytest.importorskip("matplotlib")
     png = tmp_path / "joints.png"

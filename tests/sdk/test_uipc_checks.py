@@ -74,6 +74,16 @@ def test_a_bad_limit_strength_or_offset_is_named_by_geometry_and_edge(uid, local
     assert words in e.msg, e.msg
 
 
+@pytest.mark.parametrize("uid", [670, 669])
+def test_a_missing_offset_is_named_as_the_engine_refuses_it(uid):
+    """The base joints' `do_init` asserts `init_angle` / `init_distance` on the edges (libuipc 619a541,
+    affine_body_{revolute,prismatic}_joint.cu); without it the adapter read an offset of 0."""
+    scene, slot = case_scene(uid, False)
+    slot.geometry().edges().destroy(OFFSET[uid])
+    e = refused(scene)
+    assert e.geometry_id == slot.id() and f"the joint edges have no `{OFFSET[uid]}` attribute" in e.msg, e.msg
+
+
 @pytest.mark.parametrize("local", [False, True], ids=["world", "local"])
 @pytest.mark.parametrize("uid", [670, 669])
 def test_an_empty_range_is_named_as_the_engine_refuses_it(uid, local):

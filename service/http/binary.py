@@ -127,8 +127,13 @@ def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None, me
 
 
 def read_message(frame: bytes, checker: document.Checker) -> Any:
-    """A session's later message as plain data, each value within a body's bounds (`_unpack`); `InputError`."""
-    return _unpack(frame, checker, message=True)
+    """A session's later message as plain data, each value within a body's bounds (`_unpack`); `InputError`,
+    with the message's readable `id` kept in `checker` (its fault reply repeats it)."""
+    try:
+        return _unpack(frame, checker, message=True)
+    except InputError:
+        checker.message_id = document.readable_id(_top_level_id(frame))
+        raise
 
 
 def decode(body: bytes, max_batches: int | None = None, opening: bool = False,

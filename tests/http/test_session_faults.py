@@ -165,16 +165,17 @@ def test_try_again_later_is_a_close_code_of_the_protocol():
 @pytest.mark.parametrize(
     ("flood", "loc"),
     [
-        ({"kind": "evaluate", "q": None, "extra": [{}] * 3_000_000}, ("body", "extra")),  # 3 MB, 3M dicts once built
+        ({"kind": "evaluate", "id": 7, "q": None, "extra": [{}] * 3_000_000}, ("body", "extra")),  # 3 MB, 3M dicts
         ({"kind": "evaluate", "id": [[[[]] * 60] * 60]}, ("body", "id")),  # 3600 nested arrays in 4 KB
-        ({"kind": "commit", "q": [0.0] * 100_000}, ("body", "q")),  # numbers travel as bin: 100k items is a flood
+        ({"kind": "commit", "q": [0.0] * 100_000, "id": "step 3"}, ("body", "q")),  # numbers travel as bin
     ],
     ids=["3M_empty_maps", "nested_arrays", "100k_numbers"],
 )
 def test_a_msgpack_message_flood_is_refused_before_it_is_built(flood, loc):
     """A later message is unpacked within a request body's bounds (`binary.MAX_CONTAINERS` maps and arrays of at
     most `binary.MAX_ITEMS` items per value): a 3 MB frame of empty maps would otherwise be ~300 MB of dicts on
-    the event loop, a 64 MiB frame several GB. The fault names the key, and the session goes on."""
+    the event loop, a 64 MiB frame several GB. The fault names the key, its reply repeats a readable `id`, and the
+    session goes on."""
     import tracemalloc
 
     from jointlimits.service.http import session_codec
@@ -191,4 +192,5 @@ def test_a_msgpack_message_flood_is_refused_before_it_is_built(flood, loc):
     assert any(f.loc == loc[1:] and f.type == "structure" for f in e.value.faults), e.value.faults
     reply, after = replies([frame, msgpack.packb({"kind": "evaluate", "q": wire.pack_array(np.asarray(Q), wire.FLOAT64)})])
     assert any(tuple(d["loc"]) == loc and d["type"] == "structure" for d in reply["detail"]), reply
+    assert reply.get("id") == (flood["id"] if isinstance(flood.get("id"), (int, str)) else None)  # a readable id comes back
     assert after["kind"] == proto.EVALUATION

@@ -190,7 +190,9 @@ def test_a_msgpack_message_flood_is_refused_before_it_is_built(flood, loc):
         tracemalloc.stop()
     assert peak < 8 * len(frame) + 2**20, peak  # nothing built beyond a few containers per value
     assert any(f.loc == loc[1:] and f.type == "structure" for f in e.value.faults), e.value.faults
-    reply, after = replies([frame, msgpack.packb({"kind": "evaluate", "q": wire.pack_array(np.asarray(Q), wire.FLOAT64)})])
+    good = msgpack.packb({"kind": "evaluate", "q": wire.pack_array(np.asarray(Q), wire.FLOAT64)})
+    reply, after = replies([frame, good])
     assert any(tuple(d["loc"]) == loc and d["type"] == "structure" for d in reply["detail"]), reply
-    assert reply.get("id") == (flood["id"] if isinstance(flood.get("id"), (int, str)) else None)  # a readable id comes back
+    readable = flood["id"] if isinstance(flood.get("id"), (int, str)) else None
+    assert reply.get("id") == readable  # a readable id comes back
     assert after["kind"] == proto.EVALUATION

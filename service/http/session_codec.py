@@ -93,7 +93,8 @@ def at_message_q(e: InputError) -> InputError:
 def error(exc: InputError | HttpError, id: int | str | None) -> dict[str, Any]:
     """A fault reply: HTTP's 4xx body (`detail`, every `loc` starting with "body") with its `status`."""
     # Rendered as HTTP's (cut, JSON-safe): a key the client sent is echoed as POST echoes it, never whole.
-    status, detail = (exc.status, render(exc.faults)) if isinstance(exc, HttpError) else (422, render(exc.faults, ("body",)))
+    http = isinstance(exc, HttpError)
+    status, detail = (exc.status, render(exc.faults)) if http else (422, render(exc.faults, ("body",)))
     doc: dict[str, Any] = {"kind": proto.ERROR, "status": status, **detail}
     if id is not None:
         doc["id"] = id

@@ -2,9 +2,10 @@
 
 uvicorn times out only idle keep-alive connections: a client that sends nothing, half its headers, or its body at
 one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time:
-the request head (`ReadTimeoutProtocol`, 408 then closed; 431 past `MAX_HEAD_BYTES`), the body
-(`BodyTimeoutMiddleware`, 408 from `errors.client_gone`), a session message (1008), and the write side (issue 19) in both protocols: a transport
-whose buffer stays full for `write_timeout` seconds (a client that stops reading) is reset, freeing what it held.
+the request head (`ReadTimeoutProtocol`, 408 then closed; its bytes too: 431 past `MAX_HEAD_BYTES`, 503 past
+`MAX_HEADS_HELD` over the worker's connections), the body (`BodyTimeoutMiddleware`, 408 from `errors.client_gone`),
+a session message (1008), and the write side (issue 19) in both protocols: a transport whose buffer stays full
+for `write_timeout` seconds (a client that stops reading) is reset, freeing what it held.
 The application sees the write side through `Drain` (`scope["extensions"][DRAIN]`).
 
 The WebSocket protocol (issue 20) closes a message over the limit (1009) or not UTF-8 (1007) with a reason and a
@@ -240,7 +241,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             if self._head_size > MAX_HEAD_BYTES:
                 self._refuse("head_too_large", _answer(b"431 Request Header Fields Too Large", _431_BODY))
             elif ReadTimeoutProtocol.heads_held > MAX_HEADS_HELD:
-                self._refuse("heads_full", _answer(b"503 Service Unavailable", _503_BODY % MAX_HEADS_HELD, b"retry-after: 5"))
+                busy = _answer(b"503 Service Unavailable", _503_BODY % MAX_HEADS_HELD, b"retry-after: 5")
+                self._refuse("heads_full", busy)
 
     def on_headers_complete(self) -> None:
         self._head_timer.stop()

@@ -15,7 +15,7 @@ from jointlimits.service.core.assembled import check_layout
 from jointlimits.service.core.validate import check_bodies, check_options, raise_if
 from jointlimits.service.http import binary, convert, document, limits
 from jointlimits.service.http.document import NOT_OPEN, Message  # noqa: F401 (the session's names)
-from jointlimits.service.http.errors import HttpError
+from jointlimits.service.http.errors import HttpError, render
 
 Frame = bytes | str
 
@@ -92,11 +92,10 @@ def at_message_q(e: InputError) -> InputError:
 
 def error(exc: InputError | HttpError, id: int | str | None) -> dict[str, Any]:
     """A fault reply: HTTP's 4xx body (`detail`, every `loc` starting with "body") with its `status`."""
-    if isinstance(exc, HttpError):  # these faults carry their full loc already
-        status, detail = exc.status, [{"loc": list(f.loc), "msg": f.msg, "type": f.type} for f in exc.faults]
-    else:
-        status, detail = 422, [{"loc": ["body", *f.loc], "msg": f.msg, "type": f.type} for f in exc.faults]
-    doc: dict[str, Any] = {"kind": proto.ERROR, "status": status, "detail": detail}
+    # Rendered as HTTP's (cut, JSON-safe): a key the client sent is echoed as POST echoes it, never whole.
+    http = isinstance(exc, HttpError)
+    status, detail = (exc.status, render(exc.faults)) if http else (422, render(exc.faults, ("body",)))
+    doc: dict[str, Any] = {"kind": proto.ERROR, "status": status, **detail}
     if id is not None:
         doc["id"] = id
     return doc

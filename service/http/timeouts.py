@@ -2,9 +2,10 @@
 
 uvicorn times out only idle keep-alive connections: a client that sends nothing, half its headers, or its body at
 one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time:
-the request head (`ReadTimeoutProtocol`, 408 then closed), the body (`BodyTimeoutMiddleware`, 408 from
-`errors.client_gone`), a session message (1008), and the write side (issue 19) in both protocols: a transport
-whose buffer stays full for `write_timeout` seconds (a client that stops reading) is reset, freeing what it held.
+the request head (`ReadTimeoutProtocol`, 408 then closed; its bytes too: 431 past `MAX_HEAD_BYTES`, 503 past
+`MAX_HEADS_HELD` over the worker's connections), the body (`BodyTimeoutMiddleware`, 408 from `errors.client_gone`),
+a session message (1008), and the write side (issue 19) in both protocols: a transport whose buffer stays full
+for `write_timeout` seconds (a client that stops reading) is reset, freeing what it held.
 The application sees the write side through `Drain` (`scope["extensions"][DRAIN]`).
 
 The WebSocket protocol (issue 20) closes a message over the limit (1009) or not UTF-8 (1007) with a reason and a
@@ -51,6 +52,26 @@ DRAIN_MESSAGES = 4
 client sent behind it before it read the close (tests/http/test_session_closes.py sends two more)."""
 SHUTDOWN_REASON = "the server is shutting down: reopen the session (another worker or pod answers)"
 _PONG = b"\x8a"  # the first byte of a server's pong frame (FIN, opcode 0xA; no extensions are negotiated)
+MAX_HEAD_BYTES = 64 * 1024
+"""Bytes a request line and its headers may take (the deadline bounds their time only): past it, 431 and closed.
+httptools joins a header's or a URL's pieces by copying them, so an unbounded head costs memory and quadratic time:
+one connection streaming a header for the 10 s deadline took a worker from 69 to 533 MiB and stalled it 5.5 s."""
+_431_BODY = (b'{"detail":[{"loc":["header"],"msg":"request line and headers exceed %d bytes, the most this service '
+             b'reads","type":"too_large"}]}' % MAX_HEAD_BYTES)
+MAX_HEADS_HELD = 16 * 2**20
+"""Bytes of unfinished request heads one worker holds over all its connections (a head that arrives whole in one read
+holds none): past it, 503 `busy` and closed. One client opens ~11 000 connections within the head deadline: 3000
+holding 60 kB each took a worker from 93 to 266 MiB."""
+_503_BODY = (b'{"detail":[{"loc":["header"],"msg":"this worker holds %d bytes of unfinished request heads, its most: '
+             b'retry after Retry-After seconds","type":"busy"}]}')
+
+
+def _answer(status: bytes, body: bytes, *headers: bytes) -> bytes:
+    """An HTTP/1.1 answer with a JSON fault list, closing the connection."""
+    return (b"HTTP/1.1 %s\r\ncontent-type: application/json\r\ncontent-length: %d\r\n%sconnection: close\r\n\r\n%s"
+            % (status, len(body), b"".join(h + b"\r\n" for h in headers), body))
+
+
 _408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"
 log = logging.getLogger("jointlimits.timeouts")
 
@@ -186,13 +207,14 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     a full write buffer (`write_timeout` seconds); each request's scope carries the connection's `Drain`."""
 
     header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read per connection
+    heads_held = 0  # bytes of every connection's unfinished head in this worker (MAX_HEADS_HELD)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.header_timeout is None:
             self.header_timeout = Settings().header_timeout
         self._head_timer = _Timer(self.loop, self._head_expired)
-        self._head_bytes = False  # bytes of the current head have arrived
+        self._head_bytes, self._head_size = False, 0  # bytes of the current head have arrived (any; how many)
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
@@ -213,18 +235,40 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             self._arm()  # the first bytes of the next request on a keep-alive connection
         self._head_bytes = True
         super().data_received(data)
+        if self._head_timer.handle is not None and not self.transport.is_closing():  # still in the head
+            self._head_size += len(data)  # counted after the parse: at most one read past the bound is held
+            ReadTimeoutProtocol.heads_held += len(data)
+            if self._head_size > MAX_HEAD_BYTES:
+                self._refuse("head_too_large", _answer(b"431 Request Header Fields Too Large", _431_BODY))
+            elif ReadTimeoutProtocol.heads_held > MAX_HEADS_HELD:
+                busy = _answer(b"503 Service Unavailable", _503_BODY % MAX_HEADS_HELD, b"retry-after: 5")
+                self._refuse("heads_full", busy)
 
     def on_headers_complete(self) -> None:
         self._head_timer.stop()
+        self._drop_head()
         super().on_headers_complete()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._head_timer.stop()
+        self._drop_head()
         super().connection_lost(exc)
 
     def _arm(self) -> None:
         self._head_bytes = False
+        self._drop_head()
         self._head_timer.start(self.header_timeout)  # type: ignore[arg-type]
+
+    def _drop_head(self) -> None:
+        ReadTimeoutProtocol.heads_held -= self._head_size
+        self._head_size = 0
+
+    def _refuse(self, reason: str, answer: bytes) -> None:
+        self._head_timer.stop()
+        self._drop_head()
+        self._closed(reason)
+        self.transport.write(answer)
+        self.transport.close()
 
     def _head_expired(self) -> None:
         if self.transport.is_closing():

@@ -196,3 +196,26 @@ def test_a_msgpack_message_flood_is_refused_before_it_is_built(flood, loc):
     readable = flood["id"] if isinstance(flood.get("id"), (int, str)) else None
     assert reply.get("id") == readable  # a readable id comes back
     assert after["kind"] == proto.EVALUATION
+
+
+LONG_KEY = "k" * 100_000
+
+
+@pytest.mark.parametrize("key", [LONG_KEY, b"\xff\x00"], ids=["a 100 kB key", "a msgpack bin key"])
+def test_a_fault_echoing_a_key_reads_as_post_evaluate_answers_it(key):
+    """A fault's `loc` that echoes the client's key is cut and made JSON-safe (`errors.render`) on every path: a
+    session's reply echoed a 1 MB key whole (POST cuts it to 64 characters and `...`), and a msgpack `bin` key as
+    `bin` (POST shows it as `b'...'`), for a later message and for the opening document alike."""
+    doc = {**base_doc(), key: 1}
+    frame = msgpack.packb(doc)  # its arrays as lists, not array maps: faults of their own, filtered out below
+    want = [d for d in APP.post("/v1/evaluate", content=frame, headers={"content-type": "application/msgpack"}).json()["detail"]
+            if d["type"] in ("extra_forbidden", "key_type")]
+    assert len(want) == 1 and len(str(want[0]["loc"][-1])) < 100, want
+    message = {"kind": "commit", "q": Q, key: 1}
+    encodings = [msgpack.packb] + ([json.dumps] if isinstance(key, str) else [])
+    for encode in encodings:
+        assert [d for d in replies([encode(message)])[0]["detail"] if d["type"] == want[0]["type"]] == want, encode
+    with APP.websocket_connect(proto.PATH) as ws:  # the opening document: its reply, then the session goes on
+        ws.send_bytes(frame)
+        reply = msgpack.unpackb(ws.receive_bytes())
+    assert [d for d in reply["detail"] if d["type"] == want[0]["type"]] == want

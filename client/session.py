@@ -70,17 +70,21 @@ class Resume:
     def __init__(self, retries: int, backoff: float, on: bool) -> None:
         self._pauses = iter(delays(retries, backoff) if on else ())
         self._first: ServiceError | None = None
+        self._unreachable = 0  # attempts that reached no server: the count `Unreachable` reports
 
     def pause(self, e: ServiceError) -> float:
         """Seconds to wait after `e` if another server can take over (`resumable`); past the retries, the first
         failure (the last as its cause); a failure no server would mend (a fault, 401, 4408, ...) at once."""
         self._first = first = self._first or e
+        self._unreachable += isinstance(e, Unreachable)
         pause = next(self._pauses, None) if resumable(e) else None
         if pause is not None:
             return pause
         if first is e or not resumable(e):
             raise e
-        raise first from e
+        if isinstance(first, Unreachable):
+            raise first.after(self._unreachable) from e
+        raise first from (e.after(self._unreachable) if isinstance(e, Unreachable) else e)
 
 
 class SessionState:

@@ -96,7 +96,7 @@ class SessionState:
         self.url, self.binary = url, binary
         # A private copy: later updates change it, the caller's request stays as it was.
         self.request = replace(request, batches=[copy.deepcopy(b) for b in request.batches])
-        self.q_prev: Array = np.array(request.q_prev, dtype=np.float64)
+        self.q_prev: Array = owned(request.q_prev)
         self.coordinates: list[Array] = []
         self.bytes_sent = self.bytes_received = 0
 
@@ -163,9 +163,12 @@ class SessionState:
 
     def committed(self, frame: Frame, q: ArrayLike) -> list[Array]:
         doc = self.read(frame, proto.COMMITTED)
-        self.coordinates = [self._array(c) for c in doc["coordinates"]]
-        self.q_prev = np.array(q, dtype=np.float64)
-        return self.coordinates
+        return self.keep([self._array(c) for c in doc["coordinates"]], q)
+
+    def keep(self, coordinates: list[ArrayLike], q: ArrayLike) -> list[Array]:
+        """A commit's state, kept for reopening; returns copies of `coordinates` (the caller's to change)."""
+        self.coordinates, self.q_prev = [owned(c) for c in coordinates], owned(q)
+        return [c.copy() for c in self.coordinates]
 
     def updated(self, frame: Frame, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
         doc = self.read(frame, proto.UPDATED)
@@ -184,9 +187,7 @@ class SessionState:
             getattr(b, k)[idx] = np.asarray(v, dtype=np.float64).reshape(-1)
 
     def _array(self, v: Any) -> Array:
-        if isinstance(v, dict):
-            return np.array(wire.unpack_array(v, wire.FLOAT64, 1))
-        return np.asarray(v, dtype=np.float64)
+        return owned(wire.unpack_array(v, wire.FLOAT64, 1) if isinstance(v, dict) else v)
 
     # ---------------------------------------------------------------- reopening
 
@@ -203,6 +204,13 @@ class SessionState:
             batches.append(nb)
         q = self.q_prev.copy()
         return replace(self.request, q=q, q_prev=q.copy(), batches=batches)
+
+
+def owned(a: ArrayLike) -> Array:
+    """A read-only float64 copy: the committed state a reopen starts from, which no caller's array aliases."""
+    a = np.array(a, dtype=np.float64)
+    a.flags.writeable = False
+    return a
 
 
 def message_array(value: Any, name: str, integer: bool = False) -> np.ndarray:
@@ -253,7 +261,7 @@ class StateView:
     @property
     def coordinates(self) -> list[Array]:
         """The committed coordinates, one (N,) array per batch (as opened, before any commit)."""
-        return self.state.coordinates
+        return list(self.state.coordinates)
 
     def request_for_reopen(self) -> Request:
         """A request that opens a session in this one's committed state (`SessionState.request_for_reopen`)."""

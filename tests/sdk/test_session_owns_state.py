@@ -1,16 +1,24 @@
-"""A session's committed state (`s.q_prev`, `s.coordinates`) is the session's own: what `commit` returns is the
+"""What a session owns. Its committed state (`s.q_prev`, `s.coordinates`) is the session's own: what `commit` returns is the
 caller's to change, and changing it does not change what a reopen (or a resume after a drop) starts from.
 
 Before, `commit` returned the very arrays the session kept for reopening: a solver that reused them as scratch
 (`coords[0][:] = 0`) silently moved every revolute angle of the reopened session by its committed turns (a joint
 at 3.28 rad read 0.28 after `reopen()`, no error). The state is shared by the three sessions (`SessionState`), so
 the local session shows it; `live` checks the WebSocket one too.
+
+And its connection: a blocking session dropped without `close()` (a notebook cell run again, `s = client.session(...)`)
+kept its socket, its two threads and its place among the server's sessions (64 a worker) until the process ended.
 """
 
 from __future__ import annotations
 
+import gc
+import threading
+import time
+
 import numpy as np
 import pytest
+from websockets.protocol import State
 
 from jointlimits.client import Client, LocalClient, Scene
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
@@ -49,3 +57,21 @@ def test_what_commit_returns_is_the_callers_and_reopen_keeps_the_committed_angle
     # Both readings are of the same q through the same arithmetic, so they agree to the bit.
     assert np.array_equal(x, _x_after_reopen(client, scratch=False))
     assert abs(x[0] - (2 * np.pi - 3.0)) < 1e-12
+
+
+def test_a_session_dropped_without_close_closes_its_connection(live):  # noqa: F811
+    scene = Scene()
+    a, b = scene.add_body(np.eye(4)), scene.add_body(np.eye(4))
+    scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5)
+    threads = threading.active_count()
+    s = Client(live).session(scene.request())
+    s.evaluate(scene.request().q)
+    ws = s._ws  # the connection, held here only to look at it
+    assert ws.state is State.OPEN and threading.active_count() > threads
+    del s
+    gc.collect()
+    deadline = time.monotonic() + 5.0  # its threads end once the close handshake is done (milliseconds here)
+    while threading.active_count() > threads and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert ws.state is State.CLOSED and ws.close_code == 1000  # closed as close() does, not cut
+    assert threading.active_count() == threads

@@ -130,8 +130,8 @@ class Scene:
             raise TypeError("give the joint's edge either as p0, p1 (world, at ref) or as local_edge, not both")
         given = {"p0": p0, "p1": p1} if local_edge is None else {"local_edge": local_edge}
         kind, edge = "edges" if local_edge is None else "local_edges", self._edge(given)  # type: ignore[arg-type]
-        not_ints = [CoreFault((k,), *NOT_AN_INTEGER) for k, v in (("i", i), ("j", j))
-                    if isinstance(v, bool) or not isinstance(v, (int, np.integer))]  # as the wire's body_ids: 1.7 is no body
+        not_ints = [CoreFault((k,), *NOT_AN_INTEGER) for k, v in (("i", i), ("j", j))  # as the wire's body_ids
+                    if isinstance(v, bool) or not isinstance(v, (int, np.integer))]  # 1.7 is no body 1
         if not_ints:
             raise invalid(not_ints, where)
         ids = (int(i), int(j))

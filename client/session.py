@@ -82,9 +82,7 @@ class Resume:
             return pause
         if first is e or not resumable(e):
             raise e
-        if isinstance(first, Unreachable):
-            raise first.after(self._unreachable) from e
-        raise first from (e.after(self._unreachable) if isinstance(e, Unreachable) else e)
+        raise (first.after(self._unreachable) if isinstance(first, Unreachable) else first) from e
 
 
 class SessionState:

@@ -12,7 +12,8 @@ from numpy.typing import ArrayLike
 
 from jointlimits.client.model import Array, Evaluation, Request, in_body
 from jointlimits.client.local import core_batches, result
-from jointlimits.client.session import SessionClosed, SessionState, StateView, batch_number, message_array, options, owned
+from jointlimits.client.session import (SessionClosed, SessionState, StateView, batch_number, message_array, options,
+                                        owned)
 from jointlimits.service import core
 from jointlimits.service.core.prepared import prepare
 

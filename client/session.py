@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike
 from jointlimits.client import codec
 from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, InvalidInput, ServiceError, Unreachable
-from jointlimits.client.model import Array, Evaluation, Request, as_outputs, in_body
+from jointlimits.client.model import Array, Evaluation, Request, as_flag, as_outputs, in_body
 from jointlimits.client.transport import delays
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
@@ -106,7 +106,7 @@ class SessionState:
 
     def evaluate_frame(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Frame:
         given = {"outputs": None if outputs is None else list(as_outputs(outputs)), "hessian_mode": hessian_mode,
-                 "active_only": None if active_only is None else bool(active_only)}
+                 "active_only": None if active_only is None else as_flag(active_only)}
         return self._encode({"kind": proto.EVALUATE, "q": message_array(q, "q"),
                              **{k: v for k, v in given.items() if v is not None}})  # None: the opening's
 
@@ -234,7 +234,7 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
     return {
         "outputs": request.outputs if outputs is None else as_outputs(outputs),
         "hessian_mode": request.hessian_mode if hessian_mode is None else hessian_mode,
-        "active_only": request.active_only if active_only is None else bool(active_only),
+        "active_only": request.active_only if active_only is None else as_flag(active_only),
         "layout": request.layout,  # the opening's, as the server keeps it (a message cannot change it)
     }
 

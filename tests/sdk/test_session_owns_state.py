@@ -13,8 +13,6 @@ kept its socket, its two threads and its place among the server's sessions (64 a
 from __future__ import annotations
 
 import gc
-import threading
-import time
 
 import numpy as np
 import pytest
@@ -63,15 +61,15 @@ def test_a_session_dropped_without_close_closes_its_connection(live):  # noqa: F
     scene = Scene()
     a, b = scene.add_body(np.eye(4)), scene.add_body(np.eye(4))
     scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5)
-    threads = threading.active_count()
     s = Client(live).session(scene.request())
     s.evaluate(scene.request().q)
     ws = s._ws  # the connection, held here only to look at it
-    assert ws.state is State.OPEN and threading.active_count() > threads
+    # Its own threads (not the process's count: other tests' threads come and go in the same process).
+    threads = [t for t in (ws.recv_events_thread, ws.keepalive_thread) if t is not None]
+    assert ws.state is State.OPEN and all(t.is_alive() for t in threads)
     del s
     gc.collect()
-    deadline = time.monotonic() + 5.0  # its threads end once the close handshake is done (milliseconds here)
-    while threading.active_count() > threads and time.monotonic() < deadline:
-        time.sleep(0.01)
+    for t in threads:
+        t.join(timeout=5.0)  # they end once the close handshake is done (milliseconds here)
     assert ws.state is State.CLOSED and ws.close_code == 1000  # closed as close() does, not cut
-    assert threading.active_count() == threads
+    assert not any(t.is_alive() for t in threads)

@@ -70,7 +70,7 @@ class Unreachable(ServiceError):
     def __init__(
         self, url: str, attempts: int, cause: Exception | None = None, *, status: int = 0, proxy: str | None = None
     ) -> None:
-        self.url, self.attempts, self.proxy = url, attempts, proxy
+        self.url, self.attempts, self.proxy, self.cause = url, attempts, proxy, cause
         tries = f"{attempts} attempt{'s' * (attempts != 1)}"
         if cause is None:
             msg = (f"cannot reach the service at {url}: a proxy answered HTTP {status} in its stead ({proxy}) "
@@ -79,6 +79,10 @@ class Unreachable(ServiceError):
             why = f"{type(cause).__name__}: {cause}" if str(cause) else type(cause).__name__
             msg = f"cannot reach {url} ({why}) after {tries}; is the service running there?"
         super().__init__(status, [Fault((), msg, "unreachable")], where="unreachable")
+
+    def after(self, attempts: int) -> Unreachable:
+        """The same failure, said of `attempts` attempts (a session's open retried by `Resume`)."""
+        return Unreachable(self.url, attempts, self.cause, status=self.status, proxy=self.proxy)
 
 
 class WrongURL(ServiceError):

@@ -40,6 +40,15 @@ def as_outputs(outputs: Any) -> tuple[str, ...]:
     raise InvalidInput(422, [Fault(("body", "outputs"), *NOT_A_LIST)], where="invalid input")
 
 
+def as_flag(value: Any) -> bool:
+    """`active_only` as the wire reads it, a strict boolean (numpy's too): 1 or "false" is its fault on every path,
+    not a truthy True."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    raise InvalidInput(422, [Fault(("body", "active_only"), "Input should be a valid boolean", "bool_type")],
+                       where="invalid input")
+
+
 def _array(value: ArrayLike, name: str, faults: list[CoreFault], integer: bool = False) -> np.ndarray | None:
     """`value` as an array, or None after adding the faults that prevent it (in the service's words)."""
     scalar = not isinstance(value, (list, tuple, np.ndarray))  # one value for every joint
@@ -148,7 +157,7 @@ class Request:
     """"bodies": `Evaluation.assembled` holds the gradient and Hessian summed per body; batches carry none."""
 
     def __post_init__(self) -> None:
-        self.outputs = as_outputs(self.outputs)
+        self.outputs, self.active_only = as_outputs(self.outputs), as_flag(self.active_only)
 
     @property
     def n_joints(self) -> int:

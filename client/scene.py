@@ -17,7 +17,7 @@ from jointlimits.client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, Joi
 from jointlimits.service.core import registry
 from jointlimits.service.core.errors import Fault as CoreFault
 from jointlimits.service.core.scene import Bodies, Joints
-from jointlimits.service.core.validate import ORIGINS, check_bodies, check_joints
+from jointlimits.service.core.validate import NOT_AN_INTEGER, ORIGINS, check_bodies, check_joints
 from jointlimits.schemas import OUTPUTS
 from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
 
@@ -130,6 +130,10 @@ class Scene:
             raise TypeError("give the joint's edge either as p0, p1 (world, at ref) or as local_edge, not both")
         given = {"p0": p0, "p1": p1} if local_edge is None else {"local_edge": local_edge}
         kind, edge = "edges" if local_edge is None else "local_edges", self._edge(given)  # type: ignore[arg-type]
+        not_ints = [CoreFault((k,), *NOT_AN_INTEGER) for k, v in (("i", i), ("j", j))  # as the wire's body_ids
+                    if isinstance(v, bool) or not isinstance(v, (int, np.integer))]  # 1.7 is no body 1
+        if not_ints:
+            raise invalid(not_ints, where)
         ids = (int(i), int(j))
         lower, upper, *rest = self._check(uid, where, ids, kind, edge, origin, (lower, upper, *rest), prev)
         key = (uid, kind, origin, prev is not None)

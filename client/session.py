@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike
 from jointlimits.client import codec
 from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, InvalidInput, ServiceError, Unreachable
-from jointlimits.client.model import Array, Evaluation, Request, as_outputs, in_body
+from jointlimits.client.model import Array, Evaluation, Request, as_flag, as_outputs, in_body
 from jointlimits.client.transport import delays
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
@@ -70,17 +70,19 @@ class Resume:
     def __init__(self, retries: int, backoff: float, on: bool) -> None:
         self._pauses = iter(delays(retries, backoff) if on else ())
         self._first: ServiceError | None = None
+        self._unreachable = 0  # attempts that reached no server: the count `Unreachable` reports
 
     def pause(self, e: ServiceError) -> float:
         """Seconds to wait after `e` if another server can take over (`resumable`); past the retries, the first
         failure (the last as its cause); a failure no server would mend (a fault, 401, 4408, ...) at once."""
         self._first = first = self._first or e
+        self._unreachable += isinstance(e, Unreachable)
         pause = next(self._pauses, None) if resumable(e) else None
         if pause is not None:
             return pause
         if first is e or not resumable(e):
             raise e
-        raise first from e
+        raise (first.after(self._unreachable) if isinstance(first, Unreachable) else first) from e
 
 
 class SessionState:
@@ -92,7 +94,7 @@ class SessionState:
         self.url, self.binary = url, binary
         # A private copy: later updates change it, the caller's request stays as it was.
         self.request = replace(request, batches=[copy.deepcopy(b) for b in request.batches])
-        self.q_prev: Array = np.array(request.q_prev, dtype=np.float64)
+        self.q_prev: Array = owned(request.q_prev)
         self.coordinates: list[Array] = []
         self.bytes_sent = self.bytes_received = 0
 
@@ -104,7 +106,7 @@ class SessionState:
 
     def evaluate_frame(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Frame:
         given = {"outputs": None if outputs is None else list(as_outputs(outputs)), "hessian_mode": hessian_mode,
-                 "active_only": None if active_only is None else bool(active_only)}
+                 "active_only": None if active_only is None else as_flag(active_only)}
         return self._encode({"kind": proto.EVALUATE, "q": message_array(q, "q"),
                              **{k: v for k, v in given.items() if v is not None}})  # None: the opening's
 
@@ -159,9 +161,12 @@ class SessionState:
 
     def committed(self, frame: Frame, q: ArrayLike) -> list[Array]:
         doc = self.read(frame, proto.COMMITTED)
-        self.coordinates = [self._array(c) for c in doc["coordinates"]]
-        self.q_prev = np.array(q, dtype=np.float64)
-        return self.coordinates
+        return self.keep([self._array(c) for c in doc["coordinates"]], q)
+
+    def keep(self, coordinates: list[ArrayLike], q: ArrayLike) -> list[Array]:
+        """A commit's state, kept for reopening; returns copies of `coordinates` (the caller's to change)."""
+        self.coordinates, self.q_prev = [owned(c) for c in coordinates], owned(q)
+        return [c.copy() for c in self.coordinates]
 
     def updated(self, frame: Frame, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
         doc = self.read(frame, proto.UPDATED)
@@ -180,9 +185,7 @@ class SessionState:
             getattr(b, k)[idx] = np.asarray(v, dtype=np.float64).reshape(-1)
 
     def _array(self, v: Any) -> Array:
-        if isinstance(v, dict):
-            return np.array(wire.unpack_array(v, wire.FLOAT64, 1))
-        return np.asarray(v, dtype=np.float64)
+        return owned(wire.unpack_array(v, wire.FLOAT64, 1) if isinstance(v, dict) else v)
 
     # ---------------------------------------------------------------- reopening
 
@@ -199,6 +202,13 @@ class SessionState:
             batches.append(nb)
         q = self.q_prev.copy()
         return replace(self.request, q=q, q_prev=q.copy(), batches=batches)
+
+
+def owned(a: ArrayLike) -> Array:
+    """A read-only float64 copy: the committed state a reopen starts from, which no caller's array aliases."""
+    a = np.array(a, dtype=np.float64)
+    a.flags.writeable = False
+    return a
 
 
 def message_array(value: Any, name: str, integer: bool = False) -> np.ndarray:
@@ -224,7 +234,7 @@ def options(request: Request, outputs: Any, hessian_mode: str | None, active_onl
     return {
         "outputs": request.outputs if outputs is None else as_outputs(outputs),
         "hessian_mode": request.hessian_mode if hessian_mode is None else hessian_mode,
-        "active_only": request.active_only if active_only is None else bool(active_only),
+        "active_only": request.active_only if active_only is None else as_flag(active_only),
         "layout": request.layout,  # the opening's, as the server keeps it (a message cannot change it)
     }
 
@@ -249,7 +259,7 @@ class StateView:
     @property
     def coordinates(self) -> list[Array]:
         """The committed coordinates, one (N,) array per batch (as opened, before any commit)."""
-        return self.state.coordinates
+        return list(self.state.coordinates)
 
     def request_for_reopen(self) -> Request:
         """A request that opens a session in this one's committed state (`SessionState.request_for_reopen`)."""

@@ -12,7 +12,8 @@ from numpy.typing import ArrayLike
 
 from jointlimits.client.model import Array, Evaluation, Request, in_body
 from jointlimits.client.local import core_batches, result
-from jointlimits.client.session import SessionClosed, SessionState, StateView, batch_number, message_array, options
+from jointlimits.client.session import (SessionClosed, SessionState, StateView, batch_number, message_array, options,
+                                        owned)
 from jointlimits.service import core
 from jointlimits.service.core.prepared import prepare
 
@@ -42,7 +43,7 @@ class LocalSession(StateView):
         r = self.state.request
         bodies = core.Bodies(np.asarray(r.q, np.float64), np.asarray(r.q_prev, np.float64), np.asarray(r.q_ref, np.float64))
         self._scene = _call(lambda: prepare(bodies, core_batches(r, copy=True), threads=self.threads))
-        self.state.coordinates = [np.array(c) for c in self._scene.coordinates()]
+        self.state.coordinates = [owned(c) for c in self._scene.coordinates()]
 
     def _live(self) -> Any:
         if self._scene is None:
@@ -57,9 +58,7 @@ class LocalSession(StateView):
 
     def commit(self, q: ArrayLike) -> list[Array]:
         scene, q = self._live(), np.array(message_array(q, "q"))
-        self.state.coordinates = [np.array(c) for c in _call(lambda: scene.commit(q))]
-        self.state.q_prev = q
-        return self.state.coordinates
+        return self.state.keep(_call(lambda: scene.commit(q)), q)
 
     def update(self, batch: int, index: ArrayLike, *, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
@@ -70,7 +69,7 @@ class LocalSession(StateView):
         _call(lambda: scene.update(b, idx, **given))
         self.state.apply_update(batch, index, values)
         if offset is not None:  # a new offset moves the batch's committed coordinates with it
-            self.state.coordinates[batch] = np.array(scene.coordinates()[batch])
+            self.state.coordinates[batch] = owned(scene.coordinates()[batch])
 
     def reopen(self) -> None:
         self.state.request = self.state.request_for_reopen()

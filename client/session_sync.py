@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from contextlib import ExitStack
 from types import TracebackType
@@ -135,3 +136,11 @@ class Session(Exchange):
 
     def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
         self.close()
+
+    def __del__(self) -> None:
+        # Dropped without close() (a notebook cell run again): free the socket, its two threads and the server's
+        # session slot now, waiting a second at most for the server's close frame. Not at exit: websockets' threads
+        # are stopped by then, and closing would wait on them for ever (the server sees the socket end instead).
+        if getattr(self, "_ws", None) is not None and not sys.is_finalizing():
+            self._ws.close_timeout = min(self._ws.close_timeout or 1.0, 1.0)
+            self._stack.close()

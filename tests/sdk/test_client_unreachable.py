@@ -172,6 +172,25 @@ def test_session_to_a_closed_port_is_unreachable():
     assert "reopen" not in str(err.value)
 
 
+def test_a_session_open_counts_its_attempts_as_evaluate_does():
+    """An open that reaches no server is tried `retries` more times (sessions.md); its `Unreachable` says how many
+    times it tried, as `evaluate`'s does, not "after 1 attempt" (the first failure's count, as it was)."""
+    url = f"http://127.0.0.1:{closed_port()}"
+    with pytest.raises(Unreachable) as err:
+        Client(url, retries=2, backoff=0.01).session(readme_scene().request())
+    assert err.value.attempts == 3 and "after 3 attempts" in str(err.value)
+
+    async def run() -> None:
+        async with AsyncClient(url, retries=1, backoff=0.01) as c:
+            await c.session(readme_scene().request())
+
+    with pytest.raises(Unreachable, match="after 2 attempts") as err:
+        asyncio.run(run())
+    assert err.value.attempts == 2
+    with pytest.raises(Unreachable, match="after 1 attempt;"):  # resume off: one attempt, said as one
+        Client(url, retries=2, backoff=0.01).session(readme_scene().request(), resume=False)
+
+
 def test_async_session_checks_the_url_too(live):
     async def run(url: str) -> None:
         async with AsyncClient(url) as c:

@@ -135,7 +135,20 @@ SCENE_MISTAKES = {
     "an offset too far": (dict(i=0, j=1, lower=-1e308, upper=1, offset=1e308),
                           ("offset",), "lower - offset or upper - offset overflows float64", "value_error"),
     "a list for a bound": (dict(i=0, j=1, lower=[-1, -2], upper=1), ("lower",), "must be one number, got shape (2,)", "value_error"),
+    # A body is an integer, as the wire's body_ids and JointBatch.of say: 1.7 was truncated to body 1 (another
+    # joint than asked, silently), "1" and True taken as 1, an array a bare numpy TypeError.
+    "a float body": (dict(i=0, j=1.7, lower=-1, upper=1), ("j",), "Input should be a valid integer", "int_type"),
+    "a float body 0.0": (dict(i=0.0, j=1, lower=-1, upper=1), ("i",), "Input should be a valid integer", "int_type"),
+    "a string body": (dict(i=0, j="1", lower=-1, upper=1), ("j",), "Input should be a valid integer", "int_type"),
+    "a bool body": (dict(i=False, j=1, lower=-1, upper=1), ("i",), "Input should be a valid integer", "int_type"),
+    "an array body": (dict(i=0, j=np.array([1]), lower=-1, upper=1), ("j",), "Input should be a valid integer", "int_type"),
 }
+
+
+def test_scene_takes_numpy_integers_for_bodies():
+    scene = two_bodies()
+    scene.add_revolute_limit(np.int64(0), np.int32(1), *EDGE, lower=-1, upper=1)
+    assert scene.request().batches[0].body_ids.tolist() == [[0, 1]]
 
 
 @pytest.mark.parametrize("name", SCENE_MISTAKES)

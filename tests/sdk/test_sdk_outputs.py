@@ -78,3 +78,26 @@ def test_unknown_names_are_named_by_position_as_the_service_names_them(live):  #
         assert faults(lambda: client.evaluate(s.request(outputs="jacobian"))) == want
         with client.session(s.request()) as session:
             assert faults(lambda: session.evaluate(s.request().q, outputs="jacobian")) == want
+
+
+NOT_A_BOOL = [(("body", "active_only"), "Input should be a valid boolean", "bool_type")]
+
+
+@pytest.mark.parametrize("bad", ["false", 1, 0, None, 1.0])
+def test_active_only_is_a_boolean_as_the_wire_reads_it(live, bad):  # noqa: F811
+    """The wire's `active_only` is a strict boolean ("false" and 1 are refused, `bool_type`). The SDK took
+    `bool(active_only)`: `active_only="false"` asked for active joints only, silently dropping the others' rows."""
+    doc = {"bodies": {"q": [], "q_prev": [], "q_ref": []}, "batches": [], "active_only": bad}
+    detail = httpx.post(f"{live}/v1/evaluate", json=doc).json()["detail"]
+    assert [(tuple(d["loc"]), d["msg"], d["type"]) for d in detail] == NOT_A_BOOL
+    s = scene()
+    req = s.request()
+    assert faults(lambda: s.request(active_only=bad)) == NOT_A_BOOL
+    assert faults(lambda: request_from_arrays(req.q, req.batches, active_only=bad)) == NOT_A_BOOL
+    if bad is None:
+        return  # a session's `active_only=None` is the opening's
+    for client in (LocalClient(), Client(live)):
+        with client.session(req) as session:
+            assert faults(lambda: session.evaluate(req.q, active_only=bad)) == NOT_A_BOOL
+            rows = [len(session.evaluate(req.q, active_only=flag).batches[0].index) for flag in (np.False_, np.True_)]
+            assert rows == [1, 0]  # numpy's bools are booleans (the joint is inside its range)

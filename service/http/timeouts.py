@@ -215,9 +215,11 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             self.header_timeout = Settings().header_timeout
         self._head_timer = _Timer(self.loop, self._head_expired)
         self._head_bytes, self._head_size = False, 0  # bytes of the current head have arrived (any; how many)
+        self._in_head = False  # the parser is inside a request's head (not in the rest of an answered one's body)
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
+        self._in_head = True
         extensions = {**self.scope.get("extensions", {}), DRAIN: self.drain, OPENED: self.opened}
         self.scope["extensions"] = extensions  # type: ignore[typeddict-item]
 
@@ -235,7 +237,9 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             self._arm()  # the first bytes of the next request on a keep-alive connection
         self._head_bytes = True
         super().data_received(data)
-        if self._head_timer.handle is not None and not self.transport.is_closing():  # still in the head
+        # Still in a head: the rest of a body answered early (a 413 on its declared size) is no head, though
+        # the timer is armed for the next request once the answer is complete.
+        if self._in_head and not self.transport.is_closing():
             self._head_size += len(data)  # counted after the parse: at most one read past the bound is held
             ReadTimeoutProtocol.heads_held += len(data)
             if self._head_size > MAX_HEAD_BYTES:
@@ -245,6 +249,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
                 self._refuse("heads_full", busy)
 
     def on_headers_complete(self) -> None:
+        self._in_head = False
         self._head_timer.stop()
         self._drop_head()
         super().on_headers_complete()

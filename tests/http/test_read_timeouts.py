@@ -245,3 +245,21 @@ def test_unfinished_heads_past_the_workers_budget_get_503_busy_and_the_budget_co
     while timeouts.ReadTimeoutProtocol.heads_held and time.monotonic() < deadline:
         time.sleep(0.05)
     assert timeouts.ReadTimeoutProtocol.heads_held == 0  # every held byte given back
+
+
+def test_the_rest_of_a_body_answered_early_is_no_head(port):
+    """A body refused on its declared size is answered 413 at once, while the client goes on sending it: those bytes
+    are the rest of that request, not the next one's head, and never count against `MAX_HEAD_BYTES` (they did, for
+    a merge: the flood drill's oversized requests got 431)."""
+    before = closed_counted(port, "head_too_large")
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(HEAD + b"Content-Length: 1000000000000\r\n\r\n")
+        try:
+            for _ in range(16):  # 4 x the head's bound, in pieces, as a client streaming its body does
+                s.sendall(b" " * (timeouts.MAX_HEAD_BYTES // 4))
+                time.sleep(0.01)
+        except OSError:  # closed after the answer: it is in the receive buffer
+            pass
+        _, got = wait_closed(s, HEADER_TIMEOUT + 10)
+    assert got.startswith(b"HTTP/1.1 413 ") and b" 431 " not in got, got[:200]
+    assert closed_counted(port, "head_too_large") == before

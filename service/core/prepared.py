@@ -176,8 +176,8 @@ class PreparedScene:
         p = jb.c.advance(_progress(jb.c, jb.progress, path, starts, fixed), states[-2], dF)
         x = p.x
         if careful is not None:  # `meets`: theta(q_ref) is 0, its rounding (D_ref ~ 0 times a large S_ref) is not
-            last = len(careful.states) - 1
-            x[careful.idx] = jb.c.value(careful.unscaled(last)) if jb.meets else jb.c.careful_coordinate(careful)
+            # (the frames at q of those joints are already `careful.unscaled`, above)
+            x[careful.idx] = jb.c.value(states[-1][careful.idx]) if jb.meets else jb.c.careful_coordinate(careful)
         return states[-1], _last_state(careful), x, p.known[-1]
 
     def _step(self, jb: _Batch, row: int, r_start: Array | None) -> tuple[Array | None, Array | None]:

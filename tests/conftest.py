@@ -86,7 +86,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 # ---------------------------------------------------------------- another machine's math kernels
 # `--perturb-ulps N` (off by default) runs the tests with NumPy's transcendental ufuncs moved by up to N ulps and its
 # BLAS/LAPACK calls by another summation order's error (tests/perturb.py says what and why), as on a CPU with AVX-512
-# or another OpenBLAS kernel. Installed at configure time, before any test module is imported, in every xdist worker;
+# or another OpenBLAS kernel. Installed at configure time, before any test module is imported, in every xdist worker,
+# and (tests/perturb_site/sitecustomize.py) in every Python process the tests start;
 # tests/test_perturb.py::test_the_perturbation_reaches_the_core fails if it does not take effect.
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--perturb-ulps", type=int, default=0, metavar="N",
@@ -99,6 +100,10 @@ def pytest_configure(config: pytest.Config) -> None:
     if n > 0:
         from tests.perturb import perturbed
 
-        context = perturbed(n, config.getoption("--perturb-seed"))
+        seed = config.getoption("--perturb-seed")
+        context = perturbed(n, seed)
         context.__enter__()
         config.add_cleanup(lambda: context.__exit__(None, None, None))
+        site = str(Path(__file__).parent / "perturb_site")
+        os.environ.update(JL_PERTURB_ULPS=str(n), JL_PERTURB_SEED=str(seed),
+                          PYTHONPATH=os.pathsep.join(filter(None, (site, os.environ.get("PYTHONPATH")))))

@@ -76,3 +76,17 @@ def test_lapack_stand_ins_give_the_same_answers_in_another_order() -> None:
     assert np.abs(np.einsum("nij,nj,njk->nik", U, s, Vt) - G).max() <= 1e-13 * np.abs(G).max()
     assert np.abs(np.einsum("nij,njk->nik", G, x) - b).max() <= 1e-12 * np.abs(b).max()
     assert exact[0].tolist() == [0.5, 0.75, 0.625] and exact[1] == 1.0
+
+
+def test_a_started_python_computes_with_the_same_kernels(request: pytest.FixtureRequest) -> None:
+    """Under `--perturb-ulps N`: a Python process started by a test (a live server, the console script) gets the
+    same arctan2 as the test process (tests/perturb_site/sitecustomize.py)."""
+    if request.config.getoption("--perturb-ulps") == 0:
+        pytest.skip("runs under --perturb-ulps only")
+    import subprocess
+    import sys
+
+    code = "import numpy as np; print(repr(float(np.arctan2(np.float64(0.3), np.float64(0.4)))))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    here = float(np.arctan2(np.float64(0.3), np.float64(0.4)))
+    assert float(done.stdout) == here and here != math.atan2(0.3, 0.4)

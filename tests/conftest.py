@@ -88,7 +88,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 # BLAS/LAPACK calls by another summation order's error (tests/perturb.py says what and why), as on a CPU with AVX-512
 # or another OpenBLAS kernel. Installed at configure time, before any test module is imported, in every xdist worker,
 # and (tests/perturb_site/sitecustomize.py) in every Python process the tests start;
-# tests/test_perturb.py::test_the_perturbation_reaches_the_core fails if it does not take effect.
+# tests/core/test_perturb.py::test_the_perturbation_reaches_the_core fails if it does not take effect.
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--perturb-ulps", type=int, default=0, metavar="N",
                      help="simulate another CPU's math kernels: NumPy's transcendentals off by up to N ulps (tests/perturb.py)")

@@ -201,18 +201,26 @@ def _norm(orig: Callable) -> Callable:
     return wrapped
 
 
+_LINALG = ("eigh", "eigvalsh", "svd", "solve", "norm")
+ORIGINALS = {**{name: getattr(np, name) for name in (*UFUNCS, "matmul", "einsum")},
+             **{f"linalg.{name}": getattr(np.linalg, name) for name in _LINALG}}
+"""NumPy's own, taken when this module is first imported (before any replacement): a second installation (pytest's,
+in a process whose sitecustomize installed one) replaces the first rather than perturbing its results again."""
+
+
 def replacements(n: int, seed: int = 0) -> Iterator[tuple[object, str, Callable]]:
     """(owner, attribute, replacement) for every call perturbed at `n` ulps (`JL_PERTURB_ONLY`, a comma list of
     these names, keeps only those: to find which one moves a failing test)."""
+    o = ORIGINALS
     for name in UFUNCS:
-        yield np, name, _ufunc(getattr(np, name), n, seed)
-    yield np, "matmul", _matmul(np.matmul)
-    yield np, "einsum", _einsum(np.einsum)
-    yield np.linalg, "eigh", _eigh(np.linalg.eigh)
-    yield np.linalg, "eigvalsh", _eigh(np.linalg.eigvalsh)
-    yield np.linalg, "svd", _svd(np.linalg.svd)
-    yield np.linalg, "solve", _solve(np.linalg.solve)
-    yield np.linalg, "norm", _norm(np.linalg.norm)
+        yield np, name, _ufunc(o[name], n, seed)
+    yield np, "matmul", _matmul(o["matmul"])
+    yield np, "einsum", _einsum(o["einsum"])
+    yield np.linalg, "eigh", _eigh(o["linalg.eigh"])
+    yield np.linalg, "eigvalsh", _eigh(o["linalg.eigvalsh"])
+    yield np.linalg, "svd", _svd(o["linalg.svd"])
+    yield np.linalg, "solve", _solve(o["linalg.solve"])
+    yield np.linalg, "norm", _norm(o["linalg.norm"])
 
 
 @contextmanager
@@ -223,6 +231,21 @@ def perturbed(n: int, seed: int = 0) -> Iterator[None]:
         for owner, name, fn in list(replacements(n, seed)):
             if only and name not in only.split(","):
                 continue
+            saved.append((owner, name, getattr(owner, name)))
+            setattr(owner, name, fn)
+        yield
+    finally:
+        for owner, name, fn in reversed(saved):
+            setattr(owner, name, fn)
+
+
+@contextmanager
+def plain() -> Iterator[None]:
+    """Within: NumPy's own functions, whatever is installed outside (the harness' tests' baselines)."""
+    saved = []
+    try:
+        for key, fn in ORIGINALS.items():
+            owner, name = (np.linalg, key[7:]) if key.startswith("linalg.") else (np, key)
             saved.append((owner, name, getattr(owner, name)))
             setattr(owner, name, fn)
         yield

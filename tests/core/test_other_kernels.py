@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.slow  # a pytest subprocess over 337 accuracy tests (~25 s per seed)
+pytestmark = pytest.mark.slow  # a pytest subprocess over 337 accuracy tests (~40 s per seed on the 2-core machine)
 
 ROOT = Path(__file__).resolve().parents[2]
 ACCURACY = (

@@ -81,3 +81,29 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         raise pytest.UsageError("two tests share a node id: pytest-xdist would run only one of them (mark it serial)")
     rank = {path: k for k, path in enumerate(LONGEST_FIRST)}  # the controller schedules in this order
     items.sort(key=lambda item: rank.get(item.nodeid.split("::", 1)[0], len(rank)))
+
+
+# ---------------------------------------------------------------- another machine's math kernels
+# `--perturb-ulps N` (off by default) runs the tests with NumPy's transcendental ufuncs moved by up to N ulps and its
+# BLAS/LAPACK calls by another summation order's error (tests/perturb.py says what and why), as on a CPU with AVX-512
+# or another OpenBLAS kernel. Installed at configure time, before any test module is imported, in every xdist worker,
+# and (tests/perturb_site/sitecustomize.py) in every Python process the tests start;
+# tests/core/test_perturb.py::test_the_perturbation_reaches_the_core fails if it does not take effect.
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--perturb-ulps", type=int, default=0, metavar="N",
+                     help="simulate another CPU's math kernels: NumPy's transcendentals off by up to N ulps (tests/perturb.py)")
+    parser.addoption("--perturb-seed", type=int, default=0, help="the seed of --perturb-ulps' moves")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    n = config.getoption("--perturb-ulps")
+    if n > 0:
+        from tests.perturb import perturbed
+
+        seed = config.getoption("--perturb-seed")
+        context = perturbed(n, seed)
+        context.__enter__()
+        config.add_cleanup(lambda: context.__exit__(None, None, None))
+        site = str(Path(__file__).parent / "perturb_site")
+        os.environ.update(JL_PERTURB_ULPS=str(n), JL_PERTURB_SEED=str(seed),
+                          PYTHONPATH=os.pathsep.join(filter(None, (site, os.environ.get("PYTHONPATH")))))

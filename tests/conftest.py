@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,27 @@ def relerr(got, want, floor: float = 0.0) -> float:
     scale = max(float(np.max(np.abs(want), initial=0.0)), floor)
     diff = float(np.max(np.abs(got - want), initial=0.0))
     return diff / scale if scale > 0 else diff
+
+
+# The docs' example (body 1 turned 0.7 rad about z, upper 0.5, strength 100) printed as this machine computes it.
+# x is one arctan2, and another CPU's kernel may round it differently: AVX-512's SVML (numpy's float64 arctan2 there)
+# is within 1 ulp, not correctly rounded, and the exact angle lies 0.25 ulp from 0.7 (tests/perturb.py). Allowing
+# 4 ulps, |dx| <= 4.4e-16: E = 100 (x - 0.5)^3 moves by 12 |dx| (6.7e-15 of 0.8), E' = 300 (x - 0.5)^2 by
+# 120 |dx| (4.4e-15 of 12), and the gradient's entries, E' times O(1) frame entries, as E' does. Under
+# `--perturb-ulps 1` these examples read 0.7000000000000001 and 0.8000000000000009 (1.8e-15 of 0.8).
+EXAMPLE_RTOL = 1e-14
+_FLOAT = re.compile(r"(-?(?:\d+\.\d*|\.\d+)(?:[eE][-+]?\d+)?|-?\d+[eE][-+]?\d+)")
+
+
+def same_numbers(got: str, want: str, rtol: float = EXAMPLE_RTOL) -> bool:
+    """`got` reads as `want` up to last bits: the same text around the floats (integers included, exactly),
+    and the floats within `rtol` of the largest of `want`'s (normwise, as `relerr`: a zero here may be a rounding
+    of the larger entries' size elsewhere, as when a rotation's sin and cos come from another kernel)."""
+    g, w = _FLOAT.split(got), _FLOAT.split(want)
+    if len(g) != len(w) or g[::2] != w[::2]:
+        return False
+    a, b = np.array(g[1::2], dtype=float), np.array(w[1::2], dtype=float)
+    return bool((np.abs(a - b) <= rtol * np.max(np.abs(b), initial=0.0)).all())
 
 
 @pytest.fixture(params=GOLDEN, ids=[c["name"] for c in GOLDEN])

@@ -2,7 +2,8 @@
 the v1 answers, the hard cases, random scenes against mpmath, the chain rule, the coordinates' digits) run in a
 pytest subprocess under `--perturb-ulps 4` (tests/perturb.py: NumPy's transcendentals 4 ulps off, as AVX-512's SVML
 kernels may be; matmul, einsum and LAPACK in another order, as another OpenBLAS kernel sums). A bound tuned to this
-machine's last bits fails here, not first on a CI machine with other kernels. Two seeds: two other machines.
+machine's last bits fails here, not first on a CI machine with other kernels. One seed, one other machine
+(a second cost CI ~40 s of a worker; the tuned revolute bound this harness found failed at 5 of 6 seeds).
 
 To run the whole suite so: `pytest tests/core tests/http tests/sdk -m "not slow" -n 2 --perturb-ulps 4`.
 """
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.slow  # a pytest subprocess over 337 accuracy tests (~40 s per seed on the 2-core machine)
+pytestmark = pytest.mark.slow  # a pytest subprocess over 337 accuracy tests (~45 s on the 2-core machine)
 
 ROOT = Path(__file__).resolve().parents[2]
 ACCURACY = (
@@ -33,14 +34,16 @@ ACCURACY = (
 )
 
 
-RANDOM = "tests/core/test_reference.py::test_random_scenes_match_reference[{}-{}]"  # 12 of its 48 scenes a seed
+RANDOM = "tests/core/test_reference.py::test_random_scenes_match_reference[{}-{}]"  # 24 of its 48 scenes
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_accuracy_tests_pass_on_other_kernels(seed: int) -> None:
-    scenes = [RANDOM.format(k, mode) for k in range(12 * seed, 12 * seed + 12) for mode in ("exact", "psd")]
+SEED = 0
+
+
+def test_accuracy_tests_pass_on_other_kernels() -> None:
+    scenes = [RANDOM.format(k, mode) for k in range(24) for mode in ("exact", "psd")]
     args = [sys.executable, "-m", "pytest", *ACCURACY, *scenes, "-q", "-rs", "-p", "no:randomly", "-p", "no:cacheprovider",
-            "--perturb-ulps", "4", "--perturb-seed", str(seed)]  # fmt: skip
+            "--perturb-ulps", "4", "--perturb-seed", str(SEED)]  # fmt: skip
     env = {k: v for k, v in os.environ.items() if not k.startswith("JL_PERTURB")}  # only this run's option
     done = subprocess.run(args, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     tail = done.stdout[-3000:] + done.stderr[-2000:]

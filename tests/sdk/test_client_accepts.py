@@ -15,6 +15,7 @@ from jointlimits.client import AsyncClient, Client, InvalidInput, LocalClient, S
 from jointlimits.schemas import EvaluateRequest
 from tests.sdk.test_client_sdk import chain, readme_scene
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
+from tests.conftest import same_numbers
 from tests.http.test_errors_http import base_request
 
 
@@ -117,6 +118,13 @@ def test_local_errors_do_not_mention_http(live):
     assert str(errors["local", "opening"]) == str(errors["local", "evaluate"])
 
 
+class _UpToLastBits(doctest.OutputChecker):
+    """The example's floats as printed here, up to another CPU's last bits (`same_numbers`)."""
+
+    def check_output(self, want: str, got: str, optionflags: int) -> bool:
+        return same_numbers(got, want)
+
+
 def test_evaluate_has_a_real_docstring_and_its_example_runs():
     doc = Client.evaluate.__doc__
     for words in (".request(outputs=", "dict", "EvaluateRequest", "Returns", "Raises", "InvalidInput",
@@ -126,7 +134,7 @@ def test_evaluate_has_a_real_docstring_and_its_example_runs():
     globs = {"np": np, "Scene": Scene, "client": LocalClient(),
              "turned": np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])}
     test = doctest.DocTestParser().get_doctest(doc, globs, "Client.evaluate", None, 0)
-    result = doctest.DocTestRunner().run(test)
+    result = doctest.DocTestRunner(checker=_UpToLastBits()).run(test)
     assert result.failed == 0 and result.attempted >= 5
     assert "Client.evaluate" in LocalClient.evaluate.__doc__ and "Client.evaluate" in AsyncClient.evaluate.__doc__
 

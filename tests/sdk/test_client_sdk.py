@@ -23,6 +23,7 @@ from jointlimits.client import (
     dofs,
     request_from_arrays,
 )
+from tests.conftest import EXAMPLE_RTOL, relerr
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
 from tests.http.test_errors_http import rot_z
 
@@ -48,9 +49,10 @@ def test_scene_builder_reproduces_the_readme_example(live, pose_kind):
     with Client(live) as client:
         ev = client.evaluate(readme_scene(pose_kind).request(outputs=["energy", "gradient"]))
     r = ev.batch(670)
-    assert r.x[0] == pytest.approx(0.7, abs=1e-15)
-    assert ev.total_energy == 0.7999999999999995 == r.energy[0]
-    assert r.gradient[0].tolist() == README_GRADIENT
+    # This machine's last bits; another CPU's arctan2 may move them (EXAMPLE_RTOL argues the bound).
+    assert r.x[0] == pytest.approx(0.7, rel=EXAMPLE_RTOL)
+    assert ev.total_energy == r.energy[0] == pytest.approx(0.7999999999999995, rel=EXAMPLE_RTOL)
+    assert relerr(r.gradient[0], README_GRADIENT) <= EXAMPLE_RTOL  # normwise: a zero here may be 3e-16 there
     assert r.hessian is None
     with pytest.raises(KeyError):
         ev.batch(669)

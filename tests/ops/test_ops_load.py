@@ -29,6 +29,14 @@ MAX_BODY_BYTES, MAX_JOINTS = 1_000_000, 1_000
 LIMITS = ["--max-body-bytes", str(MAX_BODY_BYTES), "--max-joints", str(MAX_JOINTS)]
 
 
+@pytest.fixture(scope="module")
+def shared_server():
+    """One server for the mixed load and the flood (a start is 3-8 s here): each reads only deltas of what it
+    did (RSS after its own warm-up, /metrics counts, the worker pids), so either may run first."""
+    with lt.Server(workers=2, extra_args=LIMITS) as s:
+        yield s
+
+
 @pytest.fixture
 def server():
     with lt.Server(workers=2, extra_args=LIMITS) as s:
@@ -39,8 +47,8 @@ def show(name: str, report: dict) -> None:
     print(f"\n{name}: " + json.dumps({k: v for k, v in report.items() if k != "by_kind"}))
 
 
-def test_mixed_load_two_workers_sixteen_clients(server):
-    r = lt.scenario_mixed(server, clients=16, duration=LOAD_SECONDS)
+def test_mixed_load_two_workers_sixteen_clients(shared_server):
+    r = lt.scenario_mixed(shared_server, clients=16, duration=LOAD_SECONDS)
     show("mixed", r)
     assert r["requests"] > 0 and r["throughput_rps"] > 0
     assert r["server_errors_5xx"] == 0
@@ -52,12 +60,12 @@ def test_mixed_load_two_workers_sixteen_clients(server):
         assert rss["growth"] is not None and rss["growth"] < RSS_GROWTH_KIB, f"worker {pid} grew {rss['growth']} KiB"
     # /metrics counts every evaluate request exactly, whichever worker answered it.
     assert r["metrics_evaluate_delta"] == r["evaluate_answered"]
-    assert server.proc.poll() is None
+    assert shared_server.proc.poll() is None
 
 
-def test_flood_of_oversized_requests_neither_downs_nor_starves(server):
-    pids = server.worker_pids()
-    r = lt.scenario_flood(server, clients=16, duration=8, max_body_bytes=MAX_BODY_BYTES, max_joints=MAX_JOINTS)
+def test_flood_of_oversized_requests_neither_downs_nor_starves(shared_server):
+    pids = shared_server.worker_pids()
+    r = lt.scenario_flood(shared_server, clients=16, duration=8, max_body_bytes=MAX_BODY_BYTES, max_joints=MAX_JOINTS)
     for part in ("valid_alone", "valid_under_flood", "flood"):
         show(part, r[part])
     flood, valid = r["flood"], r["valid_under_flood"]
@@ -74,8 +82,8 @@ def test_flood_of_oversized_requests_neither_downs_nor_starves(server):
     # nothing, which this bound and the p99 bound below both catch.
     assert valid["throughput_rps"] > 0.1 * r["valid_alone"]["throughput_rps"]
     assert valid["p99_ms"] < max(2000.0, 5 * r["valid_alone"]["p99_ms"])
-    assert r["healthz_after"] == 200 and server.proc.poll() is None
-    assert server.worker_pids() == pids  # nothing crashed and was respawned
+    assert r["healthz_after"] == 200 and shared_server.proc.poll() is None
+    assert shared_server.worker_pids() == pids  # nothing crashed and was respawned
 
 
 # uvicorn's supervisor pings each worker in turn and keeps both ends of each ping pipe, so a worker killed while

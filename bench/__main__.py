@@ -4,7 +4,7 @@ Everything is measured in one run on this machine, peers side by side; the repor
 JSON, PNG) goes to bench/results/ (report.* for the full run, quick.* for --quick). The last
 line printed is `speedup_vs_autodiff_egh=<X> speedup_vs_autodiff_e=<Y> speedup_all_active_egh=<Z>
 speedup_vs_autodiff_e_all_active=<W> speedup_vs_warp_e=<U> speedup_vs_warp_eg=<V>`:
-core / JAX throughput at the largest size (1e5 by default), E+G+H exact and energy only on the
+core / JAX throughput at the largest size (1e5 by default, 1e4 with --quick), E+G+H exact and energy only on the
 typical scene, then E+G+H exact and energy on the scene with every joint outside its range (nan
 without the JAX peer); then core / Warp throughput on that scene, energy and energy + gradient
 (nan without the Warp peer). The core on the faster of 1 thread and all cores, JAX on all cores
@@ -36,6 +36,12 @@ GOLDEN = Path(__file__).resolve().parent.parent / "tests" / "golden_cases.json"
 OUTSIDE = 0.1  # fraction of joints past a limit in the timing scenes
 ALL_ACTIVE = 1.0  # the hard case beside it: a mechanism pushed against its stops, every joint differentiated
 SIZES = [100, 1_000, 10_000, 100_000]
+# --quick's sizes: its largest, 1e4, is where its peers and ratios are measured. At 1e5 one JAX E+G+H call takes
+# 2.5-4 s here and the quick run makes 13 of them (warm-ups, medians of 5, the all-active scene, the accuracy
+# cases), which alone is over a minute; at 1e4 they take ~0.35 s. The ratios are not the 1e5 ones: JAX's time
+# per joint grows with the size more than the core's (energy 2.2-2.7 us/joint at 1e4, 4.1 at 3e4, 6 at 1e5 on
+# this machine, 2026-11-28), so --quick's figures against JAX read lower than the full run's.
+QUICK_SIZES = [100, 1_000, 10_000]
 HTTP_SIZES = (10, 1_000, 10_000)  # joints per request, fixed by the issue whatever --sizes says
 MODES = ["e", "eg", "egh", "psd"]
 THREADS = os.cpu_count() or 1  # JAX's XLA runs on every core by default: the core is timed so too
@@ -50,10 +56,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="python -m bench", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true",
-                    help="at the largest size only energy and E+G+H exact; no psd variants, no 'frames precomputed' JAX "
-                         "flavour, no active-only, memory or HTTP; smaller accuracy cases: about a minute on an idle 2-core machine")
-    ap.add_argument("--sizes", type=int, nargs="+", default=SIZES, metavar="N",
-                    help="core sizes in joints (default: 100 1000 10000 100000); the largest is where peers, "
+                    help="sizes 100 1000 10000 (unless --sizes), at the largest only energy and E+G+H exact; no psd variants, "
+                         "no 'frames precomputed' JAX flavour, no active-only, memory or HTTP; smaller accuracy cases: "
+                         "about 30 s on an idle 2-core machine")
+    ap.add_argument("--sizes", type=int, nargs="+", default=None, metavar="N",
+                    help="core sizes in joints (default: 100 1000 10000 100000, --quick 100 1000 10000); the largest is where peers, "
                          "float32, ratios, active-only and memory are measured, and the full run also times "
                          "energy alone at 10x the largest")
     ap.add_argument("--reps", type=int, default=5, help="timed repetitions per measurement (median; at least 5)")
@@ -74,7 +81,7 @@ def command(args: argparse.Namespace) -> str:
     """The command line of this run, less --out (where it writes does not change what it measured)."""
     flags = [f for f in ("quick", "no_jax", "no_warp", "no_http", "no_plot", "no_sessions", "sessions_only") if getattr(args, f)]
     words = ["python -m bench"] + ["--" + f.replace("_", "-") for f in flags]
-    if sorted(set(args.sizes)) != SIZES:
+    if args.sizes is not None and sorted(set(args.sizes)) != (QUICK_SIZES if args.quick else SIZES):
         words.append("--sizes " + " ".join(str(n) for n in sorted(set(args.sizes))))
     if args.reps != 5:
         words.append(f"--reps {args.reps}")
@@ -144,7 +151,7 @@ def time_jax(JaxPeer: Any, flavours: list[tuple[str, bool]], scene: tuple, quick
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     quick, reps = args.quick, max(5, args.reps)
-    sizes = sorted(set(args.sizes))
+    sizes = sorted(set(args.sizes or (QUICK_SIZES if quick else SIZES)))
     if args.sessions_only:
         return S.only(command(args), sizes, reps, args.out, with_wire=not args.no_http)
     n_big = sizes[-1]
@@ -161,6 +168,10 @@ def main(argv: list[str] | None = None) -> int:
                       f"{platform.python_version()}, NumPy {np.__version__}, JAX {res.get('jax_version', '-')}, "
                       f"Warp {res.get('warp_version', '-')}; "
                       f"medians of {reps} repetitions after one warm-up")
+    if quick:
+        res["notes"].append(f"--quick: sizes {', '.join(report.count(n) for n in sizes)}; peers, ratios and the all-active "
+                            f"scene at {report.count(n_big)} (the full run's are at 1e5, where JAX's time per joint is "
+                            "higher: its ratios read lower here).")
     res["scene"] = (f"half #670 half #669, {OUTSIDE:.0%} of joints outside their range (5% for active-only); "
                     f"beside it at the largest size, every joint outside ({ALL_ACTIVE:.0%}, 'all active')")
 
@@ -234,10 +245,11 @@ def main(argv: list[str] | None = None) -> int:
     variant("core float32 exact", t32["egh"], t32["e"], M.core_results(cs, "exact", np.float32))
     variant("per-joint loop", t_peer[("loop", "egh")], t_peer[("loop", "e")],
             M.loop_results(cs.bodies, M.single_joints(cs.batches)))
+    big_rows = {j.constitution_uid: j.body_ids.shape[0] for j in big[1]}  # the shapes JAX compiled for
     for name, same in flavours:
         for psd in (False,) if quick else (False, True):
             key = "psd" if psd else "egh"
-            results = JaxPeer(cs.bodies, cs.batches, same_work=same, psd=psd).results()
+            results = JaxPeer(cs.bodies, cs.batches, same_work=same, psd=psd).results(pad_to=big_rows)
             variant(name + (" psd" if psd else ""), t_peer.get((name, key)), None if psd else t_peer.get((name, "e")),
                     results, "psd" if psd else "exact")
     if WarpPeer is not None:

@@ -1,7 +1,8 @@
 """docs/performance.md's bench commands, run the way a newcomer runs them: a fresh clone, a fresh venv, the `bench` extra only.
 
-Slow for a test (a fresh virtual environment with JAX from pip's cache, then the quick bench:
-88 s on the 2 loaded cores this was written on), but well under CI's few minutes, so the page's
+Slow for a test (a fresh virtual environment with JAX from pip's cache, ~40-60 s, then the quick bench:
+88 s at 1e5 joints on a quiet machine before --quick measured at 1e4 and reused JAX's compiled functions,
+57 s now with the machine's load at 4.4 on its 2 cores), but well under CI's few minutes, so the page's
 command runs as written (`python -m bench --quick`, JAX and HTTP included) rather than trimmed:
 the import path is exactly the one a newcomer hits. The bench must find its 50-digit reference
 (mpmath) with the `bench` extra alone, not through `tests/` and the `test` extra.
@@ -51,7 +52,7 @@ def test_readme_bench_block_is_install_then_quick():
     assert quick == ".venv/bin/python -m bench --quick"
 
 
-@pytest.mark.slow  # a fresh venv with JAX, then the quick bench (~90 s)
+@pytest.mark.slow  # a fresh venv with JAX, then the quick bench (~30 s quiet)
 @pytest.mark.skipif(shutil.which("git") is None, reason="needs git to list the repository's files")
 def test_readme_quick_bench_runs_on_a_fresh_venv_with_the_bench_extra(tmp_path: Path):
     clone = fresh_clone(tmp_path / "clone")

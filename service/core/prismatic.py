@@ -37,9 +37,12 @@ FACTS = Facts(
 # theta = D.S / 2 with D = C_j - C_i, S = T_i + T_j: coefficients of D and S per block.
 _D = np.array([-1.0, 0.0, 1.0, 0.0])
 _S = np.array([0.0, 1.0, 0.0, 1.0])
-_PAIRS = 0.5 * (np.outer(_D, _S) + np.outer(_S, _D))  # (4, 4) block coefficients of d2theta/dF2
-_SIGNS = np.array([1.0, -1.0])
+# (1, ...): one joint's, broadcast by the assembly (read-only, as they are handed out)
+_PAIRS = 0.5 * (np.outer(_D, _S) + np.outer(_S, _D))[None]  # (1, 4, 4) block coefficients of d2theta/dF2
+_SIGNS = np.array([[1.0, -1.0]])
 _UU = np.stack([0.5 * (_D + _S), 0.5 * (_D - _S)])[None]  # (1, 2, 4): PAIRS = u+ u+^T - u- u-^T, the chain rule's factors
+for _a in (_PAIRS, _SIGNS, _UU):
+    _a.flags.writeable = False
 
 # The engine's PSD projection (contract v1.2) is taken in the 9 quantities F01 = [D, T_i, -T_j], where
 # x = D . (T_i - (-T_j)) / 2: per component d2x/dF01^2 = [[0, 1/2, -1/2], [1/2, 0, 0], [-1/2, 0, 0]],
@@ -97,8 +100,8 @@ class Prismatic(Constitution):  # its frames never collapse (`Constitution.colla
         if not second:
             return dx, None
         # Rank-1 factor for E'' dx dx^T is dx itself (coefficient 0 in d2x).
-        kron = np.broadcast_to(_PAIRS.astype(F.dtype, copy=False), (n, 4, 4))  # read-only views of the constants
-        factors = (np.broadcast_to(_SIGNS.astype(F.dtype, copy=False), (n, 2)), _UU.astype(F.dtype, copy=False))
+        dtype = F.dtype
+        kron, factors = _PAIRS.astype(dtype, copy=False), (_SIGNS.astype(dtype, copy=False), _UU.astype(dtype, copy=False))
         return dx, Curvature(kron=kron, basis=dx[:, None], coef=np.zeros((n, 1, 1), F.dtype),
                              dx_coef=np.ones((n, 1), F.dtype), kron_factors=factors, balance=True)
 

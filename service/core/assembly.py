@@ -88,7 +88,8 @@ def _hessian_points(alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: 
     else:
         w, f = curvature.kron_factors
         w = dE[:, None] * w
-    if curvature.balance:
+    K = curvature.kron
+    if K is not None and not K[:, alpha[:, None] == alpha].any():  # K pairs only points with directions
         f = f * (balance(alpha, v) if scales is None else scales)[:, None, :]
     m, k = w.shape[1], mix.lam.shape[1]
     fs = component_major(n, (m, 2, 2, 1), dtype)  # sqrt|w_e| f_e, by body and block

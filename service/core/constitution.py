@@ -24,8 +24,7 @@ class Curvature:
     4) symmetric, `basis` U (N, k, 4, 3), `coef` C (N, k, k) symmetric (`diagonal`: diagonal); `dx_coef` (N, k):
     `dx/dF = dx_coef . U` if the gradient lies in span(U) (else None). `kron_factors` = (w (N or 1, m), f (N or 1,
     m, 4)) with `K = sum_e w_e f_e f_e^T` when known (else the assembly takes K's eigen-decomposition; `kron`
-    may then be None). `balance`: K pairs only points with directions, so the assembly may scale the factors'
-    point blocks by g and direction blocks by 1/g per joint (K unchanged)."""
+    may then be None)."""
 
     kron: Array | None
     basis: Array
@@ -33,7 +32,6 @@ class Curvature:
     dx_coef: Array | None = None
     kron_factors: tuple[Array, Array] | None = None
     diagonal: bool = False
-    balance: bool = False
 
     def dense(self) -> Array:
         """(N, 12, 12): the generic form, for the eigensolver of the PSD projection."""

@@ -103,7 +103,7 @@ class Prismatic(Constitution):  # its frames never collapse (`Constitution.colla
         dtype = F.dtype
         kron, factors = _PAIRS.astype(dtype, copy=False), (_SIGNS.astype(dtype, copy=False), _UU.astype(dtype, copy=False))
         return dx, Curvature(kron=kron, basis=dx[:, None], coef=np.zeros((n, 1, 1), F.dtype),
-                             dx_coef=np.ones((n, 1), F.dtype), kron_factors=factors, balance=True)
+                             dx_coef=np.ones((n, 1), F.dtype), kron_factors=factors)
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
         """The engine's projection (contract v1.2, 9 quantities): `(|E'| / sqrt 2) f f^T` per joint (see `_F01_POS`)."""

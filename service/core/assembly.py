@@ -50,13 +50,13 @@ def chain(alpha: Array, v: Array, dF: Array) -> Array:
     return out.reshape(n, e, 24)
 
 
-def hessian(
-    alpha: Array, v: Array, curvature: Curvature, dE: Array, d2E: Array, out: Array, dx: Array | None = None
-) -> tuple[Array, bool]:
+def hessian(alpha: Array, v: Array, curvature: Curvature, dE: Array, d2E: Array, out: Array, dx: Array | None = None,
+            balance: Array | None = None) -> tuple[Array, bool]:
     """`E'' g g^T + J^T (E' d2x/dF2) J` (N, 24, 24) into `out`, bitwise symmetric, each entry written once.
 
     `curvature` is `d2x/dF2` (after a PSD projection it carries E': pass `dE = 1`); `dx` (N, 4, 3) only
-    when `curvature.dx_coef` is None. `X` (N, p, 24) `BLOCK` joints at a time, the per-joint scalars once.
+    when `curvature.dx_coef` is None; `balance` (N, 4) `balance(alpha, v)` if already taken (a prepared scene's).
+    `X` (N, p, 24) `BLOCK` joints at a time, the per-joint scalars once.
     Returns `J^T dx` (N, 24) (the gradient over E'), and whether `out` is finite for sure (|X| below
     `finite_factor`: no sum of products overflows; else the caller checks it).
     """
@@ -71,12 +71,11 @@ def hessian(
     blocks = [slice(s, s + BLOCK) for s in range(0, n, BLOCK)] if n > BLOCK else [slice(None)]
     if not alpha.any():
         return _hessian_directions(v, basis, mix, curvature.kron, dE, out, blocks)
-    return _hessian_points(alpha, v, basis, mix, curvature, dE, out, blocks)
+    return _hessian_points(alpha, v, basis, mix, curvature, dE, out, blocks, balance)
 
 
-def _hessian_points(
-    alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: Curvature, dE: Array, out: Array, blocks: list[slice]
-) -> tuple[Array, bool]:
+def _hessian_points(alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: Curvature, dE: Array, out: Array,
+                    blocks: list[slice], scales: Array | None) -> tuple[Array, bool]:
     """`hessian` for frames with points (the prismatic joint): low-rank and Kronecker factors in one GEMM.
 
     `E' K = sum_e w_e f_e f_e^T`, so `J^T (E' K (x) I_3) J = sum_{e, r} w_e (J^T (f_e (x) e_r)) (J^T (f_e (x) e_r))^T`,
@@ -89,8 +88,9 @@ def _hessian_points(
     else:
         w, f = curvature.kron_factors
         w = dE[:, None] * w
-    if curvature.balance:
-        f = f * _balance(alpha, v)[:, None, :]
+    K = curvature.kron
+    if K is not None and not K[:, alpha[:, None] == alpha].any():  # K pairs only points with directions
+        f = f * (balance(alpha, v) if scales is None else scales)[:, None, :]
     m, k = w.shape[1], mix.lam.shape[1]
     fs = component_major(n, (m, 2, 2, 1), dtype)  # sqrt|w_e| f_e, by body and block
     np.multiply(f, np.sqrt(np.abs(w))[:, :, None], out=fs.reshape(n, m, 4))
@@ -129,7 +129,7 @@ def _hessian_points(
     return Jdx, finite
 
 
-def _balance(alpha: Array, v: Array) -> Array:
+def balance(alpha: Array, v: Array) -> Array:
     """(N, 4) powers of two, g on the points' blocks and 1/g on the directions' (g^2 ~ |v_dir| / |[1, v_point]|):
     factors of a K pairing only points with directions still sum to K, and a point's row [1, c_k] far larger
     than a direction's [0, t_k] (an anchor 1/s body units away) cancels no digits in their difference of squares."""

@@ -20,12 +20,11 @@ Array = NDArray[np.float64]
 
 @dataclass
 class Curvature:
-    """`d2x/dF2 = kron(K, I_3) + U^T C U` (12 x 12 per joint, never formed on the fast paths): `kron` K (N, 4, 4)
-    symmetric, `basis` U (N, k, 4, 3), `coef` C (N, k, k) symmetric (`diagonal`: diagonal); `dx_coef` (N, k):
-    `dx/dF = dx_coef . U` if the gradient lies in span(U) (else None). `kron_factors` = (w (N, m), f (N or 1,
+    """`d2x/dF2 = kron(K, I_3) + U^T C U` (12 x 12 per joint, never formed on the fast paths): `kron` K (N or 1, 4,
+    4) symmetric, `basis` U (N, k, 4, 3), `coef` C (N, k, k) symmetric (`diagonal`: diagonal); `dx_coef` (N, k):
+    `dx/dF = dx_coef . U` if the gradient lies in span(U) (else None). `kron_factors` = (w (N or 1, m), f (N or 1,
     m, 4)) with `K = sum_e w_e f_e f_e^T` when known (else the assembly takes K's eigen-decomposition; `kron`
-    may then be None). `balance`: K pairs only points with directions, so the assembly may scale the factors'
-    point blocks by g and direction blocks by 1/g per joint (K unchanged)."""
+    may then be None)."""
 
     kron: Array | None
     basis: Array
@@ -33,7 +32,6 @@ class Curvature:
     dx_coef: Array | None = None
     kron_factors: tuple[Array, Array] | None = None
     diagonal: bool = False
-    balance: bool = False
 
     def dense(self) -> Array:
         """(N, 12, 12): the generic form, for the eigensolver of the PSD projection."""
@@ -42,8 +40,8 @@ class Curvature:
         D = np.einsum("nab,nai,nbj->nij", self.coef, U, U)
         K = self.kron
         if K is None:
-            w, f = self.kron_factors
-            K = np.einsum("nm,nma,nmb->nab", w, np.broadcast_to(f, (n, *f.shape[1:])), np.broadcast_to(f, (n, *f.shape[1:])))
+            w, f = (np.broadcast_to(a, (n, *a.shape[1:])) for a in self.kron_factors)
+            K = np.einsum("nm,nma,nmb->nab", w, f, f)
         D.reshape(n, 4, 3, 4, 3)[...] += K[:, :, None, :, None] * np.eye(3, dtype=D.dtype)[None, None, :, None, :]
         return D
 

@@ -24,14 +24,15 @@ SCATTER_CHUNK = 2048
 
 
 def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Array, up: Array, s: Array, want_g: bool,
-                  want_h: bool, psd: bool, compact: bool, threads: int = 1,
-                  deadline: float | None = None) -> tuple[Array, Array | None, Array | None, Array | None]:
+                  want_h: bool, psd: bool, compact: bool, threads: int = 1, deadline: float | None = None,
+                  balance: Array | None = None) -> tuple[Array, Array | None, Array | None, Array | None]:
     """Batch `b`'s energy (N,) at its frames `F` (N, 4, 3) and coordinate `x` (N,); the positions `active` (A,)
     of the joints outside their range (None when neither derivatives nor `compact` are asked); the asked-for
     gradient (R, 24) and Hessian (R, 24, 24), else None: R = A rows of the active joints if `compact`, else N
     (the inactive rows exact zeros, never differentiated).
 
-    `v` (N, 4, 3) the body-local vectors; `lo`, `up` (N,) the bounds on `x`, `s` (N,) the strengths.
+    `v` (N, 4, 3) the body-local vectors (`balance` (N, 4): their `assembly.balance`, if already taken);
+    `lo`, `up` (N,) the bounds on `x`, `s` (N,) the strengths.
     Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
     past `deadline` (a `time.monotonic()` value), checked before each derivative chunk, which run on `threads`.
     """
@@ -51,13 +52,12 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
         hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
         every = a == x.shape[0]  # every joint active: no gathers, every chunk's rows in place
         # Per-joint scalars for every active joint at once: per chunk they would be a dozen short calls each.
-        at = (lambda q: q) if every else (lambda q: take_joints(q, active))  # noqa: E731
-        at_active = [at(q) for q in (x, lo, up, s)]
+        at_active = (x, lo, up, s, r, w) if every else tuple(take_joints(q, active) for q in (x, lo, up, s, r, w))
         if wide:  # a gap or width overflowed: from halves
-            _, dE, d2E = penalty.derivatives(*at_active)
+            _, dE, d2E = penalty.derivatives(*at_active[:4])
         else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
-            dE, d2E = penalty.slopes(at(r), at(w), *at_active)
-        shift = penalty.scale_up(dE, d2E, *at_active)
+            dE, d2E = penalty.slopes(*at_active[4:], *at_active[:4])
+        shift = penalty.scale_up(dE, d2E, *at_active[:4])
         # Rows written in place when every row is differentiated; else a chunk's go through scratch rows
         # first, kept to a few MB. On threads, at least two chunks per thread (a batch alone keeps them busy).
         size = CHUNK if a == n or not want_h else SCATTER_CHUNK
@@ -76,8 +76,9 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             if want_h:
                 h_out = hessian[rows] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
             g_out = gradient[rows] if want_g and contiguous else np.empty((sel.shape[0], 24), dtype)
-            Fc, vc = (F[part], v[part]) if every else (take_joints(F, sel), take_joints(v, sel))
-            h_finite = _derivatives(c, Fc, vc, dE[part], d2E[part], g_out, h_out, psd)
+            at = (lambda a: a[part]) if every else (lambda a: take_joints(a, sel))  # noqa: E731
+            bc = None if balance is None else at(balance)
+            h_finite = _derivatives(c, at(F), at(v), dE[part], d2E[part], g_out, h_out, psd, bc)
             if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`): back by 2^-k
                 k = shift[part]
                 lifted = k.nonzero()[0]
@@ -107,7 +108,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
 
 
 def _derivatives(c: Constitution, F: Array, v: Array, dE: Array, d2E: Array, g_out: Array, h_out: Array | None,
-                 psd: bool) -> bool:
+                 psd: bool, balance: Array | None) -> bool:
     """Gradient (M, 24) of active joints into `g_out`; their Hessian (M, 24, 24) into `h_out` if given;
     whether the Hessian is finite for sure (False: check it). `dE`, `d2E` (M,) the penalty's
     derivatives in x."""
@@ -126,7 +127,7 @@ def _derivatives(c: Constitution, F: Array, v: Array, dE: Array, d2E: Array, g_o
                                   kron_factors=(np.zeros((m, 0), lam.dtype), np.zeros((m, 0, 4), lam.dtype)))
         # The projection already carries E': the chain rule sees E' = 1 (E'' dx dx^T beside it, PSD as it is).
         curvature, dE_h, dx_h = projected, np.ones_like(dE), dx
-    Jdx, finite = assembly.hessian(c.facts.alpha, v, curvature, dE_h, d2E, h_out, dx=dx_h)
+    Jdx, finite = assembly.hessian(c.facts.alpha, v, curvature, dE_h, d2E, h_out, dx=dx_h, balance=balance)
     _gradient(dE, Jdx, g_out)  # J^T dx comes with the Hessian's factors
     return finite
 

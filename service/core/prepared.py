@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from jointlimits.service.core import assembled
+from jointlimits.service.core import assembled, assembly
 from jointlimits.service.core.constitution import Array, Constitution, Progress
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
 from jointlimits.service.core.evaluate import collapsed_faults, differentiate
@@ -74,6 +74,7 @@ class _Batch:
     progress: dict[str, Progress]  # the coordinate's progress over the steps that do not depend on q ("whole":
     # from starts[0] over `fixed`; "last": from starts[-1]; "ref": from F_ref), kept until `starts` change
     meets: bool = False  # world edges, points, telescoping: the anchors meet at q_ref, so x = theta(q) (`_to_q`)
+    balance: Array | None = None  # (N, 4) `assembly.balance` of `v` (points, a prepared scene): not taken per Hessian
 
 
 class PreparedScene:
@@ -219,7 +220,7 @@ class PreparedScene:
             x = jb.theta + x
         raise_if((jb.faults + self._collapsed(b, jb, F, careful, known))[:MAX_FAULTS])
         energy, active, gradient, hessian = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd,
-                                                          compact or active_only, self._threads, deadline)
+                                                          compact or active_only, self._threads, deadline, jb.balance)
         index, xs, es = (active, x[active], energy[active]) if active_only else (np.arange(x.shape[0]), x, energy)
         coordinate = _plus_offset(xs, jb.offset, active if active_only else None)
         return BatchResult(jb.c.facts.uid, index, xs, es, gradient, hessian, coordinate), energy, active
@@ -444,7 +445,8 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     lo, up = (a if offset is None else a - offset for a in (lower, upper))
     return _Batch(c, pairs, v, F_ref, starts, fixed, rows, prev_careful, r.get(start), held, lower, upper, strength,
                   offset, lo.astype(dtype, copy=False), up.astype(dtype, copy=False), strength.astype(dtype, copy=own),
-                  theta, absolute, x0, faults, progress, meets=points and c.facts.telescopes and joints.edges is not None)
+                  theta, absolute, x0, faults, progress, meets=points and c.facts.telescopes and joints.edges is not None,
+                  balance=assembly.balance(alpha, v) if own and points else None)
 
 
 def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: list[Array], fixed: list[Array]) -> Progress:

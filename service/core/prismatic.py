@@ -37,9 +37,11 @@ FACTS = Facts(
 # theta = D.S / 2 with D = C_j - C_i, S = T_i + T_j: coefficients of D and S per block.
 _D = np.array([-1.0, 0.0, 1.0, 0.0])
 _S = np.array([0.0, 1.0, 0.0, 1.0])
-_PAIRS = 0.5 * (np.outer(_D, _S) + np.outer(_S, _D))  # (4, 4) block coefficients of d2theta/dF2
-_SIGNS = np.array([1.0, -1.0])
+_PAIRS = 0.5 * (np.outer(_D, _S) + np.outer(_S, _D))[None]  # (1, 4, 4) block coefficients of d2theta/dF2
+_SIGNS = np.array([[1.0, -1.0]])
 _UU = np.stack([0.5 * (_D + _S), 0.5 * (_D - _S)])[None]  # (1, 2, 4): PAIRS = u+ u+^T - u- u-^T, the chain rule's factors
+for _a in (_PAIRS, _SIGNS, _UU):  # one joint's, handed to every joint's curvature (the assembly broadcasts them)
+    _a.flags.writeable = False
 
 # The engine's PSD projection (contract v1.2) is taken in the 9 quantities F01 = [D, T_i, -T_j], where
 # x = D . (T_i - (-T_j)) / 2: per component d2x/dF01^2 = [[0, 1/2, -1/2], [1/2, 0, 0], [-1/2, 0, 0]],
@@ -97,10 +99,10 @@ class Prismatic(Constitution):  # its frames never collapse (`Constitution.colla
         if not second:
             return dx, None
         # Rank-1 factor for E'' dx dx^T is dx itself (coefficient 0 in d2x).
-        kron = np.broadcast_to(_PAIRS.astype(F.dtype, copy=False), (n, 4, 4))  # read-only views of the constants
-        factors = (np.broadcast_to(_SIGNS.astype(F.dtype, copy=False), (n, 2)), _UU.astype(F.dtype, copy=False))
-        return dx, Curvature(kron=kron, basis=dx[:, None], coef=np.zeros((n, 1, 1), F.dtype),
-                             dx_coef=np.ones((n, 1), F.dtype), kron_factors=factors, balance=True)
+        dtype = F.dtype
+        factors = (_SIGNS.astype(dtype, copy=False), _UU.astype(dtype, copy=False))
+        return dx, Curvature(kron=_PAIRS.astype(dtype, copy=False), basis=dx[:, None], coef=np.zeros((n, 1, 1), dtype),
+                             dx_coef=np.ones((n, 1), dtype), kron_factors=factors)
 
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
         """The engine's projection (contract v1.2, 9 quantities): `(|E'| / sqrt 2) f f^T` per joint (see `_F01_POS`)."""

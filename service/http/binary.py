@@ -64,9 +64,12 @@ def _unpacker(body: bytes, **options: Any) -> msgpack.Unpacker:
                             max_buffer_size=max(len(body), 2**23), raw=False, **options)
 
 
-def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None, message: bool = False) -> Any:
+def unpack(body: bytes, r: document.Checker, max_batches: int | None = None, message: bool = False,
+           opening: bool = False) -> Any:
     """The document, its top-level `batches` unpacked and checked one batch at a time (`message`: a session's
-    later message, which has no batches, and whose faults say "message").
+    later message, which has no batches, and whose faults say "message"). A session's document (`message`,
+    `opening`) that is refused keeps its readable `id` in `r.message_id` (its fault reply repeats it): the read
+    may stop before the `id`, at the fault cap inside `batches` or at malformed bytes.
 
     A body of 30M empty maps as batches would otherwise become 30M dicts (~2 GB) before the
     first check; this way the validator's fault cap stops the unpacking after a few batches.
@@ -117,23 +120,16 @@ def _unpack(body: bytes, r: document.Checker, max_batches: int | None = None, me
                 doc.repeated = repeated
         if u.tell() != len(body):
             raise ValueError(f"{len(body) - u.tell()} bytes after the document")
-    except (InputError, HttpError):
-        raise  # the fault cap, reached inside the batches; too many batches
-    except Exception as e:  # msgpack raises several unrelated types for malformed input
-        noun = "message" if message else "body"
-        msg = f"{noun} is not a valid msgpack document ({type(e).__name__}: {e})"
-        raise InputError([Fault((), msg, "msgpack_invalid")]) from None
+    except HttpError:
+        raise  # too many batches
+    except Exception as e:
+        if not isinstance(e, InputError):  # msgpack raises several unrelated types for malformed input
+            msg = f"{'message' if message else 'body'} is not a valid msgpack document ({type(e).__name__}: {e})"
+            e = InputError([Fault((), msg, "msgpack_invalid")])
+        if message or opening:
+            r.message_id = document.readable_id(_top_level_id(body))
+        raise e from None
     return doc
-
-
-def read_message(frame: bytes, checker: document.Checker) -> Any:
-    """A session's later message as plain data, each value within a body's bounds (`_unpack`); `InputError`,
-    with the message's readable `id` kept in `checker` (its fault reply repeats it)."""
-    try:
-        return _unpack(frame, checker, message=True)
-    except InputError:
-        checker.message_id = document.readable_id(_top_level_id(frame))
-        raise
 
 
 def decode(body: bytes, max_batches: int | None = None, opening: bool = False,
@@ -145,13 +141,7 @@ def decode(body: bytes, max_batches: int | None = None, opening: bool = False,
     `opening`: a session's opening document, whose optional `id` is returned too, under "id".
     """
     r = checker or document.Checker(binary=True)
-    try:
-        doc = _unpack(body, r, max_batches)
-    except InputError:
-        if opening:  # the fault cap stops the read inside `batches`, before the `id` is read or kept: find it
-            r.message_id = document.readable_id(_top_level_id(body))
-        raise
-    return r.request(doc, opening)
+    return r.request(unpack(body, r, max_batches, opening=opening), opening)
 
 
 def _top_level_id(body: bytes) -> Any:

@@ -53,7 +53,7 @@ def decode(frame: Frame, max_values: int) -> Message:
             doc = convert.load(text)
             checker.booleans = convert.booleans(text)
         else:
-            doc = binary.read_message(frame, checker)
+            doc = binary.unpack(frame, checker, message=True)
         return checker.message(doc)
     except (InputError, HttpError) as e:
         raise with_id(e, checker.message_id) from None

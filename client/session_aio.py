@@ -7,6 +7,7 @@ methods as the blocking `Session`, awaitable.
 from __future__ import annotations
 
 import asyncio
+import sys
 from collections.abc import Generator
 from types import TracebackType
 from typing import Any, TypeVar
@@ -20,6 +21,7 @@ from jointlimits.client.session import Exchange, Steps
 from jointlimits.client.session_sync import CONNECT_OPTIONS, closed_error, handshake_error
 
 T = TypeVar("T")
+_CLOSING: set[asyncio.Task] = set()  # the close handshakes of dropped sessions (a loop keeps only weak references)
 
 
 class AsyncSession(Exchange):
@@ -96,3 +98,21 @@ class AsyncSession(Exchange):
 
     async def __aexit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
         await self.close()
+
+    def __del__(self) -> None:
+        # Dropped without close() (a notebook cell run again): close the connection now, on its own loop (a task:
+        # `__del__` cannot await), and free the server's session slot, not when the loop ends. A loop already
+        # closed has dropped the socket itself.
+        ws = getattr(self, "_ws", None)
+        if ws is None or sys.is_finalizing():
+            return
+
+        def close() -> None:
+            task = ws.loop.create_task(ws.close())
+            _CLOSING.add(task)
+            task.add_done_callback(_CLOSING.discard)
+
+        try:
+            ws.loop.call_soon_threadsafe(close)
+        except RuntimeError:  # the loop is closed
+            pass

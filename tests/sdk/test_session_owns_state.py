@@ -7,18 +7,20 @@ at 3.28 rad read 0.28 after `reopen()`, no error). The state is shared by the th
 the local session shows it; `live` checks the WebSocket one too.
 
 And its connection: a blocking session dropped without `close()` (a notebook cell run again, `s = client.session(...)`)
-kept its socket, its two threads and its place among the server's sessions (64 a worker) until the process ended.
+kept its socket, its two threads and its place among the server's sessions (64 a worker) until the process ended;
+an asyncio session so dropped kept them until its event loop ended.
 """
 
 from __future__ import annotations
 
+import asyncio
 import gc
 
 import numpy as np
 import pytest
 from websockets.protocol import State
 
-from jointlimits.client import Client, LocalClient, Scene
+from jointlimits.client import AsyncClient, Client, LocalClient, Scene
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
 
 
@@ -73,3 +75,24 @@ def test_a_session_dropped_without_close_closes_its_connection(live):  # noqa: F
         t.join(timeout=5.0)  # they end once the close handshake is done (milliseconds here)
     assert ws.state is State.CLOSED and ws.close_code == 1000  # closed as close() does, not cut
     assert not any(t.is_alive() for t in threads)
+
+
+def test_an_async_session_dropped_without_close_closes_its_connection(live):  # noqa: F811
+    scene = Scene()
+    a, b = scene.add_body(np.eye(4)), scene.add_body(np.eye(4))
+    scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5)
+
+    async def drop() -> None:
+        s = await AsyncClient(live).session(scene.request())
+        await s.evaluate(scene.request().q)
+        ws = s._ws  # the connection, held here only to look at it
+        assert ws.state is State.OPEN
+        del s
+        gc.collect()
+        for _ in range(100):  # the close handshake runs on the loop: milliseconds here, 5 s at most
+            if ws.state is State.CLOSED:
+                break
+            await asyncio.sleep(0.05)
+        assert ws.state is State.CLOSED and ws.close_code == 1000  # closed as close() does, not cut
+
+    asyncio.run(drop())

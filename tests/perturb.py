@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import functools
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 
 import numpy as np
@@ -226,26 +226,25 @@ def replacements(n: int, seed: int = 0) -> Iterator[tuple[object, str, Callable]
 @contextmanager
 def perturbed(n: int, seed: int = 0) -> Iterator[None]:
     """Within: NumPy's attributes replaced as above (every module calling `np.arctan2` etc. sees them)."""
-    saved, only = [], os.environ.get("JL_PERTURB_ONLY")
-    try:
-        for owner, name, fn in list(replacements(n, seed)):
-            if only and name not in only.split(","):
-                continue
-            saved.append((owner, name, getattr(owner, name)))
-            setattr(owner, name, fn)
+    only = os.environ.get("JL_PERTURB_ONLY")
+    with _installed((o, name, fn) for o, name, fn in replacements(n, seed) if not only or name in only.split(",")):
         yield
-    finally:
-        for owner, name, fn in reversed(saved):
-            setattr(owner, name, fn)
 
 
 @contextmanager
 def plain() -> Iterator[None]:
     """Within: NumPy's own functions, whatever is installed outside (the harness' tests' baselines)."""
+    owners = ((np.linalg, key[7:]) if key.startswith("linalg.") else (np, key) for key in ORIGINALS)
+    with _installed((owner, name, fn) for (owner, name), fn in zip(owners, ORIGINALS.values(), strict=True)):
+        yield
+
+
+@contextmanager
+def _installed(replaced: Iterable[tuple[object, str, Callable]]) -> Iterator[None]:
+    """Within: each `owner.name` set to its replacement; afterwards, what each was before, in reverse order."""
     saved = []
     try:
-        for key, fn in ORIGINALS.items():
-            owner, name = (np.linalg, key[7:]) if key.startswith("linalg.") else (np, key)
+        for owner, name, fn in replaced:
             saved.append((owner, name, getattr(owner, name)))
             setattr(owner, name, fn)
         yield

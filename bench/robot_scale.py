@@ -135,7 +135,7 @@ def wire(sizes: tuple[int, ...] = WIRE_SIZES, reps: int = 2001) -> list[dict[str
     from bench.http_bench import Server
     from jointlimits.client import Client
     from jointlimits.client.model import JointBatch, Request
-    from jointlimits.client.session_sync import CONNECT_OPTIONS
+    from jointlimits.client.session import CONNECT_OPTIONS
 
     rows = []
     with Server("from bench.robot_scale import serve; serve(port)") as srv, Client(srv.url, binary=True) as client:

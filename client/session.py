@@ -7,9 +7,9 @@ server's `q_prev`) and the committed coordinates; `reopen()` opens a new session
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Generator
+from collections.abc import Callable
 from dataclasses import replace
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 import orjson
@@ -19,7 +19,7 @@ from jointlimits.client import codec
 from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, InvalidInput, ServiceError, Unreachable
 from jointlimits.client.model import Array, Evaluation, Request, as_flag, as_outputs, in_body
-from jointlimits.client.transport import delays
+from jointlimits.client.transport import PROXY_STATUSES, Steps, T, delays, is_fault_list, proxy_page, wrong_url
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core import registry
@@ -27,9 +27,6 @@ from jointlimits.service.core.errors import Fault as CoreFault
 from jointlimits.service.core.validate import NOT_AN_INTEGER, as_array
 
 Frame = bytes | str
-T = TypeVar("T")
-Steps = Generator[tuple[str, Any], Any, T]
-"""A session's step, free of I/O: it yields the I/O it needs (`Exchange`) and is sent each one's result."""
 _BINARY_ERROR = b"\xa4kind\xa5error"
 _JSON_ERROR = '{"kind":"error"'
 
@@ -229,17 +226,7 @@ def batch_number(batch: Any) -> int:
     return int(a[0])
 
 
-def options(request: Request, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> dict[str, Any]:
-    """The evaluate options of a call, the opening request's where not given (for the in-process session)."""
-    return {
-        "outputs": request.outputs if outputs is None else as_outputs(outputs),
-        "hessian_mode": request.hessian_mode if hessian_mode is None else hessian_mode,
-        "active_only": request.active_only if active_only is None else as_flag(active_only),
-        "layout": request.layout,  # the opening's, as the server keeps it (a message cannot change it)
-    }
-
-
-__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "message_array", "options", "resumable"]
+__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "message_array", "resumable"]
 
 
 class StateView:
@@ -269,7 +256,7 @@ class StateView:
 class Exchange(StateView):
     """A WebSocket session's steps, free of I/O (the sans-I/O pattern): each a generator of the I/O it needs,
     `("connect", None)`, `("send", frame)` (sent the reply), `("sleep", seconds)`, `("drop", None)`, which
-    `session_sync.Session` runs blocking and `session_aio.AsyncSession` awaited (their `_run`)."""
+    `sync.Session` runs blocking and `aio.AsyncSession` awaited (their `_run`: `transport.run`, `transport.arun`)."""
 
     _ws: Any
 
@@ -348,3 +335,35 @@ class Exchange(StateView):
 
     def _no_reply(self) -> SessionClosed:
         return SessionClosed(self.url, None, "", f"no reply within {self.timeout} s")
+
+
+def handshake_error(url: str, e: Exception) -> Exception:
+    """Why a session did not open, as `evaluate` says it: `Unreachable` (nothing answered), `WrongURL` (a 404,
+    or a server that is not this service), else the service's refusal (401, ...) as the `ServiceError` HTTP raises."""
+    from websockets.exceptions import InvalidHandshake, InvalidMessage, InvalidStatus  # HTTP never loads websockets
+
+    if isinstance(e, InvalidStatus):
+        status, body = e.response.status_code, bytes(e.response.body or b"")
+        if status in PROXY_STATUSES and not is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
+            return Unreachable(url, 1, status=status, proxy=proxy_page(body))
+        if status == 404 or not is_fault_list(body):
+            return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade", 404)
+        return codec.error(status, body)
+    if isinstance(e, (InvalidHandshake, InvalidMessage)):  # a server that speaks something else (HTTP/1.0, TLS, ...)
+        return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})", 404)
+    if isinstance(e, (OSError, TimeoutError)):  # refused, unresolvable host, no answer within the open timeout
+        return Unreachable(url, 1, e)
+    return SessionClosed(url, None, "", f"{type(e).__name__}: {e}")
+
+
+def closed_error(url: str, e: Any) -> SessionClosed:
+    frame = e.rcvd  # of websockets' ConnectionClosed
+    if frame is None:  # dropped (no close frame): resumable
+        return SessionClosed(url, None, "", "no close frame", resumable=True)
+    return SessionClosed(url, frame.code, frame.reason, resumable=frame.code in RESUMED_CLOSES)
+
+
+CONNECT_OPTIONS: dict[str, Any] = dict(
+    max_size=None,  # answers with Hessians are large; the server bounds what it sends by its scene limit
+    compression=None,  # float64 arrays barely compress: deflate would only cost time on both sides
+)

@@ -17,13 +17,12 @@ from numpy.typing import ArrayLike
 
 from jointlimits.client import codec
 from jointlimits.client.accept import as_request
-from jointlimits.client.errors import Fault, InvalidInput, ServiceError, Unreachable
+from jointlimits.client.errors import Fault, ServiceError, Unreachable
 from jointlimits.client.model import Array, Evaluation, Request, as_flag, as_outputs, in_body
 from jointlimits.client.transport import PROXY_STATUSES, Steps, T, delays, is_fault_list, proxy_page, wrong_url
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core import registry
-from jointlimits.service.core.errors import Fault as CoreFault
 from jointlimits.service.core.validate import NOT_AN_INTEGER, as_array
 
 Frame = bytes | str
@@ -220,9 +219,9 @@ def message_array(value: Any, name: str, integer: bool = False) -> np.ndarray:
 def batch_number(batch: Any) -> int:
     """An update's `batch` as the service reads it: an int64 (0.5 is not batch 0), in pydantic's words."""
     listed = isinstance(batch, (list, tuple)) or (isinstance(batch, np.ndarray) and batch.ndim > 0)
-    a, faults = (None, [CoreFault(("batch",), *NOT_AN_INTEGER)]) if listed else as_array([batch], ("batch",), integer=True)
+    a, faults = (None, [Fault(("batch",), *NOT_AN_INTEGER)]) if listed else as_array([batch], ("batch",), integer=True)
     if faults:
-        raise InvalidInput(422, [Fault(("body", "batch"), f.msg, f.type) for f in faults[:1]], where="invalid input")
+        raise in_body([replace(faults[0], loc=("batch",))])  # the field, not its element
     return int(a[0])
 
 

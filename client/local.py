@@ -16,7 +16,7 @@ from jointlimits.client.accept import as_request
 from jointlimits.client.aio import AsyncClient
 from jointlimits.client.model import NEEDED, OPTIONAL, Array, BatchResult, Evaluation, Request, as_flag, as_outputs
 from jointlimits.client.model import in_body, null_arrays
-from jointlimits.client.session import SessionClosed, SessionState, StateView, batch_number, message_array, owned
+from jointlimits.client.session import SessionClosed, SessionState, batch_number, message_array, owned
 from jointlimits.client.transport import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from jointlimits.schemas.constitutions import describe
@@ -130,19 +130,19 @@ def _call(fn: Callable[[], T]) -> T:
         raise in_body([replace(f, loc=f.loc[1:]) if f.loc[:2] == ("bodies", "q") else f for f in e.faults]) from None
 
 
-class LocalSession(StateView):
+class LocalSession(SessionState):
     """`jointlimits.client.sync.Session`'s API on a `PreparedScene` in this process: bitwise the same numbers."""
 
     def __init__(self, request: Request, *, threads: int = 1) -> None:
-        self.state = SessionState(request, URL, binary=True)
+        super().__init__(request, URL)
         self.threads = threads
         self._open()
 
     def _open(self) -> None:
-        r = self.state.request
+        r = self.request
         bodies = core.Bodies(np.asarray(r.q, np.float64), np.asarray(r.q_prev, np.float64), np.asarray(r.q_ref, np.float64))
         self._scene = _call(lambda: prepare(bodies, core_batches(r, copy=True), threads=self.threads))
-        self.state.coordinates = [owned(c) for c in self._scene.coordinates()]
+        self._coordinates = [owned(c) for c in self._scene.coordinates()]
 
     def _live(self) -> Any:
         if self._scene is None:
@@ -151,13 +151,13 @@ class LocalSession(StateView):
 
     def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
                  active_only: bool | None = None) -> Evaluation:
-        scene, opts = self._live(), options(self.state.request, outputs, hessian_mode, active_only)
+        scene, opts = self._live(), options(self.request, outputs, hessian_mode, active_only)
         q = message_array(q, "q")  # as the service reads a message's arrays: no cast, no reshape
-        return result(_call(lambda: scene.evaluate(q, **opts))).sized(self.state.request)
+        return result(_call(lambda: scene.evaluate(q, **opts))).sized(self.request)
 
     def commit(self, q: ArrayLike) -> list[Array]:
         scene, q = self._live(), np.array(message_array(q, "q"))
-        return self.state.keep(_call(lambda: scene.commit(q)), q)
+        return self._keep(_call(lambda: scene.commit(q)), q)
 
     def update(self, batch: int, index: ArrayLike, *, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
@@ -166,12 +166,12 @@ class LocalSession(StateView):
         given = {k: message_array(v, k) for k, v in values.items() if v is not None}  # None: left out
         b, idx = batch_number(batch), message_array(index, "index", integer=True)  # as the service reads them
         _call(lambda: scene.update(b, idx, **given))
-        self.state.apply_update(batch, index, values)
+        self._apply_update(batch, index, values)
         if offset is not None:  # a new offset moves the batch's committed coordinates with it
-            self.state.coordinates[batch] = owned(scene.coordinates()[batch])
+            self._coordinates[batch] = owned(scene.coordinates()[batch])
 
     def reopen(self) -> None:
-        self.state.request = self.state.request_for_reopen()
+        self.request = self.request_for_reopen()
         self._open()
 
     def close(self) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import fields
 from typing import Any
 
 import orjson
@@ -11,8 +12,6 @@ from jointlimits.schemas import EvaluateRequest
 
 ACCEPTED = ("a client.Request (Scene().request(), request_from_arrays(...)), a dict in the wire JSON's shape, "
             "or a schemas.EvaluateRequest")
-_JOINT_FIELDS = ("constitution_uid", "body_ids", "edges", "local_edges", "origin", "lower", "upper", "strength",
-                 "base_uid", "offset", "prev_coordinate")
 
 
 def as_request(request: Any) -> Request:
@@ -41,6 +40,7 @@ def as_request(request: Any) -> Request:
     except InputError as e:
         raise in_body(e.faults) from None
     b = kw["bodies"]
-    batches = [JointBatch(**{f: getattr(j, f) for f in _JOINT_FIELDS}) for j in kw["batches"]]
+    # The core's `Joints` has the SDK's `JointBatch` fields, by the same names.
+    batches = [JointBatch(**{f.name: getattr(j, f.name) for f in fields(JointBatch)}) for j in kw["batches"]]
     return Request(b.q, b.q_prev, b.q_ref, batches, tuple(kw["outputs"]), kw["hessian_mode"], kw["active_only"],
                    kw["layout"])

@@ -285,27 +285,16 @@ def request_from_scene(scene: Any, q: ArrayLike | None = None, q_prev: ArrayLike
                        outputs: Sequence[str] = ("energy", "gradient", "hessian"), *,
                        reference: Reference | str | None = None) -> tuple[Request, list[list[JointRef]]]:
     """The request that evaluates every #670 / #669 joint of a `uipc.core.Scene` as the engine does,
-    and `joints`: `joints[k][r]` = (joint geometry id, edge index) of batch `k`'s row `r`.
+    and `joints`: `joints[k][r]` = (joint geometry id, edge index) of batch `k`'s row `r` (docs/uipc.md).
 
-    `q`, `q_prev`, `q_ref` (B, 12) override the bodies' DOFs (B = the scene's affine bodies, in the
-    engine's numbering); by default `q` = the instances' current transforms and `q_ref` = the
-    transforms at `world.init()`, which the engine builds its joint frames from: `reference`, a
-    snapshot `reference(scene)` taken where `world.init()` is called (every body geometry must be in
-    it); without one (None) the rest geometries' transforms, refused with a `SceneError` when they
-    can only be a guess (every rest transform the identity while a current one is not, or a `UrdfIO`
-    link posed after it was created: its rest transform stays the identity); `reference="rest"`
-    takes the rest transforms as they are. `committed` says whether the edges' `angle` is the
-    engine's committed angle (`prev_coordinate`): True: yes; False: no (the service measures from
-    `q_ref`); None: yes once the engine has published it (the body geometries carry
-    `backend_abd_body_offset`, which `world.init()` of a simulating backend writes). The engine
-    publishes `angle` for the transforms it writes back, which its next step takes as `q_prev`: so
-    `q_prev` defaults to the scene's current transforms when `angle` is read, else to `q_ref`.
-
-    One batch per constitution and edge variant (world edges, local edges): 670's first, each
-    constitution's variants in the order their first geometry comes; rows in slot order, then edge
-    order. Raises `SceneError` for a scene the engine would refuse, or with values the service
-    refuses (checked here, also where written after `apply_to`, to name the geometry and edge), or
-    that cannot be read, and ImportError without pyuipc.
+    `q`, `q_prev`, `q_ref` (B, 12) override the bodies' DOFs (the engine's numbering). `q` defaults to the
+    current transforms, `q_ref` to those at `world.init()`: `reference`, a snapshot `reference(scene)` taken
+    then; None: the rest geometries' transforms, refused when they can only be a guess; "rest": those as they
+    are. `committed`: whether the edges' `angle` is read as `prev_coordinate` (None: once the engine has
+    published it); `q_prev` defaults to the current transforms when it is read, else to `q_ref`.
+    One batch per constitution (670's first) and edge variant; rows in slot order, then edge order.
+    Raises `SceneError` for a scene the engine would refuse or with values the service refuses (naming the
+    geometry and edge), and ImportError without pyuipc.
     """
     _uipc()
     given_rest = isinstance(reference, str) and reference == "rest"

@@ -14,8 +14,7 @@ import httpx
 from numpy.typing import ArrayLike
 
 from jointlimits.client import split, transport
-from jointlimits.client.accept import as_request
-from jointlimits.client.model import Array, Evaluation, Request
+from jointlimits.client.model import Array, Evaluation, Request, as_request
 from jointlimits.client.session import CONNECT_OPTIONS, Exchange, closed_error, handshake_error
 from jointlimits.client.transport import DEFAULT_URL, BaseClient, ProgressCallback, Steps, T, arun
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest

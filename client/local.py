@@ -12,10 +12,9 @@ from typing import Any, TypeVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from jointlimits.client.accept import as_request
 from jointlimits.client.aio import AsyncClient
 from jointlimits.client.model import NEEDED, OPTIONAL, Array, BatchResult, Evaluation, Request, as_flag, as_outputs
-from jointlimits.client.model import in_body, null_arrays
+from jointlimits.client.model import as_request, in_body, null_arrays
 from jointlimits.client.session import SessionClosed, SessionState, batch_number, message_array, owned
 from jointlimits.client.transport import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits

@@ -1,15 +1,17 @@
-"""Typed, NumPy-backed requests and results of the SDK (the wire's structure, arrays instead of lists)."""
+"""Typed, NumPy-backed requests and results of the SDK (the wire's structure, arrays instead of lists), and what
+`evaluate` takes made one `Request` (`as_request`: a `Request`, a wire JSON dict, a `schemas.EvaluateRequest`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
+import orjson
 from numpy.typing import ArrayLike, NDArray
 
 from jointlimits.client.errors import InvalidInput
-from jointlimits.schemas import OUTPUTS
+from jointlimits.schemas import OUTPUTS, EvaluateRequest
 from jointlimits.service.core import prismatic, registry, revolute
 from jointlimits.service.core.assembled import Assembled  # noqa: F401 (re-exported: Evaluation.assembled)
 from jointlimits.service.core.errors import MAX_FAULTS, Fault
@@ -171,6 +173,42 @@ def null_arrays(request: Request) -> list[Fault]:
     faults = [Fault(("bodies", k), *NOT_A_LIST) for k in ("q", "q_prev", "q_ref") if not_a_list(getattr(request, k), True)]
     return faults + [Fault(("batches", b, k), *NOT_A_LIST) for b, batch in enumerate(request.batches)
                      for k in NEEDED + OPTIONAL if not_a_list(getattr(batch, k), k in NEEDED)]
+
+
+_ACCEPTED = ("a client.Request (Scene().request(), request_from_arrays(...)), a dict in the wire JSON's shape, "
+             "or a schemas.EvaluateRequest")
+
+
+def as_request(request: Any) -> Request:
+    """`request` as a `Request`.
+
+    A dict (or an `EvaluateRequest`, as its dict) is read exactly as the service reads a JSON body (NumPy
+    arrays in it are fine): its faults raise `InvalidInput` with the server's `loc`s and words. Anything
+    else: `TypeError`.
+    """
+    if isinstance(request, Request):
+        return request
+    if isinstance(request, EvaluateRequest):
+        request = request.model_dump(exclude_none=True)  # an absent optional field, as the wire has it
+    if not isinstance(request, dict):
+        raise TypeError(f"evaluate() takes {_ACCEPTED}; got {type(request).__module__}.{type(request).__qualname__}")
+    try:
+        body = orjson.dumps(request, option=orjson.OPT_SERIALIZE_NUMPY)
+    except TypeError as e:
+        raise TypeError(f"evaluate(): the dict is not wire JSON ({e})") from None
+    # The service's own JSON reader (imported here: HTTP alone never loads it): the same faults, in the same words.
+    from jointlimits.service.core import InputError
+    from jointlimits.service.http.convert import read
+
+    try:
+        kw = read(body)
+    except InputError as e:
+        raise in_body(e.faults) from None
+    b = kw["bodies"]
+    # The core's `Joints` has the SDK's `JointBatch` fields, by the same names.
+    batches = [JointBatch(**{f.name: getattr(j, f.name) for f in fields(JointBatch)}) for j in kw["batches"]]
+    return Request(b.q, b.q_prev, b.q_ref, batches, tuple(kw["outputs"]), kw["hessian_mode"], kw["active_only"],
+                   kw["layout"])
 
 
 class Joint(int):

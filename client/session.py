@@ -16,9 +16,8 @@ import orjson
 from numpy.typing import ArrayLike
 
 from jointlimits.client import codec
-from jointlimits.client.accept import as_request
 from jointlimits.client.errors import Fault, ServiceError, Unreachable
-from jointlimits.client.model import Array, Evaluation, Request, as_flag, as_outputs, in_body
+from jointlimits.client.model import Array, Evaluation, Request, as_flag, as_outputs, as_request, in_body
 from jointlimits.client.transport import PROXY_STATUSES, Steps, T, delays, is_fault_list, proxy_page, wrong_url
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto

@@ -13,8 +13,7 @@ import httpx
 from numpy.typing import ArrayLike
 
 from jointlimits.client import transport
-from jointlimits.client.accept import as_request
-from jointlimits.client.model import Array, Evaluation, Request
+from jointlimits.client.model import Array, Evaluation, Request, as_request
 from jointlimits.client.session import CONNECT_OPTIONS, Exchange, closed_error, handshake_error
 from jointlimits.client.transport import BaseClient, ProgressCallback, Steps, T, run
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest

@@ -119,12 +119,7 @@ def reference(scene: Any) -> Reference:
     geometries, which e.g. `UrdfIO` leaves at the identity) and pass it to every later
     `request_from_scene(scene, reference=snapshot)` as the bodies' `q_ref`."""
     _uipc()
-    out = {}
-    for gid, slot, _ in _slots(scene):
-        geo = slot.geometry()
-        if _is_affine_body(_meta_uid(geo)):
-            out[gid] = _transforms(geo)
-    return Reference(out)
+    return Reference({gid: _transforms(slot.geometry()) for gid, slot, _, _ in _affine_bodies(_slots(scene))})
 
 
 @dataclass
@@ -142,10 +137,15 @@ class _Bodies:
     """Why the rest transforms can only be a guess for the transforms at `world.init()` ("": no sign)."""
 
 
-def _bodies(slots: list[tuple[int, Any, Any]], snapshot: Reference | None = None) -> _Bodies:
+def _affine_bodies(slots: list[tuple[int, Any, Any]]) -> list[tuple[int, Any, Any, int]]:
+    """The affine-body geometries of `slots` as `(id, slot, rest_slot, constitution UID)`, in the engine's body
+    order: by constitution UID, stable (slot order within one)."""
     geos = [(gid, slot, rest, _meta_uid(slot.geometry())) for gid, slot, rest in slots]
-    geos = [g for g in geos if _is_affine_body(g[3])]
-    geos.sort(key=lambda g: g[3])  # stable: slot order within a constitution UID
+    return sorted((g for g in geos if _is_affine_body(g[3])), key=lambda g: g[3])
+
+
+def _bodies(slots: list[tuple[int, Any, Any]], snapshot: Reference | None = None) -> _Bodies:
+    geos = _affine_bodies(slots)
     offset, count, qs, q_refs, published, at = {}, {}, [], [], 0, 0
     all_identity, moved, urdf_posed = True, False, []
     for gid, slot, rest, _ in geos:
@@ -405,8 +405,7 @@ def write_back(scene: Any, coordinates: Evaluation | Sequence[ArrayLike | BatchR
                     kinds = " or ".join(f.kind for f in limit_of.values())
                     raise SceneError(f"not a {kinds} joint geometry (constitution UID {base})", int(gid))
                 name = limit_of[base].state_name
-                if geo.edges().find(name) is None:
-                    raise SceneError(f"the joint edges have no `{name}` attribute", int(gid))
+                _edge_attr(geo, name, int(gid))  # the attribute is there
                 writes[gid] = (geo, name, [], [])
             geo, name, rows_, vals = writes[gid]
             if not 0 <= e < geo.edges().size():

@@ -110,12 +110,10 @@ class AsyncSession(Exchange):
             except Exception as e:
                 raise handshake_error(self.url, e) from None
         else:  # "send": the reply
-            from websockets.exceptions import ConnectionClosed
-
             try:
                 await self._ws.send(arg)
                 return await asyncio.wait_for(self._ws.recv(), self.timeout)
-            except ConnectionClosed as e:
+            except sys.modules["websockets.exceptions"].ConnectionClosed as e:  # loaded by "connect"
                 self._ws = None
                 raise closed_error(self.url, e) from None
             except asyncio.TimeoutError:

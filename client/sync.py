@@ -139,12 +139,10 @@ class Session(Exchange):
             except Exception as e:
                 raise handshake_error(self.url, e) from None
         else:  # "send": the reply
-            from websockets.exceptions import ConnectionClosed
-
             try:
                 self._ws.send(arg)
                 return self._ws.recv(timeout=self.timeout)
-            except ConnectionClosed as e:
+            except sys.modules["websockets.exceptions"].ConnectionClosed as e:  # loaded by "connect"
                 self._io("drop", None)
                 raise closed_error(self.url, e) from None
             except TimeoutError:

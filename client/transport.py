@@ -46,7 +46,7 @@ ProgressCallback = Callable[[int, int], None]
 """Called with `(joints_done, joints_total)` after each part of a split request."""
 T = TypeVar("T")
 Steps = Generator[tuple[str, Any], Any, T]
-"""A step, free of I/O: it yields each I/O it needs, `(op, argument)`, and is sent its result (or thrown its failure)."""
+"""A step, free of I/O: it yields each I/O it needs, `(op, argument)`, and is sent its result (or its failure)."""
 
 
 def run(steps: Steps[T], io: Callable[[str, Any], Any]) -> T:

@@ -135,7 +135,7 @@ def wire(sizes: tuple[int, ...] = WIRE_SIZES, reps: int = 2001) -> list[dict[str
     from bench.http_bench import Server
     from jointlimits.client import Client
     from jointlimits.client.model import JointBatch, Request
-    from jointlimits.client.session_sync import CONNECT_OPTIONS
+    from jointlimits.client.session import CONNECT_OPTIONS
 
     rows = []
     with Server("from bench.robot_scale import serve; serve(port)") as srv, Client(srv.url, binary=True) as client:
@@ -148,9 +148,9 @@ def wire(sizes: tuple[int, ...] = WIRE_SIZES, reps: int = 2001) -> list[dict[str
                               outputs=("energy", "gradient", "hessian"), hessian_mode="psd")
             with client.session(request) as s:
                 s.evaluate(bodies.q)  # warm-up
-                sent, received = s.state.bytes_sent, s.state.bytes_received
+                sent, received = s.bytes_sent, s.bytes_received
                 s.evaluate(bodies.q)
-                out, back = s.state.bytes_sent - sent, s.state.bytes_received - received
+                out, back = s.bytes_sent - sent, s.bytes_received - received
                 frame = bytes(out)
                 with connect(srv.url.replace("http", "ws") + f"{ECHO}?reply={back}", **CONNECT_OPTIONS) as ws:
                     calls = {"session": lambda: s.evaluate(bodies.q), "bare": lambda: (ws.send(frame), ws.recv())}

@@ -106,9 +106,9 @@ def wire(iterations: dict[int, int] | None = None) -> list[dict[str, Any]]:
                 rows.append(_row(n, enc, "HTTP (stateless)", lat, _http_bytes(srv.url, request, binary)))
                 with client.session(request) as s:
                     lat = _latencies(lambda: s.evaluate(request.q), 1)  # the warm-up's bytes are not counted
-                    before = s.state.bytes_sent + s.state.bytes_received
+                    before = s.bytes_sent + s.bytes_received
                     lat = _latencies(lambda: s.evaluate(request.q), iterations[n])
-                    per = (s.state.bytes_sent + s.state.bytes_received - before) / (iterations[n] + 1)
+                    per = (s.bytes_sent + s.bytes_received - before) / (iterations[n] + 1)
                 rows.append(_row(n, enc, "session", lat, per))
                 client.close()
                 log(f"wire N={n} {enc}: " + ", ".join(f"{r['transport']} p50 {r['p50_ms']:.3g} ms"

@@ -1,22 +1,25 @@
-"""The asyncio HTTP client: the same API as `Client`, with parts of a split request sent concurrently."""
+"""The asyncio clients, `Client`'s API awaitable: `AsyncClient` (parts of a split request sent concurrently) and its
+sessions (`async with AsyncClient(url).session(request) as s:`, on `websockets.asyncio.client`): each step of
+`client/transport.py` and `client/session.py` run with awaited I/O."""
 
 from __future__ import annotations
 
 import asyncio
+import sys
+from collections.abc import Generator
 from types import TracebackType
-from typing import TYPE_CHECKING
+from typing import Any
 
 import httpx
+from numpy.typing import ArrayLike
 
 from jointlimits.client import split, transport
-from jointlimits.client.accept import as_request
-from jointlimits.client.model import Evaluation, Request
-from jointlimits.client.transport import DEFAULT_URL, BaseClient, ProgressCallback
+from jointlimits.client.model import Array, Evaluation, Request, as_request
+from jointlimits.client.session import CONNECT_OPTIONS, Exchange, closed_error, handshake_error
+from jointlimits.client.transport import DEFAULT_URL, BaseClient, ProgressCallback, Steps, T, arun
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest
 
-
-if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
-    from jointlimits.client.session_aio import AsyncSession
+_CLOSING: set[asyncio.Task] = set()  # the close handshakes of dropped sessions (a loop keeps only weak references)
 
 
 class AsyncClient(BaseClient):
@@ -60,22 +63,13 @@ class AsyncClient(BaseClient):
 
     def session(self, request: Request | dict | EvaluateRequest, *, resume: bool = True) -> AsyncSession:
         """`async with client.session(r) as s:` (or `s = await client.session(r)`): `Client.session`, awaitable."""
-        from jointlimits.client.session_aio import AsyncSession  # imported here: HTTP alone never loads websockets
-
         return AsyncSession(request=request, resume=resume, **self._session_options())
 
     async def _send(self, request: httpx.Request) -> httpx.Response:
-        retry = self._retry(request)
-        while True:
-            try:
-                response = await self._http.send(request)
-            except transport.RETRYABLE as e:
-                await asyncio.sleep(retry.pause(e))
-                continue
-            pause = retry.again(response)  # None: the answer; else a busy 503 or a proxy's 502/503/504 to retry
-            if pause is None:
-                return response
-            await asyncio.sleep(pause)
+        return await arun(self._sending(request), self._io)
+
+    async def _io(self, op: str, arg: Any) -> Any:
+        return await (asyncio.sleep(arg) if op == "sleep" else self._http.send(arg))
 
     async def aclose(self) -> None:
         await self._http.aclose()
@@ -85,3 +79,87 @@ class AsyncClient(BaseClient):
 
     async def __aexit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
         await self.aclose()
+
+
+class AsyncSession(Exchange):
+    """The asyncio twin of `jointlimits.client.sync.Session` (same arguments, results and errors)."""
+
+    async def open(self) -> AsyncSession:
+        await self._run(self._opening())
+        return self
+
+    def __await__(self) -> Generator[Any, None, AsyncSession]:
+        return self.open().__await__()
+
+    async def _run(self, steps: Steps[T]) -> T:
+        return await arun(steps, self._io)
+
+    async def _io(self, op: str, arg: Any) -> Any:
+        if op == "sleep":
+            await asyncio.sleep(arg)
+        elif op == "drop":
+            if self._ws is not None:
+                await self._ws.close()
+                self._ws = None
+        elif op == "connect":
+            from websockets.asyncio.client import connect  # here: HTTP alone never loads websockets
+
+            try:
+                self._ws = await connect(self.url, additional_headers=self.headers, open_timeout=self.timeout,
+                                         **CONNECT_OPTIONS)
+            except Exception as e:
+                raise handshake_error(self.url, e) from None
+        else:  # "send": the reply
+            try:
+                await self._ws.send(arg)
+                return await asyncio.wait_for(self._ws.recv(), self.timeout)
+            except sys.modules["websockets.exceptions"].ConnectionClosed as e:  # loaded by "connect"
+                self._ws = None
+                raise closed_error(self.url, e) from None
+            except asyncio.TimeoutError:
+                await self._io("drop", None)
+                raise self._no_reply() from None
+        return None
+
+    async def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
+                       active_only: bool | None = None) -> Evaluation:
+        return await self._run(self._evaluate(q, outputs, hessian_mode, active_only))
+
+    async def commit(self, q: ArrayLike) -> list[Array]:
+        return await self._run(self._commit(q))
+
+    async def update(self, batch: int, index: ArrayLike, *, lower: ArrayLike | None = None,
+                     upper: ArrayLike | None = None, strength: ArrayLike | None = None,
+                     offset: ArrayLike | None = None) -> None:
+        values = {"lower": lower, "upper": upper, "strength": strength, "offset": offset}
+        await self._run(self._update(batch, index, values))
+
+    async def reopen(self) -> None:
+        await self._run(self._resuming(self._reopen))
+
+    async def close(self) -> None:
+        await self._run(self._close())
+
+    async def __aenter__(self) -> AsyncSession:
+        return await self.open() if self._ws is None else self
+
+    async def __aexit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
+        await self.close()
+
+    def __del__(self) -> None:
+        # Dropped without close() (a notebook cell run again): close the connection now, on its own loop (a task:
+        # `__del__` cannot await), and free the server's session slot, not when the loop ends. A loop already
+        # closed has dropped the socket itself.
+        ws = getattr(self, "_ws", None)
+        if ws is None or sys.is_finalizing():
+            return
+
+        def close() -> None:
+            task = ws.loop.create_task(ws.close())
+            _CLOSING.add(task)
+            task.add_done_callback(_CLOSING.discard)
+
+        try:
+            ws.loop.call_soon_threadsafe(close)
+        except RuntimeError:  # the loop is closed
+            pass

@@ -1,18 +1,14 @@
-"""Server errors as exceptions that carry the server's `loc` and message."""
+"""Server errors as exceptions that carry the server's `loc` and message.
+
+Each fault is a `Fault(loc, msg, type)`, the core's own (one item of the server's `detail`, `loc` like
+`("body", "batches", 1, "lower", 2)`): a fault the SDK names before the service, or in-process, is the same object.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
-
-@dataclass(frozen=True)
-class Fault:
-    """One item of the server's `detail`: `loc` like `("body", "batches", 1, "lower", 2)`."""
-
-    loc: tuple[str | int, ...]
-    msg: str
-    type: str = "value_error"
+from jointlimits.service.core.errors import Fault
 
 
 class ServiceError(Exception):

@@ -1,21 +1,30 @@
-"""In-process mode: the same API as `Client`, calling the core directly (a notebook without a server)."""
+"""In-process mode: the same API as `Client` and its sessions, calling the core directly (a notebook without a
+server): `LocalClient`, and `LocalClient().session(request)` straight on the core's prepared scene."""
 
 from __future__ import annotations
 
 import inspect
+from collections.abc import Callable
+from dataclasses import replace
 from types import TracebackType
-from typing import TYPE_CHECKING
+from typing import Any, TypeVar
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from jointlimits.client.accept import as_request
 from jointlimits.client.aio import AsyncClient
-from jointlimits.client.model import NEEDED, OPTIONAL, BatchResult, Evaluation, Request, in_body, null_arrays
+from jointlimits.client.model import NEEDED, OPTIONAL, Array, BatchResult, Evaluation, Request, as_flag, as_outputs
+from jointlimits.client.model import as_request, in_body, null_arrays
+from jointlimits.client.session import SessionClosed, SessionState, batch_number, message_array, owned
 from jointlimits.client.transport import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from jointlimits.schemas.constitutions import describe
 from jointlimits.service import core
 from jointlimits.service.core import registry
+from jointlimits.service.core.prepared import prepare
+
+T = TypeVar("T")
+URL = "local://in-process"
 
 HTTP_OPTIONS = frozenset(inspect.signature(AsyncClient).parameters) - {"base_url"}
 """Keywords of `Client` / `AsyncClient` that `LocalClient` accepts and ignores."""
@@ -44,10 +53,6 @@ def result(ev: core.Evaluation) -> Evaluation:
     batches = [BatchResult(r.constitution_uid, r.index, r.x, r.energy, r.gradient, r.hessian, r.coordinate)
                for r in ev.batches]
     return Evaluation(ev.total_energy, batches, ev.assembled)
-
-
-if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
-    from jointlimits.client.session_local import LocalSession
 
 
 class LocalClient:
@@ -92,8 +97,6 @@ class LocalClient:
     def session(self, request: Request | dict | EvaluateRequest, *, resume: bool = True) -> LocalSession:
         """`Client.session`'s API in-process, on the core's prepared scene (bitwise the same numbers); `resume`
         is taken for the same calls to work: there is no connection to lose."""
-        from jointlimits.client.session_local import LocalSession
-
         return LocalSession(request, threads=self.threads)
 
     def close(self) -> None:
@@ -104,3 +107,77 @@ class LocalClient:
 
     def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
         pass
+
+
+def options(request: Request, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> dict[str, Any]:
+    """The evaluate options of a call, the opening request's where not given (for the in-process session)."""
+    return {
+        "outputs": request.outputs if outputs is None else as_outputs(outputs),
+        "hessian_mode": request.hessian_mode if hessian_mode is None else hessian_mode,
+        "active_only": request.active_only if active_only is None else as_flag(active_only),
+        "layout": request.layout,  # the opening's, as the server keeps it (a message cannot change it)
+    }
+
+
+def _call(fn: Callable[[], T]) -> T:
+    """`fn()`, its input faults raised as `LocalClient` raises them (`loc` starting with "body", as the server's)."""
+    try:
+        with np.errstate(all="ignore"):
+            return fn()
+    except core.InputError as e:
+        # A session message's `q` is a top-level field, as the server names it: ("bodies", "q", i) -> ("q", i).
+        raise in_body([replace(f, loc=f.loc[1:]) if f.loc[:2] == ("bodies", "q") else f for f in e.faults]) from None
+
+
+class LocalSession(SessionState):
+    """`jointlimits.client.sync.Session`'s API on a `PreparedScene` in this process: bitwise the same numbers."""
+
+    def __init__(self, request: Request, *, threads: int = 1) -> None:
+        super().__init__(request, URL)
+        self.threads = threads
+        self._open()
+
+    def _open(self) -> None:
+        r = self.request
+        bodies = core.Bodies(np.asarray(r.q, np.float64), np.asarray(r.q_prev, np.float64), np.asarray(r.q_ref, np.float64))
+        self._scene = _call(lambda: prepare(bodies, core_batches(r, copy=True), threads=self.threads))
+        self._coordinates = [owned(c) for c in self._scene.coordinates()]
+
+    def _live(self) -> Any:
+        if self._scene is None:
+            raise SessionClosed(URL, None, "", "the session is closed")
+        return self._scene
+
+    def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
+                 active_only: bool | None = None) -> Evaluation:
+        scene, opts = self._live(), options(self.request, outputs, hessian_mode, active_only)
+        q = message_array(q, "q")  # as the service reads a message's arrays: no cast, no reshape
+        return result(_call(lambda: scene.evaluate(q, **opts))).sized(self.request)
+
+    def commit(self, q: ArrayLike) -> list[Array]:
+        scene, q = self._live(), np.array(message_array(q, "q"))
+        return self._keep(_call(lambda: scene.commit(q)), q)
+
+    def update(self, batch: int, index: ArrayLike, *, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
+               strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
+        scene = self._live()
+        values = {"lower": lower, "upper": upper, "strength": strength, "offset": offset}
+        given = {k: message_array(v, k) for k, v in values.items() if v is not None}  # None: left out
+        b, idx = batch_number(batch), message_array(index, "index", integer=True)  # as the service reads them
+        _call(lambda: scene.update(b, idx, **given))
+        self._apply_update(batch, index, values)
+        if offset is not None:  # a new offset moves the batch's committed coordinates with it
+            self._coordinates[batch] = owned(scene.coordinates()[batch])
+
+    def reopen(self) -> None:
+        self.request = self.request_for_reopen()
+        self._open()
+
+    def close(self) -> None:
+        self._scene = None
+
+    def __enter__(self) -> LocalSession:
+        return self
+
+    def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
+        self.close()

@@ -1,32 +1,33 @@
-"""Typed, NumPy-backed requests and results of the SDK (the wire's structure, arrays instead of lists)."""
+"""Typed, NumPy-backed requests and results of the SDK (the wire's structure, arrays instead of lists), and what
+`evaluate` takes made one `Request` (`as_request`: a `Request`, a wire JSON dict, a `schemas.EvaluateRequest`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
+import orjson
 from numpy.typing import ArrayLike, NDArray
 
-from jointlimits.client.errors import Fault, InvalidInput
-from jointlimits.schemas import OUTPUTS
+from jointlimits.client.errors import InvalidInput
+from jointlimits.schemas import OUTPUTS, EvaluateRequest
 from jointlimits.service.core import prismatic, registry, revolute
 from jointlimits.service.core.assembled import Assembled  # noqa: F401 (re-exported: Evaluation.assembled)
-from jointlimits.service.core.errors import MAX_FAULTS
-from jointlimits.service.core.errors import Fault as CoreFault
+from jointlimits.service.core.errors import MAX_FAULTS, Fault
 from jointlimits.service.core.validate import NOT_A_LIST, as_array
 
 Array = NDArray[np.float64]
 
 
-def invalid(faults: list[CoreFault], where: str) -> InvalidInput:
+def invalid(faults: list[Fault], where: str) -> InvalidInput:
     """The validator's faults as the `InvalidInput` the service would answer (`where`: the constructor)."""
-    return InvalidInput(422, [Fault(f.loc, f.msg, f.type) for f in faults[:MAX_FAULTS]], where=f"invalid input ({where})")
+    return InvalidInput(422, faults[:MAX_FAULTS], where=f"invalid input ({where})")
 
 
-def in_body(faults: list[CoreFault]) -> InvalidInput:
+def in_body(faults: list[Fault]) -> InvalidInput:
     """Faults named before or instead of the service, as the `InvalidInput` it would answer (`loc`s after "body")."""
-    return InvalidInput(422, [Fault(("body", *f.loc), f.msg, f.type) for f in faults], where="invalid input")
+    return InvalidInput(422, [replace(f, loc=("body", *f.loc)) for f in faults], where="invalid input")
 
 
 def as_outputs(outputs: Any) -> tuple[str, ...]:
@@ -49,18 +50,18 @@ def as_flag(value: Any) -> bool:
                        where="invalid input")
 
 
-def _array(value: ArrayLike, name: str, faults: list[CoreFault], integer: bool = False) -> np.ndarray | None:
+def _array(value: ArrayLike, name: str, faults: list[Fault], integer: bool = False) -> np.ndarray | None:
     """`value` as an array, or None after adding the faults that prevent it (in the service's words)."""
     scalar = not isinstance(value, (list, tuple, np.ndarray))  # one value for every joint
     a, found = as_array([value] if scalar else value, (name,), integer)
     if found:
-        faults += [CoreFault((name,), f.msg, f.type) for f in found] if scalar else found
+        faults += [Fault((name,), f.msg, f.type) for f in found] if scalar else found
         return None
     return a.reshape(()) if scalar else a
 
 
-def _wrong_shape(name: str, a: np.ndarray, want: tuple[int, ...], faults: list[CoreFault]) -> None:
-    faults.append(CoreFault((name,), f"must have shape {want} (one row per joint of body_ids), got {a.shape}"))
+def _wrong_shape(name: str, a: np.ndarray, want: tuple[int, ...], faults: list[Fault]) -> None:
+    faults.append(Fault((name,), f"must have shape {want} (one row per joint of body_ids), got {a.shape}"))
     return None
 
 
@@ -107,12 +108,12 @@ class JointBatch:
         A solver that keeps its own state commits a time step by passing the `coordinate` it got at
         the accepted `q` as the next step's `prev_coordinate` (with `q_prev` := that `q`).
         """
-        faults: list[CoreFault] = []
+        faults: list[Fault] = []
         ids = _array(body_ids, "body_ids", faults, integer=True)
         if ids is not None and ids.shape == (2,):
             ids = ids.reshape(1, 2)  # one joint's pair
         if ids is not None and (ids.ndim != 2 or ids.shape[1] != 2):
-            faults.append(CoreFault(("body_ids",), f"must have shape (N, 2), one [i, j] per joint, got {ids.shape}"))
+            faults.append(Fault(("body_ids",), f"must have shape (N, 2), one [i, j] per joint, got {ids.shape}"))
             ids = None
         n = -1 if ids is None else ids.shape[0]
 
@@ -164,14 +165,50 @@ class Request:
         return sum(len(b) for b in self.batches)
 
 
-def null_arrays(request: Request) -> list[CoreFault]:
+def null_arrays(request: Request) -> list[Fault]:
     """None or a scalar where an array is needed (a state of the bodies, a batch's `body_ids`, `lower`, `upper`,
     `strength`; a given `edges`, `offset`, ...), named as the service names a `null` or a number there (a None
     optional array is an absent one)."""
     not_a_list = lambda a, need: (a is None and need) or (a is not None and np.ndim(a) == 0)  # noqa: E731
-    faults = [CoreFault(("bodies", k), *NOT_A_LIST) for k in ("q", "q_prev", "q_ref") if not_a_list(getattr(request, k), True)]
-    return faults + [CoreFault(("batches", b, k), *NOT_A_LIST) for b, batch in enumerate(request.batches)
+    faults = [Fault(("bodies", k), *NOT_A_LIST) for k in ("q", "q_prev", "q_ref") if not_a_list(getattr(request, k), True)]
+    return faults + [Fault(("batches", b, k), *NOT_A_LIST) for b, batch in enumerate(request.batches)
                      for k in NEEDED + OPTIONAL if not_a_list(getattr(batch, k), k in NEEDED)]
+
+
+_ACCEPTED = ("a client.Request (Scene().request(), request_from_arrays(...)), a dict in the wire JSON's shape, "
+             "or a schemas.EvaluateRequest")
+
+
+def as_request(request: Any) -> Request:
+    """`request` as a `Request`.
+
+    A dict (or an `EvaluateRequest`, as its dict) is read exactly as the service reads a JSON body (NumPy
+    arrays in it are fine): its faults raise `InvalidInput` with the server's `loc`s and words. Anything
+    else: `TypeError`.
+    """
+    if isinstance(request, Request):
+        return request
+    if isinstance(request, EvaluateRequest):
+        request = request.model_dump(exclude_none=True)  # an absent optional field, as the wire has it
+    if not isinstance(request, dict):
+        raise TypeError(f"evaluate() takes {_ACCEPTED}; got {type(request).__module__}.{type(request).__qualname__}")
+    try:
+        body = orjson.dumps(request, option=orjson.OPT_SERIALIZE_NUMPY)
+    except TypeError as e:
+        raise TypeError(f"evaluate(): the dict is not wire JSON ({e})") from None
+    # The service's own JSON reader (imported here: HTTP alone never loads it): the same faults, in the same words.
+    from jointlimits.service.core import InputError
+    from jointlimits.service.http.convert import read
+
+    try:
+        kw = read(body)
+    except InputError as e:
+        raise in_body(e.faults) from None
+    b = kw["bodies"]
+    # The core's `Joints` has the SDK's `JointBatch` fields, by the same names.
+    batches = [JointBatch(**{f.name: getattr(j, f.name) for f in fields(JointBatch)}) for j in kw["batches"]]
+    return Request(b.q, b.q_prev, b.q_ref, batches, tuple(kw["outputs"]), kw["hessian_mode"], kw["active_only"],
+                   kw["layout"])
 
 
 class Joint(int):

@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike
 
 from jointlimits.client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request, _array, invalid
 from jointlimits.service.core import registry
-from jointlimits.service.core.errors import Fault as CoreFault
+from jointlimits.service.core.errors import Fault
 from jointlimits.service.core.scene import Bodies, Joints
 from jointlimits.service.core.validate import NOT_AN_INTEGER, ORIGINS, check_bodies, check_joints
 from jointlimits.schemas import OUTPUTS
@@ -32,7 +32,7 @@ def transforms_to_q(T: ArrayLike) -> np.ndarray:
 
 def dofs(pose: Pose, loc: tuple[str | int, ...] = ("pose",), where: str = "dofs") -> np.ndarray:
     """The 12 DOFs (12,) of one pose; `InvalidInput` naming `loc` for anything else."""
-    faults: list[CoreFault] = []
+    faults: list[Fault] = []
     if isinstance(pose, tuple) and len(pose) == 2:
         p, A = (_array(v, "pose", faults) for v in pose)
         if p is not None and A is not None and p.size == 3 and A.size == 9:
@@ -46,7 +46,7 @@ def dofs(pose: Pose, loc: tuple[str | int, ...] = ("pose",), where: str = "dofs"
         if a is not None and a.shape == (12,):
             return a.astype(np.float64, copy=True)
         msg = f"a pose is a 4x4 transform, a (p, A) pair or 12 DOFs, got shape {None if a is None else a.shape}"
-    faults = [CoreFault((*loc, *f.loc[1:]), f.msg, f.type) for f in faults] or [CoreFault(loc, msg)]
+    faults = [Fault((*loc, *f.loc[1:]), f.msg, f.type) for f in faults] or [Fault(loc, msg)]
     raise invalid(faults, where)
 
 
@@ -130,7 +130,7 @@ class Scene:
             raise TypeError("give the joint's edge either as p0, p1 (world, at ref) or as local_edge, not both")
         given = {"p0": p0, "p1": p1} if local_edge is None else {"local_edge": local_edge}
         kind, edge = "edges" if local_edge is None else "local_edges", self._edge(given)  # type: ignore[arg-type]
-        not_ints = [CoreFault((k,), *NOT_AN_INTEGER) for k, v in (("i", i), ("j", j))  # as the wire's body_ids
+        not_ints = [Fault((k,), *NOT_AN_INTEGER) for k, v in (("i", i), ("j", j))  # as the wire's body_ids
                     if isinstance(v, bool) or not isinstance(v, (int, np.integer))]  # 1.7 is no body 1
         if not_ints:
             raise invalid(not_ints, where)
@@ -148,10 +148,10 @@ class Scene:
         `strength >= 0`, its edge, `origin`, its constitution and state): else `InvalidInput` naming the argument,
         in the service's words, at the call that made the mistake."""
         facts = registry.CONSTITUTIONS.get(uid)
-        faults: list[CoreFault] = []
+        faults: list[Fault] = []
         named = ("lower", "upper", "strength", "offset") + ("prev_coordinate",) * (prev is not None)
         values = {name: _array(v, name, faults) for name, v in zip(named, (*numbers, prev))}
-        faults += [CoreFault((name,), f"must be one number, got shape {a.shape}")
+        faults += [Fault((name,), f"must be one number, got shape {a.shape}")
                    for name, a in values.items() if a is not None and a.size != 1]
         if faults:
             raise invalid(faults, where)
@@ -181,7 +181,7 @@ class Scene:
                 return (("p0", "p1")[rest[0]], *rest[1:]) if rest else ("p1",)
             return ("local_edge" if field == "local_edges" else field, *rest)
 
-        faults = [CoreFault(argument(f.loc), f.msg, f.type) for f in check_joints(0, joint, n_bodies)]
+        faults = [Fault(argument(f.loc), f.msg, f.type) for f in check_joints(0, joint, n_bodies)]
         if faults:
             raise invalid(faults, where)
         return nums
@@ -189,13 +189,13 @@ class Scene:
     @staticmethod
     def _edge(given: dict[str, ArrayLike]) -> np.ndarray:
         """`p0`, `p1` as the edge (2, 3), or `local_edge` (2, 2, 3); else `InvalidInput` naming the argument."""
-        faults: list[CoreFault] = []
+        faults: list[Fault] = []
         arrays = {name: _array(v, name, faults) for name, v in given.items()}
         for name, a in arrays.items():
             local = name == "local_edge"
             want, what = ((2, 2, 3), "[[l0, l1], [r0, r1]] (2, 2, 3)") if local else ((3,), "a point (3,)")
             if a is not None and a.shape != want:
-                faults.append(CoreFault((name,), f"must be {what}, got shape {a.shape}"))
+                faults.append(Fault((name,), f"must be {what}, got shape {a.shape}"))
         if faults:
             raise invalid(faults, "Scene: a joint's " + ("local edge" if "local_edge" in given else "edge"))
         return arrays["local_edge"] if "local_edge" in arrays else np.stack([arrays["p0"], arrays["p1"]])
@@ -225,11 +225,11 @@ def request_from_arrays(q: ArrayLike, joints: Sequence[JointBatch], *, q_prev: A
                         active_only: bool = False, layout: str = "joints") -> Request:
     """The vectorised builder: bodies' DOFs (B, 12) (`q_ref` defaults to `q`, `q_prev` to `q_ref`) and
     batches made with `JointBatch.of(uid, body_ids, edges, lower, upper, strength)`; `layout` as in `Scene.request`."""
-    faults: list[CoreFault] = []
+    faults: list[Fault] = []
     given = {"q": q, "q_ref": q_ref, "q_prev": q_prev}
     states = {name: None if v is None else _array(v, name, faults) for name, v in given.items()}
     if faults:  # located as the wire locates them: bodies.q, ...
-        raise invalid([CoreFault(("bodies", *f.loc), f.msg, f.type) for f in faults], "request_from_arrays")
+        raise invalid([Fault(("bodies", *f.loc), f.msg, f.type) for f in faults], "request_from_arrays")
     a = states["q"]
     a_ref = a if states["q_ref"] is None else states["q_ref"]
     a_prev = a_ref if states["q_prev"] is None else states["q_prev"]

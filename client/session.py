@@ -7,29 +7,24 @@ server's `q_prev`) and the committed coordinates; `reopen()` opens a new session
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Generator
+from collections.abc import Callable
 from dataclasses import replace
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 import orjson
 from numpy.typing import ArrayLike
 
 from jointlimits.client import codec
-from jointlimits.client.accept import as_request
-from jointlimits.client.errors import Fault, InvalidInput, ServiceError, Unreachable
-from jointlimits.client.model import Array, Evaluation, Request, as_flag, as_outputs, in_body
-from jointlimits.client.transport import delays
+from jointlimits.client.errors import Fault, ServiceError, Unreachable
+from jointlimits.client.model import Array, Evaluation, Request, as_flag, as_outputs, as_request, in_body
+from jointlimits.client.transport import PROXY_STATUSES, Steps, T, delays, is_fault_list, proxy_page, wrong_url
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core import registry
-from jointlimits.service.core.errors import Fault as CoreFault
 from jointlimits.service.core.validate import NOT_AN_INTEGER, as_array
 
 Frame = bytes | str
-T = TypeVar("T")
-Steps = Generator[tuple[str, Any], Any, T]
-"""A session's step, free of I/O: it yields the I/O it needs (`Exchange`) and is sent each one's result."""
 _BINARY_ERROR = b"\xa4kind\xa5error"
 _JSON_ERROR = '{"kind":"error"'
 
@@ -86,95 +81,30 @@ class Resume:
 
 
 class SessionState:
-    """The protocol of one session: frames to send, replies read, and the state kept for reopening."""
+    """What every session keeps, client-side, for reopening: where (`url`), the scene as last updated (`request`),
+    the last committed `q` (`q_prev`, the server's) and the committed `coordinates`; `request_for_reopen()`."""
 
-    def __init__(self, request: Request | dict[str, Any], url: str, binary: bool) -> None:
+    def __init__(self, request: Request | dict[str, Any], url: str) -> None:
         """`request`: a `Request`, or what `Client.evaluate` also takes (wire JSON as a dict, a `schemas.EvaluateRequest`)."""
         request = as_request(request)
-        self.url, self.binary = url, binary
+        self.url = url
         # A private copy: later updates change it, the caller's request stays as it was.
         self.request = replace(request, batches=[copy.deepcopy(b) for b in request.batches])
         self.q_prev: Array = owned(request.q_prev)
-        self.coordinates: list[Array] = []
-        self.bytes_sent = self.bytes_received = 0
+        """The last committed `q` (the opening request's `q_prev` before any commit)."""
+        self._coordinates: list[Array] = []
 
-    # ---------------------------------------------------------------- frames out
+    @property
+    def coordinates(self) -> list[Array]:
+        """The committed coordinates, one (N,) array per batch (as opened, before any commit)."""
+        return list(self._coordinates)
 
-    def open_frame(self) -> Frame:
-        content, _ = codec.encode(self.request, self.binary)
-        return self._out(content if self.binary else content.decode())
-
-    def evaluate_frame(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Frame:
-        given = {"outputs": None if outputs is None else list(as_outputs(outputs)), "hessian_mode": hessian_mode,
-                 "active_only": None if active_only is None else as_flag(active_only)}
-        return self._encode({"kind": proto.EVALUATE, "q": message_array(q, "q"),
-                             **{k: v for k, v in given.items() if v is not None}})  # None: the opening's
-
-    def commit_frame(self, q: ArrayLike) -> Frame:
-        return self._encode({"kind": proto.COMMIT, "q": message_array(q, "q")})
-
-    def update_frame(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Frame:
-        doc: dict[str, Any] = {"kind": proto.UPDATE, "batch": batch_number(batch), "index": message_array(index, "index", integer=True)}
-        doc.update({k: message_array(v, k) for k, v in values.items() if v is not None})  # None: left out
-        return self._encode(doc)
-
-    def close_frame(self) -> Frame:
-        return self._encode({"kind": proto.CLOSE})
-
-    def _encode(self, doc: dict[str, Any]) -> Frame:
-        if self.binary:
-            doc = {k: wire.pack_array(v, wire.INT64 if v.dtype.kind == "i" else wire.FLOAT64) if isinstance(v, np.ndarray) else v
-                   for k, v in doc.items()}
-            return self._out(wire.dumps(doc))
-        doc = {k: np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v for k, v in doc.items()}
-        return self._out(orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY).decode())
-
-    def _out(self, frame: Frame) -> Frame:
-        self.bytes_sent += len(frame)
-        return frame
-
-    # ---------------------------------------------------------------- replies in
-
-    def read(self, frame: Frame, kind: str) -> dict[str, Any]:
-        """The reply document of `kind`; a fault reply raises `InvalidInput` / `TooLarge` (the session stays open)."""
-        self.bytes_received += len(frame)
-        doc = wire.loads(frame) if isinstance(frame, bytes) else orjson.loads(frame)
-        if doc.get("kind") == proto.ERROR:
-            raise ServiceError.from_body(int(doc.get("status", 422)), doc)
-        if doc.get("kind") != kind:
-            raise ServiceError(502, [Fault((), f"expected a {kind!r} reply, got {doc.get('kind')!r}", "protocol")])
-        return doc
-
-    def opened(self, frame: Frame) -> None:
-        doc = self.read(frame, proto.OPENED)
-        self.coordinates = [self._array(c) for c in doc["coordinates"]]
-        self.limits: dict[str, Any] = dict(doc.get("limits", {}))  # the server's bounds in force: max_frame_bytes, idle_seconds
-
-    def evaluation(self, frame: Frame) -> Evaluation:
-        # Every reply starts with its kind (fixmap header, "kind", then the kind; or '{"kind":"...'): a fault is
-        # read as such, an evaluation is HTTP's answer document (plus kind), which HTTP's decoder reads.
-        if frame[1:12] == _BINARY_ERROR or frame[:15] == _JSON_ERROR:
-            self.read(frame, proto.EVALUATION)  # raises the fault
-        self.bytes_received += len(frame)
-        ev = codec.decode(frame, codec.BINARY if isinstance(frame, bytes) else codec.JSON)  # type: ignore[arg-type]
-        return ev.sized(self.request)  # each batch knows its size: `joint(k)` works under active_only
-
-    def committed(self, frame: Frame, q: ArrayLike) -> list[Array]:
-        doc = self.read(frame, proto.COMMITTED)
-        return self.keep([self._array(c) for c in doc["coordinates"]], q)
-
-    def keep(self, coordinates: list[ArrayLike], q: ArrayLike) -> list[Array]:
+    def _keep(self, coordinates: list[ArrayLike], q: ArrayLike) -> list[Array]:
         """A commit's state, kept for reopening; returns copies of `coordinates` (the caller's to change)."""
-        self.coordinates, self.q_prev = [owned(c) for c in coordinates], owned(q)
-        return [c.copy() for c in self.coordinates]
+        self._coordinates, self.q_prev = [owned(c) for c in coordinates], owned(q)
+        return [c.copy() for c in self._coordinates]
 
-    def updated(self, frame: Frame, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
-        doc = self.read(frame, proto.UPDATED)
-        self.apply_update(batch, index, values)
-        if "coordinates" in doc:  # the batch's committed coordinates after a change of offsets
-            self.coordinates[batch] = self._array(doc["coordinates"])
-
-    def apply_update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
+    def _apply_update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
         """The server accepted the update: the local copy of the scene follows it."""
         b, idx = self.request.batches[batch], np.asarray(index, dtype=np.int64).reshape(-1)
         for k, v in values.items():
@@ -184,17 +114,12 @@ class SessionState:
                 setattr(b, k, np.zeros(len(b)))
             getattr(b, k)[idx] = np.asarray(v, dtype=np.float64).reshape(-1)
 
-    def _array(self, v: Any) -> Array:
-        return owned(wire.unpack_array(v, wire.FLOAT64, 1) if isinstance(v, dict) else v)
-
-    # ---------------------------------------------------------------- reopening
-
     def request_for_reopen(self) -> Request:
         """A request that opens a session in this one's committed state: `q_prev` and `q` the last committed
         `q`, the scene as updated, the committed coordinates of stateful joints (the revolute's angles) as
         `prev_coordinate` (contract v1.1)."""
         batches = []
-        for b, coords in zip(self.request.batches, self.coordinates or [None] * len(self.request.batches)):
+        for b, coords in zip(self.request.batches, self._coordinates or [None] * len(self.request.batches)):
             nb = copy.deepcopy(b)
             facts = registry.CONSTITUTIONS.get(nb.constitution_uid)
             if coords is not None and facts is not None and facts.stateful:  # a slide is absolute: no state
@@ -223,65 +148,107 @@ def message_array(value: Any, name: str, integer: bool = False) -> np.ndarray:
 def batch_number(batch: Any) -> int:
     """An update's `batch` as the service reads it: an int64 (0.5 is not batch 0), in pydantic's words."""
     listed = isinstance(batch, (list, tuple)) or (isinstance(batch, np.ndarray) and batch.ndim > 0)
-    a, faults = (None, [CoreFault(("batch",), *NOT_AN_INTEGER)]) if listed else as_array([batch], ("batch",), integer=True)
+    a, faults = (None, [Fault(("batch",), *NOT_AN_INTEGER)]) if listed else as_array([batch], ("batch",), integer=True)
     if faults:
-        raise InvalidInput(422, [Fault(("body", "batch"), f.msg, f.type) for f in faults[:1]], where="invalid input")
+        raise in_body([replace(faults[0], loc=("batch",))])  # the field, not its element
     return int(a[0])
 
 
-def options(request: Request, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> dict[str, Any]:
-    """The evaluate options of a call, the opening request's where not given (for the in-process session)."""
-    return {
-        "outputs": request.outputs if outputs is None else as_outputs(outputs),
-        "hessian_mode": request.hessian_mode if hessian_mode is None else hessian_mode,
-        "active_only": request.active_only if active_only is None else as_flag(active_only),
-        "layout": request.layout,  # the opening's, as the server keeps it (a message cannot change it)
-    }
+__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "message_array", "resumable"]
 
 
-__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "message_array", "options", "resumable"]
-
-
-class StateView:
-    """What each session (sync, async, local) shows of its `SessionState`: where, and the last commit."""
-
-    state: SessionState
-
-    @property
-    def url(self) -> str:
-        return self.state.url
-
-    @property
-    def q_prev(self) -> Array:
-        """The last committed `q` (the opening request's `q_prev` before any commit)."""
-        return self.state.q_prev
-
-    @property
-    def coordinates(self) -> list[Array]:
-        """The committed coordinates, one (N,) array per batch (as opened, before any commit)."""
-        return list(self.state.coordinates)
-
-    def request_for_reopen(self) -> Request:
-        """A request that opens a session in this one's committed state (`SessionState.request_for_reopen`)."""
-        return self.state.request_for_reopen()
-
-
-class Exchange(StateView):
+class Exchange(SessionState):
     """A WebSocket session's steps, free of I/O (the sans-I/O pattern): each a generator of the I/O it needs,
     `("connect", None)`, `("send", frame)` (sent the reply), `("sleep", seconds)`, `("drop", None)`, which
-    `session_sync.Session` runs blocking and `session_aio.AsyncSession` awaited (their `_run`)."""
+    `sync.Session` runs blocking and `aio.AsyncSession` awaited (their `_run`: `transport.run`, `transport.arun`)."""
 
     _ws: Any
 
     def __init__(self, url: str, request: Request, *, binary: bool = True, timeout: float | None = 60.0,
                  headers: dict[str, str] | None = None, retries: int = 3, backoff: float = 0.2,
                  resume: bool = True) -> None:
-        self.state = SessionState(request, url, binary)
+        super().__init__(request, url)
+        self.binary = binary
+        self.bytes_sent = self.bytes_received = 0
         self.timeout, self.headers = timeout, dict(headers or {})
         self.retries, self.backoff, self.resume = retries, backoff, resume
         self._ws = None
         self._closed = False  # by `close()`: no more resuming
         self._begin()
+
+    # ---------------------------------------------------------------- frames out
+
+    def _open_frame(self) -> Frame:
+        content, _ = codec.encode(self.request, self.binary)
+        return self._out(content if self.binary else content.decode())
+
+    def _evaluate_frame(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Frame:
+        given = {"outputs": None if outputs is None else list(as_outputs(outputs)), "hessian_mode": hessian_mode,
+                 "active_only": None if active_only is None else as_flag(active_only)}
+        return self._encode({"kind": proto.EVALUATE, "q": message_array(q, "q"),
+                             **{k: v for k, v in given.items() if v is not None}})  # None: the opening's
+
+    def _commit_frame(self, q: ArrayLike) -> Frame:
+        return self._encode({"kind": proto.COMMIT, "q": message_array(q, "q")})
+
+    def _update_frame(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Frame:
+        doc: dict[str, Any] = {"kind": proto.UPDATE, "batch": batch_number(batch), "index": message_array(index, "index", integer=True)}
+        doc.update({k: message_array(v, k) for k, v in values.items() if v is not None})  # None: left out
+        return self._encode(doc)
+
+    def _close_frame(self) -> Frame:
+        return self._encode({"kind": proto.CLOSE})
+
+    def _encode(self, doc: dict[str, Any]) -> Frame:
+        if self.binary:
+            doc = {k: wire.pack_array(v, wire.INT64 if v.dtype.kind == "i" else wire.FLOAT64) if isinstance(v, np.ndarray) else v
+                   for k, v in doc.items()}
+            return self._out(wire.dumps(doc))
+        doc = {k: np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v for k, v in doc.items()}
+        return self._out(orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY).decode())
+
+    def _out(self, frame: Frame) -> Frame:
+        self.bytes_sent += len(frame)
+        return frame
+
+    # ---------------------------------------------------------------- replies in
+
+    def _read(self, frame: Frame, kind: str) -> dict[str, Any]:
+        """The reply document of `kind`; a fault reply raises `InvalidInput` / `TooLarge` (the session stays open)."""
+        self.bytes_received += len(frame)
+        doc = wire.loads(frame) if isinstance(frame, bytes) else orjson.loads(frame)
+        if doc.get("kind") == proto.ERROR:
+            raise ServiceError.from_body(int(doc.get("status", 422)), doc)
+        if doc.get("kind") != kind:
+            raise ServiceError(502, [Fault((), f"expected a {kind!r} reply, got {doc.get('kind')!r}", "protocol")])
+        return doc
+
+    def _opened(self, frame: Frame) -> None:
+        doc = self._read(frame, proto.OPENED)
+        self._coordinates = [self._array(c) for c in doc["coordinates"]]
+        self.limits: dict[str, Any] = dict(doc.get("limits", {}))  # the server's bounds in force: max_frame_bytes, idle_seconds
+
+    def _evaluation(self, frame: Frame) -> Evaluation:
+        # Every reply starts with its kind (fixmap header, "kind", then the kind; or '{"kind":"...'): a fault is
+        # read as such, an evaluation is HTTP's answer document (plus kind), which HTTP's decoder reads.
+        if frame[1:12] == _BINARY_ERROR or frame[:15] == _JSON_ERROR:
+            self._read(frame, proto.EVALUATION)  # raises the fault
+        self.bytes_received += len(frame)
+        ev = codec.decode(frame, codec.BINARY if isinstance(frame, bytes) else codec.JSON)  # type: ignore[arg-type]
+        return ev.sized(self.request)  # each batch knows its size: `joint(k)` works under active_only
+
+    def _committed(self, frame: Frame, q: ArrayLike) -> list[Array]:
+        doc = self._read(frame, proto.COMMITTED)
+        return self._keep([self._array(c) for c in doc["coordinates"]], q)
+
+    def _updated(self, frame: Frame, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
+        doc = self._read(frame, proto.UPDATED)
+        self._apply_update(batch, index, values)
+        if "coordinates" in doc:  # the batch's committed coordinates after a change of offsets
+            self._coordinates[batch] = self._array(doc["coordinates"])
+
+    def _array(self, v: Any) -> Array:
+        return owned(wire.unpack_array(v, wire.FLOAT64, 1) if isinstance(v, dict) else v)
 
     def _begin(self) -> None:
         """The constructor's last step: the blocking session opens here, the asyncio one when awaited."""
@@ -307,11 +274,11 @@ class Exchange(StateView):
     def _open(self) -> Steps[None]:
         yield "drop", None  # a connection whose opening was refused (a busy 503 reply) before trying again
         yield "connect", None
-        self.state.opened((yield "send", self.state.open_frame()))
+        self._opened((yield "send", self._open_frame()))
 
     def _reopen(self) -> Steps[None]:
         self._closed = False
-        self.state.request = self.state.request_for_reopen()
+        self.request = self.request_for_reopen()
         yield from self._open()
 
     def _exchange(self, frame: Frame) -> Steps[Frame]:
@@ -327,24 +294,56 @@ class Exchange(StateView):
 
     def _evaluate(self, q: ArrayLike, outputs: Any, hessian_mode: str | None,
                   active_only: bool | None) -> Steps[Evaluation]:
-        frame = self.state.evaluate_frame(q, outputs, hessian_mode, active_only)
-        return self.state.evaluation((yield from self._exchange(frame)))
+        frame = self._evaluate_frame(q, outputs, hessian_mode, active_only)
+        return self._evaluation((yield from self._exchange(frame)))
 
     def _commit(self, q: ArrayLike) -> Steps[list[Array]]:
-        return self.state.committed((yield from self._exchange(self.state.commit_frame(q))), q)
+        return self._committed((yield from self._exchange(self._commit_frame(q))), q)
 
     def _update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Steps[None]:
-        reply = yield from self._exchange(self.state.update_frame(batch, index, values))
-        self.state.updated(reply, batch, index, values)
+        reply = yield from self._exchange(self._update_frame(batch, index, values))
+        self._updated(reply, batch, index, values)
 
     def _close(self) -> Steps[None]:
         self._closed = True
         if self._ws is not None:
             try:
-                yield "send", self.state.close_frame()  # the server answers by closing (code 1000)
+                yield "send", self._close_frame()  # the server answers by closing (code 1000)
             except SessionClosed:
                 pass
             yield "drop", None
 
     def _no_reply(self) -> SessionClosed:
         return SessionClosed(self.url, None, "", f"no reply within {self.timeout} s")
+
+
+def handshake_error(url: str, e: Exception) -> Exception:
+    """Why a session did not open, as `evaluate` says it: `Unreachable` (nothing answered), `WrongURL` (a 404,
+    or a server that is not this service), else the service's refusal (401, ...) as the `ServiceError` HTTP raises."""
+    from websockets.exceptions import InvalidHandshake, InvalidMessage, InvalidStatus  # HTTP never loads websockets
+
+    if isinstance(e, InvalidStatus):
+        status, body = e.response.status_code, bytes(e.response.body or b"")
+        if status in PROXY_STATUSES and not is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
+            return Unreachable(url, 1, status=status, proxy=proxy_page(body))
+        if status == 404 or not is_fault_list(body):
+            return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade", 404)
+        return codec.error(status, body)
+    if isinstance(e, (InvalidHandshake, InvalidMessage)):  # a server that speaks something else (HTTP/1.0, TLS, ...)
+        return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})", 404)
+    if isinstance(e, (OSError, TimeoutError)):  # refused, unresolvable host, no answer within the open timeout
+        return Unreachable(url, 1, e)
+    return SessionClosed(url, None, "", f"{type(e).__name__}: {e}")
+
+
+def closed_error(url: str, e: Any) -> SessionClosed:
+    frame = e.rcvd  # of websockets' ConnectionClosed
+    if frame is None:  # dropped (no close frame): resumable
+        return SessionClosed(url, None, "", "no close frame", resumable=True)
+    return SessionClosed(url, frame.code, frame.reason, resumable=frame.code in RESUMED_CLOSES)
+
+
+CONNECT_OPTIONS: dict[str, Any] = dict(
+    max_size=None,  # answers with Hessians are large; the server bounds what it sends by its scene limit
+    compression=None,  # float64 arrays barely compress: deflate would only cost time on both sides
+)

@@ -1,22 +1,22 @@
-"""The synchronous HTTP client."""
+"""The blocking clients: HTTP (`Client`) and its WebSocket sessions (`Client(url).session(request)`,
+on `websockets.sync.client`), each step of `client/transport.py` and `client/session.py` run with blocking I/O."""
 
 from __future__ import annotations
 
+import sys
 import time
+from contextlib import ExitStack
 from types import TracebackType
-from typing import TYPE_CHECKING
+from typing import Any
 
 import httpx
+from numpy.typing import ArrayLike
 
 from jointlimits.client import transport
-from jointlimits.client.accept import as_request
-from jointlimits.client.model import Evaluation, Request
-from jointlimits.client.transport import BaseClient, ProgressCallback
+from jointlimits.client.model import Array, Evaluation, Request, as_request
+from jointlimits.client.session import CONNECT_OPTIONS, Exchange, closed_error, handshake_error
+from jointlimits.client.transport import BaseClient, ProgressCallback, Steps, T, run
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest
-
-
-if TYPE_CHECKING:  # sessions are imported when opened: HTTP alone never loads websockets
-    from jointlimits.client.session_sync import Session
 
 
 class Client(BaseClient):
@@ -87,22 +87,10 @@ class Client(BaseClient):
         1001) or is full for now (1013, 4429), or dropped, is reopened in its committed state and the message
         in flight sent again, and an open that reaches no server, or one that drains, is tried again: `retries`
         times with `backoff`."""
-        from jointlimits.client.session_sync import Session  # imported here: HTTP alone never loads websockets
-
         return Session(request=request, resume=resume, **self._session_options())
 
     def _send(self, request: httpx.Request) -> httpx.Response:
-        retry = self._retry(request)
-        while True:
-            try:
-                response = self._http.send(request)
-            except transport.RETRYABLE as e:
-                time.sleep(retry.pause(e))
-                continue
-            pause = retry.again(response)  # None: the answer; else a busy 503 or a proxy's 502/503/504 to retry
-            if pause is None:
-                return response
-            time.sleep(pause)
+        return run(self._sending(request), lambda op, arg: time.sleep(arg) if op == "sleep" else self._http.send(arg))
 
     def close(self) -> None:
         self._http.close()
@@ -112,3 +100,88 @@ class Client(BaseClient):
 
     def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
         self.close()
+
+
+class Session(Exchange):
+    """A prepared scene on the server, held by one WebSocket connection (see `jointlimits.client.session`).
+
+    `evaluate(q, ...)` answers as `Client.evaluate` does; `commit(q)` ends a time step and
+    returns the committed coordinates (one (N,) array per batch); `update(batch, index, lower=...)`
+    changes limits, strengths or offsets of some joints. A fault raises `InvalidInput` and the
+    session stays open. With `resume` (the default), a connection closed by a server that stops
+    (1012, 1001), full for now (1013, 4429) or dropped is reopened in the committed state and the message in flight sent
+    again, `retries` times at most with `backoff` (behind a load balancer, on another server);
+    else, or past them, a lost connection raises `SessionClosed`, and `reopen()` continues.
+    """
+
+    def _begin(self) -> None:
+        self._stack = ExitStack()
+        self._run(self._opening())
+
+    def _run(self, steps: Steps[T]) -> T:
+        return run(steps, self._io)
+
+    def _io(self, op: str, arg: Any) -> Any:
+        if op == "sleep":
+            time.sleep(arg)
+        elif op == "drop":
+            if self._ws is not None:
+                self._ws = None
+                self._stack.close()
+        elif op == "connect":
+            from websockets.sync.client import connect  # here: HTTP alone never loads websockets
+
+            try:
+                # websockets 17 wants its connection used as a context manager: entered here, exited by "drop".
+                self._stack = ExitStack()
+                self._ws = self._stack.enter_context(
+                    connect(self.url, additional_headers=self.headers, open_timeout=self.timeout, **CONNECT_OPTIONS))
+            except Exception as e:
+                raise handshake_error(self.url, e) from None
+        else:  # "send": the reply
+            try:
+                self._ws.send(arg)
+                return self._ws.recv(timeout=self.timeout)
+            except sys.modules["websockets.exceptions"].ConnectionClosed as e:  # loaded by "connect"
+                self._io("drop", None)
+                raise closed_error(self.url, e) from None
+            except TimeoutError:
+                self._io("drop", None)
+                raise self._no_reply() from None
+        return None
+
+    def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
+                 active_only: bool | None = None) -> Evaluation:
+        """Energy, gradient, Hessian at `q` (B, 12); options default to the opening request's."""
+        return self._run(self._evaluate(q, outputs, hessian_mode, active_only))
+
+    def commit(self, q: ArrayLike) -> list[Array]:
+        """End the time step at the accepted `q`: the committed coordinates; `q` becomes `q_prev`."""
+        return self._run(self._commit(q))
+
+    def update(self, batch: int, index: ArrayLike, *, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
+               strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
+        """Change per-joint values of joints `index` of `batch` (each given array: one entry per index)."""
+        self._run(self._update(batch, index, {"lower": lower, "upper": upper, "strength": strength, "offset": offset}))
+
+    def reopen(self) -> None:
+        """A new connection in the committed state (after a drop, or to move to another server)."""
+        self._run(self._resuming(self._reopen))
+
+    def close(self) -> None:
+        """Ask the server to close (code 1000); closing a closed session does nothing."""
+        self._run(self._close())
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        # Dropped without close() (a notebook cell run again): free the socket, its two threads and the server's
+        # session slot now, waiting a second at most for the server's close frame. Not at exit: websockets' threads
+        # are stopped by then, and closing would wait on them for ever (the server sees the socket end instead).
+        if getattr(self, "_ws", None) is not None and not sys.is_finalizing():
+            self._ws.close_timeout = min(self._ws.close_timeout or 1.0, 1.0)
+            self._stack.close()

@@ -1,7 +1,9 @@
 """What the sync and async HTTP clients share, free of I/O: settings, headers, retries, part size, answers.
 
 As in httpx's own `BaseClient`, the subclasses only send (blocking or awaited), sleep between retries (as
-long as `Retry` says), and run the parts of a split in turn or concurrently.
+long as `Retry` says), and run the parts of a split in turn or concurrently. A step that needs I/O (a request
+and its retries here, a session's open or message in `client/session.py`) is a generator of the I/O it asks
+for (the sans-I/O pattern), run to the end by `run` (blocking) or `arun` (asyncio).
 """
 
 from __future__ import annotations
@@ -12,8 +14,8 @@ import re
 import ssl
 import sys
 import time
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Awaitable, Callable, Generator, Sequence
+from typing import Any, TypeVar
 
 import httpx
 import orjson
@@ -42,6 +44,41 @@ TOKEN_ENV = "JOINTLIMITS_TOKEN"
 """The bearer token when a client is given none: the server's own setting (service/settings.py)."""
 ProgressCallback = Callable[[int, int], None]
 """Called with `(joints_done, joints_total)` after each part of a split request."""
+T = TypeVar("T")
+Steps = Generator[tuple[str, Any], Any, T]
+"""A step, free of I/O: it yields each I/O it needs, `(op, argument)`, and is sent its result (or its failure)."""
+
+
+def run(steps: Steps[T], io: Callable[[str, Any], Any]) -> T:
+    """`steps` run to the end, each I/O it asks for done by `io`, blocking, and its result (or failure) sent back."""
+    reply: Any = None
+    error: BaseException | None = None
+    while True:
+        try:
+            op, arg = steps.throw(error) if error is not None else steps.send(reply)
+        except StopIteration as done:
+            return done.value
+        reply, error = None, None
+        try:
+            reply = io(op, arg)
+        except BaseException as e:  # thrown into `steps`, where it is handled or raised on
+            error = e
+
+
+async def arun(steps: Steps[T], io: Callable[[str, Any], Awaitable[Any]]) -> T:
+    """`run`, each I/O awaited."""
+    reply: Any = None
+    error: BaseException | None = None
+    while True:
+        try:
+            op, arg = steps.throw(error) if error is not None else steps.send(reply)
+        except StopIteration as done:
+            return done.value
+        reply, error = None, None
+        try:
+            reply = await io(op, arg)
+        except BaseException as e:
+            error = e
 
 
 class BaseClient:
@@ -87,8 +124,20 @@ class BaseClient:
         content, content_type = codec.encode(part.request, self.binary)
         return self._http.build_request("POST", "/v1/evaluate", content=content, headers={"Content-Type": content_type})
 
-    def _retry(self, request: httpx.Request) -> Retry:
-        return Retry(self.retries, self.backoff, f"{request.method} {request.url}", self.max_retry_after)
+    def _sending(self, request: httpx.Request) -> Steps[httpx.Response]:
+        """`request`'s answer, `("send", request)` tried again after a connection failure, a busy 503 or a proxy's
+        502/503/504, `("sleep", seconds)` between, as `Retry` says."""
+        retry = Retry(self.retries, self.backoff, f"{request.method} {request.url}", self.max_retry_after)
+        while True:
+            try:
+                response = yield "send", request
+            except RETRYABLE as e:
+                yield "sleep", retry.pause(e)
+                continue
+            pause = retry.again(response)  # None: the answer; else a busy 503 or a proxy's 502/503/504 to retry
+            if pause is None:
+                return response
+            yield "sleep", pause
 
     def _job(self, request: Request, progress: bool | ProgressCallback | None) -> Job:
         """`request` in parts that fit `self._limits` (fetched by the caller: that is I/O); a None array

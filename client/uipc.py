@@ -119,12 +119,7 @@ def reference(scene: Any) -> Reference:
     geometries, which e.g. `UrdfIO` leaves at the identity) and pass it to every later
     `request_from_scene(scene, reference=snapshot)` as the bodies' `q_ref`."""
     _uipc()
-    out = {}
-    for gid, slot, _ in _slots(scene):
-        geo = slot.geometry()
-        if _is_affine_body(_meta_uid(geo)):
-            out[gid] = _transforms(geo)
-    return Reference(out)
+    return Reference({gid: _transforms(slot.geometry()) for gid, slot, _, _ in _affine_bodies(_slots(scene))})
 
 
 @dataclass
@@ -142,10 +137,15 @@ class _Bodies:
     """Why the rest transforms can only be a guess for the transforms at `world.init()` ("": no sign)."""
 
 
-def _bodies(slots: list[tuple[int, Any, Any]], snapshot: Reference | None = None) -> _Bodies:
+def _affine_bodies(slots: list[tuple[int, Any, Any]]) -> list[tuple[int, Any, Any, int]]:
+    """The affine-body geometries of `slots` as `(id, slot, rest_slot, constitution UID)`, in the engine's body
+    order: by constitution UID, stable (slot order within one)."""
     geos = [(gid, slot, rest, _meta_uid(slot.geometry())) for gid, slot, rest in slots]
-    geos = [g for g in geos if _is_affine_body(g[3])]
-    geos.sort(key=lambda g: g[3])  # stable: slot order within a constitution UID
+    return sorted((g for g in geos if _is_affine_body(g[3])), key=lambda g: g[3])
+
+
+def _bodies(slots: list[tuple[int, Any, Any]], snapshot: Reference | None = None) -> _Bodies:
+    geos = _affine_bodies(slots)
     offset, count, qs, q_refs, published, at = {}, {}, [], [], 0, 0
     all_identity, moved, urdf_posed = True, False, []
     for gid, slot, rest, _ in geos:
@@ -285,27 +285,16 @@ def request_from_scene(scene: Any, q: ArrayLike | None = None, q_prev: ArrayLike
                        outputs: Sequence[str] = ("energy", "gradient", "hessian"), *,
                        reference: Reference | str | None = None) -> tuple[Request, list[list[JointRef]]]:
     """The request that evaluates every #670 / #669 joint of a `uipc.core.Scene` as the engine does,
-    and `joints`: `joints[k][r]` = (joint geometry id, edge index) of batch `k`'s row `r`.
+    and `joints`: `joints[k][r]` = (joint geometry id, edge index) of batch `k`'s row `r` (docs/uipc.md).
 
-    `q`, `q_prev`, `q_ref` (B, 12) override the bodies' DOFs (B = the scene's affine bodies, in the
-    engine's numbering); by default `q` = the instances' current transforms and `q_ref` = the
-    transforms at `world.init()`, which the engine builds its joint frames from: `reference`, a
-    snapshot `reference(scene)` taken where `world.init()` is called (every body geometry must be in
-    it); without one (None) the rest geometries' transforms, refused with a `SceneError` when they
-    can only be a guess (every rest transform the identity while a current one is not, or a `UrdfIO`
-    link posed after it was created: its rest transform stays the identity); `reference="rest"`
-    takes the rest transforms as they are. `committed` says whether the edges' `angle` is the
-    engine's committed angle (`prev_coordinate`): True: yes; False: no (the service measures from
-    `q_ref`); None: yes once the engine has published it (the body geometries carry
-    `backend_abd_body_offset`, which `world.init()` of a simulating backend writes). The engine
-    publishes `angle` for the transforms it writes back, which its next step takes as `q_prev`: so
-    `q_prev` defaults to the scene's current transforms when `angle` is read, else to `q_ref`.
-
-    One batch per constitution and edge variant (world edges, local edges): 670's first, each
-    constitution's variants in the order their first geometry comes; rows in slot order, then edge
-    order. Raises `SceneError` for a scene the engine would refuse, or with values the service
-    refuses (checked here, also where written after `apply_to`, to name the geometry and edge), or
-    that cannot be read, and ImportError without pyuipc.
+    `q`, `q_prev`, `q_ref` (B, 12) override the bodies' DOFs (the engine's numbering). `q` defaults to the
+    current transforms, `q_ref` to those at `world.init()`: `reference`, a snapshot `reference(scene)` taken
+    then; None: the rest geometries' transforms, refused when they can only be a guess; "rest": those as they
+    are. `committed`: whether the edges' `angle` is read as `prev_coordinate` (None: once the engine has
+    published it); `q_prev` defaults to the current transforms when it is read, else to `q_ref`.
+    One batch per constitution (670's first) and edge variant; rows in slot order, then edge order.
+    Raises `SceneError` for a scene the engine would refuse or with values the service refuses (naming the
+    geometry and edge), and ImportError without pyuipc.
     """
     _uipc()
     given_rest = isinstance(reference, str) and reference == "rest"
@@ -416,8 +405,7 @@ def write_back(scene: Any, coordinates: Evaluation | Sequence[ArrayLike | BatchR
                     kinds = " or ".join(f.kind for f in limit_of.values())
                     raise SceneError(f"not a {kinds} joint geometry (constitution UID {base})", int(gid))
                 name = limit_of[base].state_name
-                if geo.edges().find(name) is None:
-                    raise SceneError(f"the joint edges have no `{name}` attribute", int(gid))
+                _edge_attr(geo, name, int(gid))  # the attribute is there
                 writes[gid] = (geo, name, [], [])
             geo, name, rows_, vals = writes[gid]
             if not 0 <= e < geo.edges().size():

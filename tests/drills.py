@@ -1432,7 +1432,7 @@ def session_request(n: int) -> tuple[Any, Callable[[int], Any]]:
 
 def _sdk_loop(front: int, n: int, stop: threading.Event, tally: Tally) -> None:
     from jointlimits.client import Client
-    from jointlimits.client.accept import as_request
+    from jointlimits.client.model import as_request
 
     request = as_request(lb_body(n))
     with Client(f"http://{LOOPBACK}:{front}") as client:

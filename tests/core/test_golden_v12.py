@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from jointlimits.client import Client, InvalidInput, LocalClient
 from jointlimits.client import codec
-from jointlimits.client.accept import as_request
+from jointlimits.client.model import as_request
 from jointlimits.schemas import binary as wire
 from jointlimits.service.app import app
 from jointlimits.service.core import InputError, evaluate

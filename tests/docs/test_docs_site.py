@@ -44,7 +44,7 @@ def test_mkdocs_build_strict(built):
     api = (site / "api" / "index.html").read_text()
     for name in ("jointlimits.client.sync.Client", "jointlimits.client.aio.AsyncClient", "jointlimits.client.local.LocalClient", "jointlimits.client.scene.Scene",
                  "jointlimits.client.model.Evaluation", "jointlimits.client.errors.ServiceError", "jointlimits.client.session.SessionClosed",
-                 "jointlimits.client.session_sync.Session"):
+                 "jointlimits.client.sync.Session"):
         assert f'id="{name}"' in api, name
     assert (site / "bench" / "report.png").read_bytes() == (ROOT / "bench" / "results" / "report.png").read_bytes()
     # The report page is the committed report itself: its first target's measured ratio is on it.

@@ -88,7 +88,7 @@ def test_the_reported_limit_is_the_one_in_force_under_plain_uvicorn():
 
     with running(uvicorn.Config(create_app(LIMITS), log_level="warning", lifespan="off")) as (_, port):  # uvicorn's defaults
         with Client(f"http://127.0.0.1:{port}").session(readme_scene().request()) as s:
-            assert s.state.limits["max_frame_bytes"] == 16 * 2**20
+            assert s.limits["max_frame_bytes"] == 16 * 2**20
 
 
 def test_a_shutdown_closes_with_1012_and_a_reason():

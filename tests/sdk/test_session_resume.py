@@ -26,7 +26,7 @@ from websockets.http11 import Response
 
 from jointlimits.client import AsyncClient, Client, LocalClient, ServiceError, SessionClosed, Unreachable
 from jointlimits.client.session import resumable
-from jointlimits.client.session_sync import closed_error, handshake_error
+from jointlimits.client.session import closed_error, handshake_error
 from jointlimits.schemas import session as proto
 from jointlimits.service.app import create_app
 from jointlimits.service.http.timeouts import server_options

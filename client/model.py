@@ -354,9 +354,13 @@ class Evaluation:
         A plain `int` is a row of the only batch; with several batches use `batch(uid).joint(row)`.
         """
         if isinstance(j, Joint):
-            if j.batch is not None:
-                return self.batches[j.batch].joint(j)
-            return self.batch(j.constitution_uid).joint(j)
+            if j.batch is None:
+                return self.batch(j.constitution_uid).joint(j)
+            # A handle of another scene may point past this answer or at another constitution's batch.
+            if not 0 <= j.batch < len(self.batches) or self.batches[j.batch].constitution_uid != j.constitution_uid:
+                raise KeyError(f"{j!r} is not a joint of this answer's request (its batch {j.batch} is not one of "
+                               f"constitution {j.constitution_uid}): pass the handle of the Scene that made it")
+            return self.batches[j.batch].joint(j)
         if len(self.batches) != 1:
             raise TypeError(
                 f"joint({j!r}): a plain row is ambiguous with {len(self.batches)} batches; pass the handle "

@@ -85,3 +85,18 @@ def test_joint_lookup_after_a_split(live):
     for j in js:
         assert split.joint(j).energy == whole.joint(j).energy
         assert np.array_equal(split.joint(j).hessian, whole.joint(j).hessian)
+
+
+def test_a_handle_of_another_scene_is_refused_not_read_as_another_joint():
+    """A handle is a row of a batch: in another scene's answer that batch may be another constitution's (a
+    revolute handle read a prismatic joint's numbers) or absent (an IndexError of the list, not the SDK's)."""
+    s, js = scene()
+    other = Scene()
+    a, c = other.add_body(np.eye(4)), other.add_body(np.eye(4))
+    other.add_prismatic_limit(a, c, [0, 0, 0], [0, 0, 1], lower=-0.1, upper=0.2)  # batch 0 holds #669 here
+    answer = LocalClient().evaluate(other.request())
+    with pytest.raises(KeyError, match="constitution 670"):
+        answer.joint(js[0])  # batch 0, #670 in its own scene
+    with pytest.raises(KeyError, match="batch 1"):
+        answer.joint(js[1])  # batch 1: the other scene has one batch
+    assert answer.joint(Joint(0, 669, 0)).x == answer.batch(669).x[0]  # a handle that fits is read

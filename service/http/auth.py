@@ -12,6 +12,7 @@ import hmac
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from jointlimits.service.core import Fault
 from jointlimits.service.http.errors import refuse
 
 PROTECTED_PREFIX = "/v1/"
@@ -32,8 +33,8 @@ class BearerAuthMiddleware:
         if scope["type"] not in ("http", "websocket") or not scope["path"].startswith(self.prefix) or self._authorized(scope):
             return await self.app(scope, receive, send)
         # A session is refused on its upgrade request, before it is accepted: the same 401.
-        fault = {"loc": ["header", "authorization"], "msg": _UNAUTHORIZED, "type": "unauthorized"}
-        await refuse(scope, send, 401, fault, _UNAUTHORIZED, [(b"www-authenticate", b'Bearer realm="jointlimits"')])
+        fault = Fault(("header", "authorization"), _UNAUTHORIZED, "unauthorized")
+        await refuse(scope, receive, send, 401, fault, _UNAUTHORIZED, {"WWW-Authenticate": 'Bearer realm="jointlimits"'})
 
     def _authorized(self, scope: Scope) -> bool:
         scheme, _, credentials = (_header(scope, b"authorization") or b"").strip().partition(b" ")
@@ -58,5 +59,4 @@ class SessionOriginMiddleware:
         if origin is None or "*" in self.origins or origin.rstrip("/") in self.origins:
             return await self.app(scope, receive, send)
         msg = f"origin {origin[:200]!r} is not allowed (JOINTLIMITS_CORS_ORIGINS): no session from this site"
-        await refuse(scope, send, 403, {"loc": ["header", "origin"], "msg": msg, "type": "origin_not_allowed"},
-                     "origin not allowed")
+        await refuse(scope, receive, send, 403, Fault(("header", "origin"), msg, "origin_not_allowed"), "origin not allowed")

@@ -18,6 +18,7 @@ latest ping, and logs a client's protocol faults as one WARNING line, never a tr
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import socket
 import struct
@@ -34,11 +35,12 @@ from websockets.exceptions import PayloadTooBig
 from websockets.frames import Close, Frame, Opcode
 
 from jointlimits.schemas.session import TRY_AGAIN_LATER
+from jointlimits.service.core import Fault
+from jointlimits.service.http.errors import BODY_TIMED_OUT, RETRY_AFTER_SECONDS, render
 from jointlimits.service.observability import LIFESPAN_METRICS, peer
 from jointlimits.service.settings import Settings
 from jointlimits.service.sizing import UPLOAD_FACTOR
 
-BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `client_gone`
 DRAIN = "jointlimits.drain"
 """Key in a connection's ASGI scope `extensions` of its `Drain` (absent in-process: TestClient, no transport)."""
 OPENED = "jointlimits.opened"
@@ -56,18 +58,15 @@ MAX_HEAD_BYTES = 64 * 1024
 """Bytes a request line and its headers may take (the deadline bounds their time only): past it, 431 and closed.
 httptools joins a header's or a URL's pieces by copying them, so an unbounded head costs memory and quadratic time:
 one connection streaming a header for the 10 s deadline took a worker from 69 to 533 MiB and stalled it 5.5 s."""
-_431_BODY = (b'{"detail":[{"loc":["header"],"msg":"request line and headers exceed %d bytes, the most this service '
-             b'reads","type":"too_large"}]}' % MAX_HEAD_BYTES)
 MAX_HEADS_HELD = 16 * 2**20
 """Bytes of unfinished request heads one worker holds over all its connections (a head that arrives whole in one read
 holds none): past it, 503 `busy` and closed. One client opens ~11 000 connections within the head deadline: 3000
 holding 60 kB each took a worker from 93 to 266 MiB."""
-_503_BODY = (b'{"detail":[{"loc":["header"],"msg":"this worker holds %d bytes of unfinished request heads, its most: '
-             b'retry after Retry-After seconds","type":"busy"}]}')
 
 
-def _answer(status: bytes, body: bytes, *headers: bytes) -> bytes:
-    """An HTTP/1.1 answer with a JSON fault list, closing the connection."""
+def _answer(status: bytes, msg: str, type: str, *headers: bytes) -> bytes:
+    """An HTTP/1.1 answer with a one-fault list at the header, closing the connection."""
+    body = json.dumps(render([Fault(("header",), msg, type)])).encode()
     return (b"HTTP/1.1 %s\r\ncontent-type: application/json\r\ncontent-length: %d\r\n%sconnection: close\r\n\r\n%s"
             % (status, len(body), b"".join(h + b"\r\n" for h in headers), body))
 
@@ -243,9 +242,12 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             self._head_size += len(data)  # counted after the parse: at most one read past the bound is held
             ReadTimeoutProtocol.heads_held += len(data)
             if self._head_size > MAX_HEAD_BYTES:
-                self._refuse("head_too_large", _answer(b"431 Request Header Fields Too Large", _431_BODY))
+                msg = f"request line and headers exceed {MAX_HEAD_BYTES} bytes, the most this service reads"
+                self._refuse("head_too_large", _answer(b"431 Request Header Fields Too Large", msg, "too_large"))
             elif ReadTimeoutProtocol.heads_held > MAX_HEADS_HELD:
-                busy = _answer(b"503 Service Unavailable", _503_BODY % MAX_HEADS_HELD, b"retry-after: 5")
+                msg = (f"this worker holds {MAX_HEADS_HELD} bytes of unfinished request heads, its most: retry after "
+                       "Retry-After seconds")
+                busy = _answer(b"503 Service Unavailable", msg, "busy", b"retry-after: %d" % RETRY_AFTER_SECONDS)
                 self._refuse("heads_full", busy)
 
     def on_headers_complete(self) -> None:

@@ -153,7 +153,7 @@ async def _messages(websocket: WebSocket, settings: Settings, metrics: Metrics, 
                 # Preparing a scene takes what a request of its size may take: a share of the in-flight budget
                 # (bounded from the message's size), until the reply is sent.
                 cost = sizing.cost_before_body(len(frame), binary_frame, binary_frame, settings)  # JSON text: ASCII
-                reservations.append(await budget.reserve(state.in_flight, cost, settings))
+                reservations.append(await state.in_flight.acquire(cost, settings.queue_timeout))
                 reply = await run_in_threadpool(_open, frame, settings, state, session)
             else:
                 message = decode(frame, settings.max_json_values)
@@ -284,7 +284,7 @@ async def _answer(session: Session, m: Message, binary_frame: bool, settings: Se
             admit(joints=batch_sizes, outputs=options["outputs"], binary_answer=binary_frame, settings=settings)
             cost = session.costs[key] = sizing.request_cost(0, None, batch_sizes, scene.n_bodies, options["outputs"],
                                                             binary_frame, settings)
-        reservations.append(await budget.reserve(state.in_flight, cost, settings))
+        reservations.append(await state.in_flight.acquire(cost, settings.queue_timeout))
         ev = await _run(session, lambda: scene.evaluate(m.q, **options))
         return encode_evaluation(ev, binary_frame, m.id)
     if m.kind == proto.COMMIT:

@@ -182,23 +182,23 @@ class _WriteBound:
         if buffered == 0:  # drained meanwhile (a lingering write), nothing is held
             return
         # One line, no traceback: a client that stops reading is expected, not a server fault.
-        log.warning("client %s left its write buffer full for %s s (%d bytes waiting): connection reset "
-                    "(JOINTLIMITS_WRITE_TIMEOUT)", peer(self.client), self.write_timeout, buffered)
+        self._reset(logging.WARNING, "client %s left its write buffer full for %s s (%d bytes waiting): connection "
+                    "reset (JOINTLIMITS_WRITE_TIMEOUT)", peer(self.client), self.write_timeout, buffered)
+
+    def _reset(self, level: int, msg: str, *args: Any) -> None:
+        """Log, count as `slow_read` and drop the connection now, with what the process and the kernel hold for it:
+        `close()` would wait for the buffer to drain (what never happens), and a plain socket close leaves the
+        kernel's send buffer queued before its FIN. A zero linger makes the close a reset: the client sees it, the
+        kernel frees its buffer."""
+        log.log(level, msg, *args)
         self._closed("slow_read")
-        _reset(self.transport)
-
-
-def _reset(transport: asyncio.Transport) -> None:
-    """Drop the connection now, with what the process and the kernel hold for it: `close()` would wait for the
-    buffer to drain (what never happens), and a plain socket close leaves the kernel's send buffer queued
-    before its FIN. A zero linger makes the close a reset: the client sees it, the kernel frees its buffer."""
-    sock = transport.get_extra_info("socket")
-    if sock is not None:
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-        except OSError:  # already closed meanwhile
-            pass
-    transport.abort()
+        sock = self.transport.get_extra_info("socket")
+        if sock is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            except OSError:  # already closed meanwhile
+                pass
+        self.transport.abort()
 
 
 class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
@@ -278,13 +278,10 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self.transport.close()
 
     def _head_expired(self) -> None:
-        if self.transport.is_closing():
-            return
-        log.debug("request head not complete within %s s: closing %s", self.header_timeout, self.client)
-        self._closed("slow_head" if self._head_bytes else "silent")
-        if self._head_bytes:
-            self.transport.write(_408)
-        self.transport.close()
+        if not self.transport.is_closing():
+            log.debug("request head not complete within %s s: closing %s", self.header_timeout, self.client)
+            reason, answer = ("slow_head", _408) if self._head_bytes else ("silent", b"")
+            self._refuse(reason, answer)
 
 
 def http_protocol(header_timeout: float, write_timeout: float | None = None) -> type[ReadTimeoutProtocol]:
@@ -482,10 +479,8 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
         self.close_timer = None
         if self.transport.is_closing() and self.transport.get_write_buffer_size() == 0:
             return
-        log.info("client %s did not answer the close frame within %s s: connection reset", peer(self.client),
-                 self.write_timeout)
-        self._closed("slow_read")
-        _reset(self.transport)
+        self._reset(logging.INFO, "client %s did not answer the close frame within %s s: connection reset",
+                    peer(self.client), self.write_timeout)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._message_timer.stop()

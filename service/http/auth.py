@@ -24,13 +24,11 @@ def _header(scope: Scope, name: bytes) -> bytes | None:
 
 
 class BearerAuthMiddleware:
-    def __init__(self, app: ASGIApp, token: str, prefix: str = PROTECTED_PREFIX) -> None:
-        if not token:
-            raise ValueError("BearerAuthMiddleware needs a non-empty token")
-        self.app, self.expected, self.prefix = app, token.encode(), prefix
+    def __init__(self, app: ASGIApp, token: str) -> None:
+        self.app, self.expected = app, token.encode()  # installed only with a token (service/app.py)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] not in ("http", "websocket") or not scope["path"].startswith(self.prefix) or self._authorized(scope):
+        if scope["type"] not in ("http", "websocket") or not scope["path"].startswith(PROTECTED_PREFIX) or self._authorized(scope):
             return await self.app(scope, receive, send)
         # A session is refused on its upgrade request, before it is accepted: the same 401.
         fault = Fault(("header", "authorization"), _UNAUTHORIZED, "unauthorized")

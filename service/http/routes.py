@@ -126,9 +126,9 @@ def list_constitutions(request: Request) -> ConstitutionsResponse:
     response_model_exclude_none=True,
     summary="Energy, gradient and Hessian of a batch of joint limits",
     description="Body and answer in JSON or msgpack (`Content-Type` / `Accept`); errors are always JSON.",
-    openapi_extra={"requestBody": openapi.request_body()},
+    openapi_extra={"requestBody": openapi.REQUEST_BODY},
     responses={200: {"content": {BINARY: {"schema": {"type": "string", "format": "binary"}}}},
-               **openapi.error_responses()},
+               **openapi.ERROR_RESPONSES},
 )
 async def evaluate_joints(request: Request) -> Response:
     settings = request.app.state.settings

@@ -164,7 +164,7 @@ async def _messages(websocket: WebSocket, settings: Settings, metrics: Metrics, 
                 reply = await _answer(session, message, binary_frame, settings, state, reservations)
         except (InputError, HttpError) as e:
             outcome = "fault"
-            reply = encode(error(e, message_id(e) if mid is None else mid), binary_frame)
+            reply = encode(error(e, getattr(e, "id", None) if mid is None else mid), binary_frame)
             if kind == "open" and isinstance(e, HttpError) and e.status == 413:
                 await _send(websocket, reply, settings)
                 metrics.session_messages.labels(kind, outcome).inc()
@@ -312,7 +312,7 @@ async def _run(session: Session, fn: Callable[[], T]) -> T:
 def decode_open(frame: Frame, max_values: int, max_batches: int) -> dict[str, Any]:
     """Keyword arguments of the core for the opening document, plus its `id` (under "id", None when absent);
     `InputError` (422) or `HttpError` (413: its JSON values or its batches, counted before they are parsed, as
-    in a request), carrying the document's readable `id` (`message_id`)."""
+    in a request), carrying the document's readable `id` (`with_id`)."""
     checker = document.Checker(binary=isinstance(frame, bytes))
     try:
         if isinstance(frame, str):
@@ -349,14 +349,9 @@ def decode(frame: Frame, max_values: int) -> Message:
 
 
 def with_id(e: Exception, id: int | str | None) -> Exception:
-    """`e`, carrying the `id` its fault reply repeats (`message_id`)."""
+    """`e`, carrying the `id` its fault reply repeats (a document refused before its `id` was read has none)."""
     e.id = id  # type: ignore[attr-defined]
     return e
-
-
-def message_id(e: Exception) -> int | str | None:
-    """The `id` of a message that could not be decoded, if it has a readable one (its fault reply repeats it)."""
-    return getattr(e, "id", None)
 
 
 # ------------------------------------------------------------------ replies

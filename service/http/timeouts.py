@@ -1,18 +1,11 @@
 """The connection layer: deadlines on reads and writes, and a WebSocket close the client always reads.
 
 uvicorn times out only idle keep-alive connections: a client that sends nothing, half its headers, or its body at
-one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time:
-the request head (`ReadTimeoutProtocol`, 408 then closed; its bytes too: 431 past `MAX_HEAD_BYTES`, 503 past
-`MAX_HEADS_HELD` over the worker's connections), the body (`BodyTimeoutMiddleware`, 408 from `errors.client_gone`),
-a session message (1008), and the write side (issue 19) in both protocols: a transport whose buffer stays full
-for `write_timeout` seconds (a client that stops reading) is reset, freeing what it held.
-The application sees the write side through `Drain` (`scope["extensions"][DRAIN]`).
-
-The WebSocket protocol (issue 20) closes a message over the limit (1009) or not UTF-8 (1007) with a reason and a
-FIN, then reads and drops what the client still sends (uvicorn closed at once: the kernel's reset made the client
-see 1006); the application hears the same code and reason. It closes with 1012 and a reason on shutdown, counts a
-message's bytes in the worker's upload budget from its first byte (1013 when they do not fit), answers only the
-latest ping, and logs a client's protocol faults as one WARNING line, never a traceback.
+one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time: the request
+head (`ReadTimeoutProtocol`), the body (`BodyTimeoutMiddleware`), a session message, and in both protocols the write
+side (`_WriteBound`: a client that stops reading is reset, freeing what it held; the application sees it as `Drain`).
+uvicorn's own WebSocket close on a protocol fault was a reset the client read as 1006: ours sends a close frame and
+a FIN, then drains (`WriteTimeoutWebSocketProtocol`).
 """
 
 from __future__ import annotations
@@ -316,7 +309,9 @@ def not_utf8() -> tuple[int, str]:
 
 
 class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
-    """uvicorn's websockets (sans-I/O) protocol with the closes, bounds and upload counts above."""
+    """uvicorn's websockets (sans-I/O) protocol: a message over the limit (1009) or not UTF-8 (1007) closed with a
+    reason and a FIN, the rest drained; 1012 on shutdown; a message's bytes in the worker's upload budget from its
+    first byte (1013 past it); the latest ping alone answered; a client's protocol fault one WARNING line."""
 
     message_timeout: float | None = None  # None: JOINTLIMITS_BODY_TIMEOUT, read per connection
     draining = False  # closed under the application (1009, 1007, 1013): the rest is read and dropped

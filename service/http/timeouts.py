@@ -18,7 +18,7 @@ import struct
 import sys
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocket
@@ -277,12 +277,6 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             self._refuse(reason, answer)
 
 
-def http_protocol(header_timeout: float, write_timeout: float | None = None) -> type[ReadTimeoutProtocol]:
-    """A `ReadTimeoutProtocol` with its own `header_timeout` and `write_timeout` (for an in-process
-    uvicorn.Config; None: JOINTLIMITS_WRITE_TIMEOUT)."""
-    return type("ReadTimeoutProtocol", (ReadTimeoutProtocol,), {"header_timeout": header_timeout, "write_timeout": write_timeout})
-
-
 class _Queue(asyncio.Queue):  # type: ignore[type-arg]
     """uvicorn's queue of ASGI events, with the bytes of the messages it holds (`held`)."""
 
@@ -522,11 +516,13 @@ def _too_big(exc: PayloadTooBig, limit: int | None) -> str:
     return f"{what} over the limit; this service accepts at most {limit} (JOINTLIMITS_MAX_FRAME_BYTES)"
 
 
-def ws_protocol(write_timeout: float | None = None, message_timeout: float | None = None) -> type[WriteTimeoutWebSocketProtocol]:
-    """A `WriteTimeoutWebSocketProtocol` with its own bounds (for an in-process uvicorn.Config; None: from the
-    environment)."""
-    return type("WriteTimeoutWebSocketProtocol", (WriteTimeoutWebSocketProtocol,),
-                {"write_timeout": write_timeout, "message_timeout": message_timeout})
+P = TypeVar("P")
+
+
+def bounded(protocol: type[P], **bounds: float | None) -> type[P]:
+    """`protocol` (`ReadTimeoutProtocol`, `WriteTimeoutWebSocketProtocol`) with its own `header_timeout`,
+    `write_timeout`, `message_timeout` (for an in-process uvicorn.Config; None: from the environment)."""
+    return type(protocol.__name__, (protocol,), bounds)
 
 
 def server_options(max_frame_bytes: int) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jointlimits.service.core import Fault, InputError
 from jointlimits.service.core.errors import MAX_FAULTS, DeadlineExceeded
+from jointlimits.service.http.timeouts import BODY_TIMED_OUT
 
 RETRY_AFTER_SECONDS = 5
 """`Retry-After` of a 503 (busy, past the request deadline): the worker is free again at once, a busy pod soon."""
@@ -30,7 +31,6 @@ MAX_MSG_CHARS = 1024
 """A message quoting the input (a dtype string, a shape) is cut to this many characters plus `...`."""
 FAULT_LIST = "jointlimits.fault_list"
 """Key of a `response.start` message whose body is already a fault list: passed on as is (the key dropped)."""
-BODY_TIMED_OUT = "body_timed_out"  # key in a request's scope state: set by `timeouts.BodyTimeoutMiddleware`
 CLIENT_CLOSED = 499
 """Status recorded (metrics, access log) for a request whose client left before its body was read (nginx's 499)."""
 

@@ -28,12 +28,11 @@ from websockets.exceptions import PayloadTooBig
 from websockets.frames import Close, Frame, Opcode
 
 from jointlimits.schemas.session import TRY_AGAIN_LATER
-from jointlimits.service.core import Fault
-from jointlimits.service.http.errors import BODY_TIMED_OUT, RETRY_AFTER_SECONDS, render
 from jointlimits.service.observability import LIFESPAN_METRICS, peer
 from jointlimits.service.settings import Settings
 from jointlimits.service.sizing import UPLOAD_FACTOR
 
+BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `errors.client_gone`
 DRAIN = "jointlimits.drain"
 """Key in a connection's ASGI scope `extensions` of its `Drain` (absent in-process: TestClient, no transport)."""
 OPENED = "jointlimits.opened"
@@ -58,8 +57,9 @@ holding 60 kB each took a worker from 93 to 266 MiB."""
 
 
 def _answer(status: bytes, msg: str, type: str, *headers: bytes) -> bytes:
-    """An HTTP/1.1 answer with a one-fault list at the header, closing the connection."""
-    body = json.dumps(render([Fault(("header",), msg, type)])).encode()
+    """An HTTP/1.1 answer with a one-fault list at the header, closing the connection. Written here, not by
+    `errors.render`: `jointlimits serve`'s supervisor imports this module and never the core (nor NumPy)."""
+    body = json.dumps({"detail": [{"loc": ["header"], "msg": msg, "type": type}]}).encode()
     return (b"HTTP/1.1 %s\r\ncontent-type: application/json\r\ncontent-length: %d\r\n%sconnection: close\r\n\r\n%s"
             % (status, len(body), b"".join(h + b"\r\n" for h in headers), body))
 
@@ -240,7 +240,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             elif ReadTimeoutProtocol.heads_held > MAX_HEADS_HELD:
                 msg = (f"this worker holds {MAX_HEADS_HELD} bytes of unfinished request heads, its most: retry after "
                        "Retry-After seconds")
-                busy = _answer(b"503 Service Unavailable", msg, "busy", b"retry-after: %d" % RETRY_AFTER_SECONDS)
+                busy = _answer(b"503 Service Unavailable", msg, "busy", b"retry-after: 5")
                 self._refuse("heads_full", busy)
 
     def on_headers_complete(self) -> None:

@@ -28,11 +28,13 @@ class BearerAuthMiddleware:
         self.app, self.expected = app, token.encode()  # installed only with a token (service/app.py)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] not in ("http", "websocket") or not scope["path"].startswith(PROTECTED_PREFIX) or self._authorized(scope):
+        protected = scope["type"] in ("http", "websocket") and scope["path"].startswith(PROTECTED_PREFIX)
+        if not protected or self._authorized(scope):
             return await self.app(scope, receive, send)
         # A session is refused on its upgrade request, before it is accepted: the same 401.
         fault = Fault(("header", "authorization"), _UNAUTHORIZED, "unauthorized")
-        await refuse(scope, receive, send, 401, fault, _UNAUTHORIZED, {"WWW-Authenticate": 'Bearer realm="jointlimits"'})
+        challenge = {"WWW-Authenticate": 'Bearer realm="jointlimits"'}
+        await refuse(scope, receive, send, 401, fault, _UNAUTHORIZED, challenge)
 
     def _authorized(self, scope: Scope) -> bool:
         scheme, _, credentials = (_header(scope, b"authorization") or b"").strip().partition(b" ")
@@ -57,4 +59,5 @@ class SessionOriginMiddleware:
         if origin is None or "*" in self.origins or origin.rstrip("/") in self.origins:
             return await self.app(scope, receive, send)
         msg = f"origin {origin[:200]!r} is not allowed (JOINTLIMITS_CORS_ORIGINS): no session from this site"
-        await refuse(scope, receive, send, 403, Fault(("header", "origin"), msg, "origin_not_allowed"), "origin not allowed")
+        fault = Fault(("header", "origin"), msg, "origin_not_allowed")
+        await refuse(scope, receive, send, 403, fault, "origin not allowed")

@@ -2,8 +2,8 @@
 
 Parse a frame, call the prepared scene, encode the reply: nothing else. The opening message is decoded by the
 HTTP decoders themselves, a later one parsed once and checked by the one validator (`document.Checker.message`);
-a reply is written by the same encoders, in the encoding of the message it answers. The state (the prepared scene with its
-`q_prev` and committed coordinates) lives with the connection, so any worker of any pod can hold a session.
+a reply is written by the same encoders, in the encoding of the message it answers. The state (the prepared scene
+with its `q_prev` and committed coordinates) lives with the connection, so any worker of any pod can hold a session.
 Bounds: sessions per worker, frame bytes, idle seconds, scene joints (+ `limits.admit`), the in-flight budget.
 """
 

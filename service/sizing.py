@@ -55,15 +55,12 @@ def _msgpack(body_bytes: int, s: Settings) -> tuple[int, int]:
     return BYTES_PER_JOINT * joints + BYTES_PER_BODY * bodies, joints
 
 
-def request_bytes(s: Settings) -> int:
-    """The costlier of the largest JSON body (its bytes and parse) and the largest msgpack body (bytes and core)."""
-    return max(s.max_body_bytes + JSON_BYTES_PER_VALUE * s.max_json_values, _msgpack(s.max_body_bytes, s)[0])
-
-
 def inflight_bytes(s: Settings) -> int:
-    """The memory budget of a worker's requests in flight: the costliest request its limits admit and its answer.
-    Requests start only while their costs fit in it together (service/http/budget.py)."""
-    return request_bytes(s) + int(ANSWER_FACTOR * s.max_answer_bytes)
+    """The memory budget of a worker's requests in flight: the costliest request its limits admit (the largest JSON
+    body, its bytes and parse, or the largest msgpack body, bytes and core) and its answer. Requests start only
+    while their costs fit in it together (service/http/budget.py)."""
+    request = max(s.max_body_bytes + JSON_BYTES_PER_VALUE * s.max_json_values, _msgpack(s.max_body_bytes, s)[0])
+    return request + int(ANSWER_FACTOR * s.max_answer_bytes)
 
 
 def upload_bytes(s: Settings) -> int:
@@ -79,7 +76,7 @@ def worker_bytes(s: Settings) -> int:
 
 
 def cost_before_body(body_bytes: int, binary_request: bool, binary_answer: bool, s: Settings) -> int:
-    """Memory a request of `body_bytes` bytes may take before it is parsed, by `request_bytes`' terms at this size
+    """Memory a request of `body_bytes` bytes may take before it is parsed, by `inflight_bytes`' terms at this size
     (a JSON body's worst is its shortest values, `0,`), and its answer with every output. At most `inflight_bytes`."""
     b = min(body_bytes, s.max_body_bytes)
     if binary_request:

@@ -45,10 +45,12 @@ def serve(settings: Settings, header_timeout: float = 5.0, write_timeout: float 
           message_timeout: float | None = None) -> Iterator[Live]:
     """uvicorn in a thread; `log_config=None` leaves logging to the test (caplog sees uvicorn's records)."""
     app = create_app(settings)
+    message_timeout = settings.body_timeout if message_timeout is None else message_timeout
     config = uvicorn.Config(
         app, log_config=None, log_level="info", lifespan="on",
-        http=timeouts.http_protocol(header_timeout, write_timeout),
-        ws=timeouts.ws_protocol(write_timeout, message_timeout if message_timeout is not None else settings.body_timeout),
+        http=timeouts.bounded(timeouts.ReadTimeoutProtocol, header_timeout=header_timeout, write_timeout=write_timeout),
+        ws=timeouts.bounded(timeouts.WriteTimeoutWebSocketProtocol, write_timeout=write_timeout,
+                            message_timeout=message_timeout),
         ws_max_size=settings.max_frame_bytes, ws_per_message_deflate=False,
     )  # fmt: skip
     with running(config) as (server, port):

@@ -12,6 +12,7 @@ import hmac
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from jointlimits.service.core import Fault
 from jointlimits.service.http.errors import refuse
 
 PROTECTED_PREFIX = "/v1/"
@@ -23,17 +24,17 @@ def _header(scope: Scope, name: bytes) -> bytes | None:
 
 
 class BearerAuthMiddleware:
-    def __init__(self, app: ASGIApp, token: str, prefix: str = PROTECTED_PREFIX) -> None:
-        if not token:
-            raise ValueError("BearerAuthMiddleware needs a non-empty token")
-        self.app, self.expected, self.prefix = app, token.encode(), prefix
+    def __init__(self, app: ASGIApp, token: str) -> None:
+        self.app, self.expected = app, token.encode()  # installed only with a token (service/app.py)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] not in ("http", "websocket") or not scope["path"].startswith(self.prefix) or self._authorized(scope):
+        protected = scope["type"] in ("http", "websocket") and scope["path"].startswith(PROTECTED_PREFIX)
+        if not protected or self._authorized(scope):
             return await self.app(scope, receive, send)
         # A session is refused on its upgrade request, before it is accepted: the same 401.
-        fault = {"loc": ["header", "authorization"], "msg": _UNAUTHORIZED, "type": "unauthorized"}
-        await refuse(scope, send, 401, fault, _UNAUTHORIZED, [(b"www-authenticate", b'Bearer realm="jointlimits"')])
+        fault = Fault(("header", "authorization"), _UNAUTHORIZED, "unauthorized")
+        challenge = {"WWW-Authenticate": 'Bearer realm="jointlimits"'}
+        await refuse(scope, receive, send, 401, fault, _UNAUTHORIZED, challenge)
 
     def _authorized(self, scope: Scope) -> bool:
         scheme, _, credentials = (_header(scope, b"authorization") or b"").strip().partition(b" ")
@@ -58,5 +59,5 @@ class SessionOriginMiddleware:
         if origin is None or "*" in self.origins or origin.rstrip("/") in self.origins:
             return await self.app(scope, receive, send)
         msg = f"origin {origin[:200]!r} is not allowed (JOINTLIMITS_CORS_ORIGINS): no session from this site"
-        await refuse(scope, send, 403, {"loc": ["header", "origin"], "msg": msg, "type": "origin_not_allowed"},
-                     "origin not allowed")
+        fault = Fault(("header", "origin"), msg, "origin_not_allowed")
+        await refuse(scope, receive, send, 403, fault, "origin not allowed")

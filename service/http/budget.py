@@ -4,7 +4,7 @@ what its requests hold together, whatever arrives at once, each request being ad
 - uploads: the bodies being received (and a session's messages, `timeouts`), counted as their bytes arrive.
   Nothing waits for it: a chunk that does not fit makes the answer 503 `busy`, the rest read and dropped, so a
   slow sender holds only what it sent.
-- in flight: a request's cost, bounded from its body's size, cut to what it holds once parsed (`settle`), then to
+- in flight: a request's cost, bounded from its body's size, cut to what it holds once parsed (`routes`), then to
   its encoded answer, released once that has left the process (`ReleaseMiddleware`). Requests (and a session's
   opening and evaluates) wait in arrival order; past `queue_timeout` they are 503 `busy`, nothing evaluated.
 
@@ -32,10 +32,6 @@ from jointlimits.service.settings import Settings
 SMALL_SHARE = 16
 """A request of at most this fraction of the budget (~160 MB at the defaults, ~50 MB at the manifest's
 limits: every request of a few thousand joints) passes the waiters when it fits."""
-
-
-class Busy(Exception):
-    """Not admitted within the wait allowed (`Budget.acquire`)."""
 
 
 @dataclass(eq=False)
@@ -109,8 +105,8 @@ class Budget:
 
     async def acquire(self, size: int, timeout: float) -> Reservation:
         """Reserve `size` bytes (at most `capacity`: every request fits alone): at once if they fit and nobody
-        waits (or they are small), else once every earlier waiter has been served and they fit; `Busy` after
-        `timeout` seconds of waiting (the waiter leaves the queue)."""
+        waits (or they are small), else once every earlier waiter has been served and they fit; 503 busy after
+        `timeout` seconds (JOINTLIMITS_QUEUE_TIMEOUT) of waiting (the waiter leaves the queue)."""
         size = min(max(size, 0), self.capacity)
         loop = asyncio.get_running_loop()
         with self._lock:
@@ -137,7 +133,9 @@ class Budget:
                 self._wake()  # a large waiter leaving the head may let the next ones in
             self._changed()
             if isinstance(e, TimeoutError):
-                raise Busy from None
+                raise busy(f"this worker's requests in flight hold its memory budget ({self.capacity} bytes, "
+                           f"docs/deployment.md, 'Limits and sizing a pod') and this request waited {timeout:g} s "
+                           "(JOINTLIMITS_QUEUE_TIMEOUT) without starting") from None
             raise
         return Reservation(self, size)
 
@@ -158,23 +156,12 @@ class Budget:
             waiter.loop.call_soon_threadsafe(_resolve, waiter.future)
 
 
-async def reserve(budget: Budget, cost: int, settings: Settings) -> Reservation:
-    """`cost` bytes of the worker's in-flight `budget` once there is room (HTTP requests and WebSocket session
-    messages alike); 503 busy after `queue_timeout` seconds of waiting."""
-    try:
-        return await budget.acquire(cost, settings.queue_timeout)
-    except Busy:
-        raise busy(f"this worker's requests in flight hold its memory budget ({budget.capacity} bytes, "
-                   f"docs/deployment.md, 'Limits and sizing a pod') and this request waited "
-                   f"{settings.queue_timeout:g} s (JOINTLIMITS_QUEUE_TIMEOUT) without starting") from None
-
-
 async def receive(request: Request, settings: Settings, binary_request: bool, binary_answer: bool) -> bytes:
     """The request's body, received within the worker's upload budget (once a chunk does not fit, the rest is
     read and dropped, then 503 busy); then its turn in the in-flight budget (bounded from the body's size until
-    parsed: `settle`), which counts the body, so its upload bytes are given back. Both are given back once the
+    parsed), which counts the body, so its upload bytes are given back. Both are given back once the
     answer has been sent (`ReleaseMiddleware`)."""
-    reservations = held(request.state)
+    reservations = request.state.reservations  # given back by `ReleaseMiddleware`
     uploads = request.app.state.uploads
     upload = uploads.reserve_now()
     reservations.append(upload)
@@ -191,7 +178,7 @@ async def receive(request: Request, settings: Settings, binary_request: bool, bi
             raise busy(f"this worker is receiving as many request bodies as its upload budget holds "
                        f"({uploads.capacity} bytes, docs/deployment.md, 'Limits and sizing a pod')")
         cost = sizing.cost_before_body(len(body), binary_request, binary_answer, settings)
-        reservation = await reserve(request.app.state.in_flight, cost, settings)
+        reservation = await request.app.state.in_flight.acquire(cost, settings.queue_timeout)
     finally:
         upload.release()
     reservations.append(reservation)
@@ -199,15 +186,8 @@ async def receive(request: Request, settings: Settings, binary_request: bool, bi
     return body
 
 
-def settle(state: Any, cost: int) -> None:
-    """Cut the request's in-flight reservation (if any) to `cost`, its parsed cost: room for the requests waiting."""
-    reservation = getattr(state, "in_flight", None) if state is not None else None
-    if reservation is not None:
-        reservation.shrink(cost)
-
-
 class ReleaseMiddleware:
-    """Gives back every reservation a request took (`held(state)`: `receive` appends them) once its answer has
+    """Gives back every reservation a request took (`receive` appends them to `state.reservations`) once its answer has
     left the process, or it failed, or its client left (`hold_until_drained`)."""
 
     def __init__(self, app: ASGIApp) -> None:
@@ -248,11 +228,3 @@ def hold_until_drained(scope: Scope, reservations: list[Reservation], written: i
             r.release()
     largest.shrink(written)  # the encoded answer alone is held now (its arrays are gone)
     drain.after(largest.release)
-
-
-def held(state: Any) -> list[Reservation]:
-    """The list `ReleaseMiddleware` releases, from a request's `state`."""
-    found = getattr(state, "reservations", None) if state is not None else None
-    if found is None:  # without the middleware nothing would give the bytes back
-        raise RuntimeError("budget.ReleaseMiddleware is not installed: reservations would never be released")
-    return found

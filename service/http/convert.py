@@ -79,24 +79,20 @@ def _string_colons(doc: dict[str, Any]) -> int:
     return sum(x.count(":") for x in strings)
 
 
+ROW = ("constitution_uid", "index", "x", "coordinate", "energy", "gradient", "hessian")
+"""A batch's answer fields, in the wire's order."""
+
+
 def to_wire(ev: Evaluation) -> dict[str, Any]:
-    """The response body of contract v1.1 as NumPy arrays; `gradient`/`hessian` only when computed."""
-    batches = []
-    for r in ev.batches:
-        out: dict[str, Any] = dict(constitution_uid=r.constitution_uid, index=r.index, x=r.x)
-        if r.coordinate is not None:
-            out["coordinate"] = r.coordinate
-        out["energy"] = r.energy
-        if r.gradient is not None:
-            out["gradient"] = r.gradient
-        if r.hessian is not None:
-            out["hessian"] = r.hessian
-        batches.append(out)
-    doc = dict(total_energy=ev.total_energy, batches=batches)
+    """The response body of contract v1.2 as NumPy arrays; what the core did not compute (None) left out."""
+    doc = {"total_energy": ev.total_energy, "batches": [_present(r, ROW) for r in ev.batches]}
     if ev.assembled is not None:  # layout="bodies"
-        a = ev.assembled
-        doc["assembled"] = {k: getattr(a, k) for k in ("gradient", "rows", "cols", "blocks") if getattr(a, k) is not None}
+        doc["assembled"] = _present(ev.assembled, ("gradient", "rows", "cols", "blocks"))
     return doc
+
+
+def _present(obj: Any, names: tuple[str, ...]) -> dict[str, Any]:
+    return {k: v for k in names if (v := getattr(obj, k)) is not None}
 
 
 FLOATS_PER_PIECE = 2**18

@@ -21,6 +21,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jointlimits.service.core import Fault, InputError
 from jointlimits.service.core.errors import MAX_FAULTS, DeadlineExceeded
+from jointlimits.service.http.timeouts import BODY_TIMED_OUT
 
 RETRY_AFTER_SECONDS = 5
 """`Retry-After` of a 503 (busy, past the request deadline): the worker is free again at once, a busy pod soon."""
@@ -85,23 +86,17 @@ class FaultList(JSONResponse):
         await super().__call__(scope, receive, marked)
 
 
-def one_fault(status: int, loc: list[Any], msg: str, type: str, headers: dict[str, str] | None = None) -> FaultList:
-    return FaultList({"detail": [{"loc": loc, "msg": msg, "type": type}]}, status_code=status, headers=headers)
+def one_fault(status: int, loc: Sequence[Any], msg: str, type: str, headers: dict[str, str] | None = None) -> FaultList:
+    return FaultList(render([Fault(tuple(loc), msg, type)]), status_code=status, headers=headers)
 
 
-async def refuse(scope: Scope, send: Send, status: int, fault: dict[str, Any], close_reason: str,
-                 headers: Sequence[tuple[bytes, bytes]] = ()) -> None:
+async def refuse(scope: Scope, receive: Receive, send: Send, status: int, fault: Fault, close_reason: str,
+                 headers: dict[str, str] | None = None) -> None:
     """Answer a request, or a WebSocket upgrade where the server can answer one (uvicorn can), with `status` and
     the one `fault`, before the application; an upgrade elsewhere is closed with 1008 (HTTP 403, no body)."""
-    prefix = "http"
-    if scope["type"] == "websocket":
-        if "websocket.http.response" not in (scope.get("extensions") or {}):
-            return await send({"type": "websocket.close", "code": 1008, "reason": close_reason})
-        prefix = "websocket.http"
-    body = json.dumps({"detail": [fault]}).encode()
-    headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body)), *headers]
-    await send({"type": f"{prefix}.response.start", "status": status, "headers": headers, FAULT_LIST: True})
-    await send({"type": f"{prefix}.response.body", "body": body})
+    if scope["type"] == "websocket" and "websocket.http.response" not in (scope.get("extensions") or {}):
+        return await send({"type": "websocket.close", "code": 1008, "reason": close_reason})
+    await one_fault(status, fault.loc, fault.msg, fault.type, headers)(scope, receive, send)
 
 
 async def fault_handler(request: Request, exc: Exception) -> FaultList:
@@ -115,8 +110,6 @@ async def fault_handler(request: Request, exc: Exception) -> FaultList:
 async def client_gone(request: Request, exc: Exception) -> Response:
     """`ClientDisconnect` while reading the body: 408 if the body timed out, else 499 (nobody hears it). Either
     way one access-log line at info and a 4xx in the metrics: not a 500 with a traceback."""
-    from jointlimits.service.http.timeouts import BODY_TIMED_OUT
-
     timeout = request.scope.get("state", {}).get(BODY_TIMED_OUT)
     if timeout is None:
         return Response(status_code=CLIENT_CLOSED)
@@ -135,33 +128,18 @@ async def deadline_handler(request: Request, exc: Exception) -> FaultList:
 
 # For each status a client may meet before the routes: where the fault is and its type.
 _FAULT = {
-    400: (["header"], "bad_request"),
-    401: (["header", "authorization"], "unauthorized"),
-    403: (["header"], "forbidden"),
-    404: (["path"], "not_found"),
-    405: (["method"], "method_not_allowed"),
-    406: (["header", "accept"], "not_acceptable"),
-    408: (["body"], "timeout"),
-    413: (["body"], "too_large"),
-    415: (["header", "content-type"], "media_type"),
-    429: (["header"], "too_many_requests"),
-    503: (["body"], "busy"),
+    400: (("header",), "bad_request"),
+    401: (("header", "authorization"), "unauthorized"),
+    403: (("header",), "forbidden"),
+    404: (("path",), "not_found"),
+    405: (("method",), "method_not_allowed"),
+    406: (("header", "accept"), "not_acceptable"),
+    408: (("body",), "timeout"),
+    413: (("body",), "too_large"),
+    415: (("header", "content-type"), "media_type"),
+    429: (("header",), "too_many_requests"),
+    503: (("body",), "busy"),
 }
-
-
-def fault_body(status: int, msg: str) -> bytes:
-    """The one-fault body of a refusal with status `status` saying `msg`."""
-    loc, type_ = _FAULT.get(status, (["body"], "http_error"))
-    return json.dumps({"detail": [{"loc": loc, "msg": msg, "type": type_}]}).encode()
-
-
-def is_fault_list(body: bytes) -> bool:
-    try:
-        doc = json.loads(body)
-    except ValueError:
-        return False
-    detail = doc.get("detail") if isinstance(doc, dict) else None
-    return isinstance(detail, list) and all(isinstance(d, dict) and {"loc", "msg", "type"} <= d.keys() for d in detail)
 
 
 def _words(body: bytes, status: int) -> str:
@@ -217,11 +195,11 @@ class _HttpRefusal:
         assert start is not None
         self.start = None
         status = start["status"]
-        headers: list[Any] = list(start.get("headers", []))
-        if not is_fault_list(body):
-            body = fault_body(status, _words(body, status))
-            headers = [(k, v) for k, v in headers if k.lower() not in (b"content-type", b"content-length")]
-            headers += [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+        # Not the service's own (those pass marked): Starlette's 404/405, CORS's text, a refused upgrade.
+        loc, type_ = _FAULT.get(status, (("body",), "http_error"))
+        body = json.dumps(render([Fault(loc, _words(body, status), type_)])).encode()
+        headers = [(k, v) for k, v in start.get("headers", []) if k.lower() not in (b"content-type", b"content-length")]
+        headers += [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
         await self.send({**start, "headers": headers})
         await self.send({"type": f"{self.prefix}.response.body", "body": body})
 

@@ -17,48 +17,6 @@ from jointlimits.service.core.revolute import FACTS as HINGE
 _REF = "#/components/schemas/{model}"
 
 
-def request_body() -> dict[str, Any]:
-    """The `requestBody` of the route: the JSON schema of `EvaluateRequest`, or the binary document."""
-    return {
-        "required": True,
-        "content": {
-            "application/json": {
-                "schema": {"$ref": _REF.format(model="EvaluateRequest")},
-                "example": EXAMPLE_REQUEST,
-            },
-            # A Media Type Object has no `description` (OpenAPI 3.1 forbids unknown keys there): it goes in the schema.
-            "application/msgpack": {
-                "schema": {
-                    "type": "string",
-                    "format": "binary",
-                    "description": "EvaluateRequest in the binary encoding (docs/http-api.md, Binary transport)",
-                },
-            },
-        },
-    }
-
-
-def error_responses() -> dict[int | str, dict[str, Any]]:
-    schema = {"$ref": _REF.format(model="ErrorResponse")}
-    content = {"application/json": {"schema": schema}}
-    return {
-        406: {"description": "Accept names no supported encoding", "content": content},
-        413: {
-            "description": "Over a configured limit, before any work: body bytes, joints, batches, "
-            "the answer's size bound, or a JSON body's values",
-            "content": content,
-        },
-        415: {"description": "Content-Type is neither JSON nor msgpack", "content": content},
-        422: {"description": "Malformed or physically meaningless input; loc names the field", "content": content},
-        503: {
-            "description": "type busy: the worker's memory budgets were full and nothing was evaluated (retry after "
-            "Retry-After); type timeout: the evaluation passed the request timeout and was stopped",
-            "content": content,
-            "headers": {"Retry-After": {"schema": {"type": "integer"}, "description": "seconds"}},
-        },
-    }
-
-
 def add_components(openapi: dict[str, Any]) -> dict[str, Any]:
     """Add the request and error models (and what they refer to) to `components.schemas`."""
     _, top = models_json_schema(
@@ -296,4 +254,36 @@ BEARER = {
     "scheme": "bearer",
     "description": "Only when the deployment sets JOINTLIMITS_TOKEN (otherwise the API is open); /healthz, "
     "/metrics and /openapi.json are always open.",
+}
+
+REQUEST_BODY: dict[str, Any] = {  # the route's body: the JSON schema of `EvaluateRequest`, or the binary document
+    "required": True,
+    "content": {
+        "application/json": {"schema": {"$ref": _REF.format(model="EvaluateRequest")}, "example": EXAMPLE_REQUEST},
+        # A Media Type Object has no `description` (OpenAPI 3.1 forbids unknown keys there): it goes in the schema.
+        "application/msgpack": {
+            "schema": {
+                "type": "string",
+                "format": "binary",
+                "description": "EvaluateRequest in the binary encoding (docs/http-api.md, Binary transport)",
+            },
+        },
+    },
+}
+_FAULTS = {"application/json": {"schema": {"$ref": _REF.format(model="ErrorResponse")}}}
+ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    406: {"description": "Accept names no supported encoding", "content": _FAULTS},
+    413: {
+        "description": "Over a configured limit, before any work: body bytes, joints, batches, "
+        "the answer's size bound, or a JSON body's values",
+        "content": _FAULTS,
+    },
+    415: {"description": "Content-Type is neither JSON nor msgpack", "content": _FAULTS},
+    422: {"description": "Malformed or physically meaningless input; loc names the field", "content": _FAULTS},
+    503: {
+        "description": "type busy: the worker's memory budgets were full and nothing was evaluated (retry after "
+        "Retry-After); type timeout: the evaluation passed the request timeout and was stopped",
+        "content": _FAULTS,
+        "headers": {"Retry-After": {"schema": {"type": "integer"}, "description": "seconds"}},
+    },
 }

@@ -126,9 +126,9 @@ def list_constitutions(request: Request) -> ConstitutionsResponse:
     response_model_exclude_none=True,
     summary="Energy, gradient and Hessian of a batch of joint limits",
     description="Body and answer in JSON or msgpack (`Content-Type` / `Accept`); errors are always JSON.",
-    openapi_extra={"requestBody": openapi.request_body()},
+    openapi_extra={"requestBody": openapi.REQUEST_BODY},
     responses={200: {"content": {BINARY: {"schema": {"type": "string", "format": "binary"}}}},
-               **openapi.error_responses()},
+               **openapi.ERROR_RESPONSES},
 )
 async def evaluate_joints(request: Request) -> Response:
     settings = request.app.state.settings
@@ -157,12 +157,11 @@ def _evaluate(  # noqa: ANN001 (codec modules)
     batch_joints = [len(j.body_ids) for j in kwargs["batches"]]
     outputs, binary_answer = kwargs["outputs"], encoder is binary
     limits.admit(joints=batch_joints, outputs=outputs, binary_answer=binary_answer, settings=settings)
-    # From the bound of its size to what it holds: room for the requests waiting.
-    n_bodies = kwargs["bodies"].q.shape[0]
-    budget.settle(state, sizing.request_cost(len(body), checker.values, batch_joints, n_bodies, outputs,
-                                             binary_answer, settings))
-    if state is not None:  # joint counts for the access log and metrics (service/observability.py)
-        by_uid: dict[int, int] = {}
+    if state is not None:  # from the bound of its size to what it holds (room for the requests waiting)
+        n_bodies = kwargs["bodies"].q.shape[0]
+        state.in_flight.shrink(sizing.request_cost(len(body), checker.values, batch_joints, n_bodies, outputs,
+                                                   binary_answer, settings))
+        by_uid: dict[int, int] = {}  # joint counts for the access log and metrics (service/observability.py)
         for j in kwargs["batches"]:
             by_uid[int(j.constitution_uid)] = by_uid.get(int(j.constitution_uid), 0) + len(j.body_ids)
         state.joints_by_constitution = by_uid

@@ -1,7 +1,9 @@
 """`/v1/sessions`: a prepared scene per WebSocket connection (docs/sessions.md, "Sessions").
 
-Parse a frame, call the prepared scene, encode the reply: nothing else. The state (the prepared scene with its
-`q_prev` and committed coordinates) lives with the connection, so any worker of any pod can hold a session.
+Parse a frame, call the prepared scene, encode the reply: nothing else. The opening message is decoded by the
+HTTP decoders themselves, a later one parsed once and checked by the one validator (`document.Checker.message`);
+a reply is written by the same encoders, in the encoding of the message it answers. The state (the prepared scene
+with its `q_prev` and committed coordinates) lives with the connection, so any worker of any pod can hold a session.
 Bounds: sessions per worker, frame bytes, idle seconds, scene joints (+ `limits.admit`), the in-flight budget.
 """
 
@@ -22,12 +24,14 @@ from starlette.websockets import WebSocketDisconnect
 
 from jointlimits.schemas import session as proto
 from jointlimits.service import sizing
-from jointlimits.service.core import Fault, InputError
+from jointlimits.service.core import Evaluation, Fault, InputError
+from jointlimits.service.core.assembled import check_layout
 from jointlimits.service.core.prepared import PreparedScene, prepare
-from jointlimits.service.http import budget, routes
-from jointlimits.service.http import session_codec as codec
+from jointlimits.service.core.validate import check_bodies, check_options, raise_if
+from jointlimits.service.http import binary, budget, convert, document, limits, routes
 from jointlimits.service.http.budget import Reservation
-from jointlimits.service.http.errors import HttpError
+from jointlimits.service.http.document import NOT_OPEN, Message
+from jointlimits.service.http.errors import HttpError, render
 from jointlimits.service.http.limits import admit
 from jointlimits.service.http.timeouts import DRAIN, frame_limit
 from jointlimits.service.observability import ACCESS_LOGGER, Metrics, peer
@@ -36,6 +40,7 @@ from jointlimits.service.settings import Settings
 router = APIRouter()
 log = logging.getLogger(ACCESS_LOGGER)
 T = TypeVar("T")
+Frame = bytes | str
 
 # How long the session waits for its close frame to be sent (behind replies the client does not read) before it
 # ends; the connection itself is dropped by the protocol's write timeout (JOINTLIMITS_WRITE_TIMEOUT).
@@ -148,10 +153,10 @@ async def _messages(websocket: WebSocket, settings: Settings, metrics: Metrics, 
                 # Preparing a scene takes what a request of its size may take: a share of the in-flight budget
                 # (bounded from the message's size), until the reply is sent.
                 cost = sizing.cost_before_body(len(frame), binary_frame, binary_frame, settings)  # JSON text: ASCII
-                reservations.append(await budget.reserve(state.in_flight, cost, settings))
+                reservations.append(await state.in_flight.acquire(cost, settings.queue_timeout))
                 reply = await run_in_threadpool(_open, frame, settings, state, session)
             else:
-                message = codec.decode(frame, settings.max_json_values)
+                message = decode(frame, settings.max_json_values)
                 kind, mid = message.kind, message.id
                 if kind == proto.CLOSE:
                     metrics.session_messages.labels(kind, outcome).inc()
@@ -159,7 +164,7 @@ async def _messages(websocket: WebSocket, settings: Settings, metrics: Metrics, 
                 reply = await _answer(session, message, binary_frame, settings, state, reservations)
         except (InputError, HttpError) as e:
             outcome = "fault"
-            reply = codec.encode(codec.error(e, codec.message_id(e) if mid is None else mid), binary_frame)
+            reply = encode(error(e, getattr(e, "id", None) if mid is None else mid), binary_frame)
             if kind == "open" and isinstance(e, HttpError) and e.status == 413:
                 await _send(websocket, reply, settings)
                 metrics.session_messages.labels(kind, outcome).inc()
@@ -172,7 +177,7 @@ async def _messages(websocket: WebSocket, settings: Settings, metrics: Metrics, 
         metrics.session_latency.labels(kind).observe(time.perf_counter() - t0)
 
 
-async def _receive(websocket: WebSocket, settings: Settings) -> codec.Frame:
+async def _receive(websocket: WebSocket, settings: Settings) -> Frame:
     """The next message's payload; `Closing` on idle time or an oversized frame, `WebSocketDisconnect` when gone."""
     idle = settings.session_idle_seconds
     try:
@@ -204,7 +209,7 @@ async def _close(websocket: WebSocket, code: int, reason: str) -> None:
         pass
 
 
-async def _send(websocket: WebSocket, reply: codec.Frame, settings: Settings) -> None:
+async def _send(websocket: WebSocket, reply: Frame, settings: Settings) -> None:
     """Send a reply; a client that reads nothing for the idle time (the server's send buffer stays full) is closed."""
     try:
         async with asyncio.timeout(settings.session_idle_seconds):
@@ -236,9 +241,9 @@ def _reserve(state: Any, session: Session, joints: int, most: int, bodies: int =
         state.session_joints, session.weight = others + weight, weight
 
 
-def _open(frame: codec.Frame, settings: Settings, state: Any, session: Session) -> codec.Frame:
+def _open(frame: Frame, settings: Settings, state: Any, session: Session) -> Frame:
     """Open the session's scene from its opening document (in a worker thread); the `opened` reply."""
-    kwargs = codec.decode_open(frame, settings.max_json_values, settings.max_batches)
+    kwargs = decode_open(frame, settings.max_json_values, settings.max_batches)
     batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
     joints, bodies = sum(batch_joints), int(kwargs["bodies"].q.shape[0])
     try:
@@ -250,7 +255,7 @@ def _open(frame: codec.Frame, settings: Settings, state: Any, session: Session) 
             _reserve(state, session, 0, settings.max_session_joints)  # a refused scene holds nothing
             raise
     except (InputError, HttpError) as e:
-        raise codec.with_id(e, kwargs["id"])  # its fault repeats the opening's id, as its reply would
+        raise with_id(e, kwargs["id"])  # its fault repeats the opening's id, as its reply would
     # Every evaluate option of the opening document is the session's default; `layout` too, which a later
     # message cannot change (schemas/session.py has no such field): a solver opens with the layout it needs.
     session.scene, session.joints = scene, joints
@@ -260,11 +265,11 @@ def _open(frame: codec.Frame, settings: Settings, state: Any, session: Session) 
               "limits": {"max_frame_bytes": settings.max_frame_bytes, "idle_seconds": settings.session_idle_seconds}}
     if kwargs["id"] is not None:
         opened["id"] = kwargs["id"]
-    return codec.encode(opened, isinstance(frame, bytes))
+    return encode(opened, isinstance(frame, bytes))
 
 
-async def _answer(session: Session, m: codec.Message, binary_frame: bool, settings: Settings, state: Any,
-                  reservations: list[Reservation]) -> codec.Frame:
+async def _answer(session: Session, m: Message, binary_frame: bool, settings: Settings, state: Any,
+                  reservations: list[Reservation]) -> Frame:
     """The reply to `m`; an evaluation first takes its share of the worker's in-flight budget (as `POST
     /v1/evaluate` does: its core and its answer), appended to `reservations` (released once the reply is sent)."""
     scene = session.scene
@@ -279,9 +284,9 @@ async def _answer(session: Session, m: codec.Message, binary_frame: bool, settin
             admit(joints=batch_sizes, outputs=options["outputs"], binary_answer=binary_frame, settings=settings)
             cost = session.costs[key] = sizing.request_cost(0, None, batch_sizes, scene.n_bodies, options["outputs"],
                                                             binary_frame, settings)
-        reservations.append(await budget.reserve(state.in_flight, cost, settings))
+        reservations.append(await state.in_flight.acquire(cost, settings.queue_timeout))
         ev = await _run(session, lambda: scene.evaluate(m.q, **options))
-        return codec.encode_evaluation(ev, binary_frame, m.id)
+        return encode_evaluation(ev, binary_frame, m.id)
     if m.kind == proto.COMMIT:
         reply: dict[str, Any] = {"kind": proto.COMMITTED, "coordinates": await _run(session, lambda: scene.commit(m.q))}
     else:  # update
@@ -291,11 +296,90 @@ async def _answer(session: Session, m: codec.Message, binary_frame: bool, settin
             reply["coordinates"] = scene.coordinates()[m.batch]
     if m.id is not None:
         reply["id"] = m.id
-    return codec.encode(reply, binary_frame)
+    return encode(reply, binary_frame)
 
 
 async def _run(session: Session, fn: Callable[[], T]) -> T:
     try:
         return fn() if session.joints <= INLINE_JOINTS else await run_in_threadpool(fn)
     except InputError as e:
-        raise codec.at_message_q(e) from None
+        raise at_message_q(e) from None
+
+
+# ------------------------------------------------------------------ messages: frames <-> the scene's arguments
+
+
+def decode_open(frame: Frame, max_values: int, max_batches: int) -> dict[str, Any]:
+    """Keyword arguments of the core for the opening document, plus its `id` (under "id", None when absent);
+    `InputError` (422) or `HttpError` (413: its JSON values or its batches, counted before they are parsed, as
+    in a request), carrying the document's readable `id` (`with_id`)."""
+    checker = document.Checker(binary=isinstance(frame, bytes))
+    try:
+        if isinstance(frame, str):
+            kwargs = convert.decode(frame.encode(), max_values, max_batches, opening=True, checker=checker)
+        else:
+            kwargs = binary.decode(frame, max_batches, opening=True, checker=checker)
+        # The options become the session's defaults: checked now; `q` is part of the document, checked as
+        # POST /v1/evaluate checks it (the scene is prepared at q_prev).
+        raise_if(check_options(kwargs["outputs"], kwargs["hessian_mode"]) + check_layout(kwargs["layout"])
+                 + check_bodies(kwargs["bodies"]))
+        return kwargs
+    except (InputError, HttpError) as e:
+        # A later kind of message sent first: one fault that says so, not the opening document's five.
+        if isinstance(e, InputError) and any(f.loc == ("kind",) and f.type == "extra_forbidden" for f in e.faults):
+            e = InputError([Fault(("kind",), NOT_OPEN, "session_not_open")])
+        raise with_id(e, checker.message_id) from None
+
+
+def decode(frame: Frame, max_values: int) -> Message:
+    """A later message; `InputError` naming the key at fault, or `HttpError` (413) for a JSON text of more
+    values than `max_values` (before its parse), carrying the message's readable `id`."""
+    checker = document.Checker(binary=isinstance(frame, bytes))
+    try:
+        if isinstance(frame, str):
+            text = frame.encode()  # counts are faster on bytes than on str
+            limits.check_json(text, max_values)
+            doc = convert.load(text)
+            checker.booleans = convert.booleans(text)
+        else:
+            doc = binary.unpack(frame, checker, message=True)
+        return checker.message(doc)
+    except (InputError, HttpError) as e:
+        raise with_id(e, checker.message_id) from None
+
+
+def with_id(e: Exception, id: int | str | None) -> Exception:
+    """`e`, carrying the `id` its fault reply repeats (a document refused before its `id` was read has none)."""
+    e.id = id  # type: ignore[attr-defined]
+    return e
+
+
+# ------------------------------------------------------------------ replies
+
+
+def encode(doc: dict[str, Any], binary_frame: bool) -> Frame:
+    """A reply in the encoding of the message it answers: arrays as array maps (msgpack) or lists of shortest
+    round-trip floats (JSON), written as `POST /v1/evaluate`'s answers are."""
+    return binary.dumps(doc) if binary_frame else convert.dumps(doc).decode()
+
+
+def encode_evaluation(ev: Evaluation, binary_frame: bool, id: int | str | None) -> Frame:
+    """`POST /v1/evaluate`'s answer document with `kind` (and `id`) in front."""
+    head = {"kind": proto.EVALUATION} if id is None else {"kind": proto.EVALUATION, "id": id}
+    return encode({**head, **convert.to_wire(ev)}, binary_frame)
+
+
+def at_message_q(e: InputError) -> InputError:
+    """The core names a bad `q` as in a request (`("bodies", "q", i)`); in a session message it is `("q", i)`."""
+    return InputError([Fault(f.loc[1:], f.msg, f.type) if f.loc[:2] == ("bodies", "q") else f for f in e.faults])
+
+
+def error(exc: InputError | HttpError, id: int | str | None) -> dict[str, Any]:
+    """A fault reply: HTTP's 4xx body (`detail`, every `loc` starting with "body") with its `status`."""
+    # Rendered as HTTP's (cut, JSON-safe): a key the client sent is echoed as POST echoes it, never whole.
+    http = isinstance(exc, HttpError)
+    status, detail = (exc.status, render(exc.faults)) if http else (422, render(exc.faults, ("body",)))
+    doc: dict[str, Any] = {"kind": proto.ERROR, "status": status, **detail}
+    if id is not None:
+        doc["id"] = id
+    return doc

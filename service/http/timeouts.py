@@ -1,30 +1,24 @@
 """The connection layer: deadlines on reads and writes, and a WebSocket close the client always reads.
 
 uvicorn times out only idle keep-alive connections: a client that sends nothing, half its headers, or its body at
-one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time:
-the request head (`ReadTimeoutProtocol`, 408 then closed; its bytes too: 431 past `MAX_HEAD_BYTES`, 503 past
-`MAX_HEADS_HELD` over the worker's connections), the body (`BodyTimeoutMiddleware`, 408 from `errors.client_gone`),
-a session message (1008), and the write side (issue 19) in both protocols: a transport whose buffer stays full
-for `write_timeout` seconds (a client that stops reading) is reset, freeing what it held.
-The application sees the write side through `Drain` (`scope["extensions"][DRAIN]`).
-
-The WebSocket protocol (issue 20) closes a message over the limit (1009) or not UTF-8 (1007) with a reason and a
-FIN, then reads and drops what the client still sends (uvicorn closed at once: the kernel's reset made the client
-see 1006); the application hears the same code and reason. It closes with 1012 and a reason on shutdown, counts a
-message's bytes in the worker's upload budget from its first byte (1013 when they do not fit), answers only the
-latest ping, and logs a client's protocol faults as one WARNING line, never a traceback.
+one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time: the request
+head (`ReadTimeoutProtocol`), the body (`BodyTimeoutMiddleware`), a session message, and in both protocols the write
+side (`_WriteBound`: a client that stops reading is reset, freeing what it held; the application sees it as `Drain`).
+uvicorn's own WebSocket close on a protocol fault was a reset the client read as 1006: ours sends a close frame and
+a FIN, then drains (`WriteTimeoutWebSocketProtocol`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import socket
 import struct
 import sys
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocket
@@ -38,7 +32,7 @@ from jointlimits.service.observability import LIFESPAN_METRICS, peer
 from jointlimits.service.settings import Settings
 from jointlimits.service.sizing import UPLOAD_FACTOR
 
-BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `client_gone`
+BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `errors.client_gone`
 DRAIN = "jointlimits.drain"
 """Key in a connection's ASGI scope `extensions` of its `Drain` (absent in-process: TestClient, no transport)."""
 OPENED = "jointlimits.opened"
@@ -56,18 +50,16 @@ MAX_HEAD_BYTES = 64 * 1024
 """Bytes a request line and its headers may take (the deadline bounds their time only): past it, 431 and closed.
 httptools joins a header's or a URL's pieces by copying them, so an unbounded head costs memory and quadratic time:
 one connection streaming a header for the 10 s deadline took a worker from 69 to 533 MiB and stalled it 5.5 s."""
-_431_BODY = (b'{"detail":[{"loc":["header"],"msg":"request line and headers exceed %d bytes, the most this service '
-             b'reads","type":"too_large"}]}' % MAX_HEAD_BYTES)
 MAX_HEADS_HELD = 16 * 2**20
 """Bytes of unfinished request heads one worker holds over all its connections (a head that arrives whole in one read
 holds none): past it, 503 `busy` and closed. One client opens ~11 000 connections within the head deadline: 3000
 holding 60 kB each took a worker from 93 to 266 MiB."""
-_503_BODY = (b'{"detail":[{"loc":["header"],"msg":"this worker holds %d bytes of unfinished request heads, its most: '
-             b'retry after Retry-After seconds","type":"busy"}]}')
 
 
-def _answer(status: bytes, body: bytes, *headers: bytes) -> bytes:
-    """An HTTP/1.1 answer with a JSON fault list, closing the connection."""
+def _answer(status: bytes, msg: str, type: str, *headers: bytes) -> bytes:
+    """An HTTP/1.1 answer with a one-fault list at the header, closing the connection. Written here, not by
+    `errors.render`: `jointlimits serve`'s supervisor imports this module and never the core (nor NumPy)."""
+    body = json.dumps({"detail": [{"loc": ["header"], "msg": msg, "type": type}]}).encode()
     return (b"HTTP/1.1 %s\r\ncontent-type: application/json\r\ncontent-length: %d\r\n%sconnection: close\r\n\r\n%s"
             % (status, len(body), b"".join(h + b"\r\n" for h in headers), body))
 
@@ -183,23 +175,23 @@ class _WriteBound:
         if buffered == 0:  # drained meanwhile (a lingering write), nothing is held
             return
         # One line, no traceback: a client that stops reading is expected, not a server fault.
-        log.warning("client %s left its write buffer full for %s s (%d bytes waiting): connection reset "
-                    "(JOINTLIMITS_WRITE_TIMEOUT)", peer(self.client), self.write_timeout, buffered)
+        self._reset(logging.WARNING, "client %s left its write buffer full for %s s (%d bytes waiting): connection "
+                    "reset (JOINTLIMITS_WRITE_TIMEOUT)", peer(self.client), self.write_timeout, buffered)
+
+    def _reset(self, level: int, msg: str, *args: Any) -> None:
+        """Log, count as `slow_read` and drop the connection now, with what the process and the kernel hold for it:
+        `close()` would wait for the buffer to drain (what never happens), and a plain socket close leaves the
+        kernel's send buffer queued before its FIN. A zero linger makes the close a reset: the client sees it, the
+        kernel frees its buffer."""
+        log.log(level, msg, *args)
         self._closed("slow_read")
-        _reset(self.transport)
-
-
-def _reset(transport: asyncio.Transport) -> None:
-    """Drop the connection now, with what the process and the kernel hold for it: `close()` would wait for the
-    buffer to drain (what never happens), and a plain socket close leaves the kernel's send buffer queued
-    before its FIN. A zero linger makes the close a reset: the client sees it, the kernel frees its buffer."""
-    sock = transport.get_extra_info("socket")
-    if sock is not None:
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-        except OSError:  # already closed meanwhile
-            pass
-    transport.abort()
+        sock = self.transport.get_extra_info("socket")
+        if sock is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            except OSError:  # already closed meanwhile
+                pass
+        self.transport.abort()
 
 
 class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
@@ -243,9 +235,12 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             self._head_size += len(data)  # counted after the parse: at most one read past the bound is held
             ReadTimeoutProtocol.heads_held += len(data)
             if self._head_size > MAX_HEAD_BYTES:
-                self._refuse("head_too_large", _answer(b"431 Request Header Fields Too Large", _431_BODY))
+                msg = f"request line and headers exceed {MAX_HEAD_BYTES} bytes, the most this service reads"
+                self._refuse("head_too_large", _answer(b"431 Request Header Fields Too Large", msg, "too_large"))
             elif ReadTimeoutProtocol.heads_held > MAX_HEADS_HELD:
-                busy = _answer(b"503 Service Unavailable", _503_BODY % MAX_HEADS_HELD, b"retry-after: 5")
+                msg = (f"this worker holds {MAX_HEADS_HELD} bytes of unfinished request heads, its most: retry after "
+                       "Retry-After seconds")
+                busy = _answer(b"503 Service Unavailable", msg, "busy", b"retry-after: 5")
                 self._refuse("heads_full", busy)
 
     def on_headers_complete(self) -> None:
@@ -276,19 +271,10 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self.transport.close()
 
     def _head_expired(self) -> None:
-        if self.transport.is_closing():
-            return
-        log.debug("request head not complete within %s s: closing %s", self.header_timeout, self.client)
-        self._closed("slow_head" if self._head_bytes else "silent")
-        if self._head_bytes:
-            self.transport.write(_408)
-        self.transport.close()
-
-
-def http_protocol(header_timeout: float, write_timeout: float | None = None) -> type[ReadTimeoutProtocol]:
-    """A `ReadTimeoutProtocol` with its own `header_timeout` and `write_timeout` (for an in-process
-    uvicorn.Config; None: JOINTLIMITS_WRITE_TIMEOUT)."""
-    return type("ReadTimeoutProtocol", (ReadTimeoutProtocol,), {"header_timeout": header_timeout, "write_timeout": write_timeout})
+        if not self.transport.is_closing():
+            log.debug("request head not complete within %s s: closing %s", self.header_timeout, self.client)
+            reason, answer = ("slow_head", _408) if self._head_bytes else ("silent", b"")
+            self._refuse(reason, answer)
 
 
 class _Queue(asyncio.Queue):  # type: ignore[type-arg]
@@ -317,7 +303,9 @@ def not_utf8() -> tuple[int, str]:
 
 
 class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
-    """uvicorn's websockets (sans-I/O) protocol with the closes, bounds and upload counts above."""
+    """uvicorn's websockets (sans-I/O) protocol: a message over the limit (1009) or not UTF-8 (1007) closed with a
+    reason and a FIN, the rest drained; 1012 on shutdown; a message's bytes in the worker's upload budget from its
+    first byte (1013 past it); the latest ping alone answered; a client's protocol fault one WARNING line."""
 
     message_timeout: float | None = None  # None: JOINTLIMITS_BODY_TIMEOUT, read per connection
     draining = False  # closed under the application (1009, 1007, 1013): the rest is read and dropped
@@ -480,10 +468,8 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
         self.close_timer = None
         if self.transport.is_closing() and self.transport.get_write_buffer_size() == 0:
             return
-        log.info("client %s did not answer the close frame within %s s: connection reset", peer(self.client),
-                 self.write_timeout)
-        self._closed("slow_read")
-        _reset(self.transport)
+        self._reset(logging.INFO, "client %s did not answer the close frame within %s s: connection reset",
+                    peer(self.client), self.write_timeout)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._message_timer.stop()
@@ -530,11 +516,13 @@ def _too_big(exc: PayloadTooBig, limit: int | None) -> str:
     return f"{what} over the limit; this service accepts at most {limit} (JOINTLIMITS_MAX_FRAME_BYTES)"
 
 
-def ws_protocol(write_timeout: float | None = None, message_timeout: float | None = None) -> type[WriteTimeoutWebSocketProtocol]:
-    """A `WriteTimeoutWebSocketProtocol` with its own bounds (for an in-process uvicorn.Config; None: from the
-    environment)."""
-    return type("WriteTimeoutWebSocketProtocol", (WriteTimeoutWebSocketProtocol,),
-                {"write_timeout": write_timeout, "message_timeout": message_timeout})
+P = TypeVar("P")
+
+
+def bounded(protocol: type[P], **bounds: float | None) -> type[P]:
+    """`protocol` (`ReadTimeoutProtocol`, `WriteTimeoutWebSocketProtocol`) with its own `header_timeout`,
+    `write_timeout`, `message_timeout` (for an in-process uvicorn.Config; None: from the environment)."""
+    return type(protocol.__name__, (protocol,), bounds)
 
 
 def server_options(max_frame_bytes: int) -> dict[str, Any]:

@@ -22,7 +22,8 @@ from fastapi.testclient import TestClient
 from jointlimits.client import codec
 from jointlimits.service import sizing
 from jointlimits.service.app import create_app
-from jointlimits.service.http.budget import Budget, Busy
+from jointlimits.service.http.budget import Budget
+from jointlimits.service.http.errors import HttpError
 from jointlimits.service.settings import Settings
 from tests import drills as lt
 
@@ -96,7 +97,7 @@ def test_a_waiter_past_its_timeout_is_busy_and_leaves_the_queue():
         b = Budget(10)
         held = await b.acquire(9, 1.0)
         t = time.monotonic()
-        with pytest.raises(Busy):
+        with pytest.raises(HttpError, match="JOINTLIMITS_QUEUE_TIMEOUT"):
             await b.acquire(5, 0.05)
         assert 0.04 < time.monotonic() - t < 1.0
         assert b.queued == 0 and b.held == 9
@@ -115,7 +116,7 @@ def test_the_first_waiter_giving_up_wakes_the_next():
         second = asyncio.create_task(b.acquire(4, 5.0))  # 6 + 8 + 4 > 10: queued behind `first`
         await asyncio.sleep(0.005)
         assert b.queued == 2
-        with pytest.raises(Busy):
+        with pytest.raises(HttpError, match="JOINTLIMITS_QUEUE_TIMEOUT"):
             await first
         r = await asyncio.wait_for(second, 1.0)  # 6 + 4 fits once `first` has left
         assert b.held == 10

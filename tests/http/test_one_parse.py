@@ -51,7 +51,7 @@ def test_a_clean_body_is_parsed_once(parses):
 
 def test_a_session_message_is_parsed_once(parses):
     """A later message of a session: its faults are worded from its one parse (issue 28, step 4)."""
-    from jointlimits.service.http import session_codec
+    from jointlimits.service.http import sessions as session_codec
 
     q = [[0.0] * 11, [0.0] * 11]  # rows of 11: the core names the shape later, as for msgpack
     message = session_codec.decode(json.dumps({"kind": "evaluate", "id": 7, "q": q}), 10**9)

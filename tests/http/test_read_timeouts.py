@@ -33,9 +33,8 @@ SLACK = 1.5  # scheduling on a loaded 2-core machine; the timers themselves are 
 @contextmanager
 def serve_with_timeouts() -> Iterator[int]:
     settings = Settings(max_body_bytes=2_000_000, token=None, cors_origins=(), body_timeout=BODY_TIMEOUT)
-    config = uvicorn.Config(
-        create_app(settings), log_level="warning", lifespan="on", http=timeouts.http_protocol(HEADER_TIMEOUT)
-    )
+    http = timeouts.bounded(timeouts.ReadTimeoutProtocol, header_timeout=HEADER_TIMEOUT)
+    config = uvicorn.Config(create_app(settings), log_level="warning", lifespan="on", http=http)
     with running(config) as (_, port):
         yield port
 

@@ -139,10 +139,10 @@ def test_the_services_own_refusals_are_not_read_again(monkeypatch):
 
     from jointlimits.service.http import errors
 
-    def unread(body: bytes) -> bool:
+    def unread(body: bytes, status: int) -> str:
         raise AssertionError("a refusal of the service's own was parsed again")
 
-    monkeypatch.setattr(errors, "is_fault_list", unread)
+    monkeypatch.setattr(errors, "_words", unread)
     with TestClient(create_app(replace(LIMITS, token="s3cret"))) as client:
         r = client.post("/v1/evaluate", content=b"{}", headers=J)
         assert r.status_code == 401 and r.json()["detail"][0]["type"] == "unauthorized"

@@ -178,7 +178,7 @@ def test_a_msgpack_message_flood_is_refused_before_it_is_built(flood, loc):
     session goes on."""
     import tracemalloc
 
-    from jointlimits.service.http import session_codec
+    from jointlimits.service.http import sessions as session_codec
 
     frame = msgpack.packb(flood)
     tracemalloc.start()

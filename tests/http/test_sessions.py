@@ -360,7 +360,7 @@ def test_a_client_going_away_mid_session_ends_it_cleanly():
 def test_the_readme_hex_example_is_what_the_service_sends():
     from pathlib import Path
 
-    from jointlimits.service.http import session_codec
+    from jointlimits.service.http import sessions as session_codec
 
     text = (Path(__file__).parents[2] / "docs" / "sessions.md").read_text()  # moved from the README
     block = text.split("For a scene of one revolute batch of one joint", 1)[1].split("```\n", 2)[1]
@@ -465,7 +465,7 @@ def test_a_faulty_opening_gets_its_id_back_whatever_its_faults(binary, first, fa
 @pytest.mark.parametrize("Side", [Json, Binary], ids=["json", "msgpack"])
 @pytest.mark.parametrize("kind", ["evaluate", "commit", "update", "close"])
 def test_a_message_before_the_opening_gets_one_clear_fault(Side, kind):
-    from jointlimits.service.http.session_codec import NOT_OPEN
+    from jointlimits.service.http.sessions import NOT_OPEN
 
     doc = {"kind": kind, "id": 5} | ({"q": Q} if kind in ("evaluate", "commit") else {})
     with app().websocket_connect(PATH) as ws:

@@ -26,7 +26,8 @@ from pydantic import ValidationError
 from jointlimits.schemas import EvaluateRequest
 from jointlimits.schemas import session as proto
 from jointlimits.service import core
-from jointlimits.service.http import convert, session_codec
+from jointlimits.service.http import convert
+from jointlimits.service.http import sessions as session_codec
 
 ROW = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]  # a body at the origin, unit frame
 

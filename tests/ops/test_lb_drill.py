@@ -131,7 +131,8 @@ def test_keep_alive_clients_spread_again_onto_a_restarted_replica(age):
                 hits[name] += 1
             await app(scope, receive, send)
 
-        return running(uvicorn.Config(counted, log_level="warning", lifespan="off", http=timeouts.http_protocol(5.0)), port)
+        http = timeouts.bounded(timeouts.ReadTimeoutProtocol, header_timeout=5.0)
+        return running(uvicorn.Config(counted, log_level="warning", lifespan="off", http=http), port)
 
     b_port = drills.free_port()
     with replica("a") as (_, a_port):

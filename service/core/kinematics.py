@@ -40,12 +40,11 @@ def solve3(A: Array, b: Array) -> Array:
     y = b.transpose(b.ndim - 1, *range(b.ndim - 2, -1, -1)).reshape(3, -1)
     # Overflow is expected on the first pass (redone below) and legitimate on the second (an
     # anchor beyond float64: the coordinate overflows and `validate` names the joint).
-    with np.errstate(all="ignore"):
-        x, det = _solve3(a, y)
-        bad = (~((np.abs(det) >= 2.0**-900) & (np.abs(det) <= 2.0**900) & np.isfinite(x[0] + x[1] + x[2]))).nonzero()[0]
-        if bad.shape[0]:  # det ~|A|^3 inside 2^+-900 keeps the cofactors (~det^(2/3)) normal numbers
-            e = np.frexp(np.abs(a[:, bad]).max(axis=0))[1]
-            x[:, bad] = np.ldexp(_solve3(np.ldexp(a[:, bad], -e), y[:, bad])[0], -e)
+    x, det = _solve3(a, y)
+    bad = (~((np.abs(det) >= 2.0**-900) & (np.abs(det) <= 2.0**900) & np.isfinite(x[0] + x[1] + x[2]))).nonzero()[0]
+    if bad.shape[0]:  # det ~|A|^3 inside 2^+-900 keeps the cofactors (~det^(2/3)) normal numbers
+        e = np.frexp(np.abs(a[:, bad]).max(axis=0))[1]
+        x[:, bad] = np.ldexp(_solve3(np.ldexp(a[:, bad], -e), y[:, bad])[0], -e)
     return x.reshape(3, *lead[::-1]).T
 
 
@@ -89,9 +88,10 @@ class BodyTable:
     """
 
     def __init__(self, bodies: Bodies, dtype: type = np.float64, rows: Iterable[int] = STEPS,
-                 used: NDArray[np.bool_] | None = None, rotate: bool = True) -> None:
+                 used: NDArray[np.bool_] | None = None) -> None:
         """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage);
-        `plain` is taken over `rows`. `used`: as `rotate` takes it; `rotate` False: the polar factors wait."""
+        `plain` is taken over `rows`. The polar factors `rotation` (9, B) and the conditioning `ratio` (B,) of
+        each `A_ref`; `used` (B,): the bodies sure to get one (`polar_rotation`)."""
         n = bodies.q.shape[0]
         filled = tuple(sorted(set(rows)))
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
@@ -110,14 +110,8 @@ class BodyTable:
         self.dtype = np.dtype(dtype)
         self.plain = self.plain_over(filled)
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
-        self._A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
-        if rotate:
-            self.rotate(used)
-
-    def rotate(self, used: NDArray[np.bool_] | None = None) -> None:
-        """The polar factors `rotation` (9, B) and the conditioning `ratio` (B,) of each `A_ref`; `used` (B,): the
-        bodies sure to get one (`polar_rotation`)."""
-        R, self.ratio = polar_rotation(self._A_ref, used)
+        A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
+        R, self.ratio = polar_rotation(A_ref, used)
         self.rotation = R.astype(self.dtype, copy=False)
 
     def load(self, state: int, q: Array) -> None:
@@ -287,9 +281,9 @@ def state_frames(table: BodyTable, pairs: NDArray[np.intp], rows: tuple[int, ...
     previous state's plus the step, except for joints of bodies not `plain`, whose are the direct ones from `A_s`
     scaled (a step as large as the frame, `A_ref = 1e300 I` to `q_prev = I`, leaves nothing of `F_a + dF`)."""
     states = [F_ref]
-    with np.errstate(over="ignore", invalid="ignore"):  # only where `careful` replaces them below
-        for dF in steps:
-            states.append(states[-1] + dF)
+    # (overflows only where `careful` replaces them below)
+    for dF in steps:
+        states.append(states[-1] + dF)
     idx = (~table.plain_joints(pairs)).nonzero()[0]
     if idx.shape[0] == 0:
         return states, None
@@ -374,10 +368,10 @@ def axis(d: Array) -> Array:
     the others). Where `dot(d, d)` leaves float64's comfortable range (an edge of 1e-160 or 1e160), `d` is scaled
     by a power of two first (exact); elsewhere the result is bitwise `d / |d|`."""
     lo, hi = plain_range(d.dtype)
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # the odd rows are redone below
-        dd = dot(d, d)
-        t = d / np.sqrt(dd)[:, None]
-        odd = (~((dd >= lo) & (dd <= hi))).nonzero()[0]
+    # (overflows only in the odd rows, redone below)
+    dd = dot(d, d)
+    t = d / np.sqrt(dd)[:, None]
+    odd = (~((dd >= lo) & (dd <= hi))).nonzero()[0]
     if odd.shape[0]:
         _, e = np.frexp(max_abs(d[odd]))
         t[odd] = unit(np.ldexp(d[odd], -e[:, None]))

@@ -66,11 +66,10 @@ def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Arr
     """
     m = a.shape[1]
     ratio = np.zeros(m)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        C, det = cofactors(a)
-        nA = _frobenius_t(a)
-        nC = _frobenius_t(C)
-        est = np.abs(det) / (nA * nC)
+    C, det = cofactors(a)
+    nA = _frobenius_t(a)
+    nC = _frobenius_t(C)
+    est = np.abs(det) / (nA * nC)
     good = est >= _NEWTON_RATIO
     # A subset costs a gather and scatters (the common case hands a step over as R whole): worth it
     # only where most bodies are not read.
@@ -115,6 +114,5 @@ def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Arr
     if svd.shape[0]:
         U, s, Vt = np.linalg.svd(a[:, svd].T.reshape(-1, 3, 3))
         R[:, svd] = (U @ Vt).reshape(-1, 9).T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio[svd] = np.nan_to_num(s[:, -1] / s[:, 0], nan=0.0)
+        ratio[svd] = np.nan_to_num(s[:, -1] / s[:, 0], nan=0.0)
     return R, ratio

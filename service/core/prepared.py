@@ -5,6 +5,9 @@ factors, the body-local vectors, the frames at `q_ref` (and at `q_prev`), and th
 `q_prev` and the committed angles. `PreparedScene.evaluate(q)` then forms only the
 frames' step to `q`. The stateless `evaluate` is "prepare, evaluate once": one code path.
 
+Hostile numbers overflow by design, and every overflow becomes an `InputError` naming the joint: each public
+call here runs the numerics under one `np.errstate(all="ignore")` (its helpers set none of their own).
+
 The state of a revolute joint is its accumulated angle `theta` at `q_prev` (the coordinate
 minus the offset). Without a `prev_coordinate` and before any commit it is not stored: `x`
 is then summed over the steps `q_ref -> q_prev -> q` exactly as contract v1 computes it,
@@ -108,20 +111,19 @@ class PreparedScene:
         log.add(assembled.check_layout(layout))
         log.add(check_dofs("q", q, self.n_bodies))
         log.raise_if_any()
-        return self._evaluate(q, outputs, hessian_mode, active_only, deadline, layout)
+        with np.errstate(all="ignore"):
+            return self._evaluate(q, outputs, hessian_mode, active_only, deadline, layout)
 
     def _evaluate(self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool,
                   deadline: float | None, layout: str) -> Evaluation:
-        """`evaluate` of checked arguments."""
-        # Overflow is expected with hostile numbers: every overflow becomes an `InputError` naming the
-        # joint. The PSD projection (an eigensolver) fails outright on a non-finite curvature; the
-        # exact mode then locates the joints.
-        with np.errstate(all="ignore"):
-            try:
-                ev = self._run(q, outputs, hessian_mode == "psd", active_only, deadline, layout)
-            except np.linalg.LinAlgError:
-                self._run(q, outputs, False, active_only, deadline, "joints")
-                raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
+        """`evaluate` of checked arguments, under `np.errstate(all="ignore")` (module docstring)."""
+        # The PSD projection (an eigensolver) fails outright on a non-finite curvature; the exact mode then
+        # locates the joints.
+        try:
+            ev = self._run(q, outputs, hessian_mode == "psd", active_only, deadline, layout)
+        except np.linalg.LinAlgError:
+            self._run(q, outputs, False, active_only, deadline, "joints")
+            raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
         raise_if(check_evaluation(ev))
         return ev
 
@@ -304,7 +306,8 @@ class PreparedScene:
         raise_if(check_update_values(batch, index, values))
         jb = self._batches[batch]
         after = {k: values[k] if k in values else getattr(jb, k)[index] for k in ("lower", "upper", "strength", "offset")}
-        raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
+        with np.errstate(all="ignore"):
+            raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
         for k, a in after.items():
             getattr(jb, k)[index] = a
         jb.lo[index] = after["lower"] - after["offset"]
@@ -321,7 +324,9 @@ def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtyp
     """
     q_prev, q_ref = (np.array(a, dtype=np.float64) for a in (bodies.q_prev, bodies.q_ref))
     raise_if(check_bodies(Bodies(q_prev, q_prev, q_ref), names=("q_ref", "q_prev"))[:MAX_FAULTS])
-    return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype, own=True)
+    with np.errstate(all="ignore"):
+        return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype,
+                        own=True)
 
 
 def evaluate(bodies: Bodies, batches: Sequence[Joints], outputs: Iterable[str] = OUTPUTS, hessian_mode: str = "exact",
@@ -347,8 +352,9 @@ def evaluate(bodies: Bodies, batches: Sequence[Joints], outputs: Iterable[str] =
     log.add(assembled.check_layout(layout))
     log.add(check_bodies(bodies))
     log.raise_if_any()
-    scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
-    return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, deadline, layout)
+    with np.errstate(all="ignore"):
+        scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
+        return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, deadline, layout)
 
 
 def _as_arrays(j: Joints, copy: bool = False) -> Joints:
@@ -381,14 +387,14 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
             # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
             used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
     log = FaultLog()
-    with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations, hostile numbers by the checks after
-        table = BodyTable(bodies, dtype, rows=rows, used=used)
-        log.add(check_rotations(table.ratio))
-        for faults in checks:  # in batch order (the log keeps the first)
-            log.add(faults)
-        log.raise_if_any()
-        # (2, N) pairs: contiguous indices gather 30% faster
-        prepared = [_prepare_batch(b, j, table, own, np.ascontiguousarray(j.body_ids.T)) for b, j in enumerate(batches)]
+    # A singular A_ref is named by check_rotations, hostile numbers by the checks after.
+    table = BodyTable(bodies, dtype, rows=rows, used=used)
+    log.add(check_rotations(table.ratio))
+    for faults in checks:  # in batch order (the log keeps the first)
+        log.add(faults)
+    log.raise_if_any()
+    # (2, N) pairs: contiguous indices gather 30% faster
+    prepared = [_prepare_batch(b, j, table, own, np.ascontiguousarray(j.body_ids.T)) for b, j in enumerate(batches)]
     if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
         for jb in prepared:
             log.add(jb.faults)

@@ -200,7 +200,8 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     geometry = given[0] if len(given) == 1 else None
     faults = _check_kind(b, joints, given)
     shaped = _check_shapes(b, joints, geometry, faults)
-    return (faults + _check_rows(b, joints, n_bodies, geometry, shaped))[:MAX_FAULTS]
+    with np.errstate(all="ignore"):  # overflowing edges and offsets are named, not warned of
+        return (faults + _check_rows(b, joints, n_bodies, geometry, shaped))[:MAX_FAULTS]
 
 
 def _check_kind(b: int, joints: Joints, given: list[str]) -> list[Fault]:
@@ -279,8 +280,7 @@ def _check_edges(b: int, joints: Joints, geometry: str) -> list[Fault]:
     any nonzero, finite difference has an axis; a body-local one is then carried by a nonsingular A_ref)."""
     edge = joints.edges if geometry == "edges" else joints.local_edges[:, 0]  # p0 -> p1, or l0 -> l1 on body i
     p0, p1 = ("p0", "p1") if geometry == "edges" else ("l0", "l1")
-    with np.errstate(over="ignore", invalid="ignore"):
-        size = max_abs(edge_vector(edge))
+    size = max_abs(edge_vector(edge))
     if ((size > 0) & (size < np.inf)).all():  # the common case: every edge has an axis
         return []
     # A non-finite edge is named as such (above), not as too long.
@@ -292,8 +292,7 @@ def _check_edges(b: int, joints: Joints, geometry: str) -> list[Fault]:
 def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarray,
                  index: NDArray[np.int64] | None = None) -> list[Fault]:
     """Joints `index` (M,) (default: all) whose bounds relative to the offset (`lower - offset`, ...) overflow."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        bad = ~(np.isfinite(lower - offset) & np.isfinite(upper - offset))
+    bad = ~(np.isfinite(lower - offset) & np.isfinite(upper - offset))
     return _rows(b, "offset", bad, lambda j: "lower - offset or upper - offset overflows float64", index)
 
 

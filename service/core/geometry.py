@@ -16,15 +16,15 @@ from jointlimits.service.core.constitution import Array, Constitution
 from jointlimits.service.core.kinematics import SMALL, axis, component_major, edge_vector, from_local, solve3
 
 
-def axis_and_anchors(
-    c: Constitution, edges: Array | None, local_edges: Array | None, p_ref: Array | None, A_ref: Array, R_ref: Array
-) -> tuple[Array, Array | None]:
+def axis_and_anchors(c: Constitution, edges: Array | None, local_edges: Array | None, p_ref: Array | None,
+                     A_ref: Array, R_ref: Array, d: Array | None = None) -> tuple[Array, Array | None]:
     """The unit world axis `t` (N, 3) and, with points, the body-local anchors (N, 2, 3) (else None), both
-    component-major. `p_ref` (N, 2, 3), `A_ref` and `R_ref` (N, 2, 3, 3) of bodies i, j."""
+    component-major. `p_ref` (N, 2, 3), `A_ref` and `R_ref` (N, 2, 3, 3) of bodies i, j; `d` (N, 3) the edge
+    vectors `p1 - p0` (or `l1 - l0`) if already taken (`validate.joint_faults`)."""
     points = c.facts.points
     if local_edges is None:
-        return axis(edge_vector(edges)), (_world_anchors(edges, p_ref, A_ref) if points else None)
-    d = edge_vector(local_edges[:, 0])  # l1 - l0, in body i's coordinates
+        return axis(edge_vector(edges) if d is None else d), (_world_anchors(edges, p_ref, A_ref) if points else None)
+    d = edge_vector(local_edges[:, 0]) if d is None else d  # l1 - l0, in body i's coordinates
     # Both factors scaled by powers of two (exact; the direction is all that counts): `M d` then
     # neither overflows nor underflows for any finite, nonzero `d` and a nonsingular `A_ref`.
     M = R_ref[:, 0] if c.facts.axis_by_rotation else _unit_scaled(A_ref[:, 0])

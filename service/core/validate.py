@@ -18,7 +18,7 @@ from jointlimits.service.core.errors import MAX_FAULTS, NONFINITE_MSG, NONFINITE
 from jointlimits.service.core.kinematics import edge_vector, max_abs
 from jointlimits.service.core.polar import SINGULAR_RATIO
 from jointlimits.service.core.registry import CONSTITUTIONS
-from jointlimits.service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
+from jointlimits.service.core.scene import OUTPUTS, Array, Bodies, Evaluation, Joints
 
 HESSIAN_MODES = ("exact", "psd")
 ORIGINS = ("q_ref", "absolute")
@@ -196,12 +196,21 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     A field of the wrong shape is named once and its rows are not read; the rows of the others are still
     checked, so a body index out of range does not hide `lower > upper` of another joint.
     """
+    with np.errstate(all="ignore"):  # overflowing edges and offsets are named, not warned of
+        return joint_faults(b, joints, n_bodies)[0]
+
+
+def joint_faults(b: int, joints: Joints, n_bodies: int) -> tuple[list[Fault], Array | None]:
+    """`check_joints` under the caller's `np.errstate`, and the edge vectors (N, 3) it took, `p1 - p0` (or
+    `l1 - l0`; None where the geometry is not one field of its shape): the pipeline's axes start from them."""
     given = [k for k in EDGE_SHAPES if getattr(joints, k) is not None]
     geometry = given[0] if len(given) == 1 else None
     faults = _check_kind(b, joints, given)
     shaped = _check_shapes(b, joints, geometry, faults)
-    with np.errstate(all="ignore"):  # overflowing edges and offsets are named, not warned of
-        return (faults + _check_rows(b, joints, n_bodies, geometry, shaped))[:MAX_FAULTS]
+    edge = None
+    if geometry in shaped:
+        edge = edge_vector(joints.edges if geometry == "edges" else joints.local_edges[:, 0])
+    return (faults + _check_rows(b, joints, n_bodies, geometry, shaped, edge))[:MAX_FAULTS], edge
 
 
 def _check_kind(b: int, joints: Joints, given: list[str]) -> list[Fault]:
@@ -243,8 +252,10 @@ def _check_shapes(b: int, joints: Joints, geometry: str | None, faults: list[Fau
     return shaped
 
 
-def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, shaped: set[str]) -> list[Fault]:
-    """Per-joint faults of the fields in `shaped`: non-finite numbers, indices, ranges, edges."""
+def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, shaped: set[str],
+                edge: Array | None) -> list[Fault]:
+    """Per-joint faults of the fields in `shaped`: non-finite numbers, indices, ranges, edges (`edge` their
+    vectors)."""
     faults: list[Fault] = []
     for name in (geometry, "lower", "upper", "strength", "offset", "prev_coordinate"):
         if name in shaped:
@@ -270,21 +281,21 @@ def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, sha
             faults += check_offset(b, lo[rows], up[rows], joints.offset[rows], rows)
     if "strength" in shaped:
         faults += _negative_strengths(b, s, s < 0 if finite else np.isfinite(s) & (s < 0))
-    if geometry in shaped:
-        faults += _check_edges(b, joints, geometry)
+    if edge is not None:
+        faults += _check_edges(b, joints, geometry, edge)
     return faults
 
 
-def _check_edges(b: int, joints: Joints, geometry: str) -> list[Fault]:
-    """Exactly the edges `kinematics.axis` cannot normalise (it scales the edge vector by a power of two first:
-    any nonzero, finite difference has an axis; a body-local one is then carried by a nonsingular A_ref)."""
-    edge = joints.edges if geometry == "edges" else joints.local_edges[:, 0]  # p0 -> p1, or l0 -> l1 on body i
+def _check_edges(b: int, joints: Joints, geometry: str, edge: Array) -> list[Fault]:
+    """Exactly the edges `kinematics.axis` cannot normalise (it scales the edge vector `edge` (N, 3) by a power of
+    two first: any nonzero, finite difference has an axis; a body-local one is then carried by a nonsingular A_ref)."""
     p0, p1 = ("p0", "p1") if geometry == "edges" else ("l0", "l1")
-    size = max_abs(edge_vector(edge))
+    size = max_abs(edge)
     if ((size > 0) & (size < np.inf)).all():  # the common case: every edge has an axis
         return []
     # A non-finite edge is named as such (above), not as too long.
-    size[~np.isfinite(size) & ~np.isfinite(edge).all(axis=(1, 2))] = 1.0
+    ends = joints.edges if geometry == "edges" else joints.local_edges[:, 0]  # p0 -> p1, or l0 -> l1 on body i
+    size[~np.isfinite(size) & ~np.isfinite(ends).all(axis=(1, 2))] = 1.0
     return _rows(b, geometry, size == 0, lambda j: f"zero-length edge: {p0} == {p1} gives no joint axis") + _rows(
         b, geometry, ~np.isfinite(size), lambda j: f"edge too long: {p1} - {p0} overflows float64")
 

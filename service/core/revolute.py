@@ -169,7 +169,7 @@ def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = 
     x_c, x_s = -s / r2, c / r2
     # d cos/dF and d sin/dF, (N, 2, 4, 3): each block is one other block of F, halved.
     g8 = component_major(n, (8, 3), F.dtype)
-    np.multiply(F.take(_G_BLOCKS, axis=1), _G_HALVES, out=g8)  # one pass: block (e, k) is F's block _G_BLOCKS[4 e + k], halved
+    np.multiply(F[:, _G_BLOCKS], _G_HALVES, out=g8)  # one pass: block (e, k) is F's block _G_BLOCKS[4 e + k], halved
     g = g8.reshape(n, 2, 4, 3)
     dx = x_c[:, None, None] * g[:, 0] + x_s[:, None, None] * g[:, 1]
     if not second:

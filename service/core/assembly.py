@@ -137,8 +137,9 @@ def balance(alpha: Array, v: Array) -> Array:
     size = np.abs(v).max(axis=2)  # (N, 4)
     ratio = size[:, ~pts].max(axis=1) / np.maximum(size[:, pts].max(axis=1), 1.0)
     bound = np.finfo(v.dtype).maxexp // 4  # g and 1/g far inside the range
-    e = np.clip(np.round(0.5 * np.log2(ratio, where=ratio > 0, out=np.zeros_like(ratio))), -bound, bound)
-    g = np.ldexp(np.ones_like(ratio), e.astype(np.int32))[:, None]
+    e = np.rint(0.5 * np.log2(ratio, where=ratio > 0, out=np.zeros(ratio.shape, ratio.dtype)))
+    e = np.minimum(np.maximum(e, -bound), bound)  # np.clip's own checks cost more than both passes
+    g = np.ldexp(ratio.dtype.type(1.0), e.astype(np.int32))[:, None]
     return np.where(pts, g, 1.0 / g)
 
 

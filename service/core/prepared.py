@@ -5,6 +5,9 @@ factors, the body-local vectors, the frames at `q_ref` (and at `q_prev`), and th
 `q_prev` and the committed angles. `PreparedScene.evaluate(q)` then forms only the
 frames' step to `q`. The stateless `evaluate` is "prepare, evaluate once": one code path.
 
+Hostile numbers overflow by design, and every overflow becomes an `InputError` naming the joint: each public
+call here runs the numerics under one `np.errstate(all="ignore")` (its helpers set none of their own).
+
 The state of a revolute joint is its accumulated angle `theta` at `q_prev` (the coordinate
 minus the offset). Without a `prev_coordinate` and before any commit it is not stored: `x`
 is then summed over the steps `q_ref -> q_prev -> q` exactly as contract v1 computes it,
@@ -25,14 +28,13 @@ from jointlimits.service.core.constitution import Array, Constitution, Progress
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
 from jointlimits.service.core.evaluate import collapsed_faults, differentiate
 from jointlimits.service.core.kinematics import (PREV_STEP, REF, STEP, STEPS, TOTAL_STEP, BodyTable, CarefulFrames,
-                                                 add_positions, careful_frames, exponents, frame_quantities,
-                                                 relative_position, scaled_frames, state_frames)
-from jointlimits.service.core.geometry import axis_and_anchors
+                                                 add_positions, axis_and_anchors, careful_frames, exponents,
+                                                 frame_quantities, relative_position, scaled_frames, state_frames)
 from jointlimits.service.core.registry import CONSTITUTIONS, numerics
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
-from jointlimits.service.core.validate import (check_bodies, check_dofs, check_evaluation, check_joints, check_options,
-                                               check_rotations, check_update_index, check_update_ranges,
-                                               check_update_values, raise_if)
+from jointlimits.service.core.validate import (check_bodies, check_dofs, check_evaluation, check_options, check_rotations,
+                                               check_update_index, check_update_ranges, check_update_values,
+                                               joint_faults, raise_if)
 
 # 2 pi in two parts (Cody-Waite): `k * _TWO_PI_HI` is exact for |k| < 2**24 turns (24 trailing zero
 # bits), so `rem` of a many-turn angle loses nothing to the rounding of 2 pi.
@@ -73,6 +75,7 @@ class _Batch:
     faults: list[Fault]  # the stateless call's collapsed frames at q_ref, q_prev: reported with those at q
     progress: dict[str, Progress]  # the coordinate's progress over the steps that do not depend on q ("whole":
     # from starts[0] over `fixed`; "last": from starts[-1]; "ref": from F_ref), kept until `starts` change
+    index: NDArray[np.int64]  # (N,) 0 ... N - 1, read-only: every answer of the scene's batch shares it
     meets: bool = False  # world edges, points, telescoping: the anchors meet at q_ref, so x = theta(q) (`_to_q`)
     balance: Array | None = None  # (N, 4) `assembly.balance` of `v` (points, a prepared scene): not taken per Hessian
 
@@ -108,20 +111,19 @@ class PreparedScene:
         log.add(assembled.check_layout(layout))
         log.add(check_dofs("q", q, self.n_bodies))
         log.raise_if_any()
-        return self._evaluate(q, outputs, hessian_mode, active_only, deadline, layout)
+        with np.errstate(all="ignore"):
+            return self._evaluate(q, outputs, hessian_mode, active_only, deadline, layout)
 
     def _evaluate(self, q: Array, outputs: tuple[str, ...], hessian_mode: str, active_only: bool,
                   deadline: float | None, layout: str) -> Evaluation:
-        """`evaluate` of checked arguments."""
-        # Overflow is expected with hostile numbers: every overflow becomes an `InputError` naming the
-        # joint. The PSD projection (an eigensolver) fails outright on a non-finite curvature; the
-        # exact mode then locates the joints.
-        with np.errstate(all="ignore"):
-            try:
-                ev = self._run(q, outputs, hessian_mode == "psd", active_only, deadline, layout)
-            except np.linalg.LinAlgError:
-                self._run(q, outputs, False, active_only, deadline, "joints")
-                raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
+        """`evaluate` of checked arguments, under `np.errstate(all="ignore")` (module docstring)."""
+        # The PSD projection (an eigensolver) fails outright on a non-finite curvature; the exact mode then
+        # locates the joints.
+        try:
+            ev = self._run(q, outputs, hessian_mode == "psd", active_only, deadline, layout)
+        except np.linalg.LinAlgError:
+            self._run(q, outputs, False, active_only, deadline, "joints")
+            raise InputError([Fault(("hessian_mode",), "the PSD projection failed: the Hessian overflows float64")])
         raise_if(check_evaluation(ev))
         return ev
 
@@ -221,7 +223,7 @@ class PreparedScene:
         raise_if((jb.faults + self._collapsed(b, jb, F, careful, known))[:MAX_FAULTS])
         energy, active, gradient, hessian = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd,
                                                           compact or active_only, self._threads, deadline, jb.balance)
-        index, xs, es = (active, x[active], energy[active]) if active_only else (np.arange(x.shape[0]), x, energy)
+        index, xs, es = (active, x[active], energy[active]) if active_only else (jb.index, x, energy)
         coordinate = _plus_offset(xs, jb.offset, active if active_only else None)
         return BatchResult(jb.c.facts.uid, index, xs, es, gradient, hessian, coordinate), energy, active
 
@@ -304,7 +306,8 @@ class PreparedScene:
         raise_if(check_update_values(batch, index, values))
         jb = self._batches[batch]
         after = {k: values[k] if k in values else getattr(jb, k)[index] for k in ("lower", "upper", "strength", "offset")}
-        raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
+        with np.errstate(all="ignore"):
+            raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
         for k, a in after.items():
             getattr(jb, k)[index] = a
         jb.lo[index] = after["lower"] - after["offset"]
@@ -321,7 +324,9 @@ def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtyp
     """
     q_prev, q_ref = (np.array(a, dtype=np.float64) for a in (bodies.q_prev, bodies.q_ref))
     raise_if(check_bodies(Bodies(q_prev, q_prev, q_ref), names=("q_ref", "q_prev"))[:MAX_FAULTS])
-    return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype, own=True)
+    with np.errstate(all="ignore"):
+        return _prepare(Bodies(q_prev, q_prev, q_ref), [_as_arrays(j, copy=True) for j in batches], threads, dtype,
+                        own=True)
 
 
 def evaluate(bodies: Bodies, batches: Sequence[Joints], outputs: Iterable[str] = OUTPUTS, hessian_mode: str = "exact",
@@ -347,8 +352,9 @@ def evaluate(bodies: Bodies, batches: Sequence[Joints], outputs: Iterable[str] =
     log.add(assembled.check_layout(layout))
     log.add(check_bodies(bodies))
     log.raise_if_any()
-    scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
-    return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, deadline, layout)
+    with np.errstate(all="ignore"):
+        scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
+        return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, deadline, layout)
 
 
 def _as_arrays(j: Joints, copy: bool = False) -> Joints:
@@ -372,7 +378,7 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     rows = {PREV_STEP} | {row for j in batches if j.constitution_uid in CONSTITUTIONS
                           for row in _increments(numerics(j.constitution_uid))[:-1]}
     n_bodies = bodies.q_ref.shape[0]
-    checks = [check_joints(b, joints, n_bodies) for b, joints in enumerate(batches)]
+    checks = [joint_faults(b, joints, n_bodies) for b, joints in enumerate(batches)]
     # The polar factors of the bodies some joint reads (indices out of range are `check_joints`' faults).
     used = np.zeros(n_bodies, dtype=bool)
     for j in batches:
@@ -381,14 +387,15 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
             # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
             used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
     log = FaultLog()
-    with np.errstate(all="ignore"):  # a singular A_ref is named by check_rotations, hostile numbers by the checks after
-        table = BodyTable(bodies, dtype, rows=rows, used=used)
-        log.add(check_rotations(table.ratio))
-        for faults in checks:  # in batch order (the log keeps the first)
-            log.add(faults)
-        log.raise_if_any()
-        # (2, N) pairs: contiguous indices gather 30% faster
-        prepared = [_prepare_batch(b, j, table, own, np.ascontiguousarray(j.body_ids.T)) for b, j in enumerate(batches)]
+    # A singular A_ref is named by check_rotations, hostile numbers by the checks after.
+    table = BodyTable(bodies, dtype, rows=rows, used=used)
+    log.add(check_rotations(table.ratio))
+    for faults, _ in checks:  # in batch order (the log keeps the first)
+        log.add(faults)
+    log.raise_if_any()
+    # (2, N) pairs: contiguous indices gather 30% faster; the edge vectors as the checks took them (float64)
+    prepared = [_prepare_batch(b, j, table, own, np.ascontiguousarray(j.body_ids.T), d if dtype == np.float64 else None)
+                for b, (j, (_, d)) in enumerate(zip(batches, checks))]
     if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
         for jb in prepared:
             log.add(jb.faults)
@@ -397,8 +404,10 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     return PreparedScene(table, prepared, threads)
 
 
-def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: NDArray[np.intp]) -> _Batch:
-    """Batch `b`'s frames at its states, from `table`; `pairs` (2, N) its bodies i and j, contiguous."""
+def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: NDArray[np.intp],
+                   edge: Array | None) -> _Batch:
+    """Batch `b`'s frames at its states, from `table`; `pairs` (2, N) its bodies i and j, contiguous; `edge` (N, 3)
+    its edge vectors, if taken."""
     c = numerics(joints.constitution_uid)
     alpha, points, dtype = c.facts.alpha, c.facts.points, table.dtype
     rows = _increments(c)
@@ -410,7 +419,7 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     r = {s: relative_position(ps) for s, ps in p.items()}
     cast = lambda a: None if a is None else a.astype(dtype, copy=False)  # noqa: E731
     R_ref = table.rotations(pairs)
-    t, anchors = axis_and_anchors(c, cast(joints.edges), cast(joints.local_edges), p.get(0), A_ref, R_ref)
+    t, anchors = axis_and_anchors(c, cast(joints.edges), cast(joints.local_edges), p.get(0), A_ref, R_ref, edge)
     v = c.local_vectors(t, anchors, R_ref)
     F_ref = frame_quantities(None, A_ref, alpha, v)
     absolute = joints.origin == "absolute"
@@ -443,9 +452,11 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     lower, upper, strength = joints.lower, joints.upper, joints.strength
     # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
     lo, up = (a if offset is None else a - offset for a in (lower, upper))
+    index = np.arange(pairs.shape[1])
+    index.flags.writeable = False
     return _Batch(c, pairs, v, F_ref, starts, fixed, rows, prev_careful, r.get(start), held, lower, upper, strength,
                   offset, lo.astype(dtype, copy=False), up.astype(dtype, copy=False), strength.astype(dtype, copy=own),
-                  theta, absolute, x0, faults, progress, meets=points and c.facts.telescopes and joints.edges is not None,
+                  theta, absolute, x0, faults, progress, index, meets=points and c.facts.telescopes and joints.edges is not None,
                   balance=assembly.balance(alpha, v) if own and points else None)
 
 

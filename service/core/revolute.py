@@ -40,7 +40,6 @@ coefficients exactly (`_rescaled_projection`). tests/core/test_revolute_psd_scal
 
 from __future__ import annotations
 
-from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,21 +115,20 @@ def _careful_angle(careful: CarefulFrames) -> Array:
     their own), bounded by `(|B_i| + |N_i|)(|B_j| + |N_j|)` at both ends: right for a frame shrunk by 1e-12 in
     one step (in the step's common scaling it would keep few digits, or none).
     """
-    x = 0.0
-    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # a bound of inf or NaN loses the choice
-        for k, (F, dF) in enumerate(zip(careful.starts, careful.steps)):
-            c, s = _cos_sin(F)
-            turn_step, (c2, s2) = _step(F, dF, (c, s))
-            bound_step = _pair_size(F + dF, 0) * _pair_size(dF, 1) + _pair_size(dF, 0) * _pair_size(F, 1)
-            bound_step = bound_step / np.hypot(c2, s2)
-            S, E = careful.states[k], careful.states[k + 1]
-            ca, sa = _cos_sin(S)
-            ce, se = _cos_sin(E)
-            turn_direct = np.arctan2(se * ca - ce * sa, ce * ca + se * sa)
-            bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se)
-            bound_direct = bound_direct + _pair_size(S, 0) * _pair_size(S, 1) / np.hypot(ca, sa)
-            steady = (np.abs(careful.exponents[k] - careful.exponents[k + 1]) <= _STEADY_EXPONENTS).all(axis=1)
-            x = x + np.where(steady & (bound_step <= bound_direct), turn_step, turn_direct)
+    x = 0.0  # a bound of inf or NaN loses the choice
+    for k, (F, dF) in enumerate(zip(careful.starts, careful.steps)):
+        c, s = _cos_sin(F)
+        turn_step, (c2, s2) = _step(F, dF, (c, s))
+        bound_step = _pair_size(F + dF, 0) * _pair_size(dF, 1) + _pair_size(dF, 0) * _pair_size(F, 1)
+        bound_step = bound_step / np.hypot(c2, s2)
+        S, E = careful.states[k], careful.states[k + 1]
+        ca, sa = _cos_sin(S)
+        ce, se = _cos_sin(E)
+        turn_direct = np.arctan2(se * ca - ce * sa, ce * ca + se * sa)
+        bound_direct = _pair_size(E, 0) * _pair_size(E, 1) / np.hypot(ce, se)
+        bound_direct = bound_direct + _pair_size(S, 0) * _pair_size(S, 1) / np.hypot(ca, sa)
+        steady = (np.abs(careful.exponents[k] - careful.exponents[k + 1]) <= _STEADY_EXPONENTS).all(axis=1)
+        x = x + np.where(steady & (bound_step <= bound_direct), turn_step, turn_direct)
     return x
 
 
@@ -230,28 +228,26 @@ class Revolute:
         # (Other frames may overflow here: the caller judges those joints on scaled frames.)
         # `known`: (cos, sin) at F as the coordinate formed them (at the end of a step, in increment
         # form: within rounding of the direct ones, far inside the collapse ratio's 1e-12).
-        with np.errstate(over="ignore", invalid="ignore"):
-            c, s = _cos_sin(F) if known is None else known
-            r2 = c * c + s * s
-            ratio2 = 2.0 * COLLAPSE_RATIO * COLLAPSE_RATIO
-            if size_bound is not None:
-                # size2 <= 2 |A_i|^2 |A_j|^2 (|b_k| = |n_k| = 1) <= size_bound / 2: a joint above the bound's
-                # threshold is above the test's own; only the others (none, commonly) form their sizes.
-                rows = (~(r2 > ratio2 * size_bound)).nonzero()[0]
-                out = np.zeros(F.shape[0], dtype=bool)
-                if rows.shape[0]:
-                    out[rows] = self.collapsed(F[rows], (c[rows], s[rows]))
-                return out
-            B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-            return r2 <= ratio2 * (dot(B_i, B_i) * dot(B_j, B_j) + dot(N_i, N_i) * dot(N_j, N_j))
+        c, s = _cos_sin(F) if known is None else known
+        r2 = c * c + s * s
+        ratio2 = 2.0 * COLLAPSE_RATIO * COLLAPSE_RATIO
+        if size_bound is not None:
+            # size2 <= 2 |A_i|^2 |A_j|^2 (|b_k| = |n_k| = 1) <= size_bound / 2: a joint above the bound's
+            # threshold is above the test's own; only the others (none, commonly) form their sizes.
+            rows = (~(r2 > ratio2 * size_bound)).nonzero()[0]
+            out = np.zeros(F.shape[0], dtype=bool)
+            if rows.shape[0]:
+                out[rows] = self.collapsed(F[rows], (c[rows], s[rows]))
+            return out
+        B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
+        return r2 <= ratio2 * (dot(B_i, B_i) * dot(B_j, B_j) + dot(N_i, N_i) * dot(N_j, N_j))
 
     def derivatives(self, F: Array, second: bool) -> tuple[Array, Curvature | None]:
         # Rows whose r^4 would under- or overflow (frames beyond ~1e+-36; only those can overflow in the first
         # pass): the same from each body's frames scaled by a power of two, scaled back block by block (exact).
         cs = _cos_sin(F)
         bad = _unsafe(F, cs).nonzero()[0]
-        with np.errstate(all="ignore") if bad.shape[0] else nullcontext():  # else: the caller's error state
-            dx, curvature = _polar_derivatives(F, second, cs)
+        dx, curvature = _polar_derivatives(F, second, cs)
         if bad.shape[0]:
             e = np.frexp(np.abs(F[bad]).max(axis=2).reshape(-1, 2, 2).max(axis=2))[1]  # (M, 2) per body
             eb = e[:, BLOCK_BODY]  # (M, 4)
@@ -271,19 +267,18 @@ class Revolute:
         rescaled = isinstance(curvature, _RescaledCurvature)
         x_c, x_s = curvature.dx_coef[:, 0], curvature.dx_coef[:, 1]  # -s / r^2, c / r^2
         # The rows `scaled` names hold nothing meaningful here (their r^2 is not a normal number): overwritten below.
-        with np.errstate(all="ignore") if rescaled else nullcontext():  # else: the caller's error state
-            r = 1.0 / np.hypot(x_c, x_s)
-            g_c = curvature.basis[:, 0]
-            rho2 = np.einsum("nkc,nkc->n", g_c, g_c)  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
-            sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
-            mu = np.abs(dE)
-            basis = _psd_vectors(sign, curvature.basis, x_c, x_s, r)
-            coef = np.zeros((dE.shape[0], 3, 3), dtype=dE.dtype)
-            coef[:, 0, 0] = coef[:, 1, 1] = -mu / (2.0 * r * (rho2 + r))
-            coef[:, 2, 2] = mu / (2.0 * r * r)
-            # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
-            kron = (0.5 * dE)[:, None, None] * curvature.kron
-            kron += (mu / (4.0 * r))[:, None, None] * _EYE4.astype(dE.dtype, copy=False)
+        r = 1.0 / np.hypot(x_c, x_s)
+        g_c = curvature.basis[:, 0]
+        rho2 = np.einsum("nkc,nkc->n", g_c, g_c)  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
+        sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
+        mu = np.abs(dE)
+        basis = _psd_vectors(sign, curvature.basis, x_c, x_s, r)
+        coef = np.zeros((dE.shape[0], 3, 3), dtype=dE.dtype)
+        coef[:, 0, 0] = coef[:, 1, 1] = -mu / (2.0 * r * (rho2 + r))
+        coef[:, 2, 2] = mu / (2.0 * r * r)
+        # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
+        kron = (0.5 * dE)[:, None, None] * curvature.kron
+        kron += (mu / (4.0 * r))[:, None, None] * _EYE4.astype(dE.dtype, copy=False)
         if rescaled:
             rows = curvature.rows
             kron[rows], basis[rows], coef[rows] = _rescaled_projection(dE[rows], curvature)

@@ -18,7 +18,7 @@ from jointlimits.service.core.errors import MAX_FAULTS, NONFINITE_MSG, NONFINITE
 from jointlimits.service.core.kinematics import edge_vector, max_abs
 from jointlimits.service.core.polar import SINGULAR_RATIO
 from jointlimits.service.core.registry import CONSTITUTIONS
-from jointlimits.service.core.scene import OUTPUTS, Bodies, Evaluation, Joints
+from jointlimits.service.core.scene import OUTPUTS, Array, Bodies, Evaluation, Joints
 
 HESSIAN_MODES = ("exact", "psd")
 ORIGINS = ("q_ref", "absolute")
@@ -196,11 +196,38 @@ def check_joints(b: int, joints: Joints, n_bodies: int) -> list[Fault]:
     A field of the wrong shape is named once and its rows are not read; the rows of the others are still
     checked, so a body index out of range does not hide `lower > upper` of another joint.
     """
+    with np.errstate(all="ignore"):  # overflowing edges and offsets are named, not warned of
+        return joint_faults(b, joints, n_bodies)[0]
+
+
+def joint_faults(b: int, joints: Joints, n_bodies: int) -> tuple[list[Fault], Array | None]:
+    """`check_joints` under the caller's `np.errstate`, and the edge vectors (N, 3) it took, `p1 - p0` (or
+    `l1 - l0`; None where the geometry is not one field of its shape): the pipeline's axes start from them."""
     given = [k for k in EDGE_SHAPES if getattr(joints, k) is not None]
     geometry = given[0] if len(given) == 1 else None
     faults = _check_kind(b, joints, given)
     shaped = _check_shapes(b, joints, geometry, faults)
-    return (faults + _check_rows(b, joints, n_bodies, geometry, shaped))[:MAX_FAULTS]
+    edge = None
+    if geometry in shaped:
+        edge = edge_vector(joints.edges if geometry == "edges" else joints.local_edges[:, 0])
+    if not faults and _clean(joints, n_bodies, edge):  # the common case: no per-joint check names anything
+        return [], edge
+    return (faults + _check_rows(b, joints, n_bodies, geometry, shaped, edge))[:MAX_FAULTS], edge
+
+
+def _clean(joints: Joints, n_bodies: int, edge: Array) -> bool:
+    """True only where `_check_rows` finds nothing, from a few flat reductions of a well-shaped batch: each
+    quantity below is finite and >= 0 only where its fields are finite and in order (`up - lo`: lower <= upper;
+    `|edge|`: an axis; `|lo - offset|`: the offset's checks). An overflow here takes `_check_rows`' way."""
+    ids, lo, up, off = joints.body_ids, joints.lower, joints.upper, joints.offset
+    if ids.shape[0] == 0 or not (ids.min() >= 0 and ids.max() < n_bodies and (ids[:, 0] != ids[:, 1]).all()):
+        return False
+    size = max_abs(edge)
+    signed = [up - lo, joints.strength, size] + ([] if off is None else [np.abs(lo - off), np.abs(up - off)])
+    finite = [a for a in (joints.prev_coordinate, None if joints.edges is not None else joints.local_edges[:, 1])
+              if a is not None]  # r0, r1 of body-local edges are not in `edge`
+    return (size.min() > 0 and all(a.min() >= 0 and a.max() < np.inf for a in signed)  # NaN: False
+            and all(np.isfinite(a).all() for a in finite))
 
 
 def _check_kind(b: int, joints: Joints, given: list[str]) -> list[Fault]:
@@ -242,49 +269,43 @@ def _check_shapes(b: int, joints: Joints, geometry: str | None, faults: list[Fau
     return shaped
 
 
-def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, shaped: set[str]) -> list[Fault]:
-    """Per-joint faults of the fields in `shaped`: non-finite numbers, indices, ranges, edges."""
+def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, shaped: set[str],
+                edge: Array | None) -> list[Fault]:
+    """Per-joint faults of the fields in `shaped`: non-finite numbers, indices, ranges, edges (`edge` their
+    vectors)."""
     faults: list[Fault] = []
     for name in (geometry, "lower", "upper", "strength", "offset", "prev_coordinate"):
         if name in shaped:
             faults += nonfinite_faults(getattr(joints, name), "batches", b, name)
-    finite = not faults  # the common case: the range checks need no masks of finite rows
     if "body_ids" in shaped:
         ids = joints.body_ids
-        outside = (ids < 0) | (ids >= n_bodies)
         there = "there is 1 body" if n_bodies == 1 else f"there are {n_bodies} bodies"
-        # A flat test first: a per-row reduction is 10x slower.
-        faults += _rows(b, "body_ids", outside.any(axis=1) if outside.any() else outside[:, 0],
+        faults += _rows(b, "body_ids", ((ids < 0) | (ids >= n_bodies)).any(axis=1),
                         lambda j: f"body index {ids[j].tolist()} out of range [0, {n_bodies}) ({there})")
         faults += _rows(b, "body_ids", ids[:, 0] == ids[:, 1], lambda j: f"joint couples body {ids[j, 0]} to itself")
     # The range checks read finite rows only: a row with a NaN or an infinity is named above, once.
     lo, up, s = joints.lower, joints.upper, joints.strength
     if {"lower", "upper"} <= shaped:
-        both = None if finite else np.isfinite(lo) & np.isfinite(up)
-        faults += _empty_ranges(b, lo, up, lo > up if finite else both & (lo > up))
-        if "offset" in shaped and finite:
-            faults += check_offset(b, lo, up, joints.offset)
-        elif "offset" in shaped:
+        both = np.isfinite(lo) & np.isfinite(up)
+        faults += _empty_ranges(b, lo, up, both & (lo > up))
+        if "offset" in shaped:
             rows = (both & np.isfinite(joints.offset)).nonzero()[0]
             faults += check_offset(b, lo[rows], up[rows], joints.offset[rows], rows)
     if "strength" in shaped:
-        faults += _negative_strengths(b, s, s < 0 if finite else np.isfinite(s) & (s < 0))
-    if geometry in shaped:
-        faults += _check_edges(b, joints, geometry)
+        faults += _negative_strengths(b, s, np.isfinite(s) & (s < 0))
+    if edge is not None:
+        faults += _check_edges(b, joints, geometry, edge)
     return faults
 
 
-def _check_edges(b: int, joints: Joints, geometry: str) -> list[Fault]:
-    """Exactly the edges `kinematics.axis` cannot normalise (it scales the edge vector by a power of two first:
-    any nonzero, finite difference has an axis; a body-local one is then carried by a nonsingular A_ref)."""
-    edge = joints.edges if geometry == "edges" else joints.local_edges[:, 0]  # p0 -> p1, or l0 -> l1 on body i
+def _check_edges(b: int, joints: Joints, geometry: str, edge: Array) -> list[Fault]:
+    """Exactly the edges `kinematics.axis` cannot normalise (it scales the edge vector `edge` (N, 3) by a power of
+    two first: any nonzero, finite difference has an axis; a body-local one is then carried by a nonsingular A_ref)."""
     p0, p1 = ("p0", "p1") if geometry == "edges" else ("l0", "l1")
-    with np.errstate(over="ignore", invalid="ignore"):
-        size = max_abs(edge_vector(edge))
-    if ((size > 0) & (size < np.inf)).all():  # the common case: every edge has an axis
-        return []
-    # A non-finite edge is named as such (above), not as too long.
-    size[~np.isfinite(size) & ~np.isfinite(edge).all(axis=(1, 2))] = 1.0
+    size = max_abs(edge)
+    # A non-finite edge is named as such (`_check_rows`), not as too long.
+    ends = joints.edges if geometry == "edges" else joints.local_edges[:, 0]  # p0 -> p1, or l0 -> l1 on body i
+    size[~np.isfinite(size) & ~np.isfinite(ends).all(axis=(1, 2))] = 1.0
     return _rows(b, geometry, size == 0, lambda j: f"zero-length edge: {p0} == {p1} gives no joint axis") + _rows(
         b, geometry, ~np.isfinite(size), lambda j: f"edge too long: {p1} - {p0} overflows float64")
 
@@ -292,8 +313,7 @@ def _check_edges(b: int, joints: Joints, geometry: str) -> list[Fault]:
 def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarray,
                  index: NDArray[np.int64] | None = None) -> list[Fault]:
     """Joints `index` (M,) (default: all) whose bounds relative to the offset (`lower - offset`, ...) overflow."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        bad = ~(np.isfinite(lower - offset) & np.isfinite(upper - offset))
+    bad = ~(np.isfinite(lower - offset) & np.isfinite(upper - offset))
     return _rows(b, "offset", bad, lambda j: "lower - offset or upper - offset overflows float64", index)
 
 

@@ -108,7 +108,8 @@ def test_closed_form_on_frames_scaled_per_body(scale_i: float, scale_j: float) -
     F = rng.normal(size=(n, 4, 3)) * 10.0 ** rng.uniform(-1, 1, size=(n, 4, 1))
     F[:, :2] *= scale_i
     F[:, 2:] *= scale_j
-    check(F, slopes(rng, n))
+    with np.errstate(all="ignore"):  # as the pipeline calls it (prepared.py): scaled rows overflow, then are redone
+        check(F, slopes(rng, n))
 
 
 def test_closed_form_on_rows_of_mixed_scales() -> None:
@@ -117,7 +118,8 @@ def test_closed_form_on_rows_of_mixed_scales() -> None:
     rng = np.random.default_rng(27)
     n = 400
     F = np.ldexp(rng.normal(size=(n, 4, 3)), np.repeat(rng.integers(-300, 301, size=(n, 2)), 2, axis=1)[:, :, None])
-    check(F, slopes(rng, n))
+    with np.errstate(all="ignore"):  # as the pipeline calls it (prepared.py)
+        check(F, slopes(rng, n))
 
 
 # ---------------------------------------------------------------- the whole chain, against 50 digits

@@ -78,7 +78,7 @@ class Facts:
     """The incremental `x` telescopes to a function of `q` and `q_ref`: `q_prev` is not needed, no state."""
     axis_by_rotation: bool
     """A body-local edge's world axis is carried by body i's rotation `R_i` (True) or its `A_ref_i` (False),
-    as the reference engine does for this constitution (`kinematics.axis_and_anchors`)."""
+    as the reference engine does for this constitution (`geometry.axis_and_anchors`)."""
     unit_frames: bool
     """Every `v_k` is a unit direction: `|F_k| <= |A|_F`, so `collapsed` may take `size_bound`."""
     engine_zero_axis: float = 0.0  # the engine refuses an edge with `|p1 - p0|^2` at most this (the uipc adapter)

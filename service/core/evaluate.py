@@ -1,17 +1,11 @@
-"""A batch's energies and the derivatives of its active joints, from its frames and coordinates; its derivative
-chunks on a few threads when asked (`run_all`: NumPy releases the GIL inside its loops).
+"""A batch's energies and the derivatives of its active joints, from its frames and coordinates.
 
 The pipeline that validates and forms frames and coordinates is `jointlimits.service.core.prepared`.
 """
 
 from __future__ import annotations
 
-import contextvars
-import threading
-from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor, wait
 from functools import partial
-from typing import TypeVar
 
 import numpy as np
 
@@ -19,32 +13,8 @@ from jointlimits.service.core import assembly, penalty
 from jointlimits.service.core.constitution import Array, Constitution, Curvature
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, check_deadline
 from jointlimits.service.core.kinematics import CarefulFrames, take_joints
+from jointlimits.service.core.parallel import run_all
 from jointlimits.service.core.validate import nonfinite_rows, raise_if
-
-T = TypeVar("T")
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-_LOCK = threading.Lock()
-
-
-def _pool(threads: int) -> ThreadPoolExecutor:
-    """One long-lived pool per size: starting threads per call costs more than small evaluations."""
-    with _LOCK:
-        if threads not in _POOLS:
-            _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="jointlimits-core")
-        return _POOLS[threads]
-
-
-def run_all(tasks: Sequence[Callable[[], T]], threads: int) -> list[T]:
-    """Each task's result, in order; the first task's exception (in order) is raised once every task has ended
-    (a caller never races a task still reading its arrays). Each task runs in a copy of the caller's context,
-    so `np.errstate` (a context variable) holds in the workers too."""
-    if threads <= 1 or len(tasks) <= 1:
-        return [task() for task in tasks]
-    pool = _pool(threads)
-    futures = [pool.submit(contextvars.copy_context().run, task) for task in tasks]
-    wait(futures)
-    return [f.result() for f in futures]
-
 
 CHUNK = 8192
 """Active joints whose coordinate derivatives are taken at once: per-joint scalars cost a call each per

@@ -4,13 +4,6 @@ A body's 12 DOFs are `q = [p (3), A row 0, A row 1, A row 2]`. Every joint expos
 `F_k` (k = 0, 1 on body i; k = 2, 3 on body j), `F_k = alpha_k (p - o) + A v_k`, with `v_k` body-local
 (fixed at `q_ref`), `alpha_k` 1 for a point and 0 for a direction, and `o` body i's position in the same
 state: subtracting it first keeps a scene far from the origin from losing digits to its translation.
-
-A joint's geometry at `q_ref` (`axis_and_anchors`, CONTRACT.md v1.2) is its world axis `t` and its anchors in the
-two bodies' own coordinates, from which each constitution makes its `v_k` (`Constitution.local_vectors`):
-`edges` (N, 2, 3), `p0 -> p1` in world space at `q_ref`: `t = (p1 - p0) / |p1 - p0|`, anchors
-`c_k = A_ref_k^{-1} (p0 - p_ref_k)`; `local_edges` (N, 2, 2, 3), `[[l0, l1], [r0, r1]]` in body i's and body j's
-coordinates (the engine's local variant): `t` is `l1 - l0` carried to the world by body i's `R_i` or `A_ref_i`
-(`Facts.axis_by_rotation`), anchors `c_i = l0`, `c_j = r0`.
 """
 
 from __future__ import annotations
@@ -18,16 +11,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from functools import cache
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.polar import cofactors, polar_rotation
 from jointlimits.service.core.scene import Bodies
-
-if TYPE_CHECKING:
-    from jointlimits.service.core.constitution import Constitution
 
 Array = NDArray[np.float64]
 
@@ -357,11 +346,15 @@ def cross(a: Array, b: Array) -> Array:
 
 def to_local(R: Array, w: Array, out: Array | None = None) -> Array:
     """`R^T w` (N, 3), component-major (or into `out`), for rotations `R` (N, 3, 3) and world vectors `w` (N, 3)."""
-    return from_local(R.transpose(0, 2, 1), w, out)
+    return _apply(R.transpose(0, 2, 1), w, out)
 
 
-def from_local(M: Array, w: Array, out: Array | None = None) -> Array:
-    """`M w` (N, 3), component-major (or into `out`), for matrices `M` (N, 3, 3) and vectors `w` (N, 3)."""
+def from_local(M: Array, w: Array) -> Array:
+    """`M w` (N, 3), component-major, for matrices `M` (N, 3, 3) and vectors `w` (N, 3)."""
+    return _apply(M, w)
+
+
+def _apply(M: Array, w: Array, out: Array | None = None) -> Array:
     out = component_major(w.shape[0], (3,), w.dtype) if out is None else out
     if w.shape[0] <= SMALL:  # a few joints: the three rows at once (the same sums, in the same order)
         return np.add(M[..., 0] * w[:, 0, None] + M[..., 1] * w[:, 1, None], M[..., 2] * w[:, 2, None], out=out)
@@ -404,41 +397,3 @@ def max_abs(v: Array) -> Array:
 def unit(v: Array) -> Array:
     """Each row of `v` (N, 3) over its length, in `v`'s layout (rows of moderate length: see `axis`)."""
     return v / np.sqrt(dot(v, v))[:, None]
-
-
-def axis_and_anchors(c: Constitution, edges: Array | None, local_edges: Array | None, p_ref: Array | None,
-                     A_ref: Array, R_ref: Array, d: Array | None = None) -> tuple[Array, Array | None]:
-    """The unit world axis `t` (N, 3) and, with points, the body-local anchors (N, 2, 3) (else None), both
-    component-major. `p_ref` (N, 2, 3), `A_ref` and `R_ref` (N, 2, 3, 3) of bodies i, j; `d` (N, 3) the edge
-    vectors `p1 - p0` (or `l1 - l0`) if already taken (`validate.joint_faults`)."""
-    points = c.facts.points
-    if local_edges is None:
-        return axis(edge_vector(edges) if d is None else d), (_world_anchors(edges, p_ref, A_ref) if points else None)
-    d = edge_vector(local_edges[:, 0]) if d is None else d  # l1 - l0, in body i's coordinates
-    # Both factors scaled by powers of two (exact; the direction is all that counts): `M d` then
-    # neither overflows nor underflows for any finite, nonzero `d` and a nonsingular `A_ref`.
-    M = R_ref[:, 0] if c.facts.axis_by_rotation else _unit_scaled(A_ref[:, 0])
-    t = axis(from_local(M, _unit_scaled(d)))
-    if not points:
-        return t, None
-    anchors = component_major(t.shape[0], (2, 3), t.dtype)
-    anchors[...] = local_edges[:, :, 0]  # l0 on body i, r0 on body j
-    return t, anchors
-
-
-def _unit_scaled(a: Array) -> Array:
-    """Each row of `a` (N, ...) times the power of two that puts its largest magnitude in [0.5, 1) (exact)."""
-    _, e = np.frexp(np.abs(a).reshape(a.shape[0], int(np.prod(a.shape[1:]))).max(axis=1, initial=0.0))  # N may be 0
-    return np.ldexp(a, -e.reshape(-1, *(1,) * (a.ndim - 1)))
-
-
-def _world_anchors(edges: Array, p_ref: Array, A_ref: Array) -> Array:
-    """`c_k = A_ref_k^{-1} (p0 - p_ref_k)` (N, 2, 3): the difference first, then the solve."""
-    n = edges.shape[0]
-    d = component_major(n, (2, 3), edges.dtype)
-    if n <= SMALL:  # a few joints: one pass
-        np.subtract(edges[:, 0, None], p_ref, out=d)
-    else:
-        for r in range(3):
-            np.subtract(edges[:, 0, r, None], p_ref[:, :, r], out=d[:, :, r])
-    return solve3(A_ref, d)

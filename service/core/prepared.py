@@ -28,8 +28,9 @@ from jointlimits.service.core.constitution import Array, Constitution, Progress
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
 from jointlimits.service.core.evaluate import collapsed_faults, differentiate
 from jointlimits.service.core.kinematics import (PREV_STEP, REF, STEP, STEPS, TOTAL_STEP, BodyTable, CarefulFrames,
-                                                 add_positions, axis_and_anchors, careful_frames, exponents,
-                                                 frame_quantities, relative_position, scaled_frames, state_frames)
+                                                 add_positions, careful_frames, exponents, frame_quantities,
+                                                 relative_position, scaled_frames, state_frames)
+from jointlimits.service.core.geometry import axis_and_anchors
 from jointlimits.service.core.registry import CONSTITUTIONS, numerics
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
 from jointlimits.service.core.validate import (check_bodies, check_dofs, check_evaluation, check_options, check_rotations,

@@ -1,4 +1,4 @@
-"""`evaluate.run_all`: results in order, the first exception in order, raised once every task has ended."""
+"""`parallel.run_all`: results in order, the first exception in order, raised once every task has ended."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from jointlimits.service.core.evaluate import run_all
+from jointlimits.service.core.parallel import run_all
 
 
 def test_results_in_task_order() -> None:

@@ -4,49 +4,60 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 
 class Attribute(BaseModel):
     """A per-joint input: `field` on the wire (a list in `JointBatch`), `name` in the spec."""
 
-    name: str
-    field: str
-    unit: str
-    default: float | None
-    """The reference engine's default (the SDK's scene builder applies it); `None`: required, except
-    `prev_coordinate` (v1.1, optional), whose default is derived from `q_prev` as contract v1 does."""
-    description: str
+    name: str = Field(description="The spec's attribute name (limit/lower, limit/upper, limit/strength).")
+    field: str = Field(description="The wire field (a per-joint list of JointBatch).")
+    unit: str = Field(description="Its unit (rad, the DOFs' length unit, energy unit).")
+    # The reference engine's default (the SDK's scene builder applies it); None: required, except
+    # `prev_coordinate` (v1.1, optional), whose default is derived from `q_prev` as contract v1 does.
+    default: float | None = Field(description="The default an absent field takes (null: required).")
+    description: str = Field(description="What it means.")
 
 
 class ConstitutionInfo(BaseModel):
-    uid: int
-    name: str
-    base_uid: int
-    base_name: str
-    coordinate: str
-    """What the joint coordinate `x` measures, and its unit."""
-    origin: str = ""
-    """v1.2: where `x = 0` for each value of a batch's `origin` ("q_ref", "absolute": the reference engine's)."""
-    attributes: list[Attribute]
+    uid: int = Field(description="The constitution's UID, the wire's constitution_uid.")
+    name: str = Field(description="Its name in the specs.")
+    base_uid: int = Field(description="The base joint's UID it pairs with (the wire's base_uid).")
+    base_name: str = Field(description="The base joint's name.")
+    coordinate: str = Field(description="What the joint coordinate x measures, and its unit.")
+    origin: str = Field(
+        "",
+        description="v1.2: where x = 0 for each value of a batch's origin ('q_ref', 'absolute': the reference "
+        "engine's zero).",
+    )
+    attributes: list[Attribute] = Field(
+        description="Its per-joint inputs, by their spec names (the edges by the reference engine's attribute names)."
+    )
 
 
 class Limits(BaseModel):
     """This deployment's request limits; larger requests answer 413 (the SDK splits by them)."""
 
-    max_body_bytes: int
-    max_joints: int
+    max_body_bytes: int = Field(description="Largest request body accepted, in bytes (JOINTLIMITS_MAX_BODY_BYTES).")
+    max_joints: int = Field(description="Most joints, over all batches, in one request (JOINTLIMITS_MAX_JOINTS).")
     # Admission by cost (docs/deployment.md, "Limits"); None from a server that predates them.
-    max_batches: int | None = None
-    max_answer_bytes: int | None = None
-    """Bound of the answer from joints x outputs x encoding (`jointlimits.schemas.answer.answer_bytes`)."""
-    max_json_values: int | None = None
-    """Values (commas + 1) of a JSON body."""
+    max_batches: int | None = Field(None, description="Most batches in one request (JOINTLIMITS_MAX_BATCHES).")
+    max_answer_bytes: int | None = Field(
+        None,
+        description="Largest answer, bounded from joints x outputs x encoding before any work "
+        "(JOINTLIMITS_MAX_ANSWER_BYTES; schemas/answer.py computes the bound).",
+    )
+    max_json_values: int | None = Field(
+        None,
+        description="Most values (commas + 1) in a JSON body, counted before parsing (JOINTLIMITS_MAX_JSON_VALUES).",
+    )
 
 
 class ConstitutionsResponse(BaseModel):
-    constitutions: list[ConstitutionInfo]
-    limits: Limits
+    constitutions: list[ConstitutionInfo] = Field(description="Each constitution this service evaluates.")
+    limits: Limits = Field(
+        description="This deployment's request limits (larger requests answer 413; the Python SDK splits by them)."
+    )
 
 
 STRENGTH_DEFAULT = 1.0

@@ -84,8 +84,8 @@ class Checker:
     may hold `true`/`false` inside an array, which NumPy would read as 1 and 0: its arrays are then read item
     by item (a count the decoder made on the bytes, not a parse)."""
 
-    def __init__(self, binary: bool, booleans: int = 0) -> None:
-        self.binary, self.booleans = binary, booleans
+    def __init__(self, binary: bool) -> None:
+        self.binary, self.booleans = binary, 0
         self.faults: list[Fault] = []
         self.values: int | None = None
         """A JSON text's values (its commas + 1), counted before its parse: the request's cost (`sizing`)."""

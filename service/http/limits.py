@@ -18,7 +18,7 @@ from jointlimits.service.http.errors import too_large as _too_large
 from jointlimits.schemas.answer import BATCH_OVERHEAD_BYTES, FLOATS_PER_JOINT, answer_bytes  # noqa: F401 (re-exported)
 from jointlimits.service.settings import Settings
 
-async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool] | None = None) -> bytes | None:
+async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool]) -> bytes | None:
     """The body, refused with 413 as soon as it is known to exceed `max_bytes` (by header or while streaming).
     `take(n)` says whether to keep each chunk (the upload budget, `budget.receive`); once it says no, the rest is
     read and dropped (the client gets an answer, not a reset, and nothing is held) and the result is None."""
@@ -31,7 +31,7 @@ async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool
         size += len(chunk)
         if size > max_bytes:
             raise _too_large(("body",), f"request body exceeds {max_bytes} bytes, the most this service accepts")
-        if chunks is not None and (take is None or take(len(chunk))):
+        if chunks is not None and take(len(chunk)):
             chunks.append(chunk)
         else:
             chunks = None  # refused: drain

@@ -130,7 +130,7 @@ class _WriteBound:
     """The write deadline of both protocols: `write_timeout` seconds of paused writing, then a reset. Mixed in
     before uvicorn's protocol class (its `pause_writing`, `resume_writing`, `connection_lost` run after ours)."""
 
-    write_timeout: float | None = None  # None: the class named to uvicorn, bound at its first connection
+    write_timeout: float | None = None  # None: JOINTLIMITS_WRITE_TIMEOUT, read per connection
     transport: asyncio.Transport
     loop: asyncio.AbstractEventLoop
     app_state: dict[str, Any]
@@ -138,9 +138,8 @@ class _WriteBound:
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        if self.write_timeout is None:  # this worker's environment, read once (the CLI has written it by now)
-            for name, seconds in deadlines().items():
-                setattr(type(self), name, seconds)
+        if self.write_timeout is None:
+            self.write_timeout = Settings().write_timeout
         self.drain = Drain()
         self._write_timer = _Timer(self.loop, self._write_expired)
 
@@ -199,11 +198,13 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     """uvicorn's httptools protocol with a deadline on each request head (`header_timeout` seconds) and on
     a full write buffer (`write_timeout` seconds); each request's scope carries the connection's `Drain`."""
 
-    header_timeout: float | None = None  # JOINTLIMITS_HEADER_TIMEOUT (`deadlines`)
+    header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read per connection
     heads_held = 0  # bytes of every connection's unfinished head in this worker (MAX_HEADS_HELD)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        if self.header_timeout is None:
+            self.header_timeout = Settings().header_timeout
         self._head_timer = _Timer(self.loop, self._head_expired)
         self._head_bytes, self._head_size = False, 0  # bytes of the current head have arrived (any; how many)
         self._in_head = False  # the parser is inside a request's head (not in the rest of an answered one's body)
@@ -306,7 +307,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
     reason and a FIN, the rest drained; 1012 on shutdown; a message's bytes in the worker's upload budget from its
     first byte (1013 past it); the latest ping alone answered; a client's protocol fault one WARNING line."""
 
-    message_timeout: float | None = None  # JOINTLIMITS_BODY_TIMEOUT (`deadlines`)
+    message_timeout: float | None = None  # None: JOINTLIMITS_BODY_TIMEOUT, read per connection
     draining = False  # closed under the application (1009, 1007, 1013): the rest is read and dropped
     _drained = 0  # bytes read and dropped since the close
     _upload: Any = None  # this connection's `budget.Reservation` in the worker's upload budget
@@ -316,6 +317,8 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.queue = _Queue()
+        if self.message_timeout is None:
+            self.message_timeout = Settings().body_timeout
         self._message_timer = _Timer(self.loop, self._message_expired)
         self._owed_pong = b""  # the answer to the latest ping, held while writes are paused (one at most)
 
@@ -516,16 +519,10 @@ def _too_big(exc: PayloadTooBig, limit: int | None) -> str:
 P = TypeVar("P")
 
 
-def deadlines(**given: float) -> dict[str, float]:
-    """The protocols' deadlines: those `given`, the others the environment's (JOINTLIMITS_*), read now."""
-    s = Settings()
-    return dict(header_timeout=s.header_timeout, write_timeout=s.write_timeout, message_timeout=s.body_timeout) | given
-
-
-def bounded(protocol: type[P], **bounds: float) -> type[P]:
-    """`protocol` (`ReadTimeoutProtocol`, `WriteTimeoutWebSocketProtocol`) with its own deadlines (`deadlines`:
-    for an in-process uvicorn.Config)."""
-    return type(protocol.__name__, (protocol,), deadlines(**bounds))
+def bounded(protocol: type[P], **bounds: float | None) -> type[P]:
+    """`protocol` (`ReadTimeoutProtocol`, `WriteTimeoutWebSocketProtocol`) with its own `header_timeout`,
+    `write_timeout`, `message_timeout` (for an in-process uvicorn.Config; None: from the environment)."""
+    return type(protocol.__name__, (protocol,), bounds)
 
 
 def server_options(max_frame_bytes: int) -> dict[str, Any]:

@@ -29,17 +29,22 @@ def positive_int(text: str, what: str = "a positive integer") -> int:
 
 
 def positive_float(text: str) -> float:
-    x = float(text)
-    if not (0 < x < float("inf")):
-        raise argparse.ArgumentTypeError("must be a positive number of seconds")
-    return x
+    return _seconds(text, False, "a positive number of seconds")
 
 
 def seconds(text: str) -> float:
     """A duration that may be 0 (nothing to wait)."""
-    x = float(text)
-    if not (0 <= x < float("inf")):
-        raise argparse.ArgumentTypeError(f"must be 0 or a positive number of seconds, got {text!r}")
+    return _seconds(text, True, "0 or a positive number of seconds")
+
+
+def _seconds(text: str, zero: bool, what: str) -> float:
+    """A finite duration, above 0 (or 0 too, with `zero`); text that is no number is refused in the same words."""
+    try:
+        x = float(text)
+    except ValueError:
+        x = float("nan")
+    if not ((0 <= x if zero else 0 < x) and x < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
     return x
 
 

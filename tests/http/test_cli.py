@@ -94,6 +94,27 @@ def test_bad_options_are_refused(argv, capsys):
     assert e.value.code == 2
 
 
+@pytest.mark.parametrize("flag", ["--request-timeout", "--header-timeout", "--shutdown-delay"])
+def test_a_duration_that_is_no_number_is_refused_in_the_settings_words(flag, capsys):
+    """`float('foo')` raised ValueError inside the reader, which argparse worded "invalid positive_float value"."""
+    with pytest.raises(SystemExit):
+        parse([flag, "foo"])
+    err = capsys.readouterr().err
+    assert f"argument {flag}: must be " in err and "positive number of seconds, got 'foo'" in err
+    assert "invalid" not in err and "positive_float" not in err
+
+
+@pytest.mark.parametrize(("env", "text"), [("JOINTLIMITS_HEADER_TIMEOUT", "abc"), ("JOINTLIMITS_MAX_JOINTS", "-3")])
+def test_a_bad_variable_is_named_by_the_cli(env, text, monkeypatch, capsys):
+    """A container sets variables, not flags: the refusal names the variable and its text beside the flag."""
+    monkeypatch.setenv(env, text)
+    with pytest.raises(SystemExit) as e:
+        parse([])
+    assert e.value.code == 2 and f"({env}={text!r})" in capsys.readouterr().err
+    flag = "--" + env.removeprefix("JOINTLIMITS_").lower().replace("_", "-")
+    assert getattr(parse([flag, "7"]), flag[2:].replace("-", "_")) == 7  # the flag given wins over a bad variable
+
+
 def test_version():
     out = subprocess.run([*console_script(), "--version"], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0 and out.stdout.startswith("jointlimits ")

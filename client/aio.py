@@ -59,7 +59,14 @@ class AsyncClient(BaseClient):
                 response = await self._send(outgoing)
             return job.receive(part, response)
 
-        return job.merge(await asyncio.gather(*(run(part) for part in job.parts)))
+        tasks = [asyncio.ensure_future(run(part)) for part in job.parts]
+        try:
+            return job.merge(await asyncio.gather(*tasks))
+        except BaseException:  # a part failed (or `progress` raised): the others are not sent on, as `Client`'s
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            raise
 
     def session(self, request: Request | dict | EvaluateRequest, *, resume: bool = True) -> AsyncSession:
         """`async with client.session(r) as s:` (or `s = await client.session(r)`): `Client.session`, awaitable."""

@@ -1,17 +1,24 @@
-"""A session call interrupted between its message and the reply (an asyncio cancellation, a timeout around the
-call, Ctrl-C) must not leave that reply on the connection: the next call would read it as its own and return the
-numbers of the interrupted call's `q` (silently wrong, found by the audit of issue 28's client refactor; the
-same at 004f4f9). The connection is given up instead; the next call reopens in the committed state (`resume`)."""
+"""Calls that end early leave nothing behind (found by the audit of issue 28's client refactor; the same at 004f4f9).
+
+- A session call interrupted between its message and the reply (an asyncio cancellation, a timeout around the
+  call, Ctrl-C) must not leave that reply on the connection: the next call would read it as its own and return the
+  numbers of the interrupted call's `q`, silently. The connection is given up instead; the next call reopens in
+  the committed state (`resume`).
+- `AsyncClient.evaluate` of a split request that fails (a part refused, a `progress` callback raising) sends no
+  part after it has raised, as `Client.evaluate` stops at the failing part.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import threading
 
+import httpx
 import numpy as np
 import pytest
 
 from jointlimits.client import AsyncClient, Client, LocalClient, SessionClosed
+from tests.http.test_contract_live import serve
 from tests.sdk.test_session_resume import replica
 from tests.sdk.test_sessions_live import chain, same
 
@@ -108,3 +115,41 @@ def test_without_resume_an_interrupted_session_says_it_is_closed():
         same(s.evaluate(q), ref.evaluate(q))
         assert np.array_equal(s.commit(q)[0], ref.commit(q)[0])
         s.close()
+
+
+class Counted(httpx.AsyncHTTPTransport):
+    """Counts the evaluate requests sent through it (each counted when it starts)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sent = 0
+
+    async def handle_async_request(self, request: httpx.Request) -> httpx.Response:
+        self.sent += request.url.path == "/v1/evaluate"
+        return await super().handle_async_request(request)
+
+
+def test_an_async_split_evaluate_sends_nothing_after_it_raised():
+    """A progress callback that raises at the first part's answer: `evaluate` raises its error, and the parts
+    not yet answered are cancelled, not sent on in the background (8 parts, 2 at a time; before, every part was
+    sent, 4 or 5 of them after `evaluate` had raised)."""
+    req, _ = chain(40)
+    sent_after = []
+
+    def fails(done: int, total: int) -> None:
+        raise RuntimeError("the caller's progress callback failed")
+
+    async def run(url: str) -> None:
+        counted = Counted()
+        async with AsyncClient(url, max_joints_per_request=5, concurrency=2, progress=fails,
+                               http_transport=counted) as client:
+            with pytest.raises(RuntimeError, match="progress callback failed"):
+                await client.evaluate(req)
+            at_raise = counted.sent
+            await asyncio.sleep(0.5)  # a part still running would be sent meanwhile
+            sent_after.append(counted.sent - at_raise)
+            assert counted.sent < 8  # not every part
+
+    with serve() as url:
+        asyncio.run(run(url))
+    assert sent_after == [0]

@@ -59,7 +59,14 @@ class AsyncClient(BaseClient):
                 response = await self._send(outgoing)
             return job.receive(part, response)
 
-        return job.merge(await asyncio.gather(*(run(part) for part in job.parts)))
+        tasks = [asyncio.ensure_future(run(part)) for part in job.parts]
+        try:
+            return job.merge(await asyncio.gather(*tasks))
+        except BaseException:  # a part failed (or `progress` raised): the others are not sent on, as `Client`'s
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            raise
 
     def session(self, request: Request | dict | EvaluateRequest, *, resume: bool = True) -> AsyncSession:
         """`async with client.session(r) as s:` (or `s = await client.session(r)`): `Client.session`, awaitable."""
@@ -119,6 +126,10 @@ class AsyncSession(Exchange):
             except asyncio.TimeoutError:
                 await self._io("drop", None)
                 raise self._no_reply() from None
+            except BaseException:  # cancelled between the message and its reply: that reply would answer the next call
+                ws, self._ws = self._ws, None
+                _close_soon(ws)  # not awaited: a cancellation does not wait for the close handshake
+                raise
         return None
 
     async def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
@@ -151,15 +162,18 @@ class AsyncSession(Exchange):
         # `__del__` cannot await), and free the server's session slot, not when the loop ends. A loop already
         # closed has dropped the socket itself.
         ws = getattr(self, "_ws", None)
-        if ws is None or sys.is_finalizing():
-            return
+        if ws is not None and not sys.is_finalizing():
+            _close_soon(ws)
 
-        def close() -> None:
-            task = ws.loop.create_task(ws.close())
-            _CLOSING.add(task)
-            task.add_done_callback(_CLOSING.discard)
 
-        try:
-            ws.loop.call_soon_threadsafe(close)
-        except RuntimeError:  # the loop is closed
-            pass
+def _close_soon(ws: Any) -> None:
+    """Close `ws` in a task of its own loop (from any thread), kept in `_CLOSING` until done."""
+    def close() -> None:
+        task = ws.loop.create_task(ws.close())
+        _CLOSING.add(task)
+        task.add_done_callback(_CLOSING.discard)
+
+    try:
+        ws.loop.call_soon_threadsafe(close)
+    except RuntimeError:  # the loop is closed: it has dropped the socket itself
+        pass

@@ -148,6 +148,10 @@ class Session(Exchange):
             except TimeoutError:
                 self._io("drop", None)
                 raise self._no_reply() from None
+            except BaseException:  # Ctrl-C between the message and its reply: that reply would answer the next call
+                self._ws.close_timeout = min(self._ws.close_timeout or 1.0, 1.0)
+                self._io("drop", None)
+                raise
         return None
 
     def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,

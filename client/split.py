@@ -7,6 +7,7 @@ the original batch, joint and body indices.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -57,8 +58,8 @@ def _part(request: Request, pieces: list[tuple[int, int, int]]) -> Part:
     ids = np.concatenate([b.body_ids.reshape(-1) for b in batches]) if batches else np.zeros(0, np.int64)
     n_bodies = np.shape(request.q)[0]
     keep = None
-    if ids.size and ids.min() >= 0 and ids.max() < n_bodies:
-        # Only in-range ids are renumbered; otherwise the server names the bad index as the user wrote it.
+    if ids.size and ids.min() >= 0 and ids.max() < n_bodies and not (ids[0::2] == ids[1::2]).any():
+        # Only in-range pairs of two bodies are renumbered; else the server names the bad index as the user wrote it.
         keep = np.unique(ids)
         batches = [replace(b, body_ids=np.searchsorted(keep, b.body_ids)) for b in batches]
     pick = (lambda a: np.asarray(a)[keep]) if keep is not None else (lambda a: a)
@@ -111,8 +112,19 @@ def relocate(part: Part, e: ServiceError) -> ServiceError:
     whole = part.bodies is None and not any(part.starts) and part.batches == list(range(len(part.batches)))
     if whole:
         return e
-    faults = [Fault(_relocate(part, f.loc), f.msg, f.type) for f in e.faults]
+    faults = [Fault(_relocate(part, f.loc), _renumber(part, f), f.type) for f in e.faults]
     return type(e)(e.status, faults, e.where)
+
+
+_BODY_ROWS = re.compile(r"(?<=body )\d+|(?<=block \()\d+|(?<=, )\d+(?=\) overflows)")
+"""The body rows a per-body sum's fault names (`service/core/assembled.py`)."""
+
+
+def _renumber(part: Part, f: Fault) -> str:
+    """A per-body sum's fault names the part's body rows: the caller's instead."""
+    if part.bodies is None or tuple(f.loc) != ("body", "layout"):
+        return f.msg
+    return _BODY_ROWS.sub(lambda m: str(int(part.bodies[int(m.group())])), f.msg)
 
 
 def _relocate(part: Part, loc: tuple) -> tuple:

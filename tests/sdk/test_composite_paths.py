@@ -352,3 +352,45 @@ def test_scene_builder_is_the_hand_written_request(seed):
         if energies:
             _summed(np.float64(got.total_energy), np.float64(want.total_energy), np.float64(sum(energies)),
                     len(rows))
+
+
+def _two_slides(strength: float, n: int = 2, pairs: list | None = None) -> dict:
+    """`n` prismatic joints of bodies 0 and 1, each 0.5 past its upper limit: gradients of size ~`strength`."""
+    eye = np.eye(3).reshape(9).tolist()
+    ref = [[0.0, 0.0, 0.0, *eye], [0.0, 0.0, 0.0, *eye], [0.0, 0.0, 0.0, *eye]]
+    q = [[0.0, 0.0, 0.0, *eye], [0.5, 0.0, 0.0, *eye], [0.0, 1.0, 0.0, *eye]]
+    return {"bodies": {"q": q, "q_prev": ref, "q_ref": ref},
+            "batches": [{"constitution_uid": 669, "body_ids": pairs or [[0, 1]] * n, "edges": [[[0, 0, 0], [1, 0, 0]]] * n,
+                         "lower": [-0.1] * n, "upper": [0.0] * n, "strength": [strength] * n}],
+            "layout": "bodies", "outputs": ["gradient"]}
+
+
+@pytest.mark.parametrize("size", [1, 2])
+def test_a_parts_fault_names_the_callers_bodies(size):
+    """Parts carry only their joints' bodies, renumbered; a fault whose message names a body (a joint coupling a
+    body to itself, a per-body sum that overflows within the part) must name it as the caller numbered it."""
+    from jointlimits.client import InvalidInput
+
+    local = LocalClient()
+    d = _two_slides(1.0, 3, [[1, 2], [2, 2], [1, 2]])
+    one = np.abs(local.evaluate(_two_slides(1.0, 1)).assembled.gradient).max()
+    e = _two_slides(0.9 * np.finfo(np.float64).max / one, 4, [[1, 2]] * 4)  # parts of 2 overflow on their own
+    for given in (d, e) if size == 2 else (d,):
+        with pytest.raises(InvalidInput) as whole:
+            local.evaluate(given)
+        with pytest.raises(InvalidInput) as got:
+            _in_parts(as_request(given), size)
+        assert [(f.loc, f.msg) for f in got.value.faults] == [(f.loc, f.msg) for f in whole.value.faults]
+
+
+def _in_parts(req, size: int):
+    """`Client.evaluate`'s path in-process: parts of `size` joints, a part's fault relocated, the answers merged."""
+    from jointlimits.client import InvalidInput
+
+    parts, results = split.plan(req, size), []
+    for part in parts:
+        try:
+            results.append(LocalClient().evaluate(part.request))
+        except InvalidInput as e:
+            raise split.relocate(part, e) from None
+    return split.merge(req, parts, results)

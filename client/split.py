@@ -13,8 +13,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from jointlimits.client.errors import Fault, ServiceError
-from jointlimits.client.model import NEEDED, OPTIONAL, Assembled, BatchResult, Evaluation, JointBatch, Request
-from jointlimits.service.core.assembled import reduce_pairs
+from jointlimits.client.model import NEEDED, OPTIONAL, Assembled, BatchResult, Evaluation, JointBatch, Request, in_body
+from jointlimits.service.core.assembled import raise_overflow, reduce_pairs
+from jointlimits.service.core.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -95,15 +96,20 @@ def _merge_assembled(request: Request, parts: list[Part], results: list[Evaluati
     n_bodies = int(np.shape(request.q)[0])
     each = [(p.bodies if p.bodies is not None else np.arange(n_bodies), ev.assembled) for p, ev in zip(parts, results)]
     out = Assembled(n_bodies)
-    if each[0][1].gradient is not None:
-        out.gradient = np.zeros((n_bodies, 12))
-        for keep, a in each:
-            np.add.at(out.gradient, keep, a.gradient)
-    if each[0][1].blocks is not None:
-        # keep is sorted: renumbering keeps rows <= cols.
-        out.rows, out.cols, out.blocks = reduce_pairs(
-            np.concatenate([keep[a.rows] for keep, a in each]), np.concatenate([keep[a.cols] for keep, a in each]),
-            np.concatenate([a.blocks for _, a in each]))
+    with np.errstate(over="ignore", invalid="ignore"):  # parts' finite sums may overflow once added: refused below
+        if each[0][1].gradient is not None:
+            out.gradient = np.zeros((n_bodies, 12))
+            for keep, a in each:
+                np.add.at(out.gradient, keep, a.gradient)
+        if each[0][1].blocks is not None:
+            # keep is sorted: renumbering keeps rows <= cols.
+            out.rows, out.cols, out.blocks = reduce_pairs(
+                np.concatenate([keep[a.rows] for keep, a in each]), np.concatenate([keep[a.cols] for keep, a in each]),
+                np.concatenate([a.blocks for _, a in each]))
+    try:
+        raise_overflow(out)  # the whole request's fault (422, the bodies named), never an infinity
+    except InputError as e:
+        raise in_body(e.faults) from None
     return out
 
 
@@ -117,7 +123,7 @@ def relocate(part: Part, e: ServiceError) -> ServiceError:
 
 
 _BODY_ROWS = re.compile(r"(?<=body )\d+|(?<=block \()\d+|(?<=, )\d+(?=\) overflows)")
-"""The body rows a per-body sum's fault names (`service/core/assembled.py`)."""
+"""The body rows a per-body sum's fault names (`service/core/assembled.py:raise_overflow`)."""
 
 
 def _renumber(part: Part, f: Fault) -> str:

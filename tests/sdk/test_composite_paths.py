@@ -366,6 +366,25 @@ def _two_slides(strength: float, n: int = 2, pairs: list | None = None) -> dict:
 
 
 @pytest.mark.parametrize("size", [1, 2])
+def test_a_per_body_sum_that_overflows_only_once_merged_is_the_whole_requests_fault(size):
+    """Each part's per-body gradient is finite (0.9 of float64's largest), their sum is not: the merge must refuse
+    it as the whole request is refused (422 on `layout`, naming the body), never answer an infinity."""
+    from jointlimits.client import InvalidInput
+
+    local = LocalClient()
+    one = np.abs(local.evaluate(_two_slides(1.0, 1)).assembled.gradient).max()
+    d = _two_slides(0.9 * np.finfo(np.float64).max / one, 3, [[1, 2]] * 3)  # body 0 unused: parts renumber
+    with pytest.raises(InvalidInput) as whole:
+        local.evaluate(d)
+    req = as_request(d)
+    assert len(split.plan(req, size)) > 1
+    with pytest.raises(InvalidInput) as merged:  # parts of 2: the first part's own sum overflows, relocated
+        _in_parts(req, size)
+    assert merged.value.status == whole.value.status == 422
+    assert [(f.loc, f.msg, f.type) for f in merged.value.faults] == [(f.loc, f.msg, f.type) for f in whole.value.faults]
+
+
+@pytest.mark.parametrize("size", [1, 2])
 def test_a_parts_fault_names_the_callers_bodies(size):
     """Parts carry only their joints' bodies, renumbered; a fault whose message names a body (a joint coupling a
     body to itself, a per-body sum that overflows within the part) must name it as the caller numbered it."""

@@ -122,8 +122,7 @@ def relocate(part: Part, e: ServiceError) -> ServiceError:
     return type(e)(e.status, faults, e.where)
 
 
-_BODY_ROWS = re.compile(r"(?<=body )\d+|(?<=block \()\d+|(?<=, )\d+(?=\) overflows)")
-"""The body rows a per-body sum's fault names (`service/core/assembled.py:raise_overflow`)."""
+_BODY_ROWS = re.compile(r"(?<=body )\d+|(?<=block \()\d+|(?<=, )\d+(?=\) overflows)")  # assembled.raise_overflow's
 
 
 def _renumber(part: Part, f: Fault) -> str:

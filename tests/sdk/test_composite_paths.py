@@ -355,13 +355,15 @@ def test_scene_builder_is_the_hand_written_request(seed):
 
 
 def _two_slides(strength: float, n: int = 2, pairs: list | None = None) -> dict:
-    """`n` prismatic joints of bodies 0 and 1, each 0.5 past its upper limit: gradients of size ~`strength`."""
+    """`n` prismatic joints along x (bodies 0 and 1, or `pairs`), slid 0.5 from q_ref, beyond their range [-0.1, 0]
+    by 0.4 or more: gradients of size ~`strength`, per-body sums of n of them (`layout="bodies"`)."""
     eye = np.eye(3).reshape(9).tolist()
     ref = [[0.0, 0.0, 0.0, *eye], [0.0, 0.0, 0.0, *eye], [0.0, 0.0, 0.0, *eye]]
     q = [[0.0, 0.0, 0.0, *eye], [0.5, 0.0, 0.0, *eye], [0.0, 1.0, 0.0, *eye]]
     return {"bodies": {"q": q, "q_prev": ref, "q_ref": ref},
-            "batches": [{"constitution_uid": 669, "body_ids": pairs or [[0, 1]] * n, "edges": [[[0, 0, 0], [1, 0, 0]]] * n,
-                         "lower": [-0.1] * n, "upper": [0.0] * n, "strength": [strength] * n}],
+            "batches": [{"constitution_uid": 669, "body_ids": pairs or [[0, 1]] * n,
+                         "edges": [[[0, 0, 0], [1, 0, 0]]] * n, "lower": [-0.1] * n, "upper": [0.0] * n,
+                         "strength": [strength] * n}],
             "layout": "bodies", "outputs": ["gradient"]}
 
 

@@ -7,13 +7,15 @@ the original batch, joint and body indices.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from jointlimits.client.errors import Fault, ServiceError
-from jointlimits.client.model import NEEDED, OPTIONAL, Assembled, BatchResult, Evaluation, JointBatch, Request
-from jointlimits.service.core.assembled import reduce_pairs
+from jointlimits.client.model import NEEDED, OPTIONAL, Assembled, BatchResult, Evaluation, JointBatch, Request, in_body
+from jointlimits.service.core.assembled import raise_overflow, reduce_pairs
+from jointlimits.service.core.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -57,8 +59,8 @@ def _part(request: Request, pieces: list[tuple[int, int, int]]) -> Part:
     ids = np.concatenate([b.body_ids.reshape(-1) for b in batches]) if batches else np.zeros(0, np.int64)
     n_bodies = np.shape(request.q)[0]
     keep = None
-    if ids.size and ids.min() >= 0 and ids.max() < n_bodies:
-        # Only in-range ids are renumbered; otherwise the server names the bad index as the user wrote it.
+    if ids.size and ids.min() >= 0 and ids.max() < n_bodies and not (ids[0::2] == ids[1::2]).any():
+        # Only in-range pairs of two bodies are renumbered; else the server names the bad index as the user wrote it.
         keep = np.unique(ids)
         batches = [replace(b, body_ids=np.searchsorted(keep, b.body_ids)) for b in batches]
     pick = (lambda a: np.asarray(a)[keep]) if keep is not None else (lambda a: a)
@@ -94,15 +96,20 @@ def _merge_assembled(request: Request, parts: list[Part], results: list[Evaluati
     n_bodies = int(np.shape(request.q)[0])
     each = [(p.bodies if p.bodies is not None else np.arange(n_bodies), ev.assembled) for p, ev in zip(parts, results)]
     out = Assembled(n_bodies)
-    if each[0][1].gradient is not None:
-        out.gradient = np.zeros((n_bodies, 12))
-        for keep, a in each:
-            np.add.at(out.gradient, keep, a.gradient)
-    if each[0][1].blocks is not None:
-        # keep is sorted: renumbering keeps rows <= cols.
-        out.rows, out.cols, out.blocks = reduce_pairs(
-            np.concatenate([keep[a.rows] for keep, a in each]), np.concatenate([keep[a.cols] for keep, a in each]),
-            np.concatenate([a.blocks for _, a in each]))
+    with np.errstate(over="ignore", invalid="ignore"):  # parts' finite sums may overflow once added: refused below
+        if each[0][1].gradient is not None:
+            out.gradient = np.zeros((n_bodies, 12))
+            for keep, a in each:
+                np.add.at(out.gradient, keep, a.gradient)
+        if each[0][1].blocks is not None:
+            # keep is sorted: renumbering keeps rows <= cols.
+            out.rows, out.cols, out.blocks = reduce_pairs(
+                np.concatenate([keep[a.rows] for keep, a in each]), np.concatenate([keep[a.cols] for keep, a in each]),
+                np.concatenate([a.blocks for _, a in each]))
+    try:
+        raise_overflow(out)  # the whole request's fault (422, the bodies named), never an infinity
+    except InputError as e:
+        raise in_body(e.faults) from None
     return out
 
 
@@ -111,8 +118,18 @@ def relocate(part: Part, e: ServiceError) -> ServiceError:
     whole = part.bodies is None and not any(part.starts) and part.batches == list(range(len(part.batches)))
     if whole:
         return e
-    faults = [Fault(_relocate(part, f.loc), f.msg, f.type) for f in e.faults]
+    faults = [Fault(_relocate(part, f.loc), _renumber(part, f), f.type) for f in e.faults]
     return type(e)(e.status, faults, e.where)
+
+
+_BODY_ROWS = re.compile(r"(?<=body )\d+|(?<=block \()\d+|(?<=, )\d+(?=\) overflows)")  # assembled.raise_overflow's
+
+
+def _renumber(part: Part, f: Fault) -> str:
+    """A per-body sum's fault names the part's body rows: the caller's instead."""
+    if part.bodies is None or tuple(f.loc) != ("body", "layout"):
+        return f.msg
+    return _BODY_ROWS.sub(lambda m: str(int(part.bodies[int(m.group())])), f.msg)
 
 
 def _relocate(part: Part, loc: tuple) -> tuple:

@@ -79,7 +79,7 @@ def assemble_active(
         keys, take = _hessian_terms(n_bodies, pairs, [b[2] for b in batches])
         keys, sums = _sum_by_key(keys, take, (12, 12))
         out.rows, out.cols, out.blocks = keys // max(n_bodies, 1), keys % max(n_bodies, 1), sums
-    _raise_overflow(out)
+    raise_overflow(out)
     return out
 
 
@@ -159,7 +159,8 @@ def reduce_pairs(
     return keys // max(n, 1), keys % max(n, 1), sums
 
 
-def _raise_overflow(out: Assembled) -> None:
+def raise_overflow(out: Assembled) -> None:
+    """`InputError` naming each body (gradient) and pair (Hessian block) whose sum is not finite."""
     faults = []
     if out.gradient is not None:
         faults += [

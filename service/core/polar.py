@@ -44,13 +44,14 @@ def cofactors(a: Array, out: Array | None = None) -> tuple[Array, Array]:
     return C, det
 
 
-def _frobenius_t(a: Array) -> Array:
-    """Frobenius norms (M,) of `a` (9, M), summed in one fixed order whatever M and layout (einsum's is not)."""
+def squared_norms(a: Array) -> Array:
+    """Squared norms (M,) of the columns of `a` (K, M), summed in one fixed order whatever M and layout (einsum's
+    is not: a lone column is one contiguous dot, so a joint's answer would depend on its request's other joints)."""
     s = a[0] * a[0]
     tmp = np.empty_like(s)
-    for i in range(1, 9):
-        s += np.multiply(a[i], a[i], out=tmp)
-    return np.sqrt(s, out=s)
+    for row in a[1:]:
+        s += np.multiply(row, row, out=tmp)
+    return s
 
 
 def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Array, Array]:
@@ -69,8 +70,8 @@ def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Arr
     m = a.shape[1]
     ratio = np.zeros(m)
     C, det = cofactors(a)
-    nA = _frobenius_t(a)
-    nC = _frobenius_t(C)
+    nA = np.sqrt(squared_norms(a))
+    nC = np.sqrt(squared_norms(C))
     est = np.abs(det) / (nA * nC)
     good = est >= _NEWTON_RATIO
     # A subset costs a gather and scatters (the common case hands a step over as R whole): worth it

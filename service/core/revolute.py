@@ -46,7 +46,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
-from jointlimits.service.core.kinematics import BLOCK_BODY, SMALL, CarefulFrames, component_major, cross, dot, to_local, unit
+from jointlimits.service.core.kinematics import BLOCK_BODY, SMALL, CarefulFrames, component_major, cross, dot
+from jointlimits.service.core.kinematics import to_local, unit
+from jointlimits.service.core.polar import squared_norms
 from jointlimits.service.core.registry import register
 
 FACTS = Facts(
@@ -269,7 +271,7 @@ class Revolute:
         # The rows `scaled` names hold nothing meaningful here (their r^2 is not a normal number): overwritten below.
         r = 1.0 / np.hypot(x_c, x_s)
         g_c = curvature.basis[:, 0]
-        rho2 = np.einsum("nkc,nkc->n", g_c, g_c)  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
+        rho2 = squared_norms(g_c.transpose(1, 2, 0).reshape(12, -1))  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
         sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
         mu = np.abs(dE)
         basis = _psd_vectors(sign, curvature.basis, x_c, x_s, r)
@@ -333,7 +335,7 @@ def _rescaled_projection(dE: Array, scaled: _RescaledCurvature) -> tuple[Array, 
     shift = (e[:, ::-1] - top[:, None])[:, BLOCK_BODY]  # (M, 4): block k of g times 2^(e_other - m)
     g = np.ldexp(cv.basis, shift[:, None, :, None])
     g_c = g[:, 0]
-    rho2 = np.einsum("nkc,nkc->n", g_c, g_c)
+    rho2 = squared_norms(g_c.transpose(1, 2, 0).reshape(12, -1))
     sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
     mant, p = np.frexp(np.abs(dE))  # |E'| = mant 2^p, mant in [1/2, 1) (or 0, inf, NaN as |E'|)
     basis = _psd_vectors(sign, g, x_c, x_s, r)

@@ -19,7 +19,7 @@ import signal
 import subprocess
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -91,13 +91,13 @@ LOG_LEVELS = ["critical", "error", "warning", "info", "debug"]
 def _option(parser: argparse.ArgumentParser, row: Setting) -> None:
     """`--<name>` defaulting to its variable, else its default. A variable's text goes through `row.parse` as a
     flag's does, so a bad variable is refused like a bad flag."""
-    parse = row.parse
-    if row.env in os.environ:  # a bad variable is named, beside the flag argparse names
-        def parse(text: str, read: Callable[[str], Any] = row.parse, env: str = row.env) -> Any:
-            try:
-                return read(text)
-            except (ValueError, argparse.ArgumentTypeError) as e:
-                raise argparse.ArgumentTypeError(f"{e} ({env}={os.environ[env]!r})" if text == os.environ[env] else e)
+    def parse(text: str) -> Any:
+        try:
+            return row.parse(text)
+        except (ValueError, argparse.ArgumentTypeError) as e:  # argparse names the flag; a container sets variables
+            named = f" ({row.env}={text!r})" if os.environ.get(row.env) == text else ""
+            raise argparse.ArgumentTypeError(f"{e}{named}") from None
+
     parser.add_argument("--" + row.name.replace("_", "-"), default=os.environ.get(row.env, row.default),
                         type=parse, help=f"{row.help} ({row.env})", metavar=BOOL if row.parse is boolean else None,
                         choices=LOG_LEVELS if row.name == "log_level" else None)

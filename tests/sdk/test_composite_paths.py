@@ -404,6 +404,22 @@ def test_a_parts_fault_names_the_callers_bodies(size):
         assert [(f.loc, f.msg) for f in got.value.faults] == [(f.loc, f.msg) for f in whole.value.faults]
 
 
+def test_a_parts_hessian_block_fault_names_the_callers_bodies():
+    """The same for a per-body Hessian block, `(r, c)` in the message (split._renumber reads the core's words)."""
+    from jointlimits.client import InvalidInput
+
+    local = LocalClient()
+    hessian = lambda d: {**d, "outputs": ["hessian"]}  # noqa: E731
+    one = np.abs(local.evaluate(hessian(_two_slides(1.0, 1))).assembled.blocks).max()
+    e = hessian(_two_slides(0.9 * np.finfo(np.float64).max / one, 4, [[1, 2]] * 4))  # parts of 2 overflow
+    with pytest.raises(InvalidInput) as whole:
+        local.evaluate(e)
+    with pytest.raises(InvalidInput) as got:
+        _in_parts(as_request(e), 2)
+    assert any("block (1, 2)" in f.msg for f in whole.value.faults)  # the caller's bodies 1, 2 (the part's 0, 1)
+    assert [(f.loc, f.msg) for f in got.value.faults] == [(f.loc, f.msg) for f in whole.value.faults]
+
+
 def _in_parts(req, size: int):
     """`Client.evaluate`'s path in-process: parts of `size` joints, a part's fault relocated, the answers merged."""
     from jointlimits.client import InvalidInput

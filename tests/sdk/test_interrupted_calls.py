@@ -34,6 +34,20 @@ class Held:
         return getattr(self.ws, name)
 
 
+def interrupt_next_reply(s) -> None:
+    """Blocking session `s`'s next call sends its message, then Ctrl-C arrives before its reply is read (once)."""
+    held = Held(s._ws, threading.Event())
+
+    def recv(timeout=None):
+        if held.waiting.is_set():
+            return held.ws.recv(timeout=timeout)
+        held.waiting.set()
+        raise KeyboardInterrupt
+
+    held.recv = recv
+    s._ws = held
+
+
 def test_a_cancelled_async_evaluate_leaves_no_reply_for_the_next_call():
     req, pose = chain(2)
     q = req.q.copy()
@@ -70,16 +84,7 @@ def test_a_blocking_evaluate_interrupted_by_ctrl_c_leaves_no_reply_for_the_next_
     q = req.q.copy()
     with replica() as (_, port), LocalClient().session(req) as ref:
         s = Client(f"http://127.0.0.1:{port}").session(req)
-        held = Held(s._ws, threading.Event())
-
-        def recv(timeout=None):  # the message has left; Ctrl-C arrives before its reply is read (once)
-            if held.waiting.is_set():
-                return held.ws.recv(timeout=timeout)
-            held.waiting.set()
-            raise KeyboardInterrupt
-
-        held.recv = recv
-        s._ws = held
+        interrupt_next_reply(s)
         q[2] = pose(0.6)
         with pytest.raises(KeyboardInterrupt):
             s.evaluate(q)
@@ -96,16 +101,7 @@ def test_without_resume_an_interrupted_session_says_it_is_closed():
     q = req.q.copy()
     with replica() as (_, port), LocalClient().session(req) as ref:
         s = Client(f"http://127.0.0.1:{port}").session(req, resume=False)
-        held = Held(s._ws, threading.Event())
-
-        def recv(timeout=None):
-            if held.waiting.is_set():
-                return held.ws.recv(timeout=timeout)
-            held.waiting.set()
-            raise KeyboardInterrupt
-
-        held.recv = recv
-        s._ws = held
+        interrupt_next_reply(s)
         with pytest.raises(KeyboardInterrupt):
             s.evaluate(q)
         with pytest.raises(SessionClosed):

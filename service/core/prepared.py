@@ -317,7 +317,7 @@ class PreparedScene:
             raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
         for k, a in after.items():
             getattr(jb, k)[index] = a
-        if jb.committed is not None:  # the same angle, in the words of the new offset
+        if jb.committed is not None and offset is not None:  # the same angle, in the words of the new offset
             jb.committed[index] = jb.theta[index] + after["offset"]
             jb.theta = _angle_of(jb.committed, jb.offset, jb.lo.dtype)
         jb.lo[index] = after["lower"] - after["offset"]

@@ -300,8 +300,7 @@ class PreparedScene:
         """Set the limits, strengths or offsets of joints `index` (M,) of `batch`, each (M,) if given.
 
         Validated as a request is (`InputError`, loc ("batches", batch, "lower", j)); all or
-        nothing. A new offset keeps the joint's physical angle (to the rounding of `coordinate - offset`): its
-        coordinate moves with the offset.
+        nothing. A new offset moves the coordinate with it (the angle `coordinate - offset` stays, to a rounding).
         """
         index = np.asarray(index)
         if index.dtype == object or index.size == 0:

@@ -2,7 +2,7 @@
 
 `prepare` validates the static data (`q_prev`, `q_ref`, the joints), takes the polar
 factors, the body-local vectors, the frames at `q_ref` (and at `q_prev`), and the state:
-`q_prev` and the committed angles. `PreparedScene.evaluate(q)` then forms only the
+`q_prev` and the committed coordinates. `PreparedScene.evaluate(q)` then forms only the
 frames' step to `q`. The stateless `evaluate` is "prepare, evaluate once": one code path.
 
 Hostile numbers overflow by design, and every overflow becomes an `InputError` naming the joint: each public

@@ -435,14 +435,18 @@ def test_a_reopened_session_with_offsets_keeps_the_bits_of_one_never_interrupted
     """`reopen` is what a resume after a server restart does (`request_for_reopen`): the committed coordinates
     travel as `prev_coordinate` (`r + offset`), and every scene takes the angle as `coordinate - offset`, so the
     reopened session is the uninterrupted one bit for bit: before any commit (the reopen then carries no state: x
-    is summed from q_ref, as in the opening), after a commit and after a change of offsets. At c2b3bc0 (the core
-    kept `r`, a reopen before a commit sent the opening's coordinates) x moved by an ulp in 28, 11 and 25 of 30."""
+    is summed from q_ref, as in the opening), after a change of offsets, after a commit, and after a change of
+    offsets then. At c2b3bc0 (the core kept `r`, a reopen before a commit sent the opening's coordinates) x moved
+    by an ulp at those four points in 28, 30, 14 and 25 of the 30 angles."""
     req, pose = _chain_with_offsets([0.3, -2.9])
     req = dataclasses.replace(req, q_prev=req.q.copy())  # q_prev off q_ref: the coordinate at q_prev is not the offset
     for a in np.linspace(0.1, 3.0, 30):
         ref, s = LocalClient().session(req), LocalClient().session(req)
         q = req.q.copy()
         q[2] = pose(a)
+        s.reopen()
+        same_joints(s.evaluate(q), ref.evaluate(q))
+        s.update(0, [0], offset=[-a]), ref.update(0, [0], offset=[-a])
         s.reopen()
         same_joints(s.evaluate(q), ref.evaluate(q))
         assert s.commit(q)[0].tobytes() == ref.commit(q)[0].tobytes()

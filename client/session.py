@@ -93,6 +93,7 @@ class SessionState:
         self.q_prev: Array = owned(request.q_prev)
         """The last committed `q` (the opening request's `q_prev` before any commit)."""
         self._coordinates: list[Array] = []
+        self._committed_once = False  # before, a revolute's x is summed from q_ref: a reopen sends no prev_coordinate
 
     @property
     def coordinates(self) -> list[Array]:
@@ -101,7 +102,7 @@ class SessionState:
 
     def _keep(self, coordinates: list[ArrayLike], q: ArrayLike) -> list[Array]:
         """A commit's state, kept for reopening; returns copies of `coordinates` (the caller's to change)."""
-        self._coordinates, self.q_prev = [owned(c) for c in coordinates], owned(q)
+        self._coordinates, self.q_prev, self._committed_once = [owned(c) for c in coordinates], owned(q), True
         return [c.copy() for c in self._coordinates]
 
     def _apply_update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
@@ -117,14 +118,13 @@ class SessionState:
     def request_for_reopen(self) -> Request:
         """A request that opens a session in this one's committed state: `q_prev` and `q` the last committed
         `q`, the scene as updated, the committed coordinates of stateful joints (the revolute's angles) as
-        `prev_coordinate` (contract v1.1)."""
-        batches = []
-        for b, coords in zip(self.request.batches, self._coordinates or [None] * len(self.request.batches)):
-            nb = copy.deepcopy(b)
-            facts = registry.CONSTITUTIONS.get(nb.constitution_uid)
-            if coords is not None and facts is not None and facts.stateful:  # a slide is absolute: no state
-                nb.prev_coordinate = coords.copy()
-            batches.append(nb)
+        `prev_coordinate` (contract v1.1), once they are the state (a commit, or a `prev_coordinate` opened with):
+        the server then takes them back bit for bit."""
+        batches = [copy.deepcopy(b) for b in self.request.batches]
+        for b, coords in zip(batches, self._coordinates):  # none before the opening's reply
+            facts = registry.CONSTITUTIONS.get(b.constitution_uid)  # a slide is absolute: no state
+            if facts is not None and facts.stateful and (self._committed_once or b.prev_coordinate is not None):
+                b.prev_coordinate = coords.copy()
         q = self.q_prev.copy()
         return replace(self.request, q=q, q_prev=q.copy(), batches=batches)
 

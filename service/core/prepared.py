@@ -2,17 +2,17 @@
 
 `prepare` validates the static data (`q_prev`, `q_ref`, the joints), takes the polar
 factors, the body-local vectors, the frames at `q_ref` (and at `q_prev`), and the state:
-`q_prev` and the committed angles. `PreparedScene.evaluate(q)` then forms only the
+`q_prev` and the committed coordinates. `PreparedScene.evaluate(q)` then forms only the
 frames' step to `q`. The stateless `evaluate` is "prepare, evaluate once": one code path.
 
 Hostile numbers overflow by design, and every overflow becomes an `InputError` naming the joint: each public
 call here runs the numerics under one `np.errstate(all="ignore")` (its helpers set none of their own).
 
-The state of a revolute joint is its accumulated angle `theta` at `q_prev` (the coordinate
-minus the offset). Without a `prev_coordinate` and before any commit it is not stored: `x`
-is then summed over the steps `q_ref -> q_prev -> q` exactly as contract v1 computes it,
-so a v1 request gets bit-identical numbers. A telescoping coordinate (the prismatic slide)
-depends on `q` and `q_ref` alone and has no state.
+The state of a revolute joint is its committed coordinate at `q_prev` as the wire carries it (a `prev_coordinate`,
+a commit's), its angle `theta` always that minus the offset: a reopened scene, a stateless call and the scene
+itself take the same bits. Without a `prev_coordinate` and before any commit it is not stored: `x` is then summed
+over the steps `q_ref -> q_prev -> q` exactly as contract v1 computes it, so a v1 request gets bit-identical
+numbers. A telescoping coordinate (the prismatic slide) depends on `q` and `q_ref` alone and has no state.
 """
 
 from __future__ import annotations
@@ -70,7 +70,8 @@ class _Batch:
     lo: Array  # the penalty's bounds on x (lower - offset, upper - offset) and strength, in the scene's dtype
     up: Array
     s: Array
-    theta: Array | None  # the committed angle at q_prev (coordinate - offset), None: summed over the steps
+    committed: Array | None  # the committed coordinate at q_prev, float64 (the wire's), None: x summed over the steps
+    theta: Array | None  # `committed - offset` in the scene's dtype (`_angle_of`): the angle x's last step starts from
     absolute: bool  # origin "absolute": x from the constitution's own zero (False: from q_ref, the specs' origin)
     x0: Array | None  # absolute and not telescoping: x's value at q_ref, added to x (a telescoping x is its value at q)
     faults: list[Fault]  # the stateless call's collapsed frames at q_ref, q_prev: reported with those at q
@@ -251,8 +252,9 @@ class PreparedScene:
                 new.append((F_q, x))
             log.raise_if_any()
             for jb, (F_q, x) in zip(self._batches, new):
-                if jb.c.facts.stateful:
-                    jb.starts, jb.fixed, jb.theta = [F_q], [], x  # its steps start at q_prev (state 1)
+                if jb.c.facts.stateful:  # its steps start at q_prev (state 1)
+                    jb.starts, jb.fixed, jb.committed = [F_q], [], _plus_offset(x, jb.offset)
+                    jb.theta = _angle_of(jb.committed, jb.offset, jb.lo.dtype)
                     jb.progress = {"ref": jb.progress["ref"]} if "ref" in jb.progress else {}
             self._table.load(1, self._table.dofs[2].T)
             return [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
@@ -282,6 +284,9 @@ class PreparedScene:
         out = []
         with np.errstate(all="ignore"):
             for jb in self._batches:
+                if jb.committed is not None:  # as a prev_coordinate carried it or the last commit answered it
+                    out.append(jb.committed.copy())
+                    continue
                 if not jb.c.facts.stateful:
                     self._load(self._table.dofs[1].T, (TOTAL_STEP,), (TOTAL_STEP,))
                     x = self._from_ref(jb)[1]
@@ -295,7 +300,7 @@ class PreparedScene:
         """Set the limits, strengths or offsets of joints `index` (M,) of `batch`, each (M,) if given.
 
         Validated as a request is (`InputError`, loc ("batches", batch, "lower", j)); all or
-        nothing. A new offset keeps the joint's physical angle: its coordinate moves with the offset.
+        nothing. A new offset moves the coordinate with it (the angle `coordinate - offset` stays, to a rounding).
         """
         index = np.asarray(index)
         if index.dtype == object or index.size == 0:
@@ -311,6 +316,9 @@ class PreparedScene:
             raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
         for k, a in after.items():
             getattr(jb, k)[index] = a
+        if jb.committed is not None and offset is not None:  # the same angle, in the words of the new offset
+            jb.committed[index] = jb.theta[index] + after["offset"]
+            jb.theta = _angle_of(jb.committed, jb.offset, jb.lo.dtype)
         jb.lo[index] = after["lower"] - after["offset"]
         jb.up[index] = after["upper"] - after["offset"]
         jb.s[index] = after["strength"]
@@ -447,9 +455,8 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     bounds = [table.size_bound(pairs, s) for s in range(len(starts))] if c.facts.unit_frames else None
     faults = collapsed_faults(b, c, ("q_ref", "q_prev")[: len(starts)], starts, prev_careful, known, bounds)
     offset = joints.offset if joints.offset is not None or not own else np.zeros(pairs.shape[1])
-    theta = None
-    if joints.prev_coordinate is not None:
-        theta = (joints.prev_coordinate - (0.0 if offset is None else offset)).astype(dtype, copy=False)
+    committed = joints.prev_coordinate
+    theta = None if committed is None else _angle_of(committed, offset, dtype)
     lower, upper, strength = joints.lower, joints.upper, joints.strength
     # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
     lo, up = (a if offset is None else a - offset for a in (lower, upper))
@@ -457,7 +464,8 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     index.flags.writeable = False
     return _Batch(c, pairs, v, F_ref, starts, fixed, rows, prev_careful, r.get(start), held, lower, upper, strength,
                   offset, lo.astype(dtype, copy=False), up.astype(dtype, copy=False), strength.astype(dtype, copy=own),
-                  theta, absolute, x0, faults, progress, index, meets=points and c.facts.telescopes and joints.edges is not None,
+                  committed, theta, absolute, x0, faults, progress, index,
+                  meets=points and c.facts.telescopes and joints.edges is not None,
                   balance=assembly.balance(alpha, v) if own and points else None)
 
 
@@ -476,6 +484,11 @@ def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: lis
 def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:
     """`careful` reduced to its last state (the frames at q), for the collapse test there."""
     return None if careful is None else CarefulFrames(careful.idx, careful.exponents[-1:], careful.states[-1:], [], [])
+
+
+def _angle_of(committed: Array, offset: Array | None, dtype: type) -> Array:
+    """The angle (N,) of committed coordinates (N,), on every path (`lower - offset` is rounded at that scale too)."""
+    return (committed - (0.0 if offset is None else offset)).astype(dtype, copy=False)
 
 
 def _from_origin(x: Array, jb: _Batch) -> Array:

@@ -328,6 +328,24 @@ def test_update_offset_keeps_the_angle_and_moves_the_coordinate() -> None:
     assert abs(r.x[0] - 1.1) <= 1e-15 and abs(r.coordinate[0] - 3.1) <= 1e-15
 
 
+def test_the_committed_coordinate_is_kept_as_the_wire_carries_it() -> None:
+    """A scene keeps a revolute's committed coordinate and takes the angle as `coordinate - offset` on every
+    path (so a reopened session, given the coordinate back, is bitwise the same). Here (0.1 - 3) + 3 is
+    0.1 + 8e-17: the coordinate opened with comes back as sent, not re-rounded; an update of limits alone keeps it;
+    an offset's update makes it the angle plus the new offset, the angle then taken from it as from a reopen's."""
+    bodies, joints = _screw(0.5, offset=3.0, prev_coordinate=0.1)
+    assert (0.1 - 3.0) + 3.0 != 0.1
+    scene = prepare(bodies, [joints])
+    assert scene.coordinates()[0].tobytes() == np.array([0.1]).tobytes()
+    scene.update(0, [0], upper=[50.0])
+    assert scene.coordinates()[0].tobytes() == np.array([0.1]).tobytes()
+    scene.update(0, [0], offset=[-1.7])
+    moved = np.array([(0.1 - 3.0) + -1.7])
+    assert scene.coordinates()[0].tobytes() == moved.tobytes()
+    reopened = prepare(bodies, [replace(joints, upper=np.array([50.0]), offset=np.array([-1.7]), prev_coordinate=moved)])
+    _same(scene.evaluate(_q(0.7)), reopened.evaluate(_q(0.7)))
+
+
 def test_checks_are_leaves() -> None:
     """validate.py imports neither the pipeline (prepared) nor the derivative code (evaluate), at any level."""
     import ast

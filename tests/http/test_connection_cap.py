@@ -6,15 +6,19 @@ from __future__ import annotations
 
 import json
 import socket
+import threading
 import time
 from collections.abc import Iterator
 
 import pytest
 
+from jointlimits.client import Client, LocalClient
+from jointlimits.service.http.errors import RETRY_AFTER_SECONDS
 from jointlimits.service.settings import Settings
 from tests import inprocess
 from tests.drills import scraped
 from tests.http.test_read_timeouts import wait_closed
+from tests.sdk.test_client_sdk import readme_scene
 
 pytestmark = pytest.mark.slow  # a real server on loopback, its connections held by the test
 
@@ -107,3 +111,24 @@ def test_a_session_counts(live):
         session.close()
         for s in held:
             s.close()
+
+
+def test_the_sdk_waits_its_retry_after_and_is_served(live):
+    """The 503 is the other budgets' `busy`: the SDK reads it (the server answered before reading the request) and
+    tries again after `Retry-After`, by when a place was freed."""
+    request = readme_scene().request()
+    before = refused(live)
+    settle(live, 0)
+    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
+    try:
+        settle(live, CAP)
+        threading.Timer(1.0, lambda: held.pop().close()).start()
+        t0 = time.monotonic()
+        with Client(f"http://127.0.0.1:{live.port}") as client:
+            answer = client.evaluate(request)
+        assert time.monotonic() - t0 >= RETRY_AFTER_SECONDS - 0.1  # its Retry-After, not a reconnect at once
+        assert answer.total_energy == LocalClient().evaluate(request).total_energy > 0  # the same core, bit for bit
+    finally:
+        for s in held:
+            s.close()
+    assert refused(live) == before + 1

@@ -132,3 +132,22 @@ def test_the_sdk_waits_its_retry_after_and_is_served(live):
         for s in held:
             s.close()
     assert refused(live) == before + 1
+
+
+def test_a_session_opened_past_the_cap_is_tried_again_by_the_sdk(live):
+    """A session's upgrade past the cap gets the same 503 `busy`; the SDK's opening tries again (its backoff), and
+    opens once a place is freed."""
+    request = readme_scene().request()
+    before = refused(live)
+    settle(live, 0)
+    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
+    try:
+        settle(live, CAP)
+        threading.Timer(0.3, lambda: held.pop().close()).start()
+        with Client(f"http://127.0.0.1:{live.port}").session(request) as session:
+            answer = session.evaluate(request.q)
+        assert answer.total_energy == LocalClient().evaluate(request).total_energy > 0
+    finally:
+        for s in held:
+            s.close()
+    assert refused(live) >= before + 1  # refused at least once before the place was freed

@@ -1,4 +1,4 @@
-"""The connection layer: deadlines on reads and writes, and a WebSocket close the client always reads.
+"""The connection layer: a worker's connections capped, deadlines on reads and writes, a WebSocket close always read.
 
 uvicorn times out only idle keep-alive connections: a client that sends nothing, half its headers, or its body at
 one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time: the request

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import resource
 import shutil
 import signal
 import subprocess
@@ -86,6 +87,7 @@ LAST = (
     Setting("access_log", True, boolean, "one JSON line per request on stdout", True),
 )
 LOG_LEVELS = ["critical", "error", "warning", "info", "debug"]
+FD_RESERVE = 64  # file descriptors a worker holds besides its connections (measured 14: listener, loop, logs, metrics)
 
 
 def _option(parser: argparse.ArgumentParser, row: Setting) -> None:
@@ -136,6 +138,17 @@ def _version() -> str:
         return "unknown"
 
 
+def fd_room(need: int) -> None:
+    """Let this process and its workers open `need` file descriptors: the soft limit raised to the hard one (1024 is a
+    common soft limit; the service polls with epoll, not select). Past it, accept fails and every client is reset."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != resource.RLIM_INFINITY and soft < need:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+    if hard != resource.RLIM_INFINITY and hard < need:
+        print(f"jointlimits: warning: --max-connections and --backlog need {need} file descriptors per worker, this "
+              f"process may open {hard} (ulimit -Hn): past it every new client is reset", file=sys.stderr)
+
+
 def serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -149,6 +162,7 @@ def serve(args: argparse.Namespace) -> int:
             print(f"jointlimits: token file {args.token_file} is empty", file=sys.stderr)
             return 2
     os.environ.update(Settings(**given).environ())  # what every worker's Settings() reads
+    fd_room(args.max_connections + args.backlog + FD_RESERVE)  # + what one turn of the accept loop takes (<= backlog)
 
     if args.workers > 1:
         # uvicorn's supervisor would respawn workers that cannot import the app, forever: fail fast

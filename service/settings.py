@@ -123,6 +123,11 @@ class Settings:
         "seconds a connection's write buffer may stay full (the client not reading its answer, session "
         "replies or pongs); then the connection is dropped and what it held freed",
     )
+    # The connection layer's (service/http/timeouts.py); its default, measured: docs/deployment.md, "Limits".
+    max_connections: int = _setting(
+        1024, positive_int,
+        "connections a worker holds at once, HTTP and sessions; one more is answered 503 busy and closed",
+    )
     # The drain on SIGTERM (service/app.py): each worker's /readyz answers 503 "draining" at once and the worker
     # goes on accepting and answering for this long, then stops accepting and finishes what it holds.
     shutdown_delay: float = _setting(

@@ -14,7 +14,8 @@ from jointlimits.schemas.answer import answer_bytes
 from jointlimits.service.settings import Settings
 
 MiB = 2**20
-WORKER_BASE_BYTES = 96 * MiB  # a worker after start-up, imports and first request (measured 65 MiB)
+WORKER_BASE_BYTES = 80 * MiB  # a worker after start-up, imports and first request (measured 65 MiB)
+CONNECTION_BYTES = 16 * 2**10  # an idle connection (measured 14.9 KiB kept alive after a request, 7.6 KiB silent)
 SUPERVISOR_BYTES = 64 * MiB  # uvicorn's supervisor with several workers (it never imports the application; ~30 MiB)
 JSON_BYTES_PER_VALUE = 96  # a JSON body's parse, per value (objects, then arrays): measured 89 B at 8e6 `0`s
 # A msgpack joint: its 88 body bytes, their copy, the core's per-joint temporaries and its energy answer
@@ -69,10 +70,10 @@ def upload_bytes(s: Settings) -> int:
 
 
 def worker_bytes(s: Settings) -> int:
-    """Memory one worker may reach with its budgets full (then keeps, with keep_heap): the bodies it is
-    receiving, its requests in flight, the prepared scenes of its open sessions."""
+    """Memory one worker may reach with its budgets full (then keeps, with keep_heap): its connections, the bodies
+    it is receiving, its requests in flight, the prepared scenes of its open sessions."""
     sessions = SESSION_BYTES_PER_JOINT * s.max_session_joints
-    return WORKER_BASE_BYTES + upload_bytes(s) + inflight_bytes(s) + sessions
+    return WORKER_BASE_BYTES + CONNECTION_BYTES * s.max_connections + upload_bytes(s) + inflight_bytes(s) + sessions
 
 
 def cost_before_body(body_bytes: int, binary_request: bool, binary_answer: bool, s: Settings) -> int:

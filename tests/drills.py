@@ -32,6 +32,10 @@ without it, `--port` names a service already running on 127.0.0.1. Scenarios:
   sent two evaluates each and read nothing: statuses, p50/p99, the budget the sessions hold.
 - `pingflood`: 125-byte pings for `--duration` seconds (at most 30) on a connection that reads
   nothing: the worker's RSS before and after, when it was dropped.
+- `connections`: one client opens `--held` connections as fast as it can and sends nothing, against a fresh
+  1-worker server (under `prlimit --nofile=<--nofile>` if given): the worker's file descriptors and RSS, what a
+  normal client's /healthz and /readyz get meanwhile, what the flood's connections got (held, or 503 `busy` past
+  `JOINTLIMITS_MAX_CONNECTIONS`), /healthz after.
 - `answer`: while valid clients run, one request whose answer would exceed
   `JOINTLIMITS_MAX_ANSWER_BYTES` (413 before any work) and one at that bound (200): the valid
   clients keep getting 200s and no worker is restarted (its pids are compared). Needs a server
@@ -819,6 +823,61 @@ def scenario_slowloris(
     }
 
 
+def scenario_connections(held: int, extra_args: Sequence[str] = (), nofile: str | None = None) -> dict[str, Any]:
+    """One client opens `held` connections as fast as it can and sends nothing, against a fresh 1-worker server (run
+    under `prlimit --nofile=<nofile>` if given: the open-file limit a container may set): what the worker holds then
+    (file descriptors, RSS), what a normal client's /healthz and /readyz get meanwhile, how many of the flood's were
+    answered (503 `busy` past `JOINTLIMITS_MAX_CONNECTIONS`), and /healthz once the flood has left."""
+    prefix = ["prlimit", f"--nofile={nofile}"] if nofile else []
+    with Server(1, extra_args, command=[*prefix, sys.executable, "-m", "jointlimits.service.cli"]) as server:
+        pid, before = server.proc.pid, rss_kib(server.proc.pid)
+        flood: list[socket.socket] = []
+        t0 = time.monotonic()
+        try:
+            for _ in range(held):
+                try:
+                    flood.append(socket.create_connection((LOOPBACK, server.port), timeout=5))
+                except OSError:
+                    break  # the client's own limit, or the backlog full
+            opened_s = time.monotonic() - t0
+            time.sleep(0.5)  # the worker's loop takes what the kernel queued
+            fds, rss = len(os.listdir(f"/proc/{pid}/fd")), rss_kib(pid)
+
+            def probe(path: str) -> str:
+                try:
+                    with socket.create_connection((LOOPBACK, server.port), timeout=5) as s:
+                        s.sendall(f"GET {path} HTTP/1.1\r\nHost: {LOOPBACK}\r\n\r\n".encode())
+                        return _status_line(s)
+                except OSError as e:
+                    return type(e).__name__
+
+            probes = {path: probe(path) for path in ("/healthz", "/readyz")}
+            answered = Counter(_now(s) for s in flood)
+        finally:
+            for s in flood:
+                s.close()
+        time.sleep(0.5)
+        return {
+            "opened": len(flood), "opened_in_s": round(opened_s, 2), "worker_fds": fds,
+            "worker_rss_mib": [round((before or 0) / 1024, 1), round((rss or 0) / 1024, 1)], "probes": probes,
+            "flood_answered": dict(answered), "healthz_after": get(server.port, "/healthz")[0],
+            "closed_counted": connections_closed_counted(server.port, ("connections_full", "silent")),
+        }  # fmt: skip
+
+
+def _now(s: socket.socket) -> str:
+    """What the server did with a connection that sent nothing, read without waiting: its answer's status, `held`
+    (open, nothing sent), `closed` (no answer) or the error."""
+    s.setblocking(False)
+    try:
+        head = s.recv(64)
+    except BlockingIOError:
+        return "held"
+    except OSError as e:
+        return type(e).__name__
+    return head.split(b" ", 2)[1].decode() if head.startswith(b"HTTP/1.1 ") else "closed"
+
+
 def connections_closed_counted(port: int, reasons: Sequence[str] = ("silent", "slow_head")) -> dict[str, float]:
     """`jointlimits_connections_closed_total` by reason (silent, slow_head; slow_read, slow_message: the write
     timeout and a session message's deadline), summed over the workers."""
@@ -1582,7 +1641,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument(
         "--scenario",
         choices=["mixed", "flood", "kill", "sigterm", "slowloris", "answer", "peak", "burst", "stalled", "stalled-sessions",
-                 "pingflood", "lb", "all"],
+                 "pingflood", "connections", "lb", "all"],
         default="mixed",
     )
     p.add_argument("--spawn", action="store_true", help="start `jointlimits serve` on a free loopback port")
@@ -1598,10 +1657,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--body-timeout", type=float, default=4.0, help="the spawned server's body timeout (slowloris)")
     p.add_argument("--write-timeout", type=float, default=5.0,
                    help="the spawned server's write timeout (stalled, stalled-sessions, pingflood)")
+    p.add_argument("--held", type=int, default=3000, help="connections the flood opens (connections)")
+    p.add_argument("--nofile", help="the spawned server's open-file limit, soft:hard, through prlimit (connections)")
     p.add_argument("--stagger", type=float, default=0.0, help="seconds between the stalled clients' requests (stalled)")
     a = p.parse_args(argv)
-    if a.duration > 600 or a.clients > 256 or a.slow > 512 or max(a.header_timeout, a.body_timeout, a.write_timeout) > 120:
-        p.error("bounded: --duration <= 600, --clients <= 256, --slow <= 512, timeouts <= 120")
+    if a.duration > 600 or a.clients > 256 or a.slow > 512 or a.held > 20000 or max(a.header_timeout, a.body_timeout, a.write_timeout) > 120:
+        p.error("bounded: --duration <= 600, --clients <= 256, --slow <= 512, --held <= 20000, timeouts <= 120")
     limits = ["--max-body-bytes", str(a.max_body_bytes), "--max-joints", str(a.max_joints)]
     limits += ["--header-timeout", str(a.header_timeout), "--body-timeout", str(a.body_timeout)]
     env: dict[str, str] = {}  # the production defaults: JSON access log on (to a file)
@@ -1616,7 +1677,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(json.dumps({"lb": result}, indent=2))
         return 0
     scenarios = ["mixed", "flood", "kill", "sigterm", "slowloris", "answer"] if a.scenario == "all" else [a.scenario]
-    if a.scenario in ("peak", "burst", "stalled", "stalled-sessions", "pingflood"):
+    if a.scenario in ("peak", "burst", "stalled", "stalled-sessions", "pingflood", "connections"):
         # each on its own fresh 1-worker server, at this environment's limits
         if not a.spawn:
             p.error(f"--scenario {a.scenario} needs --spawn (it reads the worker's memory)")
@@ -1629,6 +1690,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             result = scenario_stalled(min(a.clients, 32), env, write, give_up=min(a.duration, 120.0), stagger=min(a.stagger, 10.0))
         elif a.scenario == "stalled-sessions":
             result = scenario_stalled_sessions(min(a.clients, 16), env=env, extra_args=write, give_up=min(a.duration, 120.0))
+        elif a.scenario == "connections":
+            result = scenario_connections(a.held, nofile=a.nofile)
         else:
             result = scenario_pingflood(min(a.duration, 30.0), env, write)
         print(json.dumps({a.scenario: result}, indent=2))

@@ -42,13 +42,15 @@ class Live:
 
 @contextmanager
 def serve(settings: Settings, header_timeout: float = 5.0, write_timeout: float = 1.0,
-          message_timeout: float | None = None) -> Iterator[Live]:
-    """uvicorn in a thread; `log_config=None` leaves logging to the test (caplog sees uvicorn's records)."""
+          message_timeout: float | None = None, max_connections: int | None = None) -> Iterator[Live]:
+    """uvicorn in a thread; `log_config=None` leaves logging to the test (caplog sees uvicorn's records).
+    `max_connections` None: JOINTLIMITS_MAX_CONNECTIONS (its default)."""
     app = create_app(settings)
     message_timeout = settings.body_timeout if message_timeout is None else message_timeout
     config = uvicorn.Config(
         app, log_config=None, log_level="info", lifespan="on",
-        http=timeouts.bounded(timeouts.ReadTimeoutProtocol, header_timeout=header_timeout, write_timeout=write_timeout),
+        http=timeouts.bounded(timeouts.ReadTimeoutProtocol, header_timeout=header_timeout, write_timeout=write_timeout,
+                              max_connections=max_connections),
         ws=timeouts.bounded(timeouts.WriteTimeoutWebSocketProtocol, write_timeout=write_timeout,
                             message_timeout=message_timeout),
         ws_max_size=settings.max_frame_bytes, ws_per_message_deflate=False,

@@ -1,4 +1,4 @@
-"""The connection layer: deadlines on reads and writes, and a WebSocket close the client always reads.
+"""The connection layer: a worker's connections capped, deadlines on reads and writes, a WebSocket close always read.
 
 uvicorn times out only idle keep-alive connections: a client that sends nothing, half its headers, or its body at
 one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time: the request
@@ -62,6 +62,11 @@ def _answer(status: bytes, msg: str, type: str, *headers: bytes) -> bytes:
     body = json.dumps({"detail": [{"loc": ["header"], "msg": msg, "type": type}]}).encode()
     return (b"HTTP/1.1 %s\r\ncontent-type: application/json\r\ncontent-length: %d\r\n%sconnection: close\r\n\r\n%s"
             % (status, len(body), b"".join(h + b"\r\n" for h in headers), body))
+
+
+def _busy(what: str) -> bytes:
+    """503 `busy` with `Retry-After`, as the worker's other budgets answer (`errors.busy`)."""
+    return _answer(b"503 Service Unavailable", f"{what}: retry after Retry-After seconds", "busy", b"retry-after: 5")
 
 
 _408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"
@@ -199,12 +204,15 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     a full write buffer (`write_timeout` seconds); each request's scope carries the connection's `Drain`."""
 
     header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read per connection
+    max_connections: int | None = None  # None: JOINTLIMITS_MAX_CONNECTIONS, read per connection
     heads_held = 0  # bytes of every connection's unfinished head in this worker (MAX_HEADS_HELD)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        if self.header_timeout is None:
-            self.header_timeout = Settings().header_timeout
+        if self.header_timeout is None or self.max_connections is None:
+            settings = Settings()
+            self.header_timeout = self.header_timeout or settings.header_timeout
+            self.max_connections = self.max_connections or settings.max_connections
         self._head_timer = _Timer(self.loop, self._head_expired)
         self._head_bytes, self._head_size = False, 0  # bytes of the current head have arrived (any; how many)
         self._in_head = False  # the parser is inside a request's head (not in the rest of an answered one's body)
@@ -222,6 +230,11 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
         self.opened = time.monotonic()
+        if len(self.connections) > self.max_connections:  # type: ignore[operator]
+            # uvicorn's set of this worker's connections, HTTP and WebSocket: an upgrade replaces its HTTP one.
+            self.connections.discard(self)  # a refused connection is not counted
+            return self._refuse("connections_full", _busy(f"this worker holds {self.max_connections} connections, "
+                                                          "its most (JOINTLIMITS_MAX_CONNECTIONS)"))
         self._arm()  # a connection that never sends a byte is closed too
 
     def data_received(self, data: bytes) -> None:
@@ -238,10 +251,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
                 msg = f"request line and headers exceed {MAX_HEAD_BYTES} bytes, the most this service reads"
                 self._refuse("head_too_large", _answer(b"431 Request Header Fields Too Large", msg, "too_large"))
             elif ReadTimeoutProtocol.heads_held > MAX_HEADS_HELD:
-                msg = (f"this worker holds {MAX_HEADS_HELD} bytes of unfinished request heads, its most: retry after "
-                       "Retry-After seconds")
-                busy = _answer(b"503 Service Unavailable", msg, "busy", b"retry-after: 5")
-                self._refuse("heads_full", busy)
+                self._refuse("heads_full", _busy(f"this worker holds {MAX_HEADS_HELD} bytes of unfinished request "
+                                                 "heads, its most"))
 
     def on_headers_complete(self) -> None:
         self._in_head = False

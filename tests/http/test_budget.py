@@ -226,10 +226,12 @@ def test_the_sizing_rule_counts_both_budgets():
     s = Settings()
     assert sizing.worker_bytes(s) == (
         sizing.WORKER_BASE_BYTES
+        + sizing.CONNECTION_BYTES * s.max_connections
         + sizing.upload_bytes(s)
         + sizing.inflight_bytes(s)
         + sizing.SESSION_BYTES_PER_JOINT * s.max_session_joints
     )
+    assert sizing.WORKER_BASE_BYTES + sizing.CONNECTION_BYTES * s.max_connections == 96 * 2**20  # as before the cap
     assert sizing.upload_bytes(s) == 2 * s.max_body_bytes  # one body at the limit, chunks and joined copy
     assert sizing.upload_bytes(Settings(max_body_bytes=2**20)) == sizing.UPLOAD_FLOOR
 

@@ -6,8 +6,10 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -120,6 +122,25 @@ def test_version():
     assert out.returncode == 0 and out.stdout.startswith("jointlimits ")
 
 
+def test_the_soft_limit_on_file_descriptors_is_raised_for_the_connections(monkeypatch, capsys):
+    """A worker holds `--max-connections` sockets and a burst of up to `--backlog` accepted before they are refused:
+    past the soft limit (1024 is common) accept fails and every client is reset, so `serve` raises it to the hard
+    one, and says so when the hard one is too low."""
+    limits, set_to = [(1024, 524288)], []
+    monkeypatch.setattr(cli.resource, "getrlimit", lambda _: limits[0])
+    monkeypatch.setattr(cli.resource, "setrlimit", lambda _, new: set_to.append(new))
+    cli.fd_room(1024 + 2048 + cli.FD_RESERVE)
+    assert set_to == [(524288, 524288)] and capsys.readouterr().err == ""
+    limits[0] = (4096, 4096)  # enough already: left alone
+    cli.fd_room(4000)
+    assert set_to == [(524288, 524288)] and capsys.readouterr().err == ""
+    limits[0] = (1024, 2048)  # the hard limit is below: raised as far as it goes, and said
+    cli.fd_room(3136)
+    assert set_to[-1] == (2048, 2048)
+    err = capsys.readouterr().err
+    assert "3136 file descriptors" in err and "2048 (ulimit -Hn)" in err
+
+
 # --------------------------------------------------------------------------- a real server
 
 
@@ -184,3 +205,25 @@ def test_readme_serves_with_the_cli():  # the README's first command
     text = (ROOT / "README.md").read_text()
     first = text.split("```bash\n", 1)[1].split("```", 1)[0].splitlines()[0]
     assert "jointlimits serve" in first
+
+
+@pytest.mark.slow  # a `jointlimits serve` subprocess
+def test_serve_caps_a_workers_connections_and_raises_its_fd_limit():
+    """`--max-connections` reaches the worker's connection layer; the soft fd limit it started with (1024) is raised."""
+    hard = int(subprocess.run(["sh", "-c", "ulimit -Hn"], capture_output=True, text=True).stdout.strip() or 0)
+    if not shutil.which("prlimit") or hard <= 1024:
+        pytest.skip("needs prlimit and a hard fd limit above 1024")
+    server = Server(workers=1, extra_args=["--max-connections", "3"],
+                    command=["prlimit", f"--nofile=1024:{hard}", *console_script()])
+    with server:
+        limits = Path(f"/proc/{server.proc.pid}/limits").read_text().split("Max open files")[1].split()[:2]
+        assert limits == [str(hard), str(hard)]
+        held = [socket.create_connection((LOOPBACK, server.port)) for _ in range(3)]
+        try:
+            deadline = time.monotonic() + 10
+            while (status := get(server.port, "/healthz")[0]) != 503 and time.monotonic() < deadline:
+                time.sleep(0.05)  # until the worker has accepted the three
+            assert status == 503
+        finally:
+            for s in held:
+                s.close()

@@ -1,0 +1,153 @@
+"""A worker's connections are capped (`JOINTLIMITS_MAX_CONNECTIONS`), HTTP and WebSocket alike: one past the cap is
+answered 503 `busy` with `Retry-After` and closed at once, before a byte of it is read, and counted as
+`connections_full`. On an in-process uvicorn with the project's protocols and a cap of 4."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from jointlimits.client import Client, LocalClient
+from jointlimits.service.http.errors import RETRY_AFTER_SECONDS
+from jointlimits.service.settings import Settings
+from tests import inprocess
+from tests.drills import scraped
+from tests.http.test_read_timeouts import wait_closed
+from tests.sdk.test_client_sdk import readme_scene
+
+pytestmark = pytest.mark.slow  # a real server on loopback, its connections held by the test
+
+CAP = 4
+
+
+@pytest.fixture(scope="module")
+def live() -> Iterator[inprocess.Live]:
+    # A long head deadline: the held connections send nothing and must stay for the test's length.
+    with inprocess.serve(Settings(token=None, cors_origins=()), header_timeout=60.0, max_connections=CAP) as live:
+        yield live
+
+
+def refused(live: inprocess.Live) -> float:
+    return scraped(live.port, "jointlimits_connections_closed_total", reason="connections_full")
+
+
+def settle(live: inprocess.Live, n: int) -> None:
+    """Wait until the server holds `n` connections (an accept, a close, is seen by its loop a moment later)."""
+    deadline = time.monotonic() + 10
+    while live.connections() != n and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert live.connections() == n
+
+
+def ask(live: inprocess.Live, path: str) -> bytes:
+    """One request on a new connection; everything the server sent until it closed (or 10 s passed)."""
+    with socket.create_connection(("127.0.0.1", live.port)) as s:
+        s.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n".encode())
+        after, got = wait_closed(s, 10)
+    assert after is not None, "the server did not close the connection"
+    return got
+
+
+def assert_busy(got: bytes) -> None:
+    head, _, body = got.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 503 ") and b"retry-after: 5" in head.lower(), head
+    assert b"connection: close" in head.lower()
+    fault = json.loads(body)["detail"][0]
+    assert fault["type"] == "busy" and fault["loc"] == ["header"]
+    assert f"holds {CAP} connections" in fault["msg"] and "JOINTLIMITS_MAX_CONNECTIONS" in fault["msg"]
+
+
+def test_past_the_cap_a_connection_gets_503_busy_and_is_closed_and_counted(live):
+    before = refused(live)  # the scrape's own connection is closed once it is answered
+    settle(live, 0)
+    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
+    try:
+        settle(live, CAP)
+        # Probes too: the cap is met at accept, before the path is read (docs/deployment.md says why).
+        for path in ("/v1/constitutions", "/readyz"):
+            assert_busy(ask(live, path))
+        assert live.connections() == CAP  # a refused connection was never counted
+    finally:
+        for s in held:
+            s.close()
+    settle(live, 0)
+    assert refused(live) == before + 2
+
+
+def test_a_freed_place_is_served(live):
+    settle(live, 0)
+    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
+    try:
+        settle(live, CAP)
+        assert_busy(ask(live, "/healthz"))
+        held.pop().close()
+        settle(live, CAP - 1)
+        assert ask(live, "/healthz").startswith(b"HTTP/1.1 200 ")
+    finally:
+        for s in held:
+            s.close()
+
+
+def test_a_session_counts(live):
+    settle(live, 0)
+    session, head = inprocess.upgrade(live.port)
+    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP - 1)]
+    try:
+        assert head.startswith(b"HTTP/1.1 101 ")
+        settle(live, CAP)  # the upgrade replaced its HTTP connection: one, not two
+        assert_busy(ask(live, "/healthz"))
+        late, head = inprocess.upgrade(live.port)  # a session past the cap: refused before its upgrade
+        with late:
+            assert_busy(head + wait_closed(late, 10)[1])
+        session.close()
+        settle(live, CAP - 1)
+        assert ask(live, "/healthz").startswith(b"HTTP/1.1 200 ")
+    finally:
+        session.close()
+        for s in held:
+            s.close()
+
+
+def test_the_sdk_waits_its_retry_after_and_is_served(live):
+    """The 503 is the other budgets' `busy`: the SDK reads it (the server answered before reading the request) and
+    tries again after `Retry-After`, by when a place was freed."""
+    request = readme_scene().request()
+    before = refused(live)
+    settle(live, 0)
+    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
+    try:
+        settle(live, CAP)
+        threading.Timer(1.0, lambda: held.pop().close()).start()
+        t0 = time.monotonic()
+        with Client(f"http://127.0.0.1:{live.port}") as client:
+            answer = client.evaluate(request)
+        assert time.monotonic() - t0 >= RETRY_AFTER_SECONDS - 0.1  # its Retry-After, not a reconnect at once
+        assert answer.total_energy == LocalClient().evaluate(request).total_energy > 0  # the same core, bit for bit
+    finally:
+        for s in held:
+            s.close()
+    assert refused(live) == before + 1
+
+
+def test_a_session_opened_past_the_cap_is_tried_again_by_the_sdk(live):
+    """A session's upgrade past the cap gets the same 503 `busy`; the SDK's opening tries again (its backoff), and
+    opens once a place is freed."""
+    request = readme_scene().request()
+    before = refused(live)
+    settle(live, 0)
+    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
+    try:
+        settle(live, CAP)
+        threading.Timer(0.3, lambda: held.pop().close()).start()
+        with Client(f"http://127.0.0.1:{live.port}").session(request) as session:
+            answer = session.evaluate(request.q)
+        assert answer.total_energy == LocalClient().evaluate(request).total_energy > 0
+    finally:
+        for s in held:
+            s.close()
+    assert refused(live) >= before + 1  # refused at least once before the place was freed

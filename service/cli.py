@@ -143,7 +143,8 @@ def fd_room(need: int) -> None:
     common soft limit; the service polls with epoll, not select). Past it, accept fails and every client is reset."""
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if soft != resource.RLIM_INFINITY and soft < need:
-        resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+        # An unlimited hard limit (macOS): the soft one may not be "unlimited" for files, so `need`.
+        resource.setrlimit(resource.RLIMIT_NOFILE, (need if hard == resource.RLIM_INFINITY else hard, hard))
     if hard != resource.RLIM_INFINITY and hard < need:
         print(f"jointlimits: warning: --max-connections and --backlog need {need} file descriptors per worker, this "
               f"process may open {hard} (ulimit -Hn): past it every new client is reset", file=sys.stderr)

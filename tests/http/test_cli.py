@@ -139,6 +139,9 @@ def test_the_soft_limit_on_file_descriptors_is_raised_for_the_connections(monkey
     assert set_to[-1] == (2048, 2048)
     err = capsys.readouterr().err
     assert "3136 file descriptors" in err and "2048 (ulimit -Hn)" in err
+    limits[0] = (256, cli.resource.RLIM_INFINITY)  # macOS: a soft limit of "unlimited" is refused for files
+    cli.fd_room(3136)
+    assert set_to[-1] == (3136, cli.resource.RLIM_INFINITY) and capsys.readouterr().err == ""
 
 
 # --------------------------------------------------------------------------- a real server

@@ -23,7 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jointlimits evaluate",
                                 description="Each joint of a URDF robot at a joint vector: position, limits, energy.")
     p.add_argument("robot", help="the URDF file")
-    p.add_argument("q", nargs="*", type=float, help="one position per moving joint, in the listed order (rad, m)")
+    p.add_argument("q", nargs="*", type=float, help="one position (rad, m) per moving joint, as listed without q")
     p.add_argument("--request", metavar="FILE", help='a JSON file {"q": ..., "q_prev": ..., "reference": ..., "strength": ...}')
     p.add_argument("--strength", type=float, help="every limit's strength (default: the constitutions' 1)")
     p.add_argument("--url", help="evaluate on this server (default: in this process)")

@@ -58,7 +58,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError(f"{args.request}: needs 'q', may have 'q_prev', 'reference', 'strength'; got {unknown}")
         request = robot.request(q, **given)
     except (ImportError, OSError, ValueError) as e:  # no yourdfpy, a file that does not read, positions that do not fit
-        print(f"jointlimits evaluate: {e}", file=sys.stderr)
+        where = f"{args.request}: " if isinstance(e, json.JSONDecodeError) else ""  # json's words name no file
+        print(f"jointlimits evaluate: {where}{e}", file=sys.stderr)
         return 2
     try:
         with Client(args.url) if args.url else LocalClient() as client:

@@ -109,6 +109,9 @@ def test_a_request_file_that_is_not_an_object_and_a_server_that_is_not_there(cap
     f.write_text("[1, 2]")
     code, out, err = run(capsys, ARM, "--request", str(f))
     assert code == 2 and "a JSON object is expected, got list" in err
+    f.write_text("{q: [1]}")  # not JSON: json's words, which name no file, follow the file's name
+    code, out, err = run(capsys, ARM, "--request", str(f))
+    assert code == 2 and err.startswith(f"jointlimits evaluate: {f}: Expecting property name") and err.count("\n") == 1
     code, out, err = run(capsys, ARM, *map(str, Q), "--url", "http://127.0.0.1:9")  # the discard port: refused
     assert code == 1 and out == "" and err.startswith("jointlimits evaluate: ") and "Traceback" not in err
 

@@ -82,7 +82,7 @@ class Unreachable(ServiceError):
 
 
 class WrongURL(ServiceError):
-    """A 404, or an answer that is not the service's: `base_url` does not point at the service's root."""
+    """A 404, an answer that is not the service's, or no http(s)://: `base_url` is not the service's root."""
 
 
 class Busy(ServiceError):

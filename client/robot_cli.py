@@ -23,7 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jointlimits evaluate",
                                 description="Each joint of a URDF robot at a joint vector: position, limits, energy.")
     p.add_argument("robot", help="the URDF file")
-    p.add_argument("q", nargs="*", type=float, help="one position per moving joint, in the listed order (rad, m)")
+    p.add_argument("q", nargs="*", type=float, help="one position (rad, m) per moving joint, as listed without q")
     p.add_argument("--request", metavar="FILE", help='a JSON file {"q": ..., "q_prev": ..., "reference": ..., "strength": ...}')
     p.add_argument("--strength", type=float, help="every limit's strength (default: the constitutions' 1)")
     p.add_argument("--url", help="evaluate on this server (default: in this process)")
@@ -57,19 +57,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         if unknown or q is None:
             raise ValueError(f"{args.request}: needs 'q', may have 'q_prev', 'reference', 'strength'; got {unknown}")
         request = robot.request(q, **given)
-    except (OSError, ValueError) as e:  # a file that does not read, positions that do not fit: said, not traced
-        print(f"jointlimits evaluate: {e}", file=sys.stderr)
+    except (ImportError, OSError, ValueError) as e:  # no yourdfpy, a file that does not read, positions that do not fit
+        where = f"{args.request}: " if isinstance(e, json.JSONDecodeError) else ""  # json's words name no file
+        print(f"jointlimits evaluate: {where}{e}", file=sys.stderr)
         return 2
     try:
         with Client(args.url) if args.url else LocalClient() as client:
             readings = robot.readings(client.evaluate(request), q)
-    except ServiceError as e:  # a server that is not there, busy, or refuses: its words, not a traceback
+        if args.plot:  # no matplotlib, a picture that cannot be written: said as the server's faults are
+            plot(readings, args.plot, title=f"{robot.urdf.robot.name} at the given joint vector")
+    except (ServiceError, ImportError, OSError) as e:  # a server not there, busy or refusing: its words, no traceback
         loc = getattr(e, "loc", None) or ()  # a fault at ("body", "batches", b, field, row): say the joint's name
         name = next((n for n, h in robot.handles.items() if loc[2:5:2] == (h.batch, h)), None) if len(loc) > 4 else None
         print(f"jointlimits evaluate: {f'joint {name}: ' if name else ''}{e}", file=sys.stderr)
         return 1
-    if args.plot:
-        plot(readings, args.plot, title=f"{robot.urdf.robot.name} at the given joint vector")
     if args.json:
         print(json.dumps([asdict(r) for r in readings], indent=1))
         return 0

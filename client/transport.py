@@ -92,6 +92,9 @@ class BaseClient:
                  token: str | None = None, max_joints_per_request: int | None = None,
                  progress: bool | ProgressCallback = False, max_retry_after: float = MAX_RETRY_AFTER,
                  http_transport: httpx.BaseTransport | httpx.AsyncBaseTransport | None = None) -> None:
+        if httpx.URL(base_url).scheme not in ("http", "https"):  # "localhost:8000": said here, not in httpx's words
+            msg = f"base_url {base_url!r} is not an http:// or https:// URL; the service's root, e.g. {DEFAULT_URL}"
+            raise WrongURL(0, [Fault((), msg, "wrong_url")], where="wrong url")
         self.binary = binary
         self.retries, self.backoff = retries, backoff
         self.max_retry_after = max_retry_after

@@ -158,7 +158,11 @@ def serve(args: argparse.Namespace) -> int:
 
     given = {t.name: getattr(args, t.name) for t in TABLE if t.flag}
     if args.token_file:  # else Settings reads JOINTLIMITS_TOKEN
-        given["token"] = Path(args.token_file).read_text().strip()
+        try:
+            given["token"] = Path(args.token_file).read_text().strip()
+        except OSError as e:  # a mistyped path, a secret not mounted: one line, as an empty file gets
+            print(f"jointlimits: token file {args.token_file}: {e.strerror or e}", file=sys.stderr)
+            return 2
         if not given["token"]:
             print(f"jointlimits: token file {args.token_file} is empty", file=sys.stderr)
             return 2

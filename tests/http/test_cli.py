@@ -117,6 +117,15 @@ def test_a_bad_variable_is_named_by_the_cli(env, text, monkeypatch, capsys):
     assert getattr(parse([flag, "7"]), flag[2:].replace("-", "_")) == 7  # the flag given wins over a bad variable
 
 
+
+def test_a_token_file_that_does_not_read_is_said_in_one_line(tmp_path, monkeypatch, capsys):
+    """Before: a mistyped --token-file (or a secret not mounted at JOINTLIMITS_TOKEN_FILE) was a traceback."""
+    missing = tmp_path / "no-such-token"
+    assert cli.main(["serve", "--token-file", str(missing)]) == 2
+    assert capsys.readouterr().err == f"jointlimits: token file {missing}: No such file or directory\n"
+    monkeypatch.setenv("JOINTLIMITS_TOKEN_FILE", str(tmp_path))
+    assert cli.main(["serve"]) == 2 and f"token file {tmp_path}: Is a directory" in capsys.readouterr().err
+
 def test_version():
     out = subprocess.run([*console_script(), "--version"], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0 and out.stdout.startswith("jointlimits ")

@@ -109,6 +109,16 @@ def test_base_url_with_v1_says_so(live):
     assert "drop the trailing /v1" in str(e) and f"{live}/v1" in str(e)
 
 
+
+@pytest.mark.parametrize("url", ["localhost:8000", "127.0.0.1:8000", "ws://127.0.0.1:8000"])
+def test_base_url_without_http_says_wrong_url(url):
+    """Before: `Client("localhost:8000")` was made, then its first call raised httpx's UnsupportedProtocol (not a
+    `ServiceError`, no `base_url` named; `jointlimits evaluate --url` printed a traceback)."""
+    for make in (Client, AsyncClient):
+        with pytest.raises(WrongURL) as err:
+            make(url)
+        assert f"base_url {url!r} is not an http:// or https:// URL" in str(err.value) and err.value.status == 0
+
 class _Unrelated(BaseHTTPRequestHandler):
     """Some other web server: an HTML 404 for every path, an HTML 200 at /v1/constitutions of 'other'."""
 

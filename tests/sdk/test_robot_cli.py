@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -108,9 +109,27 @@ def test_a_request_file_that_is_not_an_object_and_a_server_that_is_not_there(cap
     f.write_text("[1, 2]")
     code, out, err = run(capsys, ARM, "--request", str(f))
     assert code == 2 and "a JSON object is expected, got list" in err
+    f.write_text("{q: [1]}")  # not JSON: json's words, which name no file, follow the file's name
+    code, out, err = run(capsys, ARM, "--request", str(f))
+    assert code == 2 and err.startswith(f"jointlimits evaluate: {f}: Expecting property name") and err.count("\n") == 1
     code, out, err = run(capsys, ARM, *map(str, Q), "--url", "http://127.0.0.1:9")  # the discard port: refused
     assert code == 1 and out == "" and err.startswith("jointlimits evaluate: ") and "Traceback" not in err
 
+
+
+def test_a_missing_extra_and_a_bad_url_are_said_in_one_line(capsys, monkeypatch, tmp_path):
+    """Before: without yourdfpy, or matplotlib for --plot (the readings then not printed either), or with a --url
+    that lacks http://, a traceback."""
+    code, out, err = run(capsys, ARM, *map(str, Q), "--url", "localhost:8000")
+    assert code == 1 and out == "" and "not an http:// or https:// URL" in err and err.count("\n") == 1
+    code, out, err = run(capsys, ARM, *map(str, Q), "--plot", str(tmp_path / "no" / "such" / "dir.png"))
+    assert code == 1 and out == "" and err.startswith("jointlimits evaluate: ") and err.count("\n") == 1
+    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)  # `import` of it raises ImportError
+    code, out, err = run(capsys, ARM, *map(str, Q), "--plot", str(tmp_path / "joints.png"))
+    assert code == 1 and out == "" and "the picture needs matplotlib" in err and err.count("\n") == 1
+    monkeypatch.setitem(sys.modules, "yourdfpy", None)
+    code, out, err = run(capsys, ARM, *map(str, Q))
+    assert code == 2 and out == "" and "reading a URDF needs yourdfpy" in err and err.count("\n") == 1
 
 def test_a_fault_of_the_service_names_the_joint(capsys):
     """The service's fault (here an energy that overflows float64) was printed with its batch and row only

@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike
 from jointlimits.client.aio import AsyncClient
 from jointlimits.client.model import NEEDED, OPTIONAL, Array, BatchResult, Evaluation, Request, as_flag, as_outputs
 from jointlimits.client.model import as_request, in_body, null_arrays
-from jointlimits.client.session import SessionClosed, SessionState, batch_number, message_array, owned
+from jointlimits.client.session import CLOSED, SessionClosed, SessionState, batch_number, message_array, owned
 from jointlimits.client.transport import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from jointlimits.schemas.constitutions import describe
@@ -145,7 +145,7 @@ class LocalSession(SessionState):
 
     def _live(self) -> Any:
         if self._scene is None:
-            raise SessionClosed(URL, None, "", "the session is closed")
+            raise SessionClosed(URL, None, "", CLOSED)
         return self._scene
 
     def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,

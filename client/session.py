@@ -41,10 +41,12 @@ class SessionClosed(ServiceError):
     def __init__(self, url: str, code: int | None, reason: str, cause: str = "", resumable: bool = False) -> None:
         self.url, self.code, self.reason, self.resumable = url, code, reason, resumable
         self.status, self.faults = code or 0, [Fault((), reason or cause, "session_closed")]
-        what = f"closed with code {code}" + (f" ({reason})" if reason else "") if code else f"dropped ({cause})"
+        what = f"closed with code {code}" + (f" ({reason})" if reason else "") if code else cause
         Exception.__init__(self, f"session at {url} {what}; reopen() continues from the last commit")
 
 
+CLOSED = "closed by close()"
+DROPPED = "dropped (a lost connection, or a call interrupted before its reply) with resume off"
 RESUMED_CLOSES = (proto.GOING_AWAY, proto.SERVICE_RESTART, proto.TRY_AGAIN_LATER, proto.TOO_MANY_SESSIONS)
 """Close codes after which the session goes on, after a pause, on a new connection: a server that stops (a rollout,
 a scale-down), a worker whose upload budget (1013) or session slots (4429) are full for now."""
@@ -287,7 +289,7 @@ class Exchange(SessionState):
             if self._ws is None and self.resume and not self._closed:
                 yield from self._reopen()
             if self._ws is None:
-                raise SessionClosed(self.url, None, "", "the session is closed")
+                raise SessionClosed(self.url, None, "", CLOSED if self._closed else DROPPED)
             return (yield "send", frame)
 
         return (yield from self._resuming(attempt))
@@ -314,7 +316,7 @@ class Exchange(SessionState):
             yield "drop", None
 
     def _no_reply(self) -> SessionClosed:
-        return SessionClosed(self.url, None, "", f"no reply within {self.timeout} s")
+        return SessionClosed(self.url, None, "", f"dropped (no reply within {self.timeout} s)")
 
 
 def handshake_error(url: str, e: Exception) -> Exception:
@@ -333,13 +335,13 @@ def handshake_error(url: str, e: Exception) -> Exception:
         return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})", 404)
     if isinstance(e, (OSError, TimeoutError)):  # refused, unresolvable host, no answer within the open timeout
         return Unreachable(url, 1, e)
-    return SessionClosed(url, None, "", f"{type(e).__name__}: {e}")
+    return SessionClosed(url, None, "", f"not opened ({type(e).__name__}: {e})")
 
 
 def closed_error(url: str, e: Any) -> SessionClosed:
     frame = e.rcvd  # of websockets' ConnectionClosed
     if frame is None:  # dropped (no close frame): resumable
-        return SessionClosed(url, None, "", "no close frame", resumable=True)
+        return SessionClosed(url, None, "", "dropped (no close frame)", resumable=True)
     return SessionClosed(url, frame.code, frame.reason, resumable=frame.code in RESUMED_CLOSES)
 
 

@@ -104,13 +104,17 @@ def test_without_resume_an_interrupted_session_says_it_is_closed():
         interrupt_next_reply(s)
         with pytest.raises(KeyboardInterrupt):
             s.evaluate(q)
-        with pytest.raises(SessionClosed):
+        with pytest.raises(SessionClosed, match=r"dropped \(a lost connection, or a call interrupted .* resume off"):
             s.evaluate(q)
         s.reopen()
         q[2] = pose(0.2)
         same(s.evaluate(q), ref.evaluate(q))
         assert np.array_equal(s.commit(q)[0], ref.commit(q)[0])
         s.close()
+        ref.close()
+        for closed in (s, ref):  # what happened, in its words: a close is not a drop
+            with pytest.raises(SessionClosed, match=r"closed by close\(\); reopen\(\) continues"):
+                closed.evaluate(q)
 
 
 class Counted(httpx.AsyncHTTPTransport):

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from fastapi import Request
 
 from jointlimits.service.http.errors import too_large as _too_large
-from jointlimits.service.http.timeouts import MIN_PIECES, PIECE_BYTES, PIECES
+from jointlimits.service.http.timeouts import CHUNK_BYTES, CHUNKS, MIN_CHUNKS
 from jointlimits.schemas.answer import BATCH_OVERHEAD_BYTES, FLOATS_PER_JOINT, answer_bytes  # noqa: F401 (re-exported)
 from jointlimits.service.settings import Settings
 
@@ -28,14 +28,14 @@ async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool
         raise _too_large(("body",), f"request body is {int(declared)} bytes; this service accepts at most {max_bytes}")
     chunks: list[bytes] | None = []
     size = 0
-    pieces = request.scope.get("extensions", {}).get(PIECES)  # counted by the connection layer (`jointlimits serve`)
+    chunks_in = request.scope.get("extensions", {}).get(CHUNKS)  # counted by the connection layer (`jointlimits serve`)
     async for chunk in request.stream():
         size += len(chunk)
         if size > max_bytes:
             raise _too_large(("body",), f"request body exceeds {max_bytes} bytes, the most this service accepts")
-        if pieces is not None and pieces[0] > MIN_PIECES + size // PIECE_BYTES:
-            raise _too_large(("body",), f"request body arrived in {pieces[0]} pieces for {size} bytes; this service "
-                             f"reads {MIN_PIECES} pieces, then one per {PIECE_BYTES} bytes: send it with Content-Length "
+        if chunks_in is not None and chunks_in[0] > MIN_CHUNKS + size // CHUNK_BYTES:
+            raise _too_large(("body",), f"request body arrived in {chunks_in[0]} chunks for {size} bytes; this service "
+                             f"reads {MIN_CHUNKS} chunks, then one per {CHUNK_BYTES} bytes: send it with Content-Length "
                              "or in larger chunks")
         if chunks is not None and take(len(chunk)):
             chunks.append(chunk)

@@ -54,13 +54,13 @@ MAX_HEADS_HELD = 16 * 2**20
 """Bytes of unfinished request heads one worker holds over all its connections (a head that arrives whole in one read
 holds none): past it, 503 `busy` and closed. One client opens ~11 000 connections within the head deadline: 3000
 holding 60 kB each took a worker from 93 to 266 MiB."""
-MIN_PIECES, PIECE_BYTES = 1024, 256
-"""A body may arrive in `MIN_PIECES` pieces (chunks, or reads), then one per `PIECE_BYTES` bytes; past it, nothing
-more is read, the request is answered 413 (`limits.read_body`) and the connection closed. Each piece is a Python call
-in uvicorn: 1-byte chunks took 0.39 us of CPU per byte (16 x Content-Length's), and the worker's other clients
-waited 0.4 s per request (6 ms alone) for the body deadline, 5 s while the rest of a refused body was read."""
-PIECES = "jointlimits.pieces"
-"""Key in an HTTP request's scope `extensions` of its body's pieces and bytes so far (a two-item list)."""
+MIN_CHUNKS, CHUNK_BYTES = 1024, 256
+"""A chunked body may arrive in `MIN_CHUNKS` chunks, then one per `CHUNK_BYTES` bytes; past it, nothing more is read,
+the request is answered 413 (`limits.read_body`) and the connection closed. Each chunk is a Python call in uvicorn:
+1-byte chunks took 0.39 us of CPU per byte (16 x Content-Length's), and the worker's other clients waited 0.4 s per
+request (6 ms alone) for the body deadline, 5 s while the rest of a refused body was read."""
+CHUNKS = "jointlimits.chunks"
+"""Key in an HTTP request's scope `extensions` of its body's chunks and bytes so far (a two-item list)."""
 MAX_PIPELINED = 16
 """Requests one connection may send ahead of the one being answered (HTTP/1.1 pipelining): the next one is not read,
 and the connection is closed after the answers owed (RFC 9112 9.3.2: the client resends what was not answered).
@@ -212,7 +212,7 @@ class _WriteBound:
 
 
 class _Cut(Exception):
-    """Raised in httptools' callback to stop parsing (a pipelined request past `MAX_PIPELINED`, a body in tiny pieces)."""
+    """Raised in httptools' callback to stop parsing (a pipelined request past `MAX_PIPELINED`, a body in tiny chunks)."""
 
 
 class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
@@ -242,17 +242,20 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self._in_head = True
         if self._head_timer.handle is None:  # a pipelined head: its deadline too
             self._head_timer.start(self.header_timeout)  # type: ignore[arg-type]
-        self._pieces = [0, 0]
-        extensions = {**self.scope.get("extensions", {}), DRAIN: self.drain, OPENED: self.opened, PIECES: self._pieces}
+        self._chunks = [0, 0]
+        extensions = {**self.scope.get("extensions", {}), DRAIN: self.drain, OPENED: self.opened, CHUNKS: self._chunks}
         self.scope["extensions"] = extensions  # type: ignore[typeddict-item]
 
     def on_body(self, body: bytes) -> None:
-        super().on_body(body)  # first: the application wakes to read it, and refuses the body (`limits.read_body`)
-        pieces = self._pieces
-        pieces[0] += 1
-        pieces[1] += len(body)
-        if pieces[0] > MIN_PIECES + pieces[1] // PIECE_BYTES:
-            self._refuse("body_pieces", b"")
+        super().on_body(body)
+        self._chunks[1] += len(body)
+
+    def on_chunk_header(self) -> None:
+        chunks = self._chunks
+        chunks[0] += 1
+        if chunks[0] > MIN_CHUNKS + chunks[1] // CHUNK_BYTES:
+            self.cycle.message_event.set()  # the application wakes to refuse the body (`limits.read_body`)
+            self._refuse("body_chunks", b"")
             raise _Cut  # the rest is not parsed
 
     def on_response_complete(self) -> None:

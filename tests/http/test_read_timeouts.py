@@ -327,20 +327,20 @@ def test_a_pipelined_head_has_the_head_deadline_too(port):
     assert [h[:4] for h in heads] == [b"200 ", b"408 "]
 
 
-# ---------------------------------------------------------------- a body in tiny pieces
+# ---------------------------------------------------------------- a body in tiny chunks
 
 def chunked(body: bytes, size: int) -> bytes:
     """`body` as a chunked transfer of `size`-byte chunks, with its end."""
     return b"".join(b"%x\r\n%s\r\n" % (len(body[i : i + size]), body[i : i + size]) for i in range(0, len(body), size)) + b"0\r\n\r\n"
 
 
-def test_a_body_in_tiny_chunks_gets_413_once_its_pieces_outrun_its_bytes(port):
+def test_a_body_in_tiny_chunks_gets_413_once_its_chunks_outrun_its_bytes(port):
     """Each chunk of a body is a Python call in uvicorn's parser: 1-byte chunks took 0.39 us of the worker's CPU per
     body byte (16 x Content-Length's) and each read of them ~50 ms of the event loop, so for the body deadline (30 s)
     the worker's other clients waited 0.4 s per request (p50; 6 ms alone); a refused body's rest was parsed too (5 s
-    of stall). Now a body gets `timeouts.MIN_PIECES` pieces, then one per `timeouts.PIECE_BYTES` bytes; past it,
+    of stall). Now a body gets `timeouts.MIN_CHUNKS` chunks, then one per `timeouts.CHUNK_BYTES` bytes; past it,
     nothing more is read: 413 naming the body, and the connection closed. Larger chunks are answered."""
-    before = closed_counted(port, "body_pieces")
+    before = closed_counted(port, "body_chunks")
     body = json.dumps(_json()).encode() + b" " * 20_000  # JSON allows trailing spaces
     with socket.create_connection(("127.0.0.1", port)) as s:
         try:
@@ -351,9 +351,9 @@ def test_a_body_in_tiny_chunks_gets_413_once_its_pieces_outrun_its_bytes(port):
     head, _, rest = got.partition(b"\r\n\r\n")
     assert head.startswith(b"HTTP/1.1 413 ") and b"connection: close" in head.lower(), got[:300]
     fault = json.loads(rest)["detail"][0]
-    assert fault["loc"] == ["body"] and fault["type"] == "too_large" and "pieces" in fault["msg"], fault
-    assert closed_counted(port, "body_pieces") == before + 1
-    with socket.create_connection(("127.0.0.1", port)) as s:  # the same body in chunks of PIECE_BYTES: answered
-        s.sendall(HEAD + b"Transfer-Encoding: chunked\r\n\r\n" + chunked(body, timeouts.PIECE_BYTES))
+    assert fault["loc"] == ["body"] and fault["type"] == "too_large" and "chunks" in fault["msg"], fault
+    assert closed_counted(port, "body_chunks") == before + 1
+    with socket.create_connection(("127.0.0.1", port)) as s:  # the same body in chunks of CHUNK_BYTES: answered
+        s.sendall(HEAD + b"Transfer-Encoding: chunked\r\n\r\n" + chunked(body, timeouts.CHUNK_BYTES))
         s.settimeout(10)
         assert s.recv(12) == b"HTTP/1.1 200"

@@ -370,6 +370,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
     _upload: Any = None  # this connection's `budget.Reservation` in the worker's upload budget
     _in_app = 0  # bytes of the message the application took last (held until it asks for the next one)
     _fragments = 0  # bytes of `frames`, the fragments of the message arriving (a running sum: there may be millions)
+    _frames_in = (0, 0)  # frames and payload bytes of the message arriving (MIN_CHUNKS, CHUNK_BYTES)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -417,6 +418,12 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
     def _fragment(self, event: Frame, first: bool = False) -> None:
         # A fragment is a bytes object in uvicorn's list: ~40 bytes besides its data, which a flood of tiny ones costs.
         self._fragments = 0 if event.fin else (0 if first else self._fragments) + sys.getsizeof(event.data) + 8
+        # And ~6 us of websockets' parse: frames are bounded as a chunked body's chunks are (the rest is drained).
+        n, size = (0, 0) if first else self._frames_in
+        self._frames_in = n + 1, size + len(event.data)
+        if n + 1 > MIN_CHUNKS + (size + len(event.data)) // CHUNK_BYTES and not self.draining:
+            self._close_and_drain(1009, f"message in more than {n} frames for {size} bytes; this service reads "
+                                        f"{MIN_CHUNKS} frames, then one per {CHUNK_BYTES} bytes: send larger frames")
 
     def _count_upload(self) -> None:
         """Hold what this connection's messages take in the worker's upload budget: the message arriving twice,

@@ -88,7 +88,7 @@ class Checker:
         self.binary, self.booleans = binary, 0
         self.faults: list[Fault] = []
         self.values: int | None = None
-        """A JSON text's values (its commas + 1), counted before its parse: the request's cost (`sizing`)."""
+        """A JSON text's values (`limits.check_json`), counted before its parse: the request's cost (`sizing`)."""
         self.message_id: int | str | None = None
         """The document's `id` if it is a readable one (a session's fault reply repeats it), once it is read."""
 

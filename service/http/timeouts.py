@@ -2,10 +2,10 @@
 
 uvicorn times out only idle keep-alive connections: a client that sends nothing, half its headers, or its body at
 one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time: the request
-head (`ReadTimeoutProtocol`), the body (`BodyTimeoutMiddleware`), a session message, and in both protocols the write
-side (`_WriteBound`: a client that stops reading is reset, freeing what it held; the application sees it as `Drain`).
-uvicorn's own WebSocket close on a protocol fault was a reset the client read as 1006: ours sends a close frame and
-a FIN, then drains (`WriteTimeoutWebSocketProtocol`).
+head and the requests pipelined behind an answer (`ReadTimeoutProtocol`), the body (`BodyTimeoutMiddleware`), a
+session message, and in both protocols the write side (`_WriteBound`: a client that stops reading is reset, freeing
+what it held; the application sees it as `Drain`). uvicorn's own WebSocket close on a protocol fault was a reset the
+client read as 1006: ours sends a close frame and a FIN, then drains (`WriteTimeoutWebSocketProtocol`).
 """
 
 from __future__ import annotations
@@ -54,6 +54,18 @@ MAX_HEADS_HELD = 16 * 2**20
 """Bytes of unfinished request heads one worker holds over all its connections (a head that arrives whole in one read
 holds none): past it, 503 `busy` and closed. One client opens ~11 000 connections within the head deadline: 3000
 holding 60 kB each took a worker from 93 to 266 MiB."""
+MIN_CHUNKS, CHUNK_BYTES = 1024, 256
+"""A chunked body may arrive in `MIN_CHUNKS` chunks, then one per `CHUNK_BYTES` bytes; past it, nothing more is read,
+the request is answered 413 (`limits.read_body`) and the connection closed. Each chunk is a Python call in uvicorn:
+1-byte chunks took 0.39 us of CPU per byte (16 x Content-Length's), and the worker's other clients waited 0.4 s per
+request (6 ms alone) for the body deadline, 5 s while the rest of a refused body was read."""
+CHUNKS = "jointlimits.chunks"
+"""Key in an HTTP request's scope `extensions` of its body's chunks and bytes so far (a two-item list)."""
+MAX_PIPELINED = 16
+"""Requests one connection may send ahead of the one being answered (HTTP/1.1 pipelining): the next one is not read,
+and the connection is closed after the answers owed (RFC 9112 9.3.2: the client resends what was not answered).
+Unbounded, uvicorn read on after each answer: one connection pipelining `GET /healthz` took a worker from 68 to
+640 MiB and 10 s of CPU in 10 s, answering 41 of them."""
 
 
 def _answer(status: bytes, msg: str, type: str, *headers: bytes) -> bytes:
@@ -199,6 +211,10 @@ class _WriteBound:
         self.transport.abort()
 
 
+class _Cut(Exception):
+    """Raised in httptools' callback to stop parsing (a pipelined request past `MAX_PIPELINED`, a body in tiny chunks)."""
+
+
 class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     """uvicorn's httptools protocol with a deadline on each request head (`header_timeout` seconds) and on
     a full write buffer (`write_timeout` seconds); each request's scope carries the connection's `Drain`."""
@@ -206,6 +222,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read per connection
     max_connections: int | None = None  # None: JOINTLIMITS_MAX_CONNECTIONS, read per connection
     heads_held = 0  # bytes of every connection's unfinished head in this worker (MAX_HEADS_HELD)
+    _cut = False  # a pipelined head or a body refused: the answers owed are sent, nothing more is read
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -218,10 +235,28 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self._in_head = False  # the parser is inside a request's head (not in the rest of an answered one's body)
 
     def on_message_begin(self) -> None:
+        if len(self.pipeline) >= MAX_PIPELINED:
+            self._refuse("pipelined", b"")
+            raise _Cut  # httptools stops here: the rest of this read is dropped (`send_400_response`)
         super().on_message_begin()
         self._in_head = True
-        extensions = {**self.scope.get("extensions", {}), DRAIN: self.drain, OPENED: self.opened}
+        if self._head_timer.handle is None:  # a pipelined head: its deadline too
+            self._head_timer.start(self.header_timeout)  # type: ignore[arg-type]
+        self._chunks = [0, 0]
+        extensions = {**self.scope.get("extensions", {}), DRAIN: self.drain, OPENED: self.opened, CHUNKS: self._chunks}
         self.scope["extensions"] = extensions  # type: ignore[typeddict-item]
+
+    def on_body(self, body: bytes) -> None:
+        super().on_body(body)
+        self._chunks[1] += len(body)
+
+    def on_chunk_header(self) -> None:
+        chunks = self._chunks
+        chunks[0] += 1
+        if chunks[0] > MIN_CHUNKS + chunks[1] // CHUNK_BYTES:
+            self.cycle.message_event.set()  # the application wakes to refuse the body (`limits.read_body`)
+            self._refuse("body_chunks", b"")
+            raise _Cut  # the rest is not parsed
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
@@ -238,6 +273,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self._arm()  # a connection that never sends a byte is closed too
 
     def data_received(self, data: bytes) -> None:
+        if self._cut:  # what follows a refused pipelined head: dropped unread
+            return
         if self._head_timer.handle is None and (self.cycle is None or self.cycle.response_complete):
             self._arm()  # the first bytes of the next request on a keep-alive connection
         self._head_bytes = True
@@ -274,10 +311,19 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         ReadTimeoutProtocol.heads_held -= self._head_size
         self._head_size = 0
 
+    def send_400_response(self, msg: str) -> None:
+        if not self._cut:  # a parser error, not our `_Cut`
+            super().send_400_response(msg)
+
     def _refuse(self, reason: str, answer: bytes) -> None:
+        """Answer `answer` and close; behind answers still owed (pipelining), it would answer an earlier request:
+        those are sent, then the connection is closed, and nothing more is read."""
         self._head_timer.stop()
         self._drop_head()
         self._closed(reason)
+        if self.cycle is not None and not self.cycle.response_complete:
+            self._cut, self.cycle.keep_alive = True, False  # the last request read is the last answered
+            return
         self.transport.write(answer)
         self.transport.close()
 
@@ -324,6 +370,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
     _upload: Any = None  # this connection's `budget.Reservation` in the worker's upload budget
     _in_app = 0  # bytes of the message the application took last (held until it asks for the next one)
     _fragments = 0  # bytes of `frames`, the fragments of the message arriving (a running sum: there may be millions)
+    _frames_in = (0, 0)  # frames and payload bytes of the message arriving (MIN_CHUNKS, CHUNK_BYTES)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -371,6 +418,12 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
     def _fragment(self, event: Frame, first: bool = False) -> None:
         # A fragment is a bytes object in uvicorn's list: ~40 bytes besides its data, which a flood of tiny ones costs.
         self._fragments = 0 if event.fin else (0 if first else self._fragments) + sys.getsizeof(event.data) + 8
+        # And ~6 us of websockets' parse: frames are bounded as a chunked body's chunks are (the rest is drained).
+        n, size = (0, 0) if first else self._frames_in
+        self._frames_in = n + 1, size + len(event.data)
+        if n + 1 > MIN_CHUNKS + (size + len(event.data)) // CHUNK_BYTES and not self.draining:
+            self._close_and_drain(1009, f"message in more than {n} frames for {size} bytes; this service reads "
+                                        f"{MIN_CHUNKS} frames, then one per {CHUNK_BYTES} bytes: send larger frames")
 
     def _count_upload(self) -> None:
         """Hold what this connection's messages take in the worker's upload budget: the message arriving twice,

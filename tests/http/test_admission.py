@@ -188,6 +188,34 @@ def test_json_values_over_the_bound_are_413_before_parsing(monkeypatch):
     assert post(client(max_json_values=values - 1), scene(50, outputs=("energy",)), True).status_code == 200
 
 
+def test_nested_lists_count_as_values_before_parsing(monkeypatch):
+    """Commas bound a document's numbers, not its lists: `[[[[[[[[0]]]]]]]]` is one comma's worth and 9 Python
+    objects. 1e6 such items (18 MB, half the value bound) took a worker from 67 to 993 MiB and held the GIL 8.4 s
+    (HTTP) to 10 s (a session message, parsed on the event loop): every other client of the worker stalled that long.
+    The count is now the larger of the commas and twice the lists and objects (a list costs the parse 3 to 7
+    numbers), whatever the nesting; an honest request's count is its commas, as before."""
+    body, _ = codec.encode(scene(50, outputs=("energy",)), binary=False)
+    assert limits.check_json(body, 10**9) == body.count(b",") + 1  # an honest request: the commas (more than brackets)
+    items = b",".join([b"[" * 8 + b"0" + b"]" * 8] * 1000)  # 1000 commas, 8000 brackets
+    nested = b'{"bodies":{"q":[' + items + b']},"batches":[]}'  # 8002 brackets + 2 braces: 16009 values
+    message = b'{"kind":"evaluate","q":[' + items + b"]}"  # a session's later message: 16005
+
+    def no_parse(*a, **kw):
+        raise AssertionError("parsed a document that should have been refused")
+
+    c = client(max_json_values=16004)  # each of the two is under it by its commas (1001, 1000)
+    with c.websocket_connect("/v1/sessions") as ws:
+        ws.send_text(codec.encode(scene(1, outputs=("energy",)), binary=False)[0].decode())
+        assert orjson.loads(ws.receive_text())["kind"] == "opened"
+        monkeypatch.setattr(convert, "from_json", no_parse)
+        ws.send_text(message.decode())
+        reply = orjson.loads(ws.receive_text())
+        assert reply["kind"] == "error" and reply["status"] == 413 and "up to 16005 values" in reply["detail"][0]["msg"]
+    r = c.post("/v1/evaluate", content=nested, headers={"Content-Type": J})
+    assert r.status_code == 413 and r.json()["detail"][0]["loc"] == ["body"], r.text
+    assert "up to 16009 values (counted by its commas and brackets)" in r.json()["detail"][0]["msg"]
+
+
 def test_msgpack_refuses_an_array_beyond_its_largest_bin():
     assert wire._bin_header(2**32 - 1) == b"\xc6\xff\xff\xff\xff"
     with pytest.raises(ValueError, match="exceeds msgpack's largest bin"):

@@ -262,3 +262,98 @@ def test_the_rest_of_a_body_answered_early_is_no_head(port):
         _, got = wait_closed(s, HEADER_TIMEOUT + 10)
     assert got.startswith(b"HTTP/1.1 413 ") and b" 431 " not in got, got[:200]
     assert closed_counted(port, "head_too_large") == before
+
+
+# ---------------------------------------------------------------- pipelining: requests sent ahead of their answers
+
+GET = b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"
+
+
+def answers(got: bytes) -> list[bytes]:
+    """Each answer's status line and headers, in order (the bodies are `{"status":"ok"}` or a fault list)."""
+    return [a.partition(b"\r\n\r\n")[0].lower() for a in got.split(b"HTTP/1.1 ")[1:]]
+
+
+def test_requests_pipelined_past_the_bound_are_not_read_and_the_connection_closes_after_the_answers_owed(port):
+    """uvicorn parsed every request of each read and read on after each answer: one connection pipelining `GET
+    /healthz` for 10 s took a worker from 68 to 640 MiB and 10 s of CPU, answering 41. Now a connection has at most
+    `MAX_PIPELINED` requests queued behind the one answered; the next is not read: those owed are answered, the last
+    with `connection: close`, then the connection closes (the client resends the rest, RFC 9112 9.3.2)."""
+    owed = timeouts.MAX_PIPELINED + 1
+    before = closed_counted(port, "pipelined")
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(GET * (owed + 1000))  # 42 kB, one write: read at once, as a hostile client's flood is
+        after, got = wait_closed(s, HEADER_TIMEOUT + 10)
+    heads = answers(got)
+    assert after is not None and owed <= len(heads) < 2 * owed, len(heads)  # a read may end between requests
+    assert all(h.startswith(b"200 ") for h in heads)
+    assert b"connection: close" in heads[-1] and not any(b"connection: close" in h for h in heads[:-1])
+    assert closed_counted(port, "pipelined") == before + 1
+    with socket.create_connection(("127.0.0.1", port)) as s:  # within the bound: every one answered, kept alive
+        s.sendall(GET * owed)
+        s.settimeout(10)
+        got = b""
+        while got.count(b"HTTP/1.1 200 ") < owed:
+            got += s.recv(65536)
+        assert b"connection: close" not in got.lower()
+
+
+def test_a_pipelined_head_past_its_bound_does_not_answer_the_request_before_it(port):
+    """A head over `MAX_HEAD_BYTES` behind a request still being answered: the 431 was written at once, so the
+    client read it as the answer to that earlier, valid request (and the server logged an ERROR writing the real one
+    to the closed transport). Now the earlier request gets its own answer, with `connection: close`, then EOF."""
+    before = closed_counted(port, "head_too_large")
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        try:
+            s.sendall(GET + HEAD + b"X-Big: " + b"a" * (4 * timeouts.MAX_HEAD_BYTES))
+        except OSError:  # closed while sending: the answer is in the receive buffer
+            pass
+        after, got = wait_closed(s, HEADER_TIMEOUT + 10)
+    heads = answers(got)
+    assert after is not None and len(heads) == 1, heads
+    assert heads[0].startswith(b"200 ") and b"connection: close" in heads[0]
+    assert closed_counted(port, "head_too_large") == before + 1
+
+
+def test_a_pipelined_head_has_the_head_deadline_too(port):
+    """Half a head sent behind a complete request had no deadline of its own (the head timer is armed when an answer
+    completes, before any byte of the next head arrives): it was held for the keep-alive timeout (75 s under
+    `jointlimits serve`). Now it gets `JOINTLIMITS_HEADER_TIMEOUT`, then 408, as a head alone does."""
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(GET + HEAD)  # the second head never ends
+        after, got = wait_closed(s, HEADER_TIMEOUT + 10)
+    heads = answers(got)
+    assert after is not None and after < HEADER_TIMEOUT + SLACK, after
+    assert [h[:4] for h in heads] == [b"200 ", b"408 "]
+
+
+# ---------------------------------------------------------------- a body in tiny chunks
+
+def chunked(body: bytes, size: int) -> bytes:
+    """`body` as a chunked transfer of `size`-byte chunks, with its end."""
+    return b"".join(b"%x\r\n%s\r\n" % (len(body[i : i + size]), body[i : i + size]) for i in range(0, len(body), size)) + b"0\r\n\r\n"
+
+
+def test_a_body_in_tiny_chunks_gets_413_once_its_chunks_outrun_its_bytes(port):
+    """Each chunk of a body is a Python call in uvicorn's parser: 1-byte chunks took 0.39 us of the worker's CPU per
+    body byte (16 x Content-Length's) and each read of them ~50 ms of the event loop, so for the body deadline (30 s)
+    the worker's other clients waited 0.4 s per request (p50; 6 ms alone); a refused body's rest was parsed too (5 s
+    of stall). Now a body gets `timeouts.MIN_CHUNKS` chunks, then one per `timeouts.CHUNK_BYTES` bytes; past it,
+    nothing more is read: 413 naming the body, and the connection closed. Larger chunks are answered."""
+    before = closed_counted(port, "body_chunks")
+    body = json.dumps(_json()).encode() + b" " * 20_000  # JSON allows trailing spaces
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        try:
+            s.sendall(HEAD + b"Transfer-Encoding: chunked\r\n\r\n" + chunked(body, 1))
+        except OSError:  # closed while sending: the answer is in the receive buffer
+            pass
+        _, got = wait_closed(s, BODY_TIMEOUT + 10)
+    head, _, rest = got.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 413 ") and b"connection: close" in head.lower(), got[:300]
+    fault = json.loads(rest)["detail"][0]
+    assert fault["loc"] == ["body"] and fault["type"] == "too_large" and "chunks" in fault["msg"], fault
+    assert closed_counted(port, "body_chunks") == before + 1
+    with socket.create_connection(("127.0.0.1", port)) as s:  # the same body in chunks of CHUNK_BYTES: answered
+        s.sendall(HEAD + b"Transfer-Encoding: chunked\r\n\r\n" + chunked(body, timeouts.CHUNK_BYTES))
+        s.settimeout(10)
+        assert s.recv(12) == b"HTTP/1.1 200"

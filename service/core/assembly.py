@@ -42,11 +42,11 @@ def chain(alpha: Array, v: Array, dF: Array) -> Array:
     n, e = dF.shape[:2]
     out = component_major(n, (e, 2, 12), dF.dtype)
     chain_directions(v, dF, out=out[..., 3:].reshape(n, e, 2, 3, 3))  # a view: written in place
-    a = alpha.reshape(2, 2)
+    a = alpha.reshape(2, 2, 1)  # (body, frame, 1)
     db = dF.reshape(n, e, 2, 2, 3)  # (joint, e, body, frame, r)
-    for b in range(2):  # the positions see the points' rows: sum over the body's frames of alpha_k dF_k
-        np.multiply(db[:, :, b, 0], a[b, 0], out=out[:, :, b, :3])
-        out[:, :, b, :3] += db[:, :, b, 1] * a[b, 1]
+    # the positions see the points' rows: sum over the body's frames of alpha_k dF_k
+    np.multiply(db[:, :, :, 0], a[:, 0], out=out[..., :3])
+    out[..., :3] += db[:, :, :, 1] * a[:, 1]
     return out.reshape(n, e, 24)
 
 
@@ -113,13 +113,10 @@ def _hessian_points(alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: 
         t = component_major(M, (m, 2, 4), dtype)
         np.multiply(fs[q][:, :, :, 0], wv[q][:, None, :, 0], out=t)
         t += fs[q][:, :, :, 1] * wv[q][:, None, :, 1]
-        t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
         X = np.zeros((M, k + 3 * m, 2, 12), dtype=dtype)
         X[:, :k] = Xl.reshape(M, k, 2, 12)
-        Xk = X[:, k:].reshape(M, m, 3, 2, 12)  # (joint, e, row r, body, DOF)
-        for r in range(3):
-            Xk[:, :, r, :, 3 + 3 * r : 6 + 3 * r] = t[..., 1:]
-            Xk[:, :, r, :, r] = t[..., 0]
+        # (joint, e, row r, body, DOF): row r takes t's [alpha, v] at DOFs p_r, A[r, 0..2], all in one placement
+        X[:, k:].reshape(M, m, 3, 2, 12)[:, :, _ROW_R, :, _ROW_DOFS] = t.transpose(3, 0, 1, 2)
         X = X.reshape(M, k + 3 * m, 24)
         # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
         # in the same order: the product is bitwise symmetric without a symmetrising pass.
@@ -127,6 +124,10 @@ def _hessian_points(alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: 
         # X holds the values of Xl and t, and zeros (NaN fails the test).
         finite = finite and bool(max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0)) < finite_factor(dtype))
     return Jdx, finite
+
+
+_ROW_R = np.repeat(np.arange(3), 4).reshape(3, 4)
+_ROW_DOFS = np.array([[0, 3, 4, 5], [1, 6, 7, 8], [2, 9, 10, 11]])  # a body's DOFs p_r, A[r, 0], A[r, 1], A[r, 2]
 
 
 def balance(alpha: Array, v: Array) -> Array:
@@ -233,7 +234,7 @@ def _kron_blocks(v: Array, dK: Array, same: bool) -> Array:
     np.multiply(u[:, 0, :, None], v[:, 2, None, :], out=W[:, 0])
     W[:, 0] += u[:, 1, :, None] * v[:, 3, None, :]
     if same:  # both bodies at once: p = 2b, q = 2b + 1
-        Kb = np.diagonal(dK.reshape(n, 2, 2, 2, 2), axis1=1, axis2=3)[..., None, None]  # [:, i, j, b] = K_(2b+i)(2b+j)
+        Kb = dK.reshape(n, 2, 2, 2, 2).diagonal(axis1=1, axis2=3)[..., None, None]  # [:, i, j, b] = K_(2b+i)(2b+j)
         vp, vq, vpr, vqr = v[:, 0::2, :, None], v[:, 1::2, :, None], v[:, 0::2, None, :], v[:, 1::2, None, :]
         # (v_p v_p^T) K_pp + (v_q v_q^T) K_qq + (v_p v_q^T + v_q v_p^T) K_pq: each term symmetric bitwise.
         np.multiply(vp * vpr, Kb[:, 0, 0], out=W[:, 1:])
@@ -266,7 +267,7 @@ class _Mix:
         if t is None:
             if curvature.diagonal:
                 lam = np.empty((n, k), dtype=dE.dtype)
-                lam[:, :k0] = dE[:, None] * np.diagonal(C, axis1=1, axis2=2)
+                lam[:, :k0] = dE[:, None] * C.diagonal(axis1=1, axis2=2)
                 lam[:, k0] = d2E
                 return cls(lam, k0, scale=np.sqrt(np.abs(lam)))
             S = np.zeros((n, k, k), dtype=dE.dtype)

@@ -36,7 +36,8 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
     Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
     past `deadline` (a `time.monotonic()` value), checked before each derivative chunk, which run on `threads`.
     """
-    g = penalty.distance(x, lo, up)  # one gap for the energy, the active joints and their slopes
+    # one gap for the energy, the active joints and their slopes (the side only for these)
+    g, side = penalty.gap(x, lo, up) if want_g or want_h else (penalty.distance(x, lo, up), None)
     energy, r, w, wide = penalty.energy_and_relative(g, x, lo, up, s)
     overflow = nonfinite_rows(energy)
     active = gradient = hessian = None
@@ -52,11 +53,13 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
         hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
         every = a == x.shape[0]  # every joint active: no gathers, every chunk's rows in place
         # Per-joint scalars for every active joint at once: per chunk they would be a dozen short calls each.
-        at_active = (x, lo, up, s, r, w) if every else tuple(take_joints(q, active) for q in (x, lo, up, s, r, w))
+        at_active = (x, lo, up, s, r, w, side)
+        if not every:
+            at_active = tuple(take_joints(q, active) for q in at_active)
         if wide:  # a gap or width overflowed: from halves
             _, dE, d2E = penalty.derivatives(*at_active[:4])
         else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
-            dE, d2E = penalty.slopes(*at_active[4:], *at_active[:4])
+            dE, d2E = penalty.slopes(*at_active[4:], at_active[3])
         shift = penalty.scale_up(dE, d2E, *at_active[:4])
         # Rows written in place when every row is differentiated; else a chunk's go through scratch rows
         # first, kept to a few MB. On threads, at least two chunks per thread (a batch alone keeps them busy).

@@ -53,10 +53,9 @@ def energy_and_relative(g: Array, x: Array, lower: Array, upper: Array, strength
     return strength * (r * r * r), r, w, bool(wide.size)
 
 
-def slopes(r: Array, w: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array]:
+def slopes(r: Array, w: Array, side: Array, strength: Array) -> tuple[Array, Array]:
     """`derivatives`' `dE/dx`, `d2E/dx2` from the `r`, `w` that `energy_and_relative` took where nothing
-    overflowed: the very operations, so the very bits."""
-    side = (x > upper).astype(np.float64) - (x < lower).astype(np.float64)
+    overflowed and `gap`'s side: the very operations, so the very bits."""
     sw = strength / w
     sww = sw / w
     return side * 3.0 * sw * (r * r), 6.0 * sww * r

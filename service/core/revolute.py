@@ -77,8 +77,11 @@ angle is as exact as its conditioning allows (up to ~1e-3 rad at the threshold; 
 
 
 def _cos_sin(F: Array) -> tuple[Array, Array]:
-    B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-    return 0.5 * (dot(B_i, B_j) + dot(N_i, N_j)), 0.5 * (dot(B_i, N_j) - dot(N_i, B_j))
+    p = component_major(F.shape[0], (2, 2, 3), F.dtype)  # the four dots' products in two passes
+    np.multiply(F[:, :2], F[:, 2:], out=p[:, 0])  # B_i B_j, N_i N_j
+    np.multiply(F[:, :2], F[:, 3:1:-1], out=p[:, 1])  # B_i N_j, N_i B_j
+    d = p[..., 0] + p[..., 1] + p[..., 2]
+    return 0.5 * (d[:, 0, 0] + d[:, 0, 1]), 0.5 * (d[:, 1, 0] - d[:, 1, 1])
 
 
 def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Array, Array]]:
@@ -157,9 +160,13 @@ class _RescaledCurvature(Curvature):
 
 
 _EYE4 = np.eye(4)
+_J_SIGNS, _J_PAIR = np.array([1.0, -1.0, -1.0, 1.0])[:, None], np.array([2, 3, 0, 1])
+_SIGMAS = np.array([1.0, -1.0])[:, None, None]  # h1 from u takes +sigma J u, h3 from d takes -sigma J d
 _G_BLOCKS = np.array([2, 3, 0, 1, 3, 2, 1, 0])
 _G_HALVES = np.array([0.5, 0.5, 0.5, 0.5, 0.5, -0.5, -0.5, 0.5])[:, None]
 """d cos/dF (blocks 0-3) and d sin/dF (4-7): each the block `_G_BLOCKS` of F times `_G_HALVES`."""
+_COS_AT, _SIN_AT, _MINUS_SIN_AT = np.array([2, 7, 8, 13]), np.array([3, 12]), np.array([6, 9])
+"""The flat entries of K (4 x 4) that are x_c / 2 ((0, 2), (1, 3) and transposed), x_s / 2, -x_s / 2."""
 
 
 def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = None) -> tuple[Array, Curvature | None]:
@@ -182,12 +189,10 @@ def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = 
     coef[:, 1, 1] = -coef[:, 0, 0]
     coef[:, 0, 1] = coef[:, 1, 0] = (s * s - c * c) / r4
     # K (N, 4, 4) = x_c COS_PAIRS + x_s SIN_PAIRS, component-major (the assembly reads it entry by entry).
-    kron = component_major(n, (4, 4), F.dtype)
-    kron[...] = 0.0
-    half_c, half_s = 0.5 * x_c, 0.5 * x_s
-    kron[:, 0, 2] = kron[:, 2, 0] = kron[:, 1, 3] = kron[:, 3, 1] = half_c
-    kron[:, 0, 3] = kron[:, 3, 0] = half_s
-    kron[:, 1, 2] = kron[:, 2, 1] = -half_s
+    kron = np.zeros((16, n), dtype=F.dtype)
+    half_s = 0.5 * x_s
+    kron[_COS_AT], kron[_SIN_AT], kron[_MINUS_SIN_AT] = 0.5 * x_c, half_s, -half_s
+    kron = kron.reshape(4, 4, n).transpose(2, 0, 1)
     dx_coef = np.empty((n, 2), dtype=F.dtype)  # (x_c, x_s), C order as np.stack's (without its Python)
     dx_coef[:, 0], dx_coef[:, 1] = x_c, x_s
     return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=dx_coef)
@@ -290,27 +295,21 @@ class Revolute:
 def _psd_vectors(sign: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> Array:
     """(h1, h3, d) (N, 3, 4, 3) of the PSD notes from g = (g_c, g_s) (N, 2, 4, 3) and `sign` = sigma (N,);
     `x_c`, `x_s`, `r` (N,) give cos_t = x_s r and sin_t = -x_c r. Linear in g: any common scale of g carries over."""
-    cos_t, sin_t = (x_s * r)[:, None, None], (-x_c * r)[:, None, None]  # w = r e^{i theta}
-    sign = sign[:, None, None]
-    g_c, g_s = g[:, 0], g[:, 1]
-    b = cos_t * g_c + sin_t * g_s  # r grad(log r)
-    a = cos_t * g_s - sin_t * g_c  # r grad(x)
-    u = b + sign * a
-    d = b - sign * a
-
-    def J(v: Array) -> Array:
-        """`(K / lambda0) (x) I_3` on v (N, 4, 3): an involution, eigenvalues +-1."""
-        out = np.empty_like(v)
-        out[:, 0] = cos_t[:, 0] * v[:, 3] - sin_t[:, 0] * v[:, 2]
-        out[:, 1] = -cos_t[:, 0] * v[:, 2] - sin_t[:, 0] * v[:, 3]
-        out[:, 2] = -cos_t[:, 0] * v[:, 1] - sin_t[:, 0] * v[:, 0]
-        out[:, 3] = cos_t[:, 0] * v[:, 0] - sin_t[:, 0] * v[:, 1]
-        return out
-
-    basis = component_major(g.shape[0], (3, 4, 3), g.dtype)
-    basis[:, 0] = 0.5 * (u + sign * J(u))  # h1 = P_sigma u
-    basis[:, 1] = 0.5 * (d - sign * J(d))  # h3 = P_-sigma d
-    basis[:, 2] = d
+    cos_t, sin_t = (x_s * r)[:, None, None, None], (-x_c * r)[:, None, None, None]  # w = r e^{i theta}
+    cg, sg = cos_t * g, sin_t * g[:, ::-1]  # (cos_t g_c, cos_t g_s), (sin_t g_s, sin_t g_c)
+    sa = sign[:, None, None] * (cg[:, 1] - sg[:, 1])  # sigma r grad(x)
+    b = cg[:, 0] + sg[:, 0]  # r grad(log r)
+    n, dtype = g.shape[0], g.dtype
+    ud = component_major(n, (2, 4, 3), dtype)  # u, d = b +- sigma a
+    np.add(b, sa, out=ud[:, 0])
+    np.subtract(b, sa, out=ud[:, 1])
+    # J = (K / lambda0) (x) I_3 (an involution) on u and d at once: block k of J v is +-cos_t v_(3-k) - sin_t v_(k^2).
+    Jud = (_J_SIGNS.astype(dtype, copy=False) * cos_t) * ud[:, :, ::-1] - sin_t * ud[:, :, _J_PAIR]
+    Jud *= _SIGMAS.astype(dtype, copy=False) * sign[:, None, None, None]  # sigma J u, -sigma J d
+    basis = component_major(n, (3, 4, 3), dtype)
+    basis[:, 2] = ud[:, 1]  # d
+    ud += Jud
+    np.multiply(0.5, ud, out=basis[:, :2])  # h1 = P_sigma u, h3 = P_-sigma d
     return basis
 
 

@@ -235,11 +235,12 @@ def _kron_blocks(v: Array, dK: Array, same: bool) -> Array:
     W[:, 0] += u[:, 1, :, None] * v[:, 3, None, :]
     if same:  # both bodies at once: p = 2b, q = 2b + 1
         Kb = dK.reshape(n, 2, 2, 2, 2).diagonal(axis1=1, axis2=3)[..., None, None]  # [:, i, j, b] = K_(2b+i)(2b+j)
-        vp, vq, vpr, vqr = v[:, 0::2, :, None], v[:, 1::2, :, None], v[:, 0::2, None, :], v[:, 1::2, None, :]
+        vb = v.reshape(n, 2, 2, 3)
+        o = vb[:, :, :, None, :, None] * vb[:, :, None, :, None, :]  # [:, b, i, j] = v_(2b+i) v_(2b+j)^T, in one pass
         # (v_p v_p^T) K_pp + (v_q v_q^T) K_qq + (v_p v_q^T + v_q v_p^T) K_pq: each term symmetric bitwise.
-        np.multiply(vp * vpr, Kb[:, 0, 0], out=W[:, 1:])
-        W[:, 1:] += (vq * vqr) * Kb[:, 1, 1]
-        W[:, 1:] += (vp * vqr + vq * vpr) * Kb[:, 0, 1]
+        np.multiply(o[:, :, 0, 0], Kb[:, 0, 0], out=W[:, 1:])
+        W[:, 1:] += o[:, :, 1, 1] * Kb[:, 1, 1]
+        W[:, 1:] += (o[:, :, 0, 1] + o[:, :, 1, 0]) * Kb[:, 0, 1]
     return W
 
 

@@ -25,20 +25,21 @@ SCATTER_CHUNK = 2048
 
 def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Array, up: Array, s: Array, want_g: bool,
                   want_h: bool, psd: bool, compact: bool, threads: int = 1, deadline: float | None = None,
-                  balance: Array | None = None) -> tuple[Array, Array | None, Array | None, Array | None]:
+                  balance: Array | None = None,
+                  w: Array | None = None) -> tuple[Array, Array | None, Array | None, Array | None]:
     """Batch `b`'s energy (N,) at its frames `F` (N, 4, 3) and coordinate `x` (N,); the positions `active` (A,)
     of the joints outside their range (None when neither derivatives nor `compact` are asked); the asked-for
     gradient (R, 24) and Hessian (R, 24, 24), else None: R = A rows of the active joints if `compact`, else N
     (the inactive rows exact zeros, never differentiated).
 
     `v` (N, 4, 3) the body-local vectors (`balance` (N, 4): their `assembly.balance`, if already taken);
-    `lo`, `up` (N,) the bounds on `x`, `s` (N,) the strengths.
+    `lo`, `up` (N,) the bounds on `x` (`w` (N,): their `penalty.width`, if already taken), `s` (N,) the strengths.
     Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
     past `deadline` (a `time.monotonic()` value), checked before each derivative chunk, which run on `threads`.
     """
     # one gap for the energy, the active joints and their slopes (the side only for these)
     g, side = penalty.gap(x, lo, up) if want_g or want_h else (penalty.distance(x, lo, up), None)
-    energy, r, w, wide = penalty.energy_and_relative(g, x, lo, up, s)
+    energy, r, w, wide = penalty.energy_and_relative(g, x, lo, up, s, w)
     overflow = nonfinite_rows(energy)
     active = gradient = hessian = None
     if want_g or want_h or compact:

@@ -46,10 +46,11 @@ def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
     return energy_and_relative(distance(x, lower, upper), x, lower, upper, strength)[0]
 
 
-def energy_and_relative(g: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array, Array, bool]:
-    """`s (g / w)^3` of the gaps `g` (`distance`) of `x`, with the relative gap `g / w`, the width `w`, and whether
-    either overflowed somewhere (then `derivatives`, from halves, not `slopes`)."""
-    r, w, (wide, _) = _relative(g, x, lower, upper)
+def energy_and_relative(g: Array, x: Array, lower: Array, upper: Array, strength: Array,
+                        w: Array | None = None) -> tuple[Array, Array, Array, bool]:
+    """`s (g / w)^3` of the gaps `g` (`distance`) of `x`, with the relative gap `g / w`, the width `w` (`width`, if
+    already taken), and whether either overflowed somewhere (then `derivatives`, from halves, not `slopes`)."""
+    r, w, (wide, _) = _relative(g, x, lower, upper, w)
     return strength * (r * r * r), r, w, bool(wide.size)
 
 
@@ -63,9 +64,8 @@ def slopes(r: Array, w: Array, side: Array, strength: Array) -> tuple[Array, Arr
 
 def derivatives(x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array, Array]:
     """`(E, dE/dx, d2E/dx2)`, each (N,)."""
-    above, below = x > upper, x < lower
-    side = above.astype(np.float64) - below.astype(np.float64)
-    r, w, (wide, half_w) = _relative(_distance(x, lower, upper, above, below), x, lower, upper)
+    g, side = gap(x, lower, upper)
+    r, w, (wide, half_w) = _relative(g, x, lower, upper)
     sw = strength / w
     sww = sw / w
     if wide.size:  # w overflowed there: s / w = (s / 2) / (w / 2), s / w^2 = (s / w / 2) / (w / 2)
@@ -106,12 +106,18 @@ def scale_up(dE: Array, d2E: Array, x: Array, lower: Array, upper: Array, streng
     return shift
 
 
-def _relative(g: Array, x: Array, lower: Array, upper: Array) -> tuple[Array, Array, tuple[NDArray[np.intp], Array]]:
+def width(lower: Array, upper: Array) -> Array:
+    """`w` (N,): `upper - lower`, or 1 for a degenerate range (it does not depend on `x`: a prepared scene keeps it)."""
+    return np.where(upper > lower, upper - lower, 1.0)
+
+
+def _relative(g: Array, x: Array, lower: Array, upper: Array,
+              w: Array | None = None) -> tuple[Array, Array, tuple[NDArray[np.intp], Array]]:
     """`(g / w, w, (wide, w / 2 at wide))` of the gaps `g`: the relative gap, the width and the joints `wide`
     where `g` or `w` overflowed from finite inputs, there from halves (exact for such magnitudes: 1.5e308 against
     [-1e308, 1e308] is 0.25, not 5e307 / inf = 0). Every other joint keeps the plain quotient's bits.
     """
-    w = np.where(upper > lower, upper - lower, 1.0)
+    w = width(lower, upper) if w is None else w
     r = np.asarray(g / w)
     # The usual case: two reductions, no temporaries (g >= 0 and w > 0 are never NaN: only +inf can be there).
     wide = np.zeros(0, dtype=np.intp)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from jointlimits.service.core import assembled, assembly
+from jointlimits.service.core import assembled, assembly, penalty
 from jointlimits.service.core.constitution import Array, Constitution, Progress
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
 from jointlimits.service.core.evaluate import collapsed_faults, differentiate
@@ -79,6 +79,7 @@ class _Batch:
     index: NDArray[np.int64]  # (N,) 0 ... N - 1, read-only: every answer of the scene's batch shares it
     meets: bool = False  # world edges, points, telescoping: the anchors meet at q_ref, so x = theta(q) (`_to_q`)
     balance: Array | None = None  # (N, 4) `assembly.balance` of `v` (points, a prepared scene): not taken per Hessian
+    w: Array | None = None  # (N,) the penalty's widths of (lo, up) (`penalty.width`): not taken per evaluation
 
 
 class PreparedScene:
@@ -223,7 +224,7 @@ class PreparedScene:
             x = jb.theta + x
         raise_if((jb.faults + self._collapsed(b, jb, F, careful, known))[:MAX_FAULTS])
         energy, active, gradient, hessian = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd,
-                                                          compact or active_only, self._threads, deadline, jb.balance)
+                                                          compact or active_only, self._threads, deadline, jb.balance, jb.w)
         index, xs, es = (active, x[active], energy[active]) if active_only else (jb.index, x, energy)
         coordinate = _plus_offset(xs, jb.offset, active if active_only else None)
         return BatchResult(jb.c.facts.uid, index, xs, es, gradient, hessian, coordinate), energy, active
@@ -314,6 +315,7 @@ class PreparedScene:
         jb.lo[index] = after["lower"] - after["offset"]
         jb.up[index] = after["upper"] - after["offset"]
         jb.s[index] = after["strength"]
+        jb.w[index] = penalty.width(jb.lo[index], jb.up[index])
 
 
 def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtype: type = np.float64) -> PreparedScene:
@@ -452,13 +454,13 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
         theta = (joints.prev_coordinate - (0.0 if offset is None else offset)).astype(dtype, copy=False)
     lower, upper, strength = joints.lower, joints.upper, joints.strength
     # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
-    lo, up = (a if offset is None else a - offset for a in (lower, upper))
+    lo, up = ((a if offset is None else a - offset).astype(dtype, copy=False) for a in (lower, upper))
     index = np.arange(pairs.shape[1])
     index.flags.writeable = False
     return _Batch(c, pairs, v, F_ref, starts, fixed, rows, prev_careful, r.get(start), held, lower, upper, strength,
-                  offset, lo.astype(dtype, copy=False), up.astype(dtype, copy=False), strength.astype(dtype, copy=own),
-                  theta, absolute, x0, faults, progress, index, meets=points and c.facts.telescopes and joints.edges is not None,
-                  balance=assembly.balance(alpha, v) if own and points else None)
+                  offset, lo, up, strength.astype(dtype, copy=own), theta, absolute, x0, faults, progress, index,
+                  meets=points and c.facts.telescopes and joints.edges is not None,
+                  balance=assembly.balance(alpha, v) if own and points else None, w=penalty.width(lo, up))
 
 
 def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: list[Array], fixed: list[Array]) -> Progress:

@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
-from jointlimits.service.core.kinematics import BLOCK_BODY, SMALL, CarefulFrames, component_major, cross, dot
+from jointlimits.service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot
 from jointlimits.service.core.kinematics import to_local, unit
 from jointlimits.service.core.polar import squared_norms
 from jointlimits.service.core.registry import register
@@ -87,20 +87,14 @@ def _cos_sin(F: Array) -> tuple[Array, Array]:
 def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Array, Array]]:
     """DeltaTheta(F + dF, F) and (cos, sin) at F + dF, from (cos, sin) `cs` at F: `sin_a cos_b - cos_a sin_b` is
     `dsin cos_b - dcos sin_b`, the increments of the bilinear cos and sin taken term by term (no cancellation)."""
-    if F.shape[0] <= SMALL:  # a few joints: the eight dots in whole passes (the same products and sums, in order)
-        i2, di, j, dj = F[:, :2] + dF[:, :2], dF[:, :2], F[:, 2:], dF[:, 2:]  # [B, N] of body i after the step, ...
-        p = np.empty((F.shape[0], 4, 2, 3), dtype=np.result_type(F, dF))
-        for k, (a, b) in enumerate(((i2, dj), (di, j), (i2, dj[:, ::-1]), (di, j[:, ::-1]))):
-            np.multiply(a, b, out=p[:, k])
-        d = p[..., 0] + p[..., 1] + p[..., 2]  # (N, 4, 2): [B_i2.dB_j, N_i2.dN_j], [dB_i.B_j, dN_i.N_j], [B_i2.dN_j, N_i2.dB_j], ...
-        dc = 0.5 * (d[:, 0, 0] + d[:, 1, 0] + d[:, 0, 1] + d[:, 1, 1])
-        ds = 0.5 * (d[:, 2, 0] + d[:, 3, 0] - d[:, 2, 1] - d[:, 3, 1])
-    else:
-        B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-        dB_i, dN_i, dB_j, dN_j = dF[:, 0], dF[:, 1], dF[:, 2], dF[:, 3]
-        B_i2, N_i2 = B_i + dB_i, N_i + dN_i  # body i after the step
-        dc = 0.5 * (dot(B_i2, dB_j) + dot(dB_i, B_j) + dot(N_i2, dN_j) + dot(dN_i, N_j))
-        ds = 0.5 * (dot(B_i2, dN_j) + dot(dB_i, N_j) - dot(N_i2, dB_j) - dot(dN_i, B_j))
+    # The eight dots in whole passes, summed in order: dc = B_i2.dB_j + dB_i.B_j + N_i2.dN_j + dN_i.N_j, ds likewise.
+    i2, di, j, dj = F[:, :2] + dF[:, :2], dF[:, :2], F[:, 2:], dF[:, 2:]  # [B, N] of body i after the step, ...
+    p = component_major(F.shape[0], (4, 2, 3), np.result_type(F, dF))
+    for k, (a, b) in enumerate(((i2, dj), (di, j), (i2, dj[:, ::-1]), (di, j[:, ::-1]))):
+        np.multiply(a, b, out=p[:, k])
+    d = p[..., 0] + p[..., 1] + p[..., 2]  # (N, 4, 2): [B_i2.dB_j, N_i2.dN_j], [dB_i.B_j, dN_i.N_j], [B_i2.dN_j, ...], ...
+    dc = 0.5 * (d[:, 0, 0] + d[:, 1, 0] + d[:, 0, 1] + d[:, 1, 1])
+    ds = 0.5 * (d[:, 2, 0] + d[:, 3, 0] - d[:, 2, 1] - d[:, 3, 1])
     c, s = cs
     c2, s2 = c + dc, s + ds
     return np.arctan2(ds * c - dc * s, c2 * c + s2 * s), (c2, s2)
@@ -275,11 +269,8 @@ class Revolute:
         x_c, x_s = curvature.dx_coef[:, 0], curvature.dx_coef[:, 1]  # -s / r^2, c / r^2
         # The rows `scaled` names hold nothing meaningful here (their r^2 is not a normal number): overwritten below.
         r = 1.0 / np.hypot(x_c, x_s)
-        g_c = curvature.basis[:, 0]
-        rho2 = squared_norms(g_c.transpose(1, 2, 0).reshape(12, -1))  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
-        sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
         mu = np.abs(dE)
-        basis = _psd_vectors(sign, curvature.basis, x_c, x_s, r)
+        basis, rho2, sign = _psd_vectors(dE, curvature.basis, x_c, x_s, r)
         coef = np.zeros((dE.shape[0], 3, 3), dtype=dE.dtype)
         coef[:, 0, 0] = coef[:, 1, 1] = -mu / (2.0 * r * (rho2 + r))
         coef[:, 2, 2] = mu / (2.0 * r * r)
@@ -292,9 +283,11 @@ class Revolute:
         return Curvature(kron=kron, basis=basis, coef=coef, diagonal=True)
 
 
-def _psd_vectors(sign: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> Array:
-    """(h1, h3, d) (N, 3, 4, 3) of the PSD notes from g = (g_c, g_s) (N, 2, 4, 3) and `sign` = sigma (N,);
-    `x_c`, `x_s`, `r` (N,) give cos_t = x_s r and sin_t = -x_c r. Linear in g: any common scale of g carries over."""
+def _psd_vectors(dE: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> tuple[Array, Array, Array]:
+    """(h1, h3, d) (N, 3, 4, 3) of the PSD notes, rho^2 and sigma = sign(E') (N,), from g = (g_c, g_s) (N, 2, 4, 3)
+    and `dE`; `x_c`, `x_s`, `r` (N,) give cos_t = x_s r and sin_t = -x_c r. Linear in g (rho^2 quadratic)."""
+    rho2 = squared_norms(g[:, 0].transpose(1, 2, 0).reshape(12, -1))  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
+    sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
     cos_t, sin_t = (x_s * r)[:, None, None, None], (-x_c * r)[:, None, None, None]  # w = r e^{i theta}
     cg, sg = cos_t * g, sin_t * g[:, ::-1]  # (cos_t g_c, cos_t g_s), (sin_t g_s, sin_t g_c)
     sa = sign[:, None, None] * (cg[:, 1] - sg[:, 1])  # sigma r grad(x)
@@ -310,7 +303,7 @@ def _psd_vectors(sign: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> Arr
     basis[:, 2] = ud[:, 1]  # d
     ud += Jud
     np.multiply(0.5, ud, out=basis[:, :2])  # h1 = P_sigma u, h3 = P_-sigma d
-    return basis
+    return basis, rho2, sign
 
 
 def _rescaled_projection(dE: Array, scaled: _RescaledCurvature) -> tuple[Array, Array, Array]:
@@ -333,11 +326,8 @@ def _rescaled_projection(dE: Array, scaled: _RescaledCurvature) -> tuple[Array, 
     spread = e[:, 0] + e[:, 1] - 2 * top  # <= 0
     shift = (e[:, ::-1] - top[:, None])[:, BLOCK_BODY]  # (M, 4): block k of g times 2^(e_other - m)
     g = np.ldexp(cv.basis, shift[:, None, :, None])
-    g_c = g[:, 0]
-    rho2 = squared_norms(g_c.transpose(1, 2, 0).reshape(12, -1))
-    sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
     mant, p = np.frexp(np.abs(dE))  # |E'| = mant 2^p, mant in [1/2, 1) (or 0, inf, NaN as |E'|)
-    basis = _psd_vectors(sign, g, x_c, x_s, r)
+    basis, rho2, sign = _psd_vectors(dE, g, x_c, x_s, r)
     # P(F) = P(F / 2^m) / 4^m: each coefficient at F / 2^m (r there is r_s 2^spread), times 4^-m.
     ij = p - (e[:, 0] + e[:, 1])  # 2^(-spread - 2m) = 2^-(e_i + e_j)
     coef = np.zeros((dE.shape[0], 3, 3), dtype=dE.dtype)

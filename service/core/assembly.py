@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature
-from jointlimits.service.core.kinematics import SMALL, component_major
+from jointlimits.service.core.kinematics import SMALL, component_major, finfo
 
 BLOCK = 1024
 """Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just written stay
@@ -161,10 +161,9 @@ def _hessian_directions(
     same = bool(kron[:, :2, :2].any() or kron[:, 2:, 2:].any())  # only after a PSD projection
     dK = dE[:, None, None] * kron  # E' K
     at, src = _KRON_SCATTER[same]
-    Jdx = np.empty((n, 2, 12), dtype=dtype)
-    Jdx[..., :3] = 0.0  # the translations: no points
+    Jdx = np.zeros((n, 2, 12), dtype=dtype)  # the translations stay 0: no points
     # |LR| <= k finite_factor^2 <= max / 4 and |W| < max / 4: no sum overflows (NaN fails both tests).
-    big = float(np.finfo(dtype).max) / 4
+    big = float(finfo(dtype).max) / 4
     finite = k <= MAX_FACTORS
     for q in blocks:
         Y = chain_directions(v[q], basis[q])  # (M, k, 18), component-major

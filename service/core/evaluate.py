@@ -76,9 +76,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             rows, contiguous = part, True  # compact or every joint active: the chunk's own rows, in place
             if not (compact or every):  # in place too where a stretch of joints is active
                 rows, contiguous = slice(sel[0], sel[-1] + 1), sel[-1] - sel[0] + 1 == sel.shape[0]
-            h_out = None
-            if want_h:
-                h_out = hessian[rows] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
+            h_out = (hessian[rows] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)) if want_h else None
             g_out = gradient[rows] if want_g and contiguous else np.empty((sel.shape[0], 24), dtype)
             at = (lambda a: a[part]) if every else (lambda a: take_joints(a, sel))  # noqa: E731
             bc = None if balance is None else at(balance)
@@ -94,10 +92,9 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             bad = nonfinite_rows(g_out) if want_g else []
             if want_h and not h_finite:
                 bad += nonfinite_rows(h_out)
-            if want_g and not contiguous:
-                gradient[sel] = g_out
-            if want_h and not contiguous:
-                hessian[sel] = h_out
+            for whole, out in ((gradient, g_out), (hessian, h_out)):
+                if whole is not None and not contiguous:  # the scratch rows into place
+                    whole[sel] = out
             return [int(sel[i]) for i in bad]
 
         for bad in run_all([partial(chunk, start) for start in range(0, a, size)], threads):

@@ -190,6 +190,9 @@ def _norm(norms: dict[tuple[str, int], Array], key: tuple[str, int], a: Array) -
     return norms[key]
 
 
+finfo = cache(np.finfo)  # `np.finfo` itself costs microseconds per call, a few times per evaluation
+
+
 @cache  # per call it was a `finfo` lookup at every use
 def plain_range(dtype: type) -> tuple[float, float]:
     """`|A|` (Frobenius) in every state inside this range keeps every product the coordinates and their collapse

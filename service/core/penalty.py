@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from jointlimits.service.core.kinematics import finfo
+
 Array = NDArray[np.float64]
 
 
@@ -83,7 +85,7 @@ def scale_up(dE: Array, d2E: Array, x: Array, lower: Array, upper: Array, streng
     1e-600; with a frame of 1e150 the term is ~1e-300). So 2^k E', 2^k E'' are formed from the exponents of s,
     g and w (k the least that lifts the smaller), and the caller scales the derivatives back by 2^-k.
     """
-    target = np.finfo(dE.dtype).minexp + 22
+    target = finfo(dE.dtype).minexp + 22
     rows = ((np.abs(dE) < 2.0**target) | (d2E < 2.0**target)).nonzero()[0]
     if rows.shape[0] == 0:
         return None

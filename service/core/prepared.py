@@ -108,11 +108,8 @@ class PreparedScene:
         """
         q = np.asarray(q, dtype=np.float64)
         outputs = tuple(outputs)
-        log = FaultLog()
-        log.add(check_options(outputs, hessian_mode))
-        log.add(assembled.check_layout(layout))
-        log.add(check_dofs("q", q, self.n_bodies))
-        log.raise_if_any()
+        FaultLog(check_options(outputs, hessian_mode), assembled.check_layout(layout),
+                 check_dofs("q", q, self.n_bodies)).raise_if_any()
         with np.errstate(all="ignore"):
             return self._evaluate(q, outputs, hessian_mode, active_only, deadline, layout)
 
@@ -350,11 +347,7 @@ def evaluate(bodies: Bodies, batches: Sequence[Joints], outputs: Iterable[str] =
     """
     outputs = tuple(outputs)
     bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
-    log = FaultLog()
-    log.add(check_options(outputs, hessian_mode))
-    log.add(assembled.check_layout(layout))
-    log.add(check_bodies(bodies))
-    log.raise_if_any()
+    FaultLog(check_options(outputs, hessian_mode), assembled.check_layout(layout), check_bodies(bodies)).raise_if_any()
     with np.errstate(all="ignore"):
         scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
         return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, deadline, layout)
@@ -389,21 +382,16 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
         if ids.dtype.kind in "iu" and ids.shape[0]:
             # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
             used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
-    log = FaultLog()
-    # A singular A_ref is named by check_rotations, hostile numbers by the checks after.
+    # A singular A_ref is named by check_rotations, hostile numbers by the checks after (in batch order).
     table = BodyTable(bodies, dtype, rows=rows, used=used)
-    log.add(check_rotations(table.ratio))
-    for faults, _ in checks:  # in batch order (the log keeps the first)
-        log.add(faults)
-    log.raise_if_any()
+    FaultLog(check_rotations(table.ratio), *(faults for faults, _ in checks)).raise_if_any()
     # (2, N) pairs: contiguous indices gather 30% faster; the edge vectors as the checks took them (float64)
     prepared = [_prepare_batch(b, j, table, own, np.ascontiguousarray(j.body_ids.T), d if dtype == np.float64 else None)
                 for b, (j, (_, d)) in enumerate(zip(batches, checks))]
     if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
+        FaultLog(*(jb.faults for jb in prepared)).raise_if_any()
         for jb in prepared:
-            log.add(jb.faults)
             jb.faults = []
-        log.raise_if_any()
     return PreparedScene(table, prepared, threads)
 
 

@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
-from jointlimits.service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot
+from jointlimits.service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot, finfo
 from jointlimits.service.core.kinematics import to_local, unit
 from jointlimits.service.core.polar import squared_norms
 from jointlimits.service.core.registry import register
@@ -138,7 +138,7 @@ _STEADY_EXPONENTS = 60
 def _unsafe(F: Array, cs: tuple[Array, Array]) -> NDArray[np.bool_]:
     """(N,) True where hypot(cos, sin) (`cs` at `F`) leaves `2^+-240` (`2^+-16` in float32), beyond which
     `r^4` or a product in `_polar_derivatives` would not be a normal number."""
-    e = np.finfo(F.dtype).maxexp // 4 - 16
+    e = finfo(F.dtype).maxexp // 4 - 16
     r = np.hypot(*cs)
     return ~((r >= 2.0**-e) & (r <= 2.0**e))
 
@@ -154,8 +154,7 @@ class _RescaledCurvature(Curvature):
 
 
 _EYE4 = np.eye(4)
-_J_SIGNS, _J_PAIR = np.array([1.0, -1.0, -1.0, 1.0])[:, None], np.array([2, 3, 0, 1])
-_SIGMAS = np.array([1.0, -1.0])[:, None, None]  # h1 from u takes +sigma J u, h3 from d takes -sigma J d
+_SIGMAS = np.array([[1.0], [-1.0]])  # h1 from u takes +sigma J u, h3 from d takes -sigma J d
 _G_BLOCKS = np.array([2, 3, 0, 1, 3, 2, 1, 0])
 _G_HALVES = np.array([0.5, 0.5, 0.5, 0.5, 0.5, -0.5, -0.5, 0.5])[:, None]
 """d cos/dF (blocks 0-3) and d sin/dF (4-7): each the block `_G_BLOCKS` of F times `_G_HALVES`."""
@@ -265,7 +264,6 @@ class Revolute:
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
         """The PSD part of `dE d2x/dF2` in closed form (the PSD notes above), for every frame with r > 0 (collapsed
         ones are refused): kron (N, 4, 4), basis (N, 3, 4, 3) = (h1, h3, d), coef (N, 3, 3) diagonal."""
-        rescaled = isinstance(curvature, _RescaledCurvature)
         x_c, x_s = curvature.dx_coef[:, 0], curvature.dx_coef[:, 1]  # -s / r^2, c / r^2
         # The rows `scaled` names hold nothing meaningful here (their r^2 is not a normal number): overwritten below.
         r = 1.0 / np.hypot(x_c, x_s)
@@ -277,7 +275,7 @@ class Revolute:
         # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
         kron = (0.5 * dE)[:, None, None] * curvature.kron
         kron += (mu / (4.0 * r))[:, None, None] * _EYE4.astype(dE.dtype, copy=False)
-        if rescaled:
+        if isinstance(curvature, _RescaledCurvature):
             rows = curvature.rows
             kron[rows], basis[rows], coef[rows] = _rescaled_projection(dE[rows], curvature)
         return Curvature(kron=kron, basis=basis, coef=coef, diagonal=True)
@@ -288,17 +286,20 @@ def _psd_vectors(dE: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> tuple
     and `dE`; `x_c`, `x_s`, `r` (N,) give cos_t = x_s r and sin_t = -x_c r. Linear in g (rho^2 quadratic)."""
     rho2 = squared_norms(g[:, 0].transpose(1, 2, 0).reshape(12, -1))  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
     sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
-    cos_t, sin_t = (x_s * r)[:, None, None, None], (-x_c * r)[:, None, None, None]  # w = r e^{i theta}
-    cg, sg = cos_t * g, sin_t * g[:, ::-1]  # (cos_t g_c, cos_t g_s), (sin_t g_s, sin_t g_c)
-    sa = sign[:, None, None] * (cg[:, 1] - sg[:, 1])  # sigma r grad(x)
-    b = cg[:, 0] + sg[:, 0]  # r grad(log r)
+    c, s = (x_s * r)[:, None, None], (-x_c * r)[:, None, None]  # cos_t, sin_t: w = r e^{i theta}
+    b = c * g[:, 0] + s * g[:, 1]  # r grad(log r)
+    sa = sign[:, None, None] * (c * g[:, 1] - s * g[:, 0])  # sigma r grad(x)
     n, dtype = g.shape[0], g.dtype
     ud = component_major(n, (2, 4, 3), dtype)  # u, d = b +- sigma a
     np.add(b, sa, out=ud[:, 0])
     np.subtract(b, sa, out=ud[:, 1])
-    # J = (K / lambda0) (x) I_3 (an involution) on u and d at once: block k of J v is +-cos_t v_(3-k) - sin_t v_(k^2).
-    Jud = (_J_SIGNS.astype(dtype, copy=False) * cos_t) * ud[:, :, ::-1] - sin_t * ud[:, :, _J_PAIR]
-    Jud *= _SIGMAS.astype(dtype, copy=False) * sign[:, None, None, None]  # sigma J u, -sigma J d
+    # J = (K / lambda0) (x) I_3 (an involution, eigenvalues +-1) on u and d at once, block by block.
+    Jud = np.empty_like(ud)
+    Jud[:, :, 0] = c * ud[:, :, 3] - s * ud[:, :, 2]
+    Jud[:, :, 1] = -c * ud[:, :, 2] - s * ud[:, :, 3]
+    Jud[:, :, 2] = -c * ud[:, :, 1] - s * ud[:, :, 0]
+    Jud[:, :, 3] = c * ud[:, :, 0] - s * ud[:, :, 1]
+    Jud *= (_SIGMAS.astype(dtype, copy=False) * sign).T[:, :, None, None]  # sigma J u, -sigma J d (joints-major)
     basis = component_major(n, (3, 4, 3), dtype)
     basis[:, 2] = ud[:, 1]  # d
     ud += Jud

@@ -155,8 +155,7 @@ def _hessian_directions(
     of the k low-rank factors (12 more factors of 24 entries each cost the GEMM more). Bitwise
     symmetric: the GEMM as in `hessian`, `W_ji` is `W_ij` transposed, each `W_bb` symmetric.
     """
-    n, dtype = v.shape[0], v.dtype
-    k = mix.lam.shape[1]
+    n, dtype, k = v.shape[0], v.dtype, mix.lam.shape[1]
     sign = np.sign(mix.lam)
     same = bool(kron[:, :2, :2].any() or kron[:, 2:, 2:].any())  # only after a PSD projection
     dK = dE[:, None, None] * kron  # E' K

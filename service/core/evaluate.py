@@ -99,12 +99,11 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
 
         for bad in run_all([partial(chunk, start) for start in range(0, a, size)], threads):
             overflow += bad
-    if overflow:
-        raise_if([
-            Fault(("batches", b, "strength", j),
-                  "the energy or its derivatives overflow float64 at this configuration and strength")
-            for j in sorted(set(overflow))[:MAX_FAULTS]
-        ])
+    raise_if([
+        Fault(("batches", b, "strength", j),
+              "the energy or its derivatives overflow float64 at this configuration and strength")
+        for j in sorted(set(overflow))[:MAX_FAULTS]
+    ])
     return energy, active, gradient, hessian
 
 

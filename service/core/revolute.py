@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
-from jointlimits.service.core.kinematics import BLOCK_BODY, CarefulFrames, component_major, cross, dot, finfo
+from jointlimits.service.core.kinematics import BLOCK_BODY, SMALL, CarefulFrames, component_major, cross, dot, finfo
 from jointlimits.service.core.kinematics import to_local, unit
 from jointlimits.service.core.polar import squared_norms
 from jointlimits.service.core.registry import register
@@ -77,7 +77,10 @@ angle is as exact as its conditioning allows (up to ~1e-3 rad at the threshold; 
 
 
 def _cos_sin(F: Array) -> tuple[Array, Array]:
-    p = component_major(F.shape[0], (2, 2, 3), F.dtype)  # the four dots' products in two passes
+    if F.shape[0] > SMALL:  # dot by dot, each pass along the joints
+        B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
+        return 0.5 * (dot(B_i, B_j) + dot(N_i, N_j)), 0.5 * (dot(B_i, N_j) - dot(N_i, B_j))
+    p = component_major(F.shape[0], (2, 2, 3), F.dtype)  # a few joints: the four dots' products in two passes
     np.multiply(F[:, :2], F[:, 2:], out=p[:, 0])  # B_i B_j, N_i N_j
     np.multiply(F[:, :2], F[:, 3:1:-1], out=p[:, 1])  # B_i N_j, N_i B_j
     d = p[..., 0] + p[..., 1] + p[..., 2]
@@ -87,14 +90,19 @@ def _cos_sin(F: Array) -> tuple[Array, Array]:
 def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Array, Array]]:
     """DeltaTheta(F + dF, F) and (cos, sin) at F + dF, from (cos, sin) `cs` at F: `sin_a cos_b - cos_a sin_b` is
     `dsin cos_b - dcos sin_b`, the increments of the bilinear cos and sin taken term by term (no cancellation)."""
-    # The eight dots in whole passes, summed in order: dc = B_i2.dB_j + dB_i.B_j + N_i2.dN_j + dN_i.N_j, ds likewise.
-    i2, di, j, dj = F[:, :2] + dF[:, :2], dF[:, :2], F[:, 2:], dF[:, 2:]  # [B, N] of body i after the step, ...
-    p = component_major(F.shape[0], (4, 2, 3), np.result_type(F, dF))
-    for k, (a, b) in enumerate(((i2, dj), (di, j), (i2, dj[:, ::-1]), (di, j[:, ::-1]))):
-        np.multiply(a, b, out=p[:, k])
-    d = p[..., 0] + p[..., 1] + p[..., 2]  # (N, 4, 2): [B_i2.dB_j, N_i2.dN_j], [dB_i.B_j, dN_i.N_j], [B_i2.dN_j, ...], ...
-    dc = 0.5 * (d[:, 0, 0] + d[:, 1, 0] + d[:, 0, 1] + d[:, 1, 1])
-    ds = 0.5 * (d[:, 2, 0] + d[:, 3, 0] - d[:, 2, 1] - d[:, 3, 1])
+    if F.shape[0] <= SMALL:  # a few joints: the eight dots in whole passes (the same products and sums, in order)
+        i2, di, j, dj = F[:, :2] + dF[:, :2], dF[:, :2], F[:, 2:], dF[:, 2:]  # [B, N] of body i after the step, ...
+        p = np.empty((F.shape[0], 4, 2, 3), dtype=np.result_type(F, dF))
+        for k, (a, b) in enumerate(((i2, dj), (di, j), (i2, dj[:, ::-1]), (di, j[:, ::-1]))):
+            np.multiply(a, b, out=p[:, k])
+        d = p[..., 0] + p[..., 1] + p[..., 2]  # (N, 4, 2): [B_i2.dB_j, N_i2.dN_j], [dB_i.B_j, dN_i.N_j], [B_i2.dN_j, ...], ...
+        dc = 0.5 * (d[:, 0, 0] + d[:, 1, 0] + d[:, 0, 1] + d[:, 1, 1])
+        ds = 0.5 * (d[:, 2, 0] + d[:, 3, 0] - d[:, 2, 1] - d[:, 3, 1])
+    else:
+        (B_i, N_i, B_j, N_j), (dB_i, dN_i, dB_j, dN_j) = F.transpose(1, 0, 2), dF.transpose(1, 0, 2)
+        B_i2, N_i2 = B_i + dB_i, N_i + dN_i  # body i after the step
+        dc = 0.5 * (dot(B_i2, dB_j) + dot(dB_i, B_j) + dot(N_i2, dN_j) + dot(dN_i, N_j))
+        ds = 0.5 * (dot(B_i2, dN_j) + dot(dB_i, N_j) - dot(N_i2, dB_j) - dot(dN_i, B_j))
     c, s = cs
     c2, s2 = c + dc, s + ds
     return np.arctan2(ds * c - dc * s, c2 * c + s2 * s), (c2, s2)

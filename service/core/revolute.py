@@ -92,7 +92,7 @@ def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Ar
     `dsin cos_b - dcos sin_b`, the increments of the bilinear cos and sin taken term by term (no cancellation)."""
     if F.shape[0] <= SMALL:  # a few joints: the eight dots in whole passes (the same products and sums, in order)
         i2, di, j, dj = F[:, :2] + dF[:, :2], dF[:, :2], F[:, 2:], dF[:, 2:]  # [B, N] of body i after the step, ...
-        p = np.empty((F.shape[0], 4, 2, 3), dtype=np.result_type(F, dF))
+        p = component_major(F.shape[0], (4, 2, 3), np.result_type(F, dF))  # F's layout: no strided copies
         for k, (a, b) in enumerate(((i2, dj), (di, j), (i2, dj[:, ::-1]), (di, j[:, ::-1]))):
             np.multiply(a, b, out=p[:, k])
         d = p[..., 0] + p[..., 1] + p[..., 2]  # (N, 4, 2): [B_i2.dB_j, N_i2.dN_j], [dB_i.B_j, dN_i.N_j], [B_i2.dN_j, ...], ...

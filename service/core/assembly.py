@@ -113,10 +113,13 @@ def _hessian_points(alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: 
         t = component_major(M, (m, 2, 4), dtype)
         np.multiply(fs[q][:, :, :, 0], wv[q][:, None, :, 0], out=t)
         t += fs[q][:, :, :, 1] * wv[q][:, None, :, 1]
+        t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
         X = np.zeros((M, k + 3 * m, 2, 12), dtype=dtype)
         X[:, :k] = Xl.reshape(M, k, 2, 12)
-        # (joint, e, row r, body, DOF): row r takes t's [alpha, v] at DOFs p_r, A[r, 0..2], all in one placement
-        X[:, k:].reshape(M, m, 3, 2, 12)[:, :, _ROW_R, :, _ROW_DOFS] = t.transpose(3, 0, 1, 2)
+        Xk = X[:, k:].reshape(M, m, 3, 2, 12)  # (joint, e, row r, body, DOF)
+        for r in range(3):
+            Xk[:, :, r, :, 3 + 3 * r : 6 + 3 * r] = t[..., 1:]
+            Xk[:, :, r, :, r] = t[..., 0]
         X = X.reshape(M, k + 3 * m, 24)
         # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
         # in the same order: the product is bitwise symmetric without a symmetrising pass.
@@ -124,10 +127,6 @@ def _hessian_points(alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: 
         # X holds the values of Xl and t, and zeros (NaN fails the test).
         finite = finite and bool(max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0)) < finite_factor(dtype))
     return Jdx, finite
-
-
-_ROW_R = np.repeat(np.arange(3), 4).reshape(3, 4)
-_ROW_DOFS = np.array([[0, 3, 4, 5], [1, 6, 7, 8], [2, 9, 10, 11]])  # a body's DOFs p_r, A[r, 0], A[r, 1], A[r, 2]
 
 
 def balance(alpha: Array, v: Array) -> Array:

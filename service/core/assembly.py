@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature
-from jointlimits.service.core.kinematics import SMALL, component_major
+from jointlimits.service.core.kinematics import SMALL, component_major, finfo
 
 BLOCK = 1024
 """Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just written stay
@@ -42,11 +42,11 @@ def chain(alpha: Array, v: Array, dF: Array) -> Array:
     n, e = dF.shape[:2]
     out = component_major(n, (e, 2, 12), dF.dtype)
     chain_directions(v, dF, out=out[..., 3:].reshape(n, e, 2, 3, 3))  # a view: written in place
-    a = alpha.reshape(2, 2)
+    a = alpha.reshape(2, 2, 1)  # (body, frame, 1)
     db = dF.reshape(n, e, 2, 2, 3)  # (joint, e, body, frame, r)
-    for b in range(2):  # the positions see the points' rows: sum over the body's frames of alpha_k dF_k
-        np.multiply(db[:, :, b, 0], a[b, 0], out=out[:, :, b, :3])
-        out[:, :, b, :3] += db[:, :, b, 1] * a[b, 1]
+    # the positions see the points' rows: sum over the body's frames of alpha_k dF_k
+    np.multiply(db[:, :, :, 0], a[:, 0], out=out[..., :3])
+    out[..., :3] += db[:, :, :, 1] * a[:, 1]
     return out.reshape(n, e, 24)
 
 
@@ -154,16 +154,14 @@ def _hessian_directions(
     of the k low-rank factors (12 more factors of 24 entries each cost the GEMM more). Bitwise
     symmetric: the GEMM as in `hessian`, `W_ji` is `W_ij` transposed, each `W_bb` symmetric.
     """
-    n, dtype = v.shape[0], v.dtype
-    k = mix.lam.shape[1]
+    n, dtype, k = v.shape[0], v.dtype, mix.lam.shape[1]
     sign = np.sign(mix.lam)
     same = bool(kron[:, :2, :2].any() or kron[:, 2:, 2:].any())  # only after a PSD projection
     dK = dE[:, None, None] * kron  # E' K
     at, src = _KRON_SCATTER[same]
-    Jdx = np.empty((n, 2, 12), dtype=dtype)
-    Jdx[..., :3] = 0.0  # the translations: no points
+    Jdx = np.zeros((n, 2, 12), dtype=dtype)  # the translations stay 0: no points
     # |LR| <= k finite_factor^2 <= max / 4 and |W| < max / 4: no sum overflows (NaN fails both tests).
-    big = float(np.finfo(dtype).max) / 4
+    big = float(finfo(dtype).max) / 4
     finite = k <= MAX_FACTORS
     for q in blocks:
         Y = chain_directions(v[q], basis[q])  # (M, k, 18), component-major
@@ -233,12 +231,13 @@ def _kron_blocks(v: Array, dK: Array, same: bool) -> Array:
     np.multiply(u[:, 0, :, None], v[:, 2, None, :], out=W[:, 0])
     W[:, 0] += u[:, 1, :, None] * v[:, 3, None, :]
     if same:  # both bodies at once: p = 2b, q = 2b + 1
-        Kb = np.diagonal(dK.reshape(n, 2, 2, 2, 2), axis1=1, axis2=3)[..., None, None]  # [:, i, j, b] = K_(2b+i)(2b+j)
-        vp, vq, vpr, vqr = v[:, 0::2, :, None], v[:, 1::2, :, None], v[:, 0::2, None, :], v[:, 1::2, None, :]
+        Kb = dK.reshape(n, 2, 2, 2, 2).diagonal(axis1=1, axis2=3)[..., None, None]  # [:, i, j, b] = K_(2b+i)(2b+j)
+        vb = v.reshape(n, 2, 2, 3)
+        o = vb[:, :, :, None, :, None] * vb[:, :, None, :, None, :]  # [:, b, i, j] = v_(2b+i) v_(2b+j)^T, in one pass
         # (v_p v_p^T) K_pp + (v_q v_q^T) K_qq + (v_p v_q^T + v_q v_p^T) K_pq: each term symmetric bitwise.
-        np.multiply(vp * vpr, Kb[:, 0, 0], out=W[:, 1:])
-        W[:, 1:] += (vq * vqr) * Kb[:, 1, 1]
-        W[:, 1:] += (vp * vqr + vq * vpr) * Kb[:, 0, 1]
+        np.multiply(o[:, :, 0, 0], Kb[:, 0, 0], out=W[:, 1:])
+        W[:, 1:] += o[:, :, 1, 1] * Kb[:, 1, 1]
+        W[:, 1:] += (o[:, :, 0, 1] + o[:, :, 1, 0]) * Kb[:, 0, 1]
     return W
 
 
@@ -266,7 +265,7 @@ class _Mix:
         if t is None:
             if curvature.diagonal:
                 lam = np.empty((n, k), dtype=dE.dtype)
-                lam[:, :k0] = dE[:, None] * np.diagonal(C, axis1=1, axis2=2)
+                lam[:, :k0] = dE[:, None] * C.diagonal(axis1=1, axis2=2)
                 lam[:, k0] = d2E
                 return cls(lam, k0, scale=np.sqrt(np.abs(lam)))
             S = np.zeros((n, k, k), dtype=dE.dtype)

@@ -33,8 +33,10 @@ class InputError(ValueError):
 class FaultLog:
     """The faults of one request, at most `MAX_FAULTS` in all (across batches and checks)."""
 
-    def __init__(self) -> None:
+    def __init__(self, *faults: list[Fault]) -> None:
         self.faults: list[Fault] = []
+        for f in faults:  # each check's, in order
+            self.add(f)
 
     def add(self, faults: list[Fault]) -> None:
         self.faults += faults[: MAX_FAULTS - len(self.faults)]

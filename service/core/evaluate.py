@@ -25,19 +25,21 @@ SCATTER_CHUNK = 2048
 
 def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Array, up: Array, s: Array, want_g: bool,
                   want_h: bool, psd: bool, compact: bool, threads: int = 1, deadline: float | None = None,
-                  balance: Array | None = None) -> tuple[Array, Array | None, Array | None, Array | None]:
+                  balance: Array | None = None,
+                  w: Array | None = None) -> tuple[Array, Array | None, Array | None, Array | None]:
     """Batch `b`'s energy (N,) at its frames `F` (N, 4, 3) and coordinate `x` (N,); the positions `active` (A,)
     of the joints outside their range (None when neither derivatives nor `compact` are asked); the asked-for
     gradient (R, 24) and Hessian (R, 24, 24), else None: R = A rows of the active joints if `compact`, else N
     (the inactive rows exact zeros, never differentiated).
 
     `v` (N, 4, 3) the body-local vectors (`balance` (N, 4): their `assembly.balance`, if already taken);
-    `lo`, `up` (N,) the bounds on `x`, `s` (N,) the strengths.
+    `lo`, `up` (N,) the bounds on `x` (`w` (N,): their `penalty.width`, if already taken), `s` (N,) the strengths.
     Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
     past `deadline` (a `time.monotonic()` value), checked before each derivative chunk, which run on `threads`.
     """
-    g = penalty.distance(x, lo, up)  # one gap for the energy, the active joints and their slopes
-    energy, r, w, wide = penalty.energy_and_relative(g, x, lo, up, s)
+    # one gap for the energy, the active joints and their slopes (the side only for these)
+    g, side = penalty.gap(x, lo, up) if want_g or want_h else (penalty.distance(x, lo, up), None)
+    energy, r, w, wide = penalty.energy_and_relative(g, x, lo, up, s, w)
     overflow = nonfinite_rows(energy)
     active = gradient = hessian = None
     if want_g or want_h or compact:
@@ -52,11 +54,13 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
         hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
         every = a == x.shape[0]  # every joint active: no gathers, every chunk's rows in place
         # Per-joint scalars for every active joint at once: per chunk they would be a dozen short calls each.
-        at_active = (x, lo, up, s, r, w) if every else tuple(take_joints(q, active) for q in (x, lo, up, s, r, w))
+        at_active = (x, lo, up, s, r, w, side)
+        if not every:
+            at_active = tuple(take_joints(q, active) for q in at_active)
         if wide:  # a gap or width overflowed: from halves
             _, dE, d2E = penalty.derivatives(*at_active[:4])
         else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
-            dE, d2E = penalty.slopes(*at_active[4:], *at_active[:4])
+            dE, d2E = penalty.slopes(*at_active[4:], at_active[3])
         shift = penalty.scale_up(dE, d2E, *at_active[:4])
         # Rows written in place when every row is differentiated; else a chunk's go through scratch rows
         # first, kept to a few MB. On threads, at least two chunks per thread (a batch alone keeps them busy).
@@ -72,9 +76,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             rows, contiguous = part, True  # compact or every joint active: the chunk's own rows, in place
             if not (compact or every):  # in place too where a stretch of joints is active
                 rows, contiguous = slice(sel[0], sel[-1] + 1), sel[-1] - sel[0] + 1 == sel.shape[0]
-            h_out = None
-            if want_h:
-                h_out = hessian[rows] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)
+            h_out = (hessian[rows] if contiguous else np.empty((sel.shape[0], 24, 24), dtype)) if want_h else None
             g_out = gradient[rows] if want_g and contiguous else np.empty((sel.shape[0], 24), dtype)
             at = (lambda a: a[part]) if every else (lambda a: take_joints(a, sel))  # noqa: E731
             bc = None if balance is None else at(balance)
@@ -90,20 +92,18 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             bad = nonfinite_rows(g_out) if want_g else []
             if want_h and not h_finite:
                 bad += nonfinite_rows(h_out)
-            if want_g and not contiguous:
-                gradient[sel] = g_out
-            if want_h and not contiguous:
-                hessian[sel] = h_out
+            for whole, out in ((gradient, g_out), (hessian, h_out)):
+                if whole is not None and not contiguous:  # the scratch rows into place
+                    whole[sel] = out
             return [int(sel[i]) for i in bad]
 
         for bad in run_all([partial(chunk, start) for start in range(0, a, size)], threads):
             overflow += bad
-    if overflow:
-        raise_if([
-            Fault(("batches", b, "strength", j),
-                  "the energy or its derivatives overflow float64 at this configuration and strength")
-            for j in sorted(set(overflow))[:MAX_FAULTS]
-        ])
+    raise_if([
+        Fault(("batches", b, "strength", j),
+              "the energy or its derivatives overflow float64 at this configuration and strength")
+        for j in sorted(set(overflow))[:MAX_FAULTS]
+    ])
     return energy, active, gradient, hessian
 
 

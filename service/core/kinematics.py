@@ -190,6 +190,9 @@ def _norm(norms: dict[tuple[str, int], Array], key: tuple[str, int], a: Array) -
     return norms[key]
 
 
+finfo = cache(np.finfo)  # `np.finfo` itself costs microseconds per call, a few times per evaluation
+
+
 @cache  # per call it was a `finfo` lookup at every use
 def plain_range(dtype: type) -> tuple[float, float]:
     """`|A|` (Frobenius) in every state inside this range keeps every product the coordinates and their collapse
@@ -301,10 +304,9 @@ def frame_quantities(r: Array | None, A: Array, alpha: Array, v: Array) -> Array
     n = A.shape[0]
     F = component_major(n, (4, 3), A.dtype)
     if n <= SMALL:  # a few joints: three passes over all 12 quantities, per body's two (the same sums, in order)
-        Fb, a, w = F.reshape(n, 2, 2, 3), A[:, :, None], v.reshape(n, 2, 2, 1, 3)
-        np.multiply(a[..., 0], w[..., 0], out=Fb)
-        Fb += a[..., 1] * w[..., 1]
-        Fb += a[..., 2] * w[..., 2]
+        Fb, p = F.reshape(n, 2, 2, 3), A[:, :, None] * v.reshape(n, 2, 2, 1, 3)  # every product in one pass
+        np.add(p[..., 0], p[..., 1], out=Fb)
+        Fb += p[..., 2]
         return F if r is None else add_positions(F, r, alpha)
     tmp = np.empty(n, dtype=A.dtype)
     for k in range(4):
@@ -333,8 +335,9 @@ def relative_position(p: Array) -> Array:
 
 
 def dot(a: Array, b: Array) -> Array:
-    """Row-wise dot (N,) of (N, 3) arrays, column by column."""
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+    """Row-wise dot (N,) of (N, 3) arrays: the products in one pass, summed column by column."""
+    p = a * b
+    return p[:, 0] + p[:, 1] + p[:, 2]
 
 
 def cross(a: Array, b: Array) -> Array:

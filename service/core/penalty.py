@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from jointlimits.service.core.kinematics import finfo
+
 Array = NDArray[np.float64]
 
 
@@ -46,17 +48,17 @@ def energy(x: Array, lower: Array, upper: Array, strength: Array) -> Array:
     return energy_and_relative(distance(x, lower, upper), x, lower, upper, strength)[0]
 
 
-def energy_and_relative(g: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array, Array, bool]:
-    """`s (g / w)^3` of the gaps `g` (`distance`) of `x`, with the relative gap `g / w`, the width `w`, and whether
-    either overflowed somewhere (then `derivatives`, from halves, not `slopes`)."""
-    r, w, (wide, _) = _relative(g, x, lower, upper)
+def energy_and_relative(g: Array, x: Array, lower: Array, upper: Array, strength: Array,
+                        w: Array | None = None) -> tuple[Array, Array, Array, bool]:
+    """`s (g / w)^3` of the gaps `g` (`distance`) of `x`, with the relative gap `g / w`, the width `w` (`width`, if
+    already taken), and whether either overflowed somewhere (then `derivatives`, from halves, not `slopes`)."""
+    r, w, (wide, _) = _relative(g, x, lower, upper, w)
     return strength * (r * r * r), r, w, bool(wide.size)
 
 
-def slopes(r: Array, w: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array]:
+def slopes(r: Array, w: Array, side: Array, strength: Array) -> tuple[Array, Array]:
     """`derivatives`' `dE/dx`, `d2E/dx2` from the `r`, `w` that `energy_and_relative` took where nothing
-    overflowed: the very operations, so the very bits."""
-    side = (x > upper).astype(np.float64) - (x < lower).astype(np.float64)
+    overflowed and `gap`'s side: the very operations, so the very bits."""
     sw = strength / w
     sww = sw / w
     return side * 3.0 * sw * (r * r), 6.0 * sww * r
@@ -64,9 +66,8 @@ def slopes(r: Array, w: Array, x: Array, lower: Array, upper: Array, strength: A
 
 def derivatives(x: Array, lower: Array, upper: Array, strength: Array) -> tuple[Array, Array, Array]:
     """`(E, dE/dx, d2E/dx2)`, each (N,)."""
-    above, below = x > upper, x < lower
-    side = above.astype(np.float64) - below.astype(np.float64)
-    r, w, (wide, half_w) = _relative(_distance(x, lower, upper, above, below), x, lower, upper)
+    g, side = gap(x, lower, upper)
+    r, w, (wide, half_w) = _relative(g, x, lower, upper)
     sw = strength / w
     sww = sw / w
     if wide.size:  # w overflowed there: s / w = (s / 2) / (w / 2), s / w^2 = (s / w / 2) / (w / 2)
@@ -84,7 +85,7 @@ def scale_up(dE: Array, d2E: Array, x: Array, lower: Array, upper: Array, streng
     1e-600; with a frame of 1e150 the term is ~1e-300). So 2^k E', 2^k E'' are formed from the exponents of s,
     g and w (k the least that lifts the smaller), and the caller scales the derivatives back by 2^-k.
     """
-    target = np.finfo(dE.dtype).minexp + 22
+    target = finfo(dE.dtype).minexp + 22
     rows = ((np.abs(dE) < 2.0**target) | (d2E < 2.0**target)).nonzero()[0]
     if rows.shape[0] == 0:
         return None
@@ -107,12 +108,18 @@ def scale_up(dE: Array, d2E: Array, x: Array, lower: Array, upper: Array, streng
     return shift
 
 
-def _relative(g: Array, x: Array, lower: Array, upper: Array) -> tuple[Array, Array, tuple[NDArray[np.intp], Array]]:
+def width(lower: Array, upper: Array) -> Array:
+    """`w` (N,): `upper - lower`, or 1 for a degenerate range (it does not depend on `x`: a prepared scene keeps it)."""
+    return np.where(upper > lower, upper - lower, 1.0)
+
+
+def _relative(g: Array, x: Array, lower: Array, upper: Array,
+              w: Array | None = None) -> tuple[Array, Array, tuple[NDArray[np.intp], Array]]:
     """`(g / w, w, (wide, w / 2 at wide))` of the gaps `g`: the relative gap, the width and the joints `wide`
     where `g` or `w` overflowed from finite inputs, there from halves (exact for such magnitudes: 1.5e308 against
     [-1e308, 1e308] is 0.25, not 5e307 / inf = 0). Every other joint keeps the plain quotient's bits.
     """
-    w = np.where(upper > lower, upper - lower, 1.0)
+    w = width(lower, upper) if w is None else w
     r = np.asarray(g / w)
     # The usual case: two reductions, no temporaries (g >= 0 and w > 0 are never NaN: only +inf can be there).
     wide = np.zeros(0, dtype=np.intp)

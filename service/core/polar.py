@@ -47,10 +47,10 @@ def cofactors(a: Array, out: Array | None = None) -> tuple[Array, Array]:
 def squared_norms(a: Array) -> Array:
     """Squared norms (M,) of the columns of `a` (K, M), summed in one fixed order whatever M and layout (einsum's
     is not: a lone column is one contiguous dot, so a joint's answer would depend on its request's other joints)."""
-    s = a[0] * a[0]
-    tmp = np.empty_like(s)
-    for row in a[1:]:
-        s += np.multiply(row, row, out=tmp)
+    sq = a * a  # every product in one pass, then the sums in order
+    s = sq[0] + sq[1]
+    for row in sq[2:]:
+        s += row
     return s
 
 

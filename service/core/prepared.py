@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from jointlimits.service.core import assembled, assembly
+from jointlimits.service.core import assembled, assembly, penalty
 from jointlimits.service.core.constitution import Array, Constitution, Progress
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
 from jointlimits.service.core.evaluate import collapsed_faults, differentiate
@@ -80,6 +80,7 @@ class _Batch:
     index: NDArray[np.int64]  # (N,) 0 ... N - 1, read-only: every answer of the scene's batch shares it
     meets: bool = False  # world edges, points, telescoping: the anchors meet at q_ref, so x = theta(q) (`_to_q`)
     balance: Array | None = None  # (N, 4) `assembly.balance` of `v` (points, a prepared scene): not taken per Hessian
+    w: Array | None = None  # (N,) the penalty's widths of (lo, up) (`penalty.width`): not taken per evaluation
 
 
 class PreparedScene:
@@ -108,11 +109,8 @@ class PreparedScene:
         """
         q = np.asarray(q, dtype=np.float64)
         outputs = tuple(outputs)
-        log = FaultLog()
-        log.add(check_options(outputs, hessian_mode))
-        log.add(assembled.check_layout(layout))
-        log.add(check_dofs("q", q, self.n_bodies))
-        log.raise_if_any()
+        FaultLog(check_options(outputs, hessian_mode), assembled.check_layout(layout),
+                 check_dofs("q", q, self.n_bodies)).raise_if_any()
         with np.errstate(all="ignore"):
             return self._evaluate(q, outputs, hessian_mode, active_only, deadline, layout)
 
@@ -224,7 +222,7 @@ class PreparedScene:
             x = jb.theta + x
         raise_if((jb.faults + self._collapsed(b, jb, F, careful, known))[:MAX_FAULTS])
         energy, active, gradient, hessian = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd,
-                                                          compact or active_only, self._threads, deadline, jb.balance)
+                                                          compact or active_only, self._threads, deadline, jb.balance, jb.w)
         index, xs, es = (active, x[active], energy[active]) if active_only else (jb.index, x, energy)
         coordinate = _plus_offset(xs, jb.offset, active if active_only else None)
         return BatchResult(jb.c.facts.uid, index, xs, es, gradient, hessian, coordinate), energy, active
@@ -322,6 +320,7 @@ class PreparedScene:
         jb.lo[index] = after["lower"] - after["offset"]
         jb.up[index] = after["upper"] - after["offset"]
         jb.s[index] = after["strength"]
+        jb.w[index] = penalty.width(jb.lo[index], jb.up[index])
 
 
 def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtype: type = np.float64) -> PreparedScene:
@@ -356,11 +355,7 @@ def evaluate(bodies: Bodies, batches: Sequence[Joints], outputs: Iterable[str] =
     """
     outputs = tuple(outputs)
     bodies = Bodies(*(np.asarray(a, dtype=np.float64) for a in (bodies.q, bodies.q_prev, bodies.q_ref)))
-    log = FaultLog()
-    log.add(check_options(outputs, hessian_mode))
-    log.add(assembled.check_layout(layout))
-    log.add(check_bodies(bodies))
-    log.raise_if_any()
+    FaultLog(check_options(outputs, hessian_mode), assembled.check_layout(layout), check_bodies(bodies)).raise_if_any()
     with np.errstate(all="ignore"):
         scene = _prepare(bodies, [_as_arrays(j) for j in batches], threads, dtype, own=False)
         return scene._evaluate(bodies.q, outputs, hessian_mode, active_only, deadline, layout)
@@ -395,21 +390,16 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
         if ids.dtype.kind in "iu" and ids.shape[0]:
             # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
             used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
-    log = FaultLog()
-    # A singular A_ref is named by check_rotations, hostile numbers by the checks after.
+    # A singular A_ref is named by check_rotations, hostile numbers by the checks after (in batch order).
     table = BodyTable(bodies, dtype, rows=rows, used=used)
-    log.add(check_rotations(table.ratio))
-    for faults, _ in checks:  # in batch order (the log keeps the first)
-        log.add(faults)
-    log.raise_if_any()
+    FaultLog(check_rotations(table.ratio), *(faults for faults, _ in checks)).raise_if_any()
     # (2, N) pairs: contiguous indices gather 30% faster; the edge vectors as the checks took them (float64)
     prepared = [_prepare_batch(b, j, table, own, np.ascontiguousarray(j.body_ids.T), d if dtype == np.float64 else None)
                 for b, (j, (_, d)) in enumerate(zip(batches, checks))]
     if own:  # a prepared scene with a collapsed frame evaluates nothing: refused at once
+        FaultLog(*(jb.faults for jb in prepared)).raise_if_any()
         for jb in prepared:
-            log.add(jb.faults)
             jb.faults = []
-        log.raise_if_any()
     return PreparedScene(table, prepared, threads)
 
 
@@ -459,14 +449,13 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     theta = None if committed is None else _angle_of(committed, offset, dtype)
     lower, upper, strength = joints.lower, joints.upper, joints.strength
     # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
-    lo, up = (a if offset is None else a - offset for a in (lower, upper))
+    lo, up = ((a if offset is None else a - offset).astype(dtype, copy=False) for a in (lower, upper))
     index = np.arange(pairs.shape[1])
     index.flags.writeable = False
     return _Batch(c, pairs, v, F_ref, starts, fixed, rows, prev_careful, r.get(start), held, lower, upper, strength,
-                  offset, lo.astype(dtype, copy=False), up.astype(dtype, copy=False), strength.astype(dtype, copy=own),
-                  committed, theta, absolute, x0, faults, progress, index,
-                  meets=points and c.facts.telescopes and joints.edges is not None,
-                  balance=assembly.balance(alpha, v) if own and points else None)
+                  offset, lo, up, strength.astype(dtype, copy=own), committed, theta, absolute, x0, faults, progress,
+                  index, meets=points and c.facts.telescopes and joints.edges is not None,
+                  balance=assembly.balance(alpha, v) if own and points else None, w=penalty.width(lo, up))
 
 
 def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: list[Array], fixed: list[Array]) -> Progress:

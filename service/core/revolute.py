@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
-from jointlimits.service.core.kinematics import BLOCK_BODY, SMALL, CarefulFrames, component_major, cross, dot
+from jointlimits.service.core.kinematics import BLOCK_BODY, SMALL, CarefulFrames, component_major, cross, dot, finfo
 from jointlimits.service.core.kinematics import to_local, unit
 from jointlimits.service.core.polar import squared_norms
 from jointlimits.service.core.registry import register
@@ -77,8 +77,14 @@ angle is as exact as its conditioning allows (up to ~1e-3 rad at the threshold; 
 
 
 def _cos_sin(F: Array) -> tuple[Array, Array]:
-    B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-    return 0.5 * (dot(B_i, B_j) + dot(N_i, N_j)), 0.5 * (dot(B_i, N_j) - dot(N_i, B_j))
+    if F.shape[0] > SMALL:  # dot by dot, each pass along the joints
+        B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
+        return 0.5 * (dot(B_i, B_j) + dot(N_i, N_j)), 0.5 * (dot(B_i, N_j) - dot(N_i, B_j))
+    p = component_major(F.shape[0], (2, 2, 3), F.dtype)  # a few joints: the four dots' products in two passes
+    np.multiply(F[:, :2], F[:, 2:], out=p[:, 0])  # B_i B_j, N_i N_j
+    np.multiply(F[:, :2], F[:, 3:1:-1], out=p[:, 1])  # B_i N_j, N_i B_j
+    d = p[..., 0] + p[..., 1] + p[..., 2]
+    return 0.5 * (d[:, 0, 0] + d[:, 0, 1]), 0.5 * (d[:, 1, 0] - d[:, 1, 1])
 
 
 def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Array, Array]]:
@@ -86,15 +92,14 @@ def _step(F: Array, dF: Array, cs: tuple[Array, Array]) -> tuple[Array, tuple[Ar
     `dsin cos_b - dcos sin_b`, the increments of the bilinear cos and sin taken term by term (no cancellation)."""
     if F.shape[0] <= SMALL:  # a few joints: the eight dots in whole passes (the same products and sums, in order)
         i2, di, j, dj = F[:, :2] + dF[:, :2], dF[:, :2], F[:, 2:], dF[:, 2:]  # [B, N] of body i after the step, ...
-        p = np.empty((F.shape[0], 4, 2, 3), dtype=np.result_type(F, dF))
+        p = component_major(F.shape[0], (4, 2, 3), np.result_type(F, dF))  # F's layout: no strided copies
         for k, (a, b) in enumerate(((i2, dj), (di, j), (i2, dj[:, ::-1]), (di, j[:, ::-1]))):
             np.multiply(a, b, out=p[:, k])
-        d = p[..., 0] + p[..., 1] + p[..., 2]  # (N, 4, 2): [B_i2.dB_j, N_i2.dN_j], [dB_i.B_j, dN_i.N_j], [B_i2.dN_j, N_i2.dB_j], ...
+        d = p[..., 0] + p[..., 1] + p[..., 2]  # (N, 4, 2): [B_i2.dB_j, N_i2.dN_j], [dB_i.B_j, dN_i.N_j], [B_i2.dN_j, ...], ...
         dc = 0.5 * (d[:, 0, 0] + d[:, 1, 0] + d[:, 0, 1] + d[:, 1, 1])
         ds = 0.5 * (d[:, 2, 0] + d[:, 3, 0] - d[:, 2, 1] - d[:, 3, 1])
     else:
-        B_i, N_i, B_j, N_j = F[:, 0], F[:, 1], F[:, 2], F[:, 3]
-        dB_i, dN_i, dB_j, dN_j = dF[:, 0], dF[:, 1], dF[:, 2], dF[:, 3]
+        (B_i, N_i, B_j, N_j), (dB_i, dN_i, dB_j, dN_j) = F.transpose(1, 0, 2), dF.transpose(1, 0, 2)
         B_i2, N_i2 = B_i + dB_i, N_i + dN_i  # body i after the step
         dc = 0.5 * (dot(B_i2, dB_j) + dot(dB_i, B_j) + dot(N_i2, dN_j) + dot(dN_i, N_j))
         ds = 0.5 * (dot(B_i2, dN_j) + dot(dB_i, N_j) - dot(N_i2, dB_j) - dot(dN_i, B_j))
@@ -141,7 +146,7 @@ _STEADY_EXPONENTS = 60
 def _unsafe(F: Array, cs: tuple[Array, Array]) -> NDArray[np.bool_]:
     """(N,) True where hypot(cos, sin) (`cs` at `F`) leaves `2^+-240` (`2^+-16` in float32), beyond which
     `r^4` or a product in `_polar_derivatives` would not be a normal number."""
-    e = np.finfo(F.dtype).maxexp // 4 - 16
+    e = finfo(F.dtype).maxexp // 4 - 16
     r = np.hypot(*cs)
     return ~((r >= 2.0**-e) & (r <= 2.0**e))
 
@@ -157,9 +162,12 @@ class _RescaledCurvature(Curvature):
 
 
 _EYE4 = np.eye(4)
+_SIGMAS = np.array([[1.0], [-1.0]])  # h1 from u takes +sigma J u, h3 from d takes -sigma J d
 _G_BLOCKS = np.array([2, 3, 0, 1, 3, 2, 1, 0])
 _G_HALVES = np.array([0.5, 0.5, 0.5, 0.5, 0.5, -0.5, -0.5, 0.5])[:, None]
 """d cos/dF (blocks 0-3) and d sin/dF (4-7): each the block `_G_BLOCKS` of F times `_G_HALVES`."""
+_COS_AT, _SIN_AT, _MINUS_SIN_AT = np.array([2, 7, 8, 13]), np.array([3, 12]), np.array([6, 9])
+"""The flat entries of K (4 x 4) that are x_c / 2 ((0, 2), (1, 3) and transposed), x_s / 2, -x_s / 2."""
 
 
 def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = None) -> tuple[Array, Curvature | None]:
@@ -182,12 +190,10 @@ def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = 
     coef[:, 1, 1] = -coef[:, 0, 0]
     coef[:, 0, 1] = coef[:, 1, 0] = (s * s - c * c) / r4
     # K (N, 4, 4) = x_c COS_PAIRS + x_s SIN_PAIRS, component-major (the assembly reads it entry by entry).
-    kron = component_major(n, (4, 4), F.dtype)
-    kron[...] = 0.0
-    half_c, half_s = 0.5 * x_c, 0.5 * x_s
-    kron[:, 0, 2] = kron[:, 2, 0] = kron[:, 1, 3] = kron[:, 3, 1] = half_c
-    kron[:, 0, 3] = kron[:, 3, 0] = half_s
-    kron[:, 1, 2] = kron[:, 2, 1] = -half_s
+    kron = np.zeros((16, n), dtype=F.dtype)
+    half_s = 0.5 * x_s
+    kron[_COS_AT], kron[_SIN_AT], kron[_MINUS_SIN_AT] = 0.5 * x_c, half_s, -half_s
+    kron = kron.reshape(4, 4, n).transpose(2, 0, 1)
     dx_coef = np.empty((n, 2), dtype=F.dtype)  # (x_c, x_s), C order as np.stack's (without its Python)
     dx_coef[:, 0], dx_coef[:, 1] = x_c, x_s
     return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=dx_coef)
@@ -266,52 +272,47 @@ class Revolute:
     def projected_curvature(self, dE: Array, curvature: Curvature) -> Curvature:
         """The PSD part of `dE d2x/dF2` in closed form (the PSD notes above), for every frame with r > 0 (collapsed
         ones are refused): kron (N, 4, 4), basis (N, 3, 4, 3) = (h1, h3, d), coef (N, 3, 3) diagonal."""
-        rescaled = isinstance(curvature, _RescaledCurvature)
         x_c, x_s = curvature.dx_coef[:, 0], curvature.dx_coef[:, 1]  # -s / r^2, c / r^2
         # The rows `scaled` names hold nothing meaningful here (their r^2 is not a normal number): overwritten below.
         r = 1.0 / np.hypot(x_c, x_s)
-        g_c = curvature.basis[:, 0]
-        rho2 = squared_norms(g_c.transpose(1, 2, 0).reshape(12, -1))  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
-        sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
         mu = np.abs(dE)
-        basis = _psd_vectors(sign, curvature.basis, x_c, x_s, r)
+        basis, rho2, sign = _psd_vectors(dE, curvature.basis, x_c, x_s, r)
         coef = np.zeros((dE.shape[0], 3, 3), dtype=dE.dtype)
         coef[:, 0, 0] = coef[:, 1, 1] = -mu / (2.0 * r * (rho2 + r))
         coef[:, 2, 2] = mu / (2.0 * r * r)
         # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
         kron = (0.5 * dE)[:, None, None] * curvature.kron
         kron += (mu / (4.0 * r))[:, None, None] * _EYE4.astype(dE.dtype, copy=False)
-        if rescaled:
+        if isinstance(curvature, _RescaledCurvature):
             rows = curvature.rows
             kron[rows], basis[rows], coef[rows] = _rescaled_projection(dE[rows], curvature)
         return Curvature(kron=kron, basis=basis, coef=coef, diagonal=True)
 
 
-def _psd_vectors(sign: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> Array:
-    """(h1, h3, d) (N, 3, 4, 3) of the PSD notes from g = (g_c, g_s) (N, 2, 4, 3) and `sign` = sigma (N,);
-    `x_c`, `x_s`, `r` (N,) give cos_t = x_s r and sin_t = -x_c r. Linear in g: any common scale of g carries over."""
-    cos_t, sin_t = (x_s * r)[:, None, None], (-x_c * r)[:, None, None]  # w = r e^{i theta}
-    sign = sign[:, None, None]
-    g_c, g_s = g[:, 0], g[:, 1]
-    b = cos_t * g_c + sin_t * g_s  # r grad(log r)
-    a = cos_t * g_s - sin_t * g_c  # r grad(x)
-    u = b + sign * a
-    d = b - sign * a
-
-    def J(v: Array) -> Array:
-        """`(K / lambda0) (x) I_3` on v (N, 4, 3): an involution, eigenvalues +-1."""
-        out = np.empty_like(v)
-        out[:, 0] = cos_t[:, 0] * v[:, 3] - sin_t[:, 0] * v[:, 2]
-        out[:, 1] = -cos_t[:, 0] * v[:, 2] - sin_t[:, 0] * v[:, 3]
-        out[:, 2] = -cos_t[:, 0] * v[:, 1] - sin_t[:, 0] * v[:, 0]
-        out[:, 3] = cos_t[:, 0] * v[:, 0] - sin_t[:, 0] * v[:, 1]
-        return out
-
-    basis = component_major(g.shape[0], (3, 4, 3), g.dtype)
-    basis[:, 0] = 0.5 * (u + sign * J(u))  # h1 = P_sigma u
-    basis[:, 1] = 0.5 * (d - sign * J(d))  # h3 = P_-sigma d
-    basis[:, 2] = d
-    return basis
+def _psd_vectors(dE: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> tuple[Array, Array, Array]:
+    """(h1, h3, d) (N, 3, 4, 3) of the PSD notes, rho^2 and sigma = sign(E') (N,), from g = (g_c, g_s) (N, 2, 4, 3)
+    and `dE`; `x_c`, `x_s`, `r` (N,) give cos_t = x_s r and sin_t = -x_c r. Linear in g (rho^2 quadratic)."""
+    rho2 = squared_norms(g[:, 0].transpose(1, 2, 0).reshape(12, -1))  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
+    sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
+    c, s = (x_s * r)[:, None, None], (-x_c * r)[:, None, None]  # cos_t, sin_t: w = r e^{i theta}
+    b = c * g[:, 0] + s * g[:, 1]  # r grad(log r)
+    sa = sign[:, None, None] * (c * g[:, 1] - s * g[:, 0])  # sigma r grad(x)
+    n, dtype = g.shape[0], g.dtype
+    ud = component_major(n, (2, 4, 3), dtype)  # u, d = b +- sigma a
+    np.add(b, sa, out=ud[:, 0])
+    np.subtract(b, sa, out=ud[:, 1])
+    # J = (K / lambda0) (x) I_3 (an involution, eigenvalues +-1) on u and d at once, block by block.
+    Jud = np.empty_like(ud)
+    Jud[:, :, 0] = c * ud[:, :, 3] - s * ud[:, :, 2]
+    Jud[:, :, 1] = -c * ud[:, :, 2] - s * ud[:, :, 3]
+    Jud[:, :, 2] = -c * ud[:, :, 1] - s * ud[:, :, 0]
+    Jud[:, :, 3] = c * ud[:, :, 0] - s * ud[:, :, 1]
+    Jud *= (_SIGMAS.astype(dtype, copy=False) * sign).T[:, :, None, None]  # sigma J u, -sigma J d (joints-major)
+    basis = component_major(n, (3, 4, 3), dtype)
+    basis[:, 2] = ud[:, 1]  # d
+    ud += Jud
+    np.multiply(0.5, ud, out=basis[:, :2])  # h1 = P_sigma u, h3 = P_-sigma d
+    return basis, rho2, sign
 
 
 def _rescaled_projection(dE: Array, scaled: _RescaledCurvature) -> tuple[Array, Array, Array]:
@@ -334,11 +335,8 @@ def _rescaled_projection(dE: Array, scaled: _RescaledCurvature) -> tuple[Array, 
     spread = e[:, 0] + e[:, 1] - 2 * top  # <= 0
     shift = (e[:, ::-1] - top[:, None])[:, BLOCK_BODY]  # (M, 4): block k of g times 2^(e_other - m)
     g = np.ldexp(cv.basis, shift[:, None, :, None])
-    g_c = g[:, 0]
-    rho2 = squared_norms(g_c.transpose(1, 2, 0).reshape(12, -1))
-    sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
     mant, p = np.frexp(np.abs(dE))  # |E'| = mant 2^p, mant in [1/2, 1) (or 0, inf, NaN as |E'|)
-    basis = _psd_vectors(sign, g, x_c, x_s, r)
+    basis, rho2, sign = _psd_vectors(dE, g, x_c, x_s, r)
     # P(F) = P(F / 2^m) / 4^m: each coefficient at F / 2^m (r there is r_s 2^spread), times 4^-m.
     ij = p - (e[:, 0] + e[:, 1])  # 2^(-spread - 2m) = 2^-(e_i + e_j)
     coef = np.zeros((dE.shape[0], 3, 3), dtype=dE.dtype)

@@ -10,7 +10,8 @@ What the contract fixes and what is checked here (`_Contract` keeps the state in
 - Every path agrees bit for bit where the docs say so (docs/sessions.md, docs/sdk.md): an in-process session, the
   same session reopened after every commit and update (what a resume does), sessions over msgpack and JSON (also
   dropped and reopened), and the stateless request that carries the state by hand (`q_prev` the committed q,
-  `prev_coordinate` the committed coordinates, as the replies carry them), whole or split into parts.
+  `prev_coordinate` the committed coordinates, as the replies carry them), whole or split into parts; the
+  opened, updated (the prismatic's offset too) and committed coordinates.
 
 The bound on x, the coordinates and the commits (`_close`): a session keeps the committed coordinate as the wire
 carries it and takes the angle as `coordinate - offset` (docs/sessions.md), so r is known to the rounding of the
@@ -226,6 +227,12 @@ def _sequence(seed: int, scale: float, turns: int | None, origin: str, local: bo
                 _close(coords[k], contract.angle(k) + mp.mpf(float(contract.offset[k])), contract, k, "updated")
             if hand["prev"] is not None:  # the update's reply carries the moved coordinates
                 hand["prev"] = coords.copy()
+            if step % 4 == 1:  # the prismatic's offset too: its coordinate is x(q_prev) + offset, no state
+                prism["offset"] = float(rng.uniform(-1e3, 1e3))
+                for s in opened.values():
+                    s.update(1, [0], offset=[prism["offset"]])
+                for name, s in opened.items():
+                    assert s.coordinates[1].tobytes() == base.coordinates[1].tobytes(), name
             _reopen(opened)
             continue
         phi = phi + rng.uniform(-2.9, 2.9, K + 1)  # each step < pi: the commit rule's premise

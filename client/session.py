@@ -335,7 +335,9 @@ def handshake_error(url: str, e: Exception) -> Exception:
         return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})", 404)
     if isinstance(e, (OSError, TimeoutError)):  # refused, unresolvable host, no answer within the open timeout
         return Unreachable(url, 1, e)
-    return SessionClosed(url, None, "", f"not opened ({type(e).__name__}: {e})")
+    # The connection lost during the handshake (websockets' ConnectionClosed, or its reader's race with a refusal's
+    # close): nothing was opened, so the opening is tried again, as after a drop.
+    return SessionClosed(url, None, "", f"not opened ({type(e).__name__}: {e})", resumable=True)
 
 
 def closed_error(url: str, e: Any) -> SessionClosed:

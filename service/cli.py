@@ -87,7 +87,8 @@ LAST = (
     Setting("access_log", True, boolean, "one JSON line per request on stdout", True),
 )
 LOG_LEVELS = ["critical", "error", "warning", "info", "debug"]
-FD_RESERVE = 64  # file descriptors a worker holds besides its connections (measured 14: listener, loop, logs, metrics)
+FD_RESERVE = 64  # a worker's descriptors besides its connections: 14 measured (listener, loop, logs, metrics) + 32 refused
+# connections lingering after their answer (timeouts.MAX_LINGERING)
 
 
 def _option(parser: argparse.ArgumentParser, row: Setting) -> None:

@@ -54,6 +54,10 @@ MAX_HEADS_HELD = 16 * 2**20
 """Bytes of unfinished request heads one worker holds over all its connections (a head that arrives whole in one read
 holds none): past it, 503 `busy` and closed. One client opens ~11 000 connections within the head deadline: 3000
 holding 60 kB each took a worker from 93 to 266 MiB."""
+REFUSED_LINGER, MAX_LINGERING = 1.0, 32
+"""Seconds a refused connection (431, 408, 503 `busy`) stays half-closed after its answer, reading nothing, so that
+the client reads the answer rather than a reset; it closes as soon as the client does. At most `MAX_LINGERING` of a
+worker's at once (within `cli.FD_RESERVE`): past them, a flood's are closed at once."""
 MIN_CHUNKS, CHUNK_BYTES = 1024, 256
 """A chunked body may arrive in `MIN_CHUNKS` chunks, then one per `CHUNK_BYTES` bytes; past it, nothing more is read,
 the request is answered 413 (`limits.read_body`) and the connection closed. Each chunk is a Python call in uvicorn:
@@ -223,6 +227,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     max_connections: int | None = None  # None: JOINTLIMITS_MAX_CONNECTIONS, read per connection
     heads_held = 0  # bytes of every connection's unfinished head in this worker (MAX_HEADS_HELD)
     _cut = False  # a pipelined head or a body refused: the answers owed are sent, nothing more is read
+    _lingers = False  # refused and half-closed (`REFUSED_LINGER`), counted in `lingering`
+    lingering = 0  # this worker's connections that do
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -300,6 +306,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     def connection_lost(self, exc: Exception | None) -> None:
         self._head_timer.stop()
         self._drop_head()
+        ReadTimeoutProtocol.lingering -= self._lingers
         super().connection_lost(exc)
 
     def _arm(self) -> None:
@@ -325,7 +332,14 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             self._cut, self.cycle.keep_alive = True, False  # the last request read is the last answered
             return
         self.transport.write(answer)
-        self.transport.close()
+        if not answer or ReadTimeoutProtocol.lingering >= MAX_LINGERING or not self.transport.can_write_eof():
+            return self.transport.close()
+        # A close with the client's bytes unread is a reset, which can destroy the answer before the client reads
+        # it (1 in 7 refused session openings did): end our side, drop what it sends, close when it does or soon.
+        self._cut = self._lingers = True
+        ReadTimeoutProtocol.lingering += 1
+        self.transport.write_eof()
+        self.loop.call_later(REFUSED_LINGER, self.transport.close)
 
     def _head_expired(self) -> None:
         if not self.transport.is_closing():

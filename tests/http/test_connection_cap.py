@@ -151,3 +151,25 @@ def test_a_session_opened_past_the_cap_is_tried_again_by_the_sdk(live):
         for s in held:
             s.close()
     assert refused(live) >= before + 1  # refused at least once before the place was freed
+
+
+def test_a_client_that_sends_at_once_reads_the_503_not_a_reset(live):
+    """A refused connection is half-closed and lingers (`timeouts.REFUSED_LINGER`): closed with the client's request
+    unread, the kernel resets it, and the reset can destroy the 503 before the client reads it (without the linger,
+    34 of 300 such clients read a reset here)."""
+    upgrade = (b"GET /v1/sessions HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+               b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n") * 20
+    settle(live, 0)
+    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
+    try:
+        settle(live, CAP)
+        for i in range(150):
+            with socket.create_connection(("127.0.0.1", live.port)) as s:
+                time.sleep(0.002 * (i % 5))  # the request before, with and after the server's answer
+                s.sendall(upgrade)
+                s.settimeout(10)
+                got = b"".join(iter(lambda: s.recv(65536), b""))  # to the server's FIN; a reset raises
+                assert_busy(got)
+    finally:
+        for s in held:
+            s.close()

@@ -87,8 +87,9 @@ LAST = (
     Setting("access_log", True, boolean, "one JSON line per request on stdout", True),
 )
 LOG_LEVELS = ["critical", "error", "warning", "info", "debug"]
-FD_RESERVE = 64  # a worker's descriptors besides its connections: 14 measured (listener, loop, logs, metrics) + 32 refused
-# connections lingering after their answer (timeouts.MAX_LINGERING)
+# A worker's descriptors besides its connections: 14 measured (listener, loop, logs, metrics) and up to 32 refused
+# connections lingering after their answer (timeouts.MAX_LINGERING).
+FD_RESERVE = 64
 
 
 def _option(parser: argparse.ArgumentParser, row: Setting) -> None:

@@ -81,8 +81,8 @@ class Settings:
         "largest answer, bounded before any work from joints x outputs x encoding; larger answers 413",
     )
     max_json_values: int = _setting(
-        2_000_000, positive_int, "most values in a JSON body (commas + 1, or twice its lists and objects where more); more answers 413 before "
-        "parsing"
+        2_000_000, positive_int,
+        "most values in a JSON body (commas + 1, or twice its lists and objects where more); more answers 413 before parsing",
     )
     request_timeout: float = _setting(
         60.0, positive_float, "seconds an evaluation may take (parse, core, encode); past it 503 with Retry-After"

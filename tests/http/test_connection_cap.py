@@ -9,6 +9,7 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 
 import pytest
 
@@ -44,6 +45,24 @@ def settle(live: inprocess.Live, n: int) -> None:
     assert live.connections() == n
 
 
+@contextmanager
+def at_the_cap(live: inprocess.Live, session: bool = False) -> Iterator[list[socket.socket]]:
+    """The worker full for the block: `CAP` idle connections held (the last an open session's, with `session`)."""
+    settle(live, 0)
+    held = []
+    try:
+        if session:
+            ws, head = inprocess.upgrade(live.port)
+            held.append(ws)
+            assert head.startswith(b"HTTP/1.1 101 ")
+        held += [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP - len(held))]
+        settle(live, CAP)  # with a session: its upgrade replaced its HTTP connection, one, not two
+        yield held
+    finally:
+        for s in held:
+            s.close()
+
+
 def ask(live: inprocess.Live, path: str) -> bytes:
     """One request on a new connection; everything the server sent until it closed (or 10 s passed)."""
     with socket.create_connection(("127.0.0.1", live.port)) as s:
@@ -64,53 +83,32 @@ def assert_busy(got: bytes) -> None:
 
 def test_past_the_cap_a_connection_gets_503_busy_and_is_closed_and_counted(live):
     before = refused(live)  # the scrape's own connection is closed once it is answered
-    settle(live, 0)
-    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
-    try:
-        settle(live, CAP)
+    with at_the_cap(live):
         # Probes too: the cap is met at accept, before the path is read (docs/deployment.md says why).
         for path in ("/v1/constitutions", "/readyz"):
             assert_busy(ask(live, path))
         assert live.connections() == CAP  # a refused connection was never counted
-    finally:
-        for s in held:
-            s.close()
     settle(live, 0)
     assert refused(live) == before + 2
 
 
 def test_a_freed_place_is_served(live):
-    settle(live, 0)
-    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
-    try:
-        settle(live, CAP)
+    with at_the_cap(live) as held:
         assert_busy(ask(live, "/healthz"))
         held.pop().close()
         settle(live, CAP - 1)
         assert ask(live, "/healthz").startswith(b"HTTP/1.1 200 ")
-    finally:
-        for s in held:
-            s.close()
 
 
 def test_a_session_counts(live):
-    settle(live, 0)
-    session, head = inprocess.upgrade(live.port)
-    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP - 1)]
-    try:
-        assert head.startswith(b"HTTP/1.1 101 ")
-        settle(live, CAP)  # the upgrade replaced its HTTP connection: one, not two
+    with at_the_cap(live, session=True) as held:
         assert_busy(ask(live, "/healthz"))
         late, head = inprocess.upgrade(live.port)  # a session past the cap: refused before its upgrade
         with late:
             assert_busy(head + wait_closed(late, 10)[1])
-        session.close()
+        held[0].close()  # the session
         settle(live, CAP - 1)
         assert ask(live, "/healthz").startswith(b"HTTP/1.1 200 ")
-    finally:
-        session.close()
-        for s in held:
-            s.close()
 
 
 def test_the_sdk_waits_its_retry_after_and_is_served(live):
@@ -118,19 +116,13 @@ def test_the_sdk_waits_its_retry_after_and_is_served(live):
     tries again after `Retry-After`, by when a place was freed."""
     request = readme_scene().request()
     before = refused(live)
-    settle(live, 0)
-    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
-    try:
-        settle(live, CAP)
+    with at_the_cap(live) as held:
         threading.Timer(1.0, lambda: held.pop().close()).start()
         t0 = time.monotonic()
         with Client(f"http://127.0.0.1:{live.port}") as client:
             answer = client.evaluate(request)
         assert time.monotonic() - t0 >= RETRY_AFTER_SECONDS - 0.1  # its Retry-After, not a reconnect at once
         assert answer.total_energy == LocalClient().evaluate(request).total_energy > 0  # the same core, bit for bit
-    finally:
-        for s in held:
-            s.close()
     assert refused(live) == before + 1
 
 
@@ -139,17 +131,11 @@ def test_a_session_opened_past_the_cap_is_tried_again_by_the_sdk(live):
     opens once a place is freed."""
     request = readme_scene().request()
     before = refused(live)
-    settle(live, 0)
-    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
-    try:
-        settle(live, CAP)
+    with at_the_cap(live) as held:
         threading.Timer(0.3, lambda: held.pop().close()).start()
         with Client(f"http://127.0.0.1:{live.port}").session(request) as session:
             answer = session.evaluate(request.q)
         assert answer.total_energy == LocalClient().evaluate(request).total_energy > 0
-    finally:
-        for s in held:
-            s.close()
     assert refused(live) >= before + 1  # refused at least once before the place was freed
 
 
@@ -159,10 +145,7 @@ def test_a_client_that_sends_at_once_reads_the_503_not_a_reset(live):
     34 of 300 such clients read a reset here)."""
     upgrade = (b"GET /v1/sessions HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
                b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n") * 20
-    settle(live, 0)
-    held = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(CAP)]
-    try:
-        settle(live, CAP)
+    with at_the_cap(live):
         for i in range(150):
             with socket.create_connection(("127.0.0.1", live.port)) as s:
                 time.sleep(0.002 * (i % 5))  # the request before, with and after the server's answer
@@ -170,6 +153,3 @@ def test_a_client_that_sends_at_once_reads_the_503_not_a_reset(live):
                 s.settimeout(10)
                 got = b"".join(iter(lambda: s.recv(65536), b""))  # to the server's FIN; a reset raises
                 assert_busy(got)
-    finally:
-        for s in held:
-            s.close()

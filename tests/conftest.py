@@ -13,6 +13,28 @@ import pytest
 GOLDEN = json.loads((Path(__file__).parent / "golden_cases.json").read_text())["cases"]
 
 
+ANSWER_FIELDS = ("index", "x", "coordinate", "energy", "gradient", "hessian")
+
+
+def same_joints(got, want) -> None:
+    """Bitwise the same joints of two SDK evaluations: batches, constitutions, and each field's shape, dtype and
+    bits (absent on both sides or on neither)."""
+    assert len(got.batches) == len(want.batches)
+    for g, w in zip(got.batches, want.batches):
+        assert g.constitution_uid == w.constitution_uid
+        for f in ANSWER_FIELDS:
+            a, b = getattr(g, f), getattr(w, f)
+            assert (a is None) == (b is None), f
+            if a is not None:
+                assert a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes(), f
+
+
+def same_evaluation(got, want) -> None:
+    """Bitwise the same evaluation: its joints and its total energy."""
+    assert got.total_energy == want.total_energy
+    same_joints(got, want)
+
+
 def relerr(got, want, floor: float = 0.0) -> float:
     """Normwise relative error `max|got - want| / max(max|want|, floor)` (0 when both are zero)."""
     got, want = np.asarray(got, dtype=np.float64), np.asarray(want, dtype=np.float64)

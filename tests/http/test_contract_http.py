@@ -13,25 +13,10 @@ import pytest
 
 from jointlimits.client import AsyncClient, Client, LocalClient
 from jointlimits.schemas import binary as wire
-from tests.conftest import GOLDEN, relerr
+from tests.conftest import GOLDEN, relerr, same_evaluation
 from tests.http.test_contract_live import LIMITS, live, sdk_request  # noqa: F401 (fixture)
 
 TOL = 1e-12
-FIELDS = ("index", "x", "energy", "gradient", "hessian")
-
-
-def _same(a, b) -> None:
-    """Bit-identical evaluations (same float64 bits, same rows, same fields)."""
-    assert a.total_energy == b.total_energy
-    assert len(a.batches) == len(b.batches)
-    for ra, rb in zip(a.batches, b.batches):
-        assert ra.constitution_uid == rb.constitution_uid
-        for f in FIELDS:
-            x, y = getattr(ra, f), getattr(rb, f)
-            assert (x is None) == (y is None), f
-            if x is not None:
-                assert x.dtype == y.dtype and x.shape == y.shape, f
-                assert np.array_equal(x.view(np.uint8), np.ascontiguousarray(y).view(np.uint8)), f
 
 
 @pytest.mark.parametrize("case", GOLDEN, ids=[c["name"] for c in GOLDEN])
@@ -39,15 +24,15 @@ def test_golden_identical_across_json_binary_async_and_local(live, case):
     request = sdk_request(case["request"])
     local = LocalClient().evaluate(request)
     with Client(live) as binary, Client(live, binary=False) as as_json:
-        _same(binary.evaluate(request), local)
-        _same(as_json.evaluate(request), local)
+        same_evaluation(binary.evaluate(request), local)
+        same_evaluation(as_json.evaluate(request), local)
 
     async def run():
         async with AsyncClient(live) as a, AsyncClient(live, binary=False) as b:
             return await a.evaluate(request), await b.evaluate(request)
 
     for ev in asyncio.run(run()):
-        _same(ev, local)
+        same_evaluation(ev, local)
     for got, want in zip(local.batches, case["expect"]):
         for f in ("x", "energy", "gradient", "hessian"):
             assert relerr(getattr(got, f), want[f]) <= TOL, f
@@ -104,7 +89,7 @@ def test_content_negotiation(live, content_type, accept, answer):
     r = httpx.post(f"{live}/v1/evaluate", content=body, headers=headers)
     assert r.status_code == 200, r.text
     assert r.headers["content-type"] == answer
-    _same(codec.decode(r.content, r.headers["content-type"]), LocalClient().evaluate(request))
+    same_evaluation(codec.decode(r.content, r.headers["content-type"]), LocalClient().evaluate(request))
 
 
 def test_discovery_lists_both_constitutions_with_spec_names(live):

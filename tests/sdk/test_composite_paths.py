@@ -21,11 +21,11 @@ import pytest
 
 from jointlimits.client import Client, LocalClient, split
 from jointlimits.client.model import as_request
+from tests.conftest import same_joints
 from tests.http.test_contract_live import live  # noqa: F401 (the fixture)
 from tests.scenes import place_limits, random_chain_scene, random_scene, random_unit, rotation_about
 
 EPS = np.finfo(np.float64).eps
-JOINT_FIELDS = ("index", "x", "energy", "gradient", "hessian", "coordinate")
 
 
 def wire(rng: np.random.Generator, big: bool) -> dict:
@@ -83,17 +83,6 @@ def _summed(got: np.ndarray, want: np.ndarray, terms: np.ndarray, count: int) ->
     assert got.shape == want.shape
     bound = 2 * max(count - 1, 1) * EPS * terms + 5e-324
     assert np.all(np.abs(got - want) <= bound), float(np.max(np.abs(got - want) - bound))
-
-
-def same_joints(got, want) -> None:
-    assert len(got.batches) == len(want.batches)
-    for g, w in zip(got.batches, want.batches):
-        assert g.constitution_uid == w.constitution_uid
-        for f in JOINT_FIELDS:
-            a, b = getattr(g, f), getattr(w, f)
-            assert (a is None) == (b is None), f
-            if a is not None:
-                assert a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes(), f
 
 
 def merged_as_whole(req, got, want) -> None:

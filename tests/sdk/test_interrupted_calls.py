@@ -18,9 +18,10 @@ import numpy as np
 import pytest
 
 from jointlimits.client import AsyncClient, Client, LocalClient, SessionClosed
+from tests.conftest import same_evaluation
 from tests.http.test_contract_live import serve
 from tests.sdk.test_session_resume import replica
-from tests.sdk.test_sessions_live import chain, same
+from tests.sdk.test_sessions_live import chain
 
 
 class Held:
@@ -71,7 +72,7 @@ def test_a_cancelled_async_evaluate_leaves_no_reply_for_the_next_call():
             with pytest.raises(asyncio.CancelledError):
                 await call
             q[2] = pose(a + 0.3)
-            same(await s.evaluate(q), ref.evaluate(q))  # was the interrupted call's answer (x of `a`)
+            same_evaluation(await s.evaluate(q), ref.evaluate(q))  # was the interrupted call's answer (x of `a`)
             assert (await s.commit(q))[0].tobytes() == ref.commit(q)[0].tobytes()
         await s.close()
 
@@ -89,7 +90,7 @@ def test_a_blocking_evaluate_interrupted_by_ctrl_c_leaves_no_reply_for_the_next_
         with pytest.raises(KeyboardInterrupt):
             s.evaluate(q)
         q[2] = pose(0.9)
-        same(s.evaluate(q), ref.evaluate(q))
+        same_evaluation(s.evaluate(q), ref.evaluate(q))
         assert s.commit(q)[0].tobytes() == ref.commit(q)[0].tobytes()
         s.close()
 
@@ -108,7 +109,7 @@ def test_without_resume_an_interrupted_session_says_it_is_closed():
             s.evaluate(q)
         s.reopen()
         q[2] = pose(0.2)
-        same(s.evaluate(q), ref.evaluate(q))
+        same_evaluation(s.evaluate(q), ref.evaluate(q))
         assert np.array_equal(s.commit(q)[0], ref.commit(q)[0])
         s.close()
         ref.close()

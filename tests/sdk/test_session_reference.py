@@ -34,10 +34,9 @@ import pytest
 
 from bench.reference import JointRef
 from jointlimits.client import Client, JointBatch, LocalClient, request_from_arrays
-from tests.conftest import relerr
+from tests.conftest import relerr, same_joints
 from tests.http.test_contract_live import live  # noqa: F401 (the fixture)
 from tests.scenes import random_rotation, random_unit, rotation_about
-from tests.sdk.test_composite_paths import same_joints
 
 EPS = np.finfo(np.float64).eps
 FIRST = ("evaluate", "update", "evaluate", "commit", "evaluate", "update", "evaluate")

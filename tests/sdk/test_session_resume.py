@@ -31,9 +31,10 @@ from jointlimits.schemas import session as proto
 from jointlimits.service.app import create_app
 from jointlimits.service.http.timeouts import server_options
 from jointlimits.service.settings import Settings
+from tests.conftest import same_evaluation
 from tests.drills import ws_upgrade
 from tests.http.test_contract_live import LIMITS, running
-from tests.sdk.test_sessions_live import chain, same
+from tests.sdk.test_sessions_live import chain
 
 
 def replica(port: int = 0, settings: Settings = LIMITS):
@@ -47,7 +48,7 @@ def steps(session, ref, q, pose, angles) -> None:
     """evaluate, commit at each angle of body 2; every answer and committed coordinate bitwise `ref`'s."""
     for a in angles:
         q[2] = pose(a)
-        same(session.evaluate(q), ref.evaluate(q))
+        same_evaluation(session.evaluate(q), ref.evaluate(q))
         assert session.commit(q)[0].tobytes() == ref.commit(q)[0].tobytes()
 
 
@@ -116,13 +117,13 @@ def test_async_sessions_resume_too():
             s = await AsyncClient(f"http://127.0.0.1:{port}").session(req)
             for a in (0.5, 1.0, 1.5):
                 q[2] = pose(a)
-                same(await s.evaluate(q), ref.evaluate(q))
+                same_evaluation(await s.evaluate(q), ref.evaluate(q))
                 assert (await s.commit(q))[0].tobytes() == ref.commit(q)[0].tobytes()
             await asyncio.to_thread(first.close)  # stopped: 1012
             await asyncio.to_thread(second.enter_context, replica(port))
             for a in (2.0, 3.0, 4.0):
                 q[2] = pose(a)
-                same(await s.evaluate(q), ref.evaluate(q))
+                same_evaluation(await s.evaluate(q), ref.evaluate(q))
                 assert (await s.commit(q))[0].tobytes() == ref.commit(q)[0].tobytes()
             await s.close()
 
@@ -142,7 +143,7 @@ def test_an_async_session_resumes_after_a_1012_close():
                     assert (await s.commit(q))[0].tobytes() == ref.commit(q)[0].tobytes()
                 await s._ws.close(proto.SERVICE_RESTART, "as a server that restarts would")
                 q[2] = pose(2.5)
-                same(await s.evaluate(q), ref.evaluate(q))
+                same_evaluation(await s.evaluate(q), ref.evaluate(q))
                 assert (await s.commit(q))[0].tobytes() == ref.commit(q)[0].tobytes()
 
         asyncio.run(run())

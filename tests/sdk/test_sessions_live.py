@@ -14,12 +14,10 @@ from jointlimits.client import AsyncClient, Client, InvalidInput, JointBatch, Lo
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.settings import Settings
-from tests.conftest import GOLDEN
+from tests.conftest import GOLDEN, same_evaluation
 from tests.http.test_contract_live import sdk_request, serve
 
 pytestmark = [pytest.mark.slow, pytest.mark.serial]  # sessions over real WebSockets, the idle timer's waits (~22 s)
-
-FIELDS = ("index", "x", "coordinate", "energy", "gradient", "hessian")
 
 
 @pytest.fixture(scope="module")
@@ -28,34 +26,21 @@ def live():
         yield url
 
 
-def same(a, b) -> None:
-    """Bitwise the same evaluation."""
-    assert a.total_energy == b.total_energy
-    assert len(a.batches) == len(b.batches)
-    for ra, rb in zip(a.batches, b.batches):
-        assert ra.constitution_uid == rb.constitution_uid
-        for f in FIELDS:
-            fa, fb = getattr(ra, f), getattr(rb, f)
-            assert (fa is None) == (fb is None), f
-            if fa is not None:
-                assert fa.shape == fb.shape and fa.tobytes() == fb.tobytes(), f
-
-
 @pytest.mark.parametrize("binary", [True, False], ids=["msgpack", "json"])
 def test_golden_cases_are_bitwise_the_same_by_session_http_and_local(live, binary):
     client, local = Client(live, binary=binary), LocalClient()
     for case in GOLDEN:
         req = sdk_request(case["request"])
         want = client.evaluate(req)
-        same(local.evaluate(req), want)
+        same_evaluation(local.evaluate(req), want)
         with client.session(req) as s, local.session(req) as ls:
-            same(s.evaluate(req.q), want)
-            same(ls.evaluate(req.q), want)
+            same_evaluation(s.evaluate(req.q), want)
+            same_evaluation(ls.evaluate(req.q), want)
             # Another mode than the opening request's, per call.
             for kw in ({"hessian_mode": "psd"}, {"outputs": ("energy",), "active_only": True}):
                 other = client.evaluate(type(req)(**{**req.__dict__, **kw}))
-                same(s.evaluate(req.q, **kw), other)
-                same(ls.evaluate(req.q, **kw), other)
+                same_evaluation(s.evaluate(req.q, **kw), other)
+                same_evaluation(ls.evaluate(req.q, **kw), other)
 
 
 def test_v1_1_state_cases_are_bitwise_the_same_by_session_and_http(live):
@@ -68,8 +53,8 @@ def test_v1_1_state_cases_are_bitwise_the_same_by_session_and_http(live):
             req = _sdk_request(case["request"])
             want = client.evaluate(req)
             with client.session(req) as s, LocalClient().session(req) as ls:
-                same(s.evaluate(req.q), want)
-                same(ls.evaluate(req.q), want)
+                same_evaluation(s.evaluate(req.q), want)
+                same_evaluation(ls.evaluate(req.q), want)
                 # The opened coordinates are the state at q_prev: prev_coordinate where it is given, kept as
                 # (prev_coordinate - offset) + offset, so within one rounding of each (an ulp of the larger).
                 for b, coords in zip(req.batches, s.coordinates):
@@ -97,7 +82,7 @@ def test_async_session_has_the_same_numbers(live):
 
     async def run():
         async with AsyncClient(live).session(req) as s:
-            same(await s.evaluate(req.q), want)
+            same_evaluation(await s.evaluate(req.q), want)
             coords = await s.commit(req.q)
             with pytest.raises(InvalidInput) as e:
                 await s.evaluate(req.q[:2])
@@ -110,7 +95,7 @@ def test_async_session_has_the_same_numbers(live):
     with LocalClient().session(req) as ls:
         ls.commit(req.q)
         ls.update(0, [1], upper=[2.0])
-        same(after, ls.evaluate(req.q, outputs=("energy",)))
+        same_evaluation(after, ls.evaluate(req.q, outputs=("energy",)))
 
     async def awaited():
         s = await AsyncClient(live).session(req)
@@ -119,7 +104,7 @@ def test_async_session_has_the_same_numbers(live):
         finally:
             await s.close()
 
-    same(asyncio.run(awaited()), want)
+    same_evaluation(asyncio.run(awaited()), want)
 
 
 def test_the_bearer_token_on_the_upgrade():
@@ -188,7 +173,7 @@ def test_a_client_that_disappears_is_closed_by_the_idle_timer_and_reopens():
         s.reopen()
         with Client(url).session(req) as ref:
             ref.commit(q)
-            same(s.evaluate(q), ref.evaluate(q))
+            same_evaluation(s.evaluate(q), ref.evaluate(q))
         s.close()
 
 
@@ -209,7 +194,7 @@ def test_reopening_after_a_dropped_connection_loses_nothing(live):
         s.reopen()
         assert np.array_equal(s.q_prev, q)
         q[2] = pose(4.2)
-        same(s.evaluate(q), ref.evaluate(q))
+        same_evaluation(s.evaluate(q), ref.evaluate(q))
         assert s.commit(q)[0].tobytes() == ref.commit(q)[0].tobytes()
         # The committed angle is the true one (past pi), not its wrapped value.
         assert abs(s.coordinates[0][1] - 3.5) < 1e-12
@@ -259,7 +244,7 @@ def test_async_session_reopens_after_a_drop(live):
             q[2] = pose(0.5 * k)
             ref.commit(q)
         q[2] = pose(4.2)
-        same(got, ref.evaluate(q))
+        same_evaluation(got, ref.evaluate(q))
         assert coords[0].tobytes() == ref.commit(q)[0].tobytes()
 
 
@@ -301,7 +286,7 @@ def test_sessions_take_what_evaluate_takes_and_answer_per_joint(live):
     for client in (Client(live), Client(live, binary=False), LocalClient()):
         with client.session(body) as s:
             q = np.asarray(body["bodies"]["q"], dtype=np.float64)
-            same(s.evaluate(q), want)
+            same_evaluation(s.evaluate(q), want)
             ev = s.evaluate(q, active_only=True)
             for r, w in zip(ev.batches, want.batches):
                 assert r.size == w.size == len(w.x)

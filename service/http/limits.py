@@ -15,7 +15,7 @@ from collections.abc import Callable
 from fastapi import Request
 
 from jointlimits.service.http.errors import too_large as _too_large
-from jointlimits.service.http.timeouts import CHUNK_BYTES, CHUNKS, MIN_CHUNKS
+from jointlimits.service.http.timeouts import CHUNK_BYTES, CHUNKS, MIN_CHUNKS, too_many_pieces
 from jointlimits.schemas.answer import BATCH_OVERHEAD_BYTES, FLOATS_PER_JOINT, answer_bytes  # noqa: F401 (re-exported)
 from jointlimits.service.settings import Settings
 
@@ -33,7 +33,7 @@ async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool
         size += len(chunk)
         if size > max_bytes:
             raise _too_large(("body",), f"request body exceeds {max_bytes} bytes, the most this service accepts")
-        if chunks_in is not None and chunks_in[0] > MIN_CHUNKS + size // CHUNK_BYTES:
+        if chunks_in is not None and too_many_pieces(chunks_in[0], size):
             raise _too_large(("body",), f"request body arrived in {chunks_in[0]} chunks for {size} bytes; this service "
                              f"reads {MIN_CHUNKS} chunks, then one per {CHUNK_BYTES} bytes: send it with Content-Length "
                              "or in larger chunks")

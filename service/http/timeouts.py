@@ -72,6 +72,12 @@ Unbounded, uvicorn read on after each answer: one connection pipelining `GET /he
 640 MiB and 10 s of CPU in 10 s, answering 41 of them."""
 
 
+def too_many_pieces(pieces: int, size: int) -> bool:
+    """A body in `pieces` chunks, or a message in `pieces` frames, of `size` bytes in all: past `MIN_CHUNKS`, then one
+    per `CHUNK_BYTES`."""
+    return pieces > MIN_CHUNKS + size // CHUNK_BYTES
+
+
 def _answer(status: bytes, msg: str, type: str, *headers: bytes) -> bytes:
     """An HTTP/1.1 answer with a one-fault list at the header, closing the connection. Written here, not by
     `errors.render`: `jointlimits serve`'s supervisor imports this module and never the core (nor NumPy)."""
@@ -259,7 +265,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     def on_chunk_header(self) -> None:
         chunks = self._chunks
         chunks[0] += 1
-        if chunks[0] > MIN_CHUNKS + chunks[1] // CHUNK_BYTES:
+        if too_many_pieces(*chunks):
             self.cycle.message_event.set()  # the application wakes to refuse the body (`limits.read_body`)
             self._refuse("body_chunks", b"")
             raise _Cut  # the rest is not parsed
@@ -435,7 +441,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
         # And ~6 us of websockets' parse: frames are bounded as a chunked body's chunks are (the rest is drained).
         n, size = (0, 0) if first else self._frames_in
         self._frames_in = n + 1, size + len(event.data)
-        if n + 1 > MIN_CHUNKS + (size + len(event.data)) // CHUNK_BYTES and not self.draining:
+        if too_many_pieces(*self._frames_in) and not self.draining:
             self._close_and_drain(1009, f"message in more than {n} frames for {size} bytes; this service reads "
                                         f"{MIN_CHUNKS} frames, then one per {CHUNK_BYTES} bytes: send larger frames")
 

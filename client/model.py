@@ -141,6 +141,12 @@ class JointBatch:
     def __len__(self) -> int:
         return int(np.shape(self.body_ids)[0])
 
+    def key(self, row: int) -> tuple:
+        """Which joint row `row` is, as its `Joint` handle knows it: body_ids, edge (nested lists), origin; not its
+        limits, strength or offset (a `Robot` rebuilds the same joints with others)."""
+        edges = self.edges if self.edges is not None else self.local_edges
+        return tuple(self.body_ids[row].tolist()), edges[row].tolist(), self.origin  # type: ignore[index]
+
 
 @dataclass
 class Request:
@@ -217,8 +223,7 @@ class Joint(int):
     It is the joint's row in its batch (an `int`: `result.batch(670).energy[j]` indexes rows) and
     knows its `constitution_uid` and its batch's position in the request, so `result.joint(j)` finds
     it whatever the batch (a scene with world and body-local edges, or both origins, has several
-    batches of one constitution); and which joint it is (`key`: body_ids, edge, origin), so another
-    scene's answer, whose row there is another joint, is refused rather than read.
+    batches of one constitution), and which joint it is (`JointBatch.key`): another scene's row is not read.
     """
 
     constitution_uid: int
@@ -236,12 +241,6 @@ class Joint(int):
     def __repr__(self) -> str:
         at = "" if self.batch is None else f", batch={self.batch}"
         return f"Joint({int(self)}, constitution_uid={self.constitution_uid}{at})"
-
-
-def joint_key(body_ids: tuple[int, ...], edge: np.ndarray, origin: str) -> tuple:
-    """Which joint a row is: its bodies, its edge ((2, 3) world or (2, 2, 3) local, nested lists) and origin, not its
-    limits, strength or offset (a `Robot` rebuilds the same joints with others). Exact: the numbers the scene got."""
-    return body_ids, edge.tolist(), origin
 
 
 @dataclass(frozen=True, repr=False)
@@ -369,17 +368,13 @@ class Evaluation:
             if not 0 <= j.batch < len(self.batches) or self.batches[j.batch].constitution_uid != j.constitution_uid:
                 raise KeyError(f"{j!r} is not a joint of this answer's request (its batch {j.batch} is not one of "
                                f"constitution {j.constitution_uid}): pass the handle of the Scene that made it")
+            found = self.batches[j.batch].joint(j)  # first: IndexError past the batch
             mine = getattr(self, "_request_batches", None)  # None: an Evaluation no client made
-            if j.key is not None and mine is not None and j < len(mine[j.batch]):
-                b, row = mine[j.batch], int(j)
-                edge = (b.edges if b.edges is not None else b.local_edges)[row]
-                key = joint_key(tuple(b.body_ids[row].tolist()), edge, b.origin)
-                if key != j.key:
-                    ids = key[0] != j.key[0]
-                    what = f"body_ids {list(key[0])}, not {list(j.key[0])}" if ids else "its edge or origin"
-                    raise KeyError(f"{j!r} is not a joint of this answer's request (its row there is another joint: "
-                                   f"{what}): pass the handle of the Scene that made it, or of one of the same joints")
-            return self.batches[j.batch].joint(j)
+            if j.key is not None and mine is not None and mine[j.batch].key(j) != j.key:
+                raise KeyError(f"{j!r} is not a joint of this answer's request (its row there is another joint, "
+                               f"{mine[j.batch].key(j)}): pass the handle of the Scene that made it, or of one of "
+                               "the same joints")
+            return found
         if len(self.batches) != 1:
             raise TypeError(
                 f"joint({j!r}): a plain row is ambiguous with {len(self.batches)} batches; pass the handle "

@@ -136,7 +136,7 @@ def test_a_handle_of_another_scene_of_the_same_constitutions_is_refused(live, ho
         answer = client.evaluate(other.request())
     assert answer.batch(670).energy[0] > 0 and answer.batch(670).energy[1] == 0  # the rows differ in value
     for j in js:
-        said = f"{j!r} is not a joint of this answer's request (its row there is another joint: body_ids"
+        said = f"{j!r} is not a joint of this answer's request (its row there is another joint, ((0, {2 - j})"  # swapped
         with pytest.raises(KeyError, match=re.escape(said)):
             answer.joint(j)
     mine = LocalClient().evaluate(s.request())
@@ -161,5 +161,6 @@ def test_a_handle_of_the_same_bodies_about_another_edge_is_refused():
     s = Scene()
     a, b = s.add_body(np.eye(4)), s.add_body((np.zeros(3), rot_x(0.2)), ref=np.eye(4))
     s.add_revolute_limit(a, b, [0, 0, 0], [1, 0, 0], lower=-0.5, upper=0.5)  # about x, where js[0] is about z
-    with pytest.raises(KeyError, match="another joint: its edge or origin"):
+    said = "another joint, ((0, 1), [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], 'q_ref')"  # body_ids, edge, origin
+    with pytest.raises(KeyError, match=re.escape(said)):
         LocalClient().evaluate(s.request()).joint(js[0])

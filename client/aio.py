@@ -123,12 +123,13 @@ class AsyncSession(Exchange):
             except sys.modules["websockets.exceptions"].ConnectionClosed as e:  # loaded by "connect"
                 self._ws = None
                 raise closed_error(self.url, e) from None
-            except asyncio.TimeoutError:
-                await self._io("drop", None)
-                raise self._no_reply() from None
-            except BaseException:  # cancelled between the message and its reply: that reply would answer the next call
+            except BaseException as e:  # no reply in time, or cancelled before it (it would answer the next call)
                 ws, self._ws = self._ws, None
-                _close_soon(ws)  # not awaited: a cancellation does not wait for the close handshake
+                ws.close_timeout = 0  # given up: closed without waiting for a close handshake
+                if isinstance(e, asyncio.TimeoutError):
+                    await ws.close()
+                    raise self._no_reply() from None
+                _close_soon(ws)  # not awaited: a cancelled task awaits nothing more
                 raise
         return None
 

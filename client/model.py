@@ -141,6 +141,12 @@ class JointBatch:
     def __len__(self) -> int:
         return int(np.shape(self.body_ids)[0])
 
+    def key(self, row: int) -> tuple:
+        """Which joint row `row` is, as its `Joint` handle knows it: body_ids, edge (nested lists), origin; not its
+        limits, strength or offset (a `Robot` rebuilds the same joints with others)."""
+        edges = self.edges if self.edges is not None else self.local_edges
+        return tuple(self.body_ids[row].tolist()), edges[row].tolist(), self.origin  # type: ignore[index]
+
 
 @dataclass
 class Request:
@@ -217,20 +223,20 @@ class Joint(int):
     It is the joint's row in its batch (an `int`: `result.batch(670).energy[j]` indexes rows) and
     knows its `constitution_uid` and its batch's position in the request, so `result.joint(j)` finds
     it whatever the batch (a scene with world and body-local edges, or both origins, has several
-    batches of one constitution).
+    batches of one constitution), and which joint it is (`JointBatch.key`): another scene's row is not read.
     """
 
     constitution_uid: int
     batch: int | None
+    key: tuple | None
 
-    def __new__(cls, row: int, constitution_uid: int, batch: int | None = None) -> Joint:
+    def __new__(cls, row: int, constitution_uid: int, batch: int | None = None, key: tuple | None = None) -> Joint:
         self = super().__new__(cls, row)
-        self.constitution_uid = constitution_uid
-        self.batch = batch
+        self.constitution_uid, self.batch, self.key = constitution_uid, batch, key
         return self
 
-    def __getnewargs__(self) -> tuple[int, int, int | None]:  # pickle and copy keep the constitution
-        return int(self), self.constitution_uid, self.batch
+    def __getnewargs__(self) -> tuple[int, int, int | None, tuple | None]:  # pickle and copy keep all of it
+        return int(self), self.constitution_uid, self.batch, self.key
 
     def __repr__(self) -> str:
         at = "" if self.batch is None else f", batch={self.batch}"
@@ -340,9 +346,11 @@ class Evaluation:
         return f"Evaluation(total_energy={self.total_energy!r}, batches=[{rows}{chr(10) if rows else ''}])"
 
     def sized(self, request: Request) -> Evaluation:
-        """Itself, each batch told how many joints its request batch has (what `joint` needs under `active_only`)."""
+        """Itself, each batch told how many joints its request batch has (what `joint` needs under `active_only`),
+        and told the request's batches (what `joint` checks a handle against)."""
         for r, b in zip(self.batches, request.batches):
             r.size = len(b)
+        self._request_batches = request.batches
         if self.assembled is not None and self.assembled.n_bodies < 0:  # a session's reply does not say
             self.assembled.n_bodies = int(np.shape(request.q)[0])
         return self
@@ -360,7 +368,13 @@ class Evaluation:
             if not 0 <= j.batch < len(self.batches) or self.batches[j.batch].constitution_uid != j.constitution_uid:
                 raise KeyError(f"{j!r} is not a joint of this answer's request (its batch {j.batch} is not one of "
                                f"constitution {j.constitution_uid}): pass the handle of the Scene that made it")
-            return self.batches[j.batch].joint(j)
+            found = self.batches[j.batch].joint(j)  # first: IndexError past the batch
+            mine = getattr(self, "_request_batches", None)  # None: an Evaluation no client made
+            if j.key is not None and mine is not None and mine[j.batch].key(j) != j.key:
+                raise KeyError(f"{j!r} is not a joint of this answer's request (its row there is another joint, "
+                               f"{mine[j.batch].key(j)}): pass the handle of the Scene that made it, or of one of "
+                               "the same joints")
+            return found
         if len(self.batches) != 1:
             raise TypeError(
                 f"joint({j!r}): a plain row is ambiguous with {len(self.batches)} batches; pass the handle "

@@ -139,7 +139,7 @@ class Scene:
         key = (uid, kind, origin, prev is not None)
         rows = self._joints.setdefault(key, [])
         rows.append((ids, edge, lower, upper, *rest))
-        return Joint(len(rows) - 1, uid, list(self._joints).index(key))
+        return Joint(len(rows) - 1, uid, list(self._joints).index(key), (ids, edge.tolist(), origin))  # JointBatch.key
 
     def _check(self, uid: int, where: str, ids: tuple[int, int], kind: str, edge: np.ndarray, origin: str,
                numbers: tuple[ArrayLike, ...], prev: ArrayLike | None = None) -> list[float]:

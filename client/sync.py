@@ -145,12 +145,11 @@ class Session(Exchange):
             except sys.modules["websockets.exceptions"].ConnectionClosed as e:  # loaded by "connect"
                 self._io("drop", None)
                 raise closed_error(self.url, e) from None
-            except TimeoutError:
+            except BaseException as e:  # no reply in time, or Ctrl-C before it (it would answer the next call)
+                self._ws.close_timeout = 0  # given up: closed without waiting for a close handshake
                 self._io("drop", None)
-                raise self._no_reply() from None
-            except BaseException:  # Ctrl-C between the message and its reply: that reply would answer the next call
-                self._ws.close_timeout = min(self._ws.close_timeout or 1.0, 1.0)
-                self._io("drop", None)
+                if isinstance(e, TimeoutError):
+                    raise self._no_reply() from None
                 raise
         return None
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pickle
+import re
 
 import numpy as np
 import pytest
@@ -100,3 +101,66 @@ def test_a_handle_of_another_scene_is_refused_not_read_as_another_joint():
     with pytest.raises(KeyError, match="batch 1"):
         answer.joint(js[1])  # batch 1: the other scene has one batch
     assert answer.joint(Joint(0, 669, 0)).x == answer.batch(669).x[0]  # a handle that fits is read
+
+
+def rot_x(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def two_arms(swap: bool = False, turn: float = 0.0, strength: float = 7.0) -> tuple[Scene, list[Joint]]:
+    """Two revolute limits in [-0.5, 0.5]: bodies (0, 1) about z turned 0.2 (inside), (0, 2) about x turned 0.9
+    (0.4 above); `swap` adds them in the other order (handles still in arm order), `turn` turns both more."""
+    s = Scene()
+    a = s.add_body(np.eye(4))
+    b = s.add_body((np.zeros(3), rot_z(0.2 + turn)), ref=np.eye(4))
+    c = s.add_body((np.zeros(3), rot_x(0.9 + turn)), ref=np.eye(4))
+    arms = [lambda: s.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5),
+            lambda: s.add_revolute_limit(a, c, [0, 0, 0], [1, 0, 0], lower=-0.5, upper=0.5, strength=strength)]
+    js = [add() for add in (arms[::-1] if swap else arms)]
+    return s, js[::-1] if swap else js
+
+
+@pytest.mark.parametrize("how", ["local", "binary", "json", "split", "session", "local session"])
+def test_a_handle_of_another_scene_of_the_same_constitutions_is_refused(live, how):
+    """Batch 0 is #670 in both scenes, so the batch and constitution checks pass: only the joint at the
+    handle's row tells them apart. Before the fix the first arm's handle read the second arm's numbers."""
+    s, js = two_arms()
+    other, theirs = two_arms(swap=True)
+    client = LocalClient() if how.startswith("local") else Client(
+        live, binary=how != "json", max_joints_per_request=1 if how == "split" else None)
+    if how.endswith("session"):
+        with client.session(other.request()) as session:
+            answer = session.evaluate(other.request().q)
+    else:
+        answer = client.evaluate(other.request())
+    assert answer.batch(670).energy[0] > 0 and answer.batch(670).energy[1] == 0  # the rows differ in value
+    for j in js:
+        said = f"{j!r} is not a joint of this answer's request (its row there is another joint, ((0, {2 - j})"  # swapped
+        with pytest.raises(KeyError, match=re.escape(said)):
+            answer.joint(j)
+    mine = LocalClient().evaluate(s.request())
+    assert [answer.joint(k).energy for k in theirs] == [mine.joint(j).energy for j in js]
+    assert mine.joint(js[1]).energy == pytest.approx(7.0 * 0.4**3, rel=1e-13)
+
+
+def test_the_same_joints_rebuilt_are_read_by_the_first_scenes_handles():
+    """A new Scene of the same joints (other poses and strength: the joints are the same), as `Robot` builds one
+    per call while keeping the first one's handles, answers those handles, pickled ones too."""
+    _, js = two_arms()
+    again, mine = two_arms(turn=0.4, strength=3.0)
+    answer = LocalClient().evaluate(again.request(active_only=True))
+    assert [answer.joint(j).energy for j in js] == [answer.joint(k).energy for k in mine]
+    # x - upper = 0.6 - 0.5: x's few ulps of 0.6 are ~1e-15 of 0.1, ~3e-15 of its cube (default strength 1).
+    assert answer.joint(js[0]).energy == pytest.approx(0.1**3, rel=1e-13)  # the turn made the first arm active
+    assert answer.joint(pickle.loads(pickle.dumps(js[1]))).energy == pytest.approx(3.0 * 0.8**3, rel=1e-13)
+
+
+def test_a_handle_of_the_same_bodies_about_another_edge_is_refused():
+    _, js = two_arms()
+    s = Scene()
+    a, b = s.add_body(np.eye(4)), s.add_body((np.zeros(3), rot_x(0.2)), ref=np.eye(4))
+    s.add_revolute_limit(a, b, [0, 0, 0], [1, 0, 0], lower=-0.5, upper=0.5)  # about x, where js[0] is about z
+    said = "another joint, ((0, 1), [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], 'q_ref')"  # body_ids, edge, origin
+    with pytest.raises(KeyError, match=re.escape(said)):
+        LocalClient().evaluate(s.request()).joint(js[0])

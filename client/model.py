@@ -144,8 +144,8 @@ class JointBatch:
     def key(self, row: int) -> tuple:
         """Which joint row `row` is, as its `Joint` handle knows it: body_ids, edge (nested lists), origin; not its
         limits, strength or offset (a `Robot` rebuilds the same joints with others)."""
-        edges = self.edges if self.edges is not None else self.local_edges
-        return tuple(self.body_ids[row].tolist()), edges[row].tolist(), self.origin  # type: ignore[index]
+        edges = self.edges if self.edges is not None else self.local_edges  # array-likes: a batch built by hand
+        return tuple(np.asarray(self.body_ids)[row].tolist()), np.asarray(edges)[row].tolist(), self.origin
 
 
 @dataclass

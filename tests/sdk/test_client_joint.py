@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 import re
 
 import numpy as np
 import pytest
 
-from jointlimits.client import Client, Joint, LocalClient, Scene
+from jointlimits.client import Client, Joint, JointBatch, LocalClient, Scene
 from tests.http.test_contract_live import live  # noqa: F401 (fixture)
 
 
@@ -164,3 +165,18 @@ def test_a_handle_of_the_same_bodies_about_another_edge_is_refused():
     said = "another joint, ((0, 1), [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], 'q_ref')"  # body_ids, edge, origin
     with pytest.raises(KeyError, match=re.escape(said)):
         LocalClient().evaluate(s.request()).joint(js[0])
+
+
+def test_a_request_built_by_hand_of_plain_lists_is_checked_too():
+    """A `JointBatch` made by its constructor keeps the caller's lists: the check reads them as arrays (it raised
+    AttributeError on `list.tolist` before), and tells the same joint from another."""
+    s, js = two_arms()
+    built = s.request()
+    b = built.batches[0]
+    by_hand = JointBatch(670, b.body_ids.tolist(), b.edges.tolist(), b.lower.tolist(), b.upper.tolist(),
+                         b.strength.tolist())
+    answer = LocalClient().evaluate(dataclasses.replace(built, batches=[by_hand]))
+    assert [answer.joint(j).energy for j in js] == [LocalClient().evaluate(built).joint(j).energy for j in js]
+    swapped = dataclasses.replace(by_hand, body_ids=by_hand.body_ids[::-1], edges=by_hand.edges[::-1])
+    with pytest.raises(KeyError, match="another joint"):
+        LocalClient().evaluate(dataclasses.replace(built, batches=[swapped])).joint(js[0])

@@ -331,10 +331,11 @@ def handshake_error(url: str, e: Exception) -> Exception:
         if status == 404 or not is_fault_list(body):
             return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade", 404)
         return codec.error(status, body)
+    # Refused, unresolvable, no answer within the open timeout, or closed before any answer (`evaluate` retries it)
+    if isinstance(e, (OSError, TimeoutError)) or isinstance(e.__cause__, EOFError):
+        return Unreachable(url, 1, e)
     if isinstance(e, (InvalidHandshake, InvalidMessage)):  # a server that speaks something else (HTTP/1.0, TLS, ...)
         return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})", 404)
-    if isinstance(e, (OSError, TimeoutError)):  # refused, unresolvable host, no answer within the open timeout
-        return Unreachable(url, 1, e)
     # The connection lost during the handshake (websockets' ConnectionClosed, or its reader's race with a refusal's
     # close): nothing was opened, so the opening is tried again, as after a drop.
     return SessionClosed(url, None, "", f"not opened ({type(e).__name__}: {e})", resumable=True)

@@ -49,8 +49,8 @@ class Limits(BaseModel):
     )
     max_json_values: int | None = Field(
         None,
-        description="Most values (commas + 1, or twice its lists and objects where more) in a JSON body, counted before "
-        "parsing (JOINTLIMITS_MAX_JSON_VALUES).",
+        description="Most values (commas + 1, or twice its lists and objects, or 8 times its keys, where more) in a JSON "
+        "body, counted before parsing (JOINTLIMITS_MAX_JSON_VALUES).",
     )
 
 

@@ -82,7 +82,7 @@ class Settings:
     )
     max_json_values: int = _setting(
         2_000_000, positive_int,
-        "most values in a JSON body (commas + 1, or twice its lists and objects where more); more answers 413 before parsing",
+        "most values in a JSON body (commas + 1, 2 x lists and objects, or 8 x keys: the most); more answers 413 unparsed",
     )
     request_timeout: float = _setting(
         60.0, positive_float, "seconds an evaluation may take (parse, core, encode); past it 503 with Retry-After"

@@ -82,20 +82,21 @@ def check_batches(n_batches: int, max_batches: int, counted_by: str = "") -> Non
 def check_json(text: bytes, max_values: int, max_batches: int | None = None) -> int:
     """Refuse a JSON text whose parse would cost too much, before parsing it (C-speed counts); returns the bound
     on its values: its commas + 1 (every value but the last of each list or object is followed by a comma), or twice
-    its lists and objects + 1 where more. Nested lists hold values no comma counts (1e6 `[[[[[[[[0]]]]]]]]` took a
-    worker to 993 MiB and the GIL for 8-10 s), and a list costs the parse 3 to 7 numbers (0.45-1.07 us against
-    0.08-0.15 us); a request has one per 2.75 commas at most (joints on one body pair): its count is its commas.
+    its lists and objects + 1, or 8 times its colons (keys) + 1, where more. Nested lists hold values no comma counts
+    (1e6 `[[[[[[[[0]]]]]]]]` took a worker to 993 MiB and the GIL for 8-10 s): a list costs the parse 3 to 7 numbers,
+    a key 1 to 4 lists (2e6 keys 2.3-2.7 s, 5.4 s in a list, which `convert.load` reads twice; 1e6 lists 0.7-1.2 s).
+    A request has a list per 2 commas at most (`local_edges`), a dozen keys per batch: near the bound, its commas.
 
     `max_batches` (a request document): each batch is an object, so it has a `{` (the document and `bodies` have
     the two others; a `{` inside a string, which only a session opening's `id` may hold in a valid document,
     overcounts)."""
     braces = text.count(b"{")
-    values = max(text.count(b","), 2 * (braces + text.count(b"["))) + 1
+    values = max(text.count(b","), 2 * (braces + text.count(b"[")), 8 * text.count(b":")) + 1
     if values > max_values:
         raise _too_large(
             ("body",),
-            f"the JSON body holds up to {values} values (counted by its commas and brackets); this service parses at "
-            f"most {max_values} per JSON request (JOINTLIMITS_MAX_JSON_VALUES): send msgpack "
+            f"the JSON body holds up to {values} values (counted by its commas, brackets and keys); this service "
+            f"parses at most {max_values} per JSON request (JOINTLIMITS_MAX_JSON_VALUES): send msgpack "
             "(Content-Type: application/msgpack, no per-value cost), or split the request",
         )
     if max_batches is not None:

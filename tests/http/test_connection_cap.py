@@ -6,15 +6,19 @@ from __future__ import annotations
 
 import json
 import socket
+import struct
 import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+import httpx
 import pytest
 
 from jointlimits.client import Client, LocalClient
+from jointlimits.service.http import timeouts
 from jointlimits.service.http.errors import RETRY_AFTER_SECONDS
+from jointlimits.service.http.timeouts import MAX_LINGERING, REFUSED_LINGER
 from jointlimits.service.settings import Settings
 from tests import inprocess
 from tests.drills import scraped
@@ -153,3 +157,79 @@ def test_a_client_that_sends_at_once_reads_the_503_not_a_reset(live):
                 s.settimeout(10)
                 got = b"".join(iter(lambda: s.recv(65536), b""))  # to the server's FIN; a reset raises
                 assert_busy(got)
+
+
+def lingering() -> int:
+    return timeouts.ReadTimeoutProtocol.lingering
+
+
+def wait_for(what, want: int, seconds: float = 10) -> int:
+    deadline = time.monotonic() + seconds
+    while what() != want and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return what()
+
+
+def test_refused_connections_linger_at_most_max_lingering_and_leave_no_count_behind(live):
+    """Clients past the cap that never close: `MAX_LINGERING` of them linger (the rest are closed at once), each
+    reads its 503, and the server closes every one after `REFUSED_LINGER` by itself. Then cycles of every way a
+    connection ends (a refused one closed, reset, never closed; a 431 that lingers; a session closed and reset; an
+    upgrade refused): the worker's connection set, its lingering count and its head bytes come back to what they
+    were, none negative or leaked."""
+    with at_the_cap(live):
+        flood = [socket.create_connection(("127.0.0.1", live.port)) for _ in range(MAX_LINGERING + 8)]
+        assert wait_for(lingering, MAX_LINGERING) == MAX_LINGERING  # the 8 past them: closed at once
+        for s in flood:  # the answer, then the server's FIN (its half-close)
+            after, got = wait_closed(s, 5)
+            assert after is not None
+            assert_busy(got)
+        # The clients never close: the server closes each itself, after REFUSED_LINGER.
+        assert wait_for(lingering, 0, REFUSED_LINGER + 2) == 0 and live.connections() == CAP
+        for s in flood:
+            s.close()
+    settle(live, 0)
+    reset = struct.pack("ii", 1, 0)  # SO_LINGER 0: close() sends a reset
+    kept = []
+    for cycle in range(3):
+        with at_the_cap(live):
+            for _ in range(MAX_LINGERING // 2):
+                s = socket.create_connection(("127.0.0.1", live.port))
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, reset)
+                s.close()
+                socket.create_connection(("127.0.0.1", live.port)).close()
+                kept.append(socket.create_connection(("127.0.0.1", live.port)))
+            for s in kept[-(MAX_LINGERING // 2):]:  # refused, all of them, before the cap is freed
+                s.settimeout(10)
+                assert s.recv(12) == b"HTTP/1.1 503"
+        settle(live, 0)
+        big = socket.create_connection(("127.0.0.1", live.port))  # a 431, lingering within the cap
+        big.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX: " + b"a" * (70 * 1024))
+        ws, head = inprocess.upgrade(live.port)  # a session, its client then gone without a close frame
+        assert head.startswith(b"HTTP/1.1 101 ")
+        (ws.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, reset) if cycle % 2 else None), ws.close()
+        refused, head = inprocess.upgrade(live.port, headers={"Sec-WebSocket-Version": "8"})
+        assert not head.startswith(b"HTTP/1.1 101 "), head
+        refused.close()
+        assert b" 431 " in wait_closed(big, 10)[1].split(b"\r\n")[0]
+        big.close()
+    for s in kept:
+        s.close()
+    settle(live, 0)
+    assert wait_for(lingering, 0) == 0 and timeouts.ReadTimeoutProtocol.heads_held == 0
+
+
+def test_a_refused_client_sending_a_large_body_for_longer_than_the_linger_reads_the_503(live):
+    """The body keeps coming after `REFUSED_LINGER`, when the server closes: the client's next write is reset, and
+    it still reads the 503 sent at accept (httpx reads the answer after a failed write)."""
+    def body():
+        for _ in range(40):  # 2.5 MiB over ~2 s
+            yield b"0" * 65536
+            time.sleep(0.05)
+
+    with at_the_cap(live):
+        t0 = time.monotonic()
+        r = httpx.post(f"http://127.0.0.1:{live.port}/v1/evaluate", content=body(),
+                       headers={"content-type": "application/json"}, timeout=10)
+        assert time.monotonic() - t0 > REFUSED_LINGER  # the body was still being sent when the server closed
+        assert r.status_code == 503 and r.headers["retry-after"] == "5"
+        assert r.json()["detail"][0]["type"] == "busy"

@@ -191,6 +191,44 @@ def test_a_proxys_page_to_the_upgrade_is_unreachable_and_resumable():
         assert resumable(closed_error("ws://x", lost)) == expected, code
 
 
+def test_an_upgrade_the_server_hangs_up_on_is_tried_again_as_evaluate_does():
+    """A server that closes the connection before any answer to the upgrade (a worker stopping between its accept
+    and the request's read, a balancer's replica going away): websockets raises `InvalidMessage` from an
+    `EOFError`. `evaluate` retries the same drop (httpx's `RemoteProtocolError`) and raises `Unreachable`; a session
+    opening said `WrongURL` ("no joint-limit service") at once, not tried again. Now as `evaluate`: each client
+    tries `retries` more times, then raises `Unreachable` (resumable); a server that answers something else is
+    still `WrongURL` (test_client_unreachable.py)."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(16)
+    accepted = []
+
+    def hang_up() -> None:
+        while True:
+            try:
+                c, _ = server.accept()
+            except OSError:
+                return
+            accepted.append(c.recv(65536))  # the whole upgrade request, then a FIN: no answer
+            c.close()
+
+    threading.Thread(target=hang_up, daemon=True).start()
+    url, req = f"http://127.0.0.1:{server.getsockname()[1]}", chain()[0]
+    try:
+        with pytest.raises(Unreachable) as e:
+            Client(url, retries=2, backoff=0.01).session(req)
+        assert resumable(e.value) and len(accepted) == 3 and all(b"Upgrade: websocket" in a for a in accepted)
+
+        async def opened():
+            await AsyncClient(url, retries=1, backoff=0.01).session(req)
+
+        with pytest.raises(Unreachable):
+            asyncio.run(opened())
+        assert len(accepted) == 5
+    finally:
+        server.close()
+
+
 def test_the_three_clients_take_the_same_session_arguments():
     """`resume` is a keyword of every client's `session` (the local one has no connection to lose)."""
     import inspect

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
 import socket
 import struct
 import sys
@@ -47,7 +48,8 @@ client sent behind it before it read the close (tests/http/test_session_closes.p
 SHUTDOWN_REASON = "the server is shutting down: reopen the session (another worker or pod answers)"
 _PONG = b"\x8a"  # the first byte of a server's pong frame (FIN, opcode 0xA; no extensions are negotiated)
 MAX_HEAD_BYTES = 64 * 1024
-"""Bytes a request line and its headers may take (the deadline bounds their time only): past it, 431 and closed.
+"""Bytes a request line and its headers may take (the deadline bounds their time only), from the head's first byte
+(not a body or a request ahead of it in the same read): past it, 431 and closed.
 httptools joins a header's or a URL's pieces by copying them, so an unbounded head costs memory and quadratic time:
 one connection streaming a header for the 10 s deadline took a worker from 69 to 533 MiB and stalled it 5.5 s."""
 MAX_HEADS_HELD = 16 * 2**20
@@ -245,6 +247,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self._head_timer = _Timer(self.loop, self._head_expired)
         self._head_bytes, self._head_size = False, 0  # bytes of the current head have arrived (any; how many)
         self._in_head = False  # the parser is inside a request's head (not in the rest of an answered one's body)
+        self._read, self._at, self._tail = b"", 0, b""  # the read being parsed; where in it the head began (or the
+        # parser is: never past it); the last 3 bytes read before it (a head's blank line may straddle two reads)
 
     def on_message_begin(self) -> None:
         if len(self.pipeline) >= MAX_PIPELINED:
@@ -252,6 +256,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             raise _Cut  # httptools stops here: the rest of this read is dropped (`send_400_response`)
         super().on_message_begin()
         self._in_head = True
+        self._at = _HEAD_START.search(self._read, self._at).start()  # llhttp skips CR and LF between requests
         if self._head_timer.handle is None:  # a pipelined head: its deadline too
             self._head_timer.start(self.header_timeout)  # type: ignore[arg-type]
         self._chunks = [0, 0]
@@ -261,6 +266,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     def on_body(self, body: bytes) -> None:
         super().on_body(body)
         self._chunks[1] += len(body)
+        self._at += len(body)  # exact for a Content-Length body; a chunked one's sizes and CRLFs are not counted
 
     def on_chunk_header(self) -> None:
         chunks = self._chunks
@@ -290,12 +296,16 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         if self._head_timer.handle is None and (self.cycle is None or self.cycle.response_complete):
             self._arm()  # the first bytes of the next request on a keep-alive connection
         self._head_bytes = True
+        self._read, self._at = data, 0
         super().data_received(data)
+        self._read, self._tail = b"", (self._tail + data[-3:])[-3:]
         # Still in a head: the rest of a body answered early (a 413 on its declared size) is no head, though
-        # the timer is armed for the next request once the answer is complete.
+        # the timer is armed for the next request once the answer is complete. Of this read, only the bytes from
+        # where the head began count (`_at`: 0 if it began in an earlier read), not the requests before it.
         if self._in_head and not self.transport.is_closing():
-            self._head_size += len(data)  # counted after the parse: at most one read past the bound is held
-            ReadTimeoutProtocol.heads_held += len(data)
+            held = len(data) - self._at  # counted after the parse: at most one read past the bound is held
+            self._head_size += held
+            ReadTimeoutProtocol.heads_held += held
             if self._head_size > MAX_HEAD_BYTES:
                 msg = f"request line and headers exceed {MAX_HEAD_BYTES} bytes, the most this service reads"
                 self._refuse("head_too_large", _answer(b"431 Request Header Fields Too Large", msg, "too_large"))
@@ -305,6 +315,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
 
     def on_headers_complete(self) -> None:
         self._in_head = False
+        self._at = _head_end(self._tail, self._read, self._at)
         self._head_timer.stop()
         self._drop_head()
         super().on_headers_complete()
@@ -352,6 +363,19 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             log.debug("request head not complete within %s s: closing %s", self.header_timeout, self.client)
             reason, answer = ("slow_head", _408) if self._head_bytes else ("silent", b"")
             self._refuse(reason, answer)
+
+
+_HEAD_START = re.compile(rb"[^\r\n]")
+
+
+def _head_end(tail: bytes, data: bytes, at: int) -> int:
+    """Where in `data` a head ends that began at `at` (0: maybe in an earlier read, whose last bytes are `tail`):
+    past the first CRLF CRLF (llhttp is strict: a line ends in CRLF, a head at its first blank line). Never past
+    the true end when `at` is not past the true start (a lower bound after a chunked body: an over-count, safe)."""
+    if at == 0 and (i := (tail + data[:3]).find(b"\r\n\r\n")) >= 0:
+        return i + 4 - len(tail)
+    i = data.find(b"\r\n\r\n", at)
+    return at if i < 0 else i + 4
 
 
 class _Queue(asyncio.Queue):  # type: ignore[type-arg]

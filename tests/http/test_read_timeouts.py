@@ -357,3 +357,25 @@ def test_a_body_in_tiny_chunks_gets_413_once_its_chunks_outrun_its_bytes(port):
         s.sendall(HEAD + b"Transfer-Encoding: chunked\r\n\r\n" + chunked(body, timeouts.CHUNK_BYTES))
         s.settimeout(10)
         assert s.recv(12) == b"HTTP/1.1 200"
+
+
+def test_a_pipelined_head_counts_only_its_own_bytes_not_a_body_or_a_head_before_it(port):
+    """An honest client pipelines a POST whose body is larger than the head's bound, or a request with a large head,
+    and the next request, in one write; the read ends inside the next head. Only that head's bytes count toward
+    `MAX_HEAD_BYTES` (and `MAX_HEADS_HELD`). The whole read was counted: the next head got 431 (the connection closed
+    after the first answer). Each write is under 100 kB, which loopback hands over in one read (asyncio reads up to
+    256 KiB); however the reads fall, each request gets its own answer."""
+    body = json.dumps(_json()).encode() + b" " * (timeouts.MAX_HEAD_BYTES + 16_000)  # JSON allows trailing spaces
+    near = b"X-Near: " + b"a" * (timeouts.MAX_HEAD_BYTES - 200) + b"\r\n"
+    pad = b"X-Pad: " + b"a" * 4000  # the next head's unfinished header
+    before = closed_counted(port, "head_too_large")
+    for first in (HEAD + f"Content-Length: {len(body)}\r\n\r\n".encode() + body,  # a body past the bound
+                  GET[:-2] + near + b"\r\n"):  # a complete head within the bound, nearly at it
+        with socket.create_connection(("127.0.0.1", port)) as s:
+            s.sendall(first + GET[:-2] + pad)  # the next head, unfinished
+            time.sleep(0.3)  # read and parsed
+            s.sendall(b"\r\nConnection: close\r\n\r\n")
+            _, got = wait_closed(s, HEADER_TIMEOUT + 10)
+        assert [h[:4] for h in answers(got)] == [b"200 ", b"200 "], got[:300]
+    assert closed_counted(port, "head_too_large") == before
+    assert timeouts.ReadTimeoutProtocol.heads_held == 0

@@ -34,6 +34,9 @@ from jointlimits.service.settings import Settings
 from jointlimits.service.sizing import UPLOAD_FACTOR
 
 BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `errors.client_gone`
+RETRY_AFTER_SECONDS = 5
+"""`Retry-After` of every 503 (busy, past the request deadline; `errors` takes it from here, the supervisor's module
+that imports nothing of the core): the worker is free again at once, a busy pod soon."""
 DRAIN = "jointlimits.drain"
 """Key in a connection's ASGI scope `extensions` of its `Drain` (absent in-process: TestClient, no transport)."""
 OPENED = "jointlimits.opened"
@@ -90,7 +93,8 @@ def _answer(status: bytes, msg: str, type: str, *headers: bytes) -> bytes:
 
 def _busy(what: str) -> bytes:
     """503 `busy` with `Retry-After`, as the worker's other budgets answer (`errors.busy`)."""
-    return _answer(b"503 Service Unavailable", f"{what}: retry after Retry-After seconds", "busy", b"retry-after: 5")
+    retry = b"retry-after: %d" % RETRY_AFTER_SECONDS
+    return _answer(b"503 Service Unavailable", f"{what}: retry after Retry-After seconds", "busy", retry)
 
 
 _408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"

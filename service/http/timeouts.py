@@ -64,12 +64,16 @@ REFUSED_LINGER, MAX_LINGERING = 1.0, 32
 the client reads the answer rather than a reset; it closes as soon as the client does. At most `MAX_LINGERING` of a
 worker's at once (within `cli.FD_RESERVE`): past them, a flood's are closed at once."""
 MIN_CHUNKS, CHUNK_BYTES = 1024, 256
-"""A chunked body may arrive in `MIN_CHUNKS` chunks, then one per `CHUNK_BYTES` bytes; past it, nothing more is read,
-the request is answered 413 (`limits.read_body`) and the connection closed. Each chunk is a Python call in uvicorn:
-1-byte chunks took 0.39 us of CPU per byte (16 x Content-Length's), and the worker's other clients waited 0.4 s per
-request (6 ms alone) for the body deadline, 5 s while the rest of a refused body was read."""
+"""A body may arrive in `MIN_CHUNKS` pieces (chunks; without chunking, reads), then one per `CHUNK_BYTES` bytes; past
+it, nothing more is read, the request is answered 413 (`limits.read_body`) and the connection closed. Each piece is
+Python calls in uvicorn: 1-byte chunks took 0.39 us of CPU per byte (16 x Content-Length's), and the worker's other
+clients waited 0.4 s per request (6 ms alone) for the body deadline, 5 s while the rest of a refused body was read;
+1-byte writes (TCP_NODELAY) of a Content-Length body 2.2 us a byte, 41% of a core for the deadline. An
+honest body is never refused: a TCP segment carries at least 536 bytes (IPv4's smallest MSS; 1460 on Ethernet) but
+the last of a write, and a read takes every segment that has arrived, so reads are smaller than 256 bytes only from
+a client writing pieces smaller than that with Nagle's algorithm off."""
 CHUNKS = "jointlimits.chunks"
-"""Key in an HTTP request's scope `extensions` of its body's chunks and bytes so far (a two-item list)."""
+"""Key in an HTTP request's scope `extensions` of its body's pieces and bytes so far (a two-item list)."""
 MAX_PIPELINED = 16
 """Requests one connection may send ahead of the one being answered (HTTP/1.1 pipelining): the next one is not read,
 and the connection is closed after the answers owed (RFC 9112 9.3.2: the client resends what was not answered).
@@ -263,7 +267,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self._at = _HEAD_START.search(self._read, self._at).start()  # llhttp skips CR and LF between requests
         if self._head_timer.handle is None:  # a pipelined head: its deadline too
             self._head_timer.start(self.header_timeout)  # type: ignore[arg-type]
-        self._chunks = [0, 0]
+        self._chunks, self._chunked = [0, 0], False
         extensions = {**self.scope.get("extensions", {}), DRAIN: self.drain, OPENED: self.opened, CHUNKS: self._chunks}
         self.scope["extensions"] = extensions  # type: ignore[typeddict-item]
 
@@ -271,9 +275,12 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         super().on_body(body)
         self._chunks[1] += len(body)
         self._at += len(body)  # exact for a Content-Length body; a chunked one's sizes and CRLFs are not counted
+        if not self._chunked:  # each read of a Content-Length body is a piece
+            self.on_chunk_header(chunked=False)
 
-    def on_chunk_header(self) -> None:
-        chunks = self._chunks
+    def on_chunk_header(self, chunked: bool = True) -> None:
+        """One more piece of the body: a chunk begins (or, `chunked` False, a read of a Content-Length body)."""
+        chunks, self._chunked = self._chunks, chunked
         chunks[0] += 1
         if too_many_pieces(*chunks):
             self.cycle.message_event.set()  # the application wakes to refuse the body (`limits.read_body`)

@@ -379,3 +379,39 @@ def test_a_pipelined_head_counts_only_its_own_bytes_not_a_body_or_a_head_before_
         assert [h[:4] for h in answers(got)] == [b"200 ", b"200 "], got[:300]
     assert closed_counted(port, "head_too_large") == before
     assert timeouts.ReadTimeoutProtocol.heads_held == 0
+
+
+def test_a_content_length_body_in_tiny_writes_gets_413_once_its_reads_outrun_its_bytes(port):
+    """A Content-Length body was bounded by the body deadline alone: 1-byte writes with Nagle off (each its own read)
+    cost 2.2 us of the worker's CPU a byte, 41% of a core for the 30 s deadline, against 0.01 us for the same body
+    sent at once. Now each read of it is a piece, as a chunk is: `MIN_CHUNKS`, then one per `CHUNK_BYTES`; past it, 413
+    naming the body, closed. An honest slow link's reads (a segment, 536 bytes or more) never come near it."""
+    before = closed_counted(port, "body_chunks")
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        s.sendall(HEAD + b"Content-Length: 1000000\r\n\r\n")
+        try:
+            for _ in range(4 * timeouts.MIN_CHUNKS):  # each byte given time to be read alone (within BODY_TIMEOUT)
+                s.sendall(b" ")
+                time.sleep(0.0002)
+        except OSError:  # closed: the answer is in the receive buffer
+            pass
+        _, got = wait_closed(s, BODY_TIMEOUT + 10)
+    head, _, rest = got.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 413 ") and b"connection: close" in head.lower(), got[:300]
+    fault = json.loads(rest)["detail"][0]
+    assert fault["loc"] == ["body"] and fault["type"] == "too_large" and "pieces" in fault["msg"], fault
+    assert closed_counted(port, "body_chunks") == before + 1
+
+
+def test_a_content_length_body_over_a_slow_link_is_answered(port):
+    """1460-byte segments (Ethernet's MSS), each read alone: more reads than `MIN_CHUNKS`, far below the bound."""
+    body = json.dumps(_json()).encode() + b" " * 1_900_000  # JSON allows trailing spaces
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        s.sendall(HEAD + f"Content-Length: {len(body)}\r\n\r\n".encode())
+        for i in range(0, len(body), 1460):  # ~1300 segments
+            s.sendall(body[i : i + 1460])
+            time.sleep(0.0002)
+        s.settimeout(10)
+        assert s.recv(12) == b"HTTP/1.1 200"

@@ -35,8 +35,7 @@ from jointlimits.service.sizing import UPLOAD_FACTOR
 
 BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `errors.client_gone`
 RETRY_AFTER_SECONDS = 5
-"""`Retry-After` of every 503 (busy, past the request deadline; `errors` takes it from here, the supervisor's module
-that imports nothing of the core): the worker is free again at once, a busy pod soon."""
+"""`Retry-After` of every 503 (busy, past the request deadline): the worker is free again at once, a busy pod soon."""
 DRAIN = "jointlimits.drain"
 """Key in a connection's ASGI scope `extensions` of its `Drain` (absent in-process: TestClient, no transport)."""
 OPENED = "jointlimits.opened"
@@ -65,13 +64,11 @@ the client reads the answer rather than a reset; it closes as soon as the client
 worker's at once (within `cli.FD_RESERVE`): past them, a flood's are closed at once."""
 MIN_CHUNKS, CHUNK_BYTES = 1024, 256
 """A body may arrive in `MIN_CHUNKS` pieces (chunks; without chunking, reads), then one per `CHUNK_BYTES` bytes; past
-it, nothing more is read, the request is answered 413 (`limits.read_body`) and the connection closed. Each piece is
-Python calls in uvicorn: 1-byte chunks took 0.39 us of CPU per byte (16 x Content-Length's), and the worker's other
-clients waited 0.4 s per request (6 ms alone) for the body deadline, 5 s while the rest of a refused body was read;
-1-byte writes (TCP_NODELAY) of a Content-Length body 2.2 us a byte, 41% of a core for the deadline. An
-honest body is never refused: a TCP segment carries at least 536 bytes (IPv4's smallest MSS; 1460 on Ethernet) but
-the last of a write, and a read takes every segment that has arrived, so reads are smaller than 256 bytes only from
-a client writing pieces smaller than that with Nagle's algorithm off."""
+it, nothing more is read, 413 (`limits.read_body`) and closed. Each piece is Python calls in uvicorn: 1-byte chunks
+took 0.39 us of CPU a byte (16 x Content-Length's) and the worker's other clients waited 0.4 s a request (6 ms alone)
+for the body deadline; 1-byte writes (TCP_NODELAY) 2.2 us a byte. An honest body is never refused: a TCP segment
+carries 536 bytes or more (IPv4's smallest MSS; 1460 on Ethernet) but the last of a write, and a read takes all that
+arrived, so reads are under 256 bytes only from a client writing less than that at a time with Nagle's algorithm off."""
 CHUNKS = "jointlimits.chunks"
 """Key in an HTTP request's scope `extensions` of its body's pieces and bytes so far (a two-item list)."""
 MAX_PIPELINED = 16
@@ -101,6 +98,7 @@ def _busy(what: str) -> bytes:
     return _answer(b"503 Service Unavailable", f"{what}: retry after Retry-After seconds", "busy", retry)
 
 
+_HEAD_START = re.compile(rb"[^\r\n]")  # a request's first byte: llhttp skips CR and LF between requests
 _408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"
 log = logging.getLogger("jointlimits.timeouts")
 
@@ -264,7 +262,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             raise _Cut  # httptools stops here: the rest of this read is dropped (`send_400_response`)
         super().on_message_begin()
         self._in_head = True
-        self._at = _HEAD_START.search(self._read, self._at).start()  # llhttp skips CR and LF between requests
+        self._at = _HEAD_START.search(self._read, self._at).start()
         if self._head_timer.handle is None:  # a pipelined head: its deadline too
             self._head_timer.start(self.header_timeout)  # type: ignore[arg-type]
         self._chunks, self._chunked = [0, 0], False
@@ -314,9 +312,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         # the timer is armed for the next request once the answer is complete. Of this read, only the bytes from
         # where the head began count (`_at`: 0 if it began in an earlier read), not the requests before it.
         if self._in_head and not self.transport.is_closing():
-            held = len(data) - self._at  # counted after the parse: at most one read past the bound is held
-            self._head_size += held
-            ReadTimeoutProtocol.heads_held += held
+            self._head_size += len(data) - self._at  # counted after the parse: at most one read past the bound is held
+            ReadTimeoutProtocol.heads_held += len(data) - self._at
             if self._head_size > MAX_HEAD_BYTES:
                 msg = f"request line and headers exceed {MAX_HEAD_BYTES} bytes, the most this service reads"
                 self._refuse("head_too_large", _answer(b"431 Request Header Fields Too Large", msg, "too_large"))
@@ -326,7 +323,14 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
 
     def on_headers_complete(self) -> None:
         self._in_head = False
-        self._at = _head_end(self._tail, self._read, self._at)
+        # The head ends past its first CRLF CRLF (llhttp is strict: a line ends in CRLF, a head at its first blank
+        # line), which may straddle two reads if the head began in the one before (`_at` 0). Never past the true
+        # end while `_at` is not past the head's start (after a chunked body it is short of it: an over-count).
+        i = (self._tail + self._read[:3]).find(b"\r\n\r\n") if self._at == 0 else -1
+        if i >= 0:
+            self._at = i + 4 - len(self._tail)
+        elif (end := self._read.find(b"\r\n\r\n", self._at)) >= 0:
+            self._at = end + 4
         self._head_timer.stop()
         self._drop_head()
         super().on_headers_complete()
@@ -374,19 +378,6 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             log.debug("request head not complete within %s s: closing %s", self.header_timeout, self.client)
             reason, answer = ("slow_head", _408) if self._head_bytes else ("silent", b"")
             self._refuse(reason, answer)
-
-
-_HEAD_START = re.compile(rb"[^\r\n]")
-
-
-def _head_end(tail: bytes, data: bytes, at: int) -> int:
-    """Where in `data` a head ends that began at `at` (0: maybe in an earlier read, whose last bytes are `tail`):
-    past the first CRLF CRLF (llhttp is strict: a line ends in CRLF, a head at its first blank line). Never past
-    the true end when `at` is not past the true start (a lower bound after a chunked body: an over-count, safe)."""
-    if at == 0 and (i := (tail + data[:3]).find(b"\r\n\r\n")) >= 0:
-        return i + 4 - len(tail)
-    i = data.find(b"\r\n\r\n", at)
-    return at if i < 0 else i + 4
 
 
 class _Queue(asyncio.Queue):  # type: ignore[type-arg]

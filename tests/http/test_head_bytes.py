@@ -43,27 +43,38 @@ class _Transport(asyncio.Transport):
         pass
 
 
-def _requests(rng: random.Random) -> tuple[bytes, list[tuple[int, int]]]:
-    """Up to 12 pipelined requests (GETs and Content-Length POSTs, bodies up to 100 kB that may hold CRLF CRLF,
-    sometimes CRLFs between requests) and where each head begins and ends in the stream."""
-    stream, heads = b"", []
+def _requests(rng: random.Random, chunked: bool) -> tuple[bytes, list[tuple[int, int]], list[tuple[int, int]]]:
+    """Up to 12 pipelined requests (GETs and POSTs with a Content-Length or, if `chunked`, sometimes a chunked body;
+    bodies up to 100 kB that may hold CRLF CRLF; sometimes CRLFs between requests), where each head begins and ends
+    in the stream, and where each chunked body does."""
+    stream, heads, chunked_bodies = b"", [], []
     for _ in range(rng.randint(1, 12)):
         stream += b"\r\n" * rng.choice((0, 0, 0, 1, 3))  # llhttp skips them before a request
         body = rng.choice((b"", b"\r\n\r\nGET / HTTP/1.1\r\n\r\n" * rng.randint(1, 5000), b"x" * rng.randint(1, 10**5)))
-        head = b"POST /v1/evaluate HTTP/1.1\r\nHost: h\r\nX-Pad: %s\r\nContent-Length: %d\r\n\r\n" % (
-            b"a" * rng.randint(0, 20_000), len(body))
+        framing = b"Content-Length: %d" % len(body)
+        if body and chunked and rng.random() < 0.5:
+            size = rng.randint(300, 5000)
+            body = b"".join(b"%x\r\n%s\r\n" % (len(body[i : i + size]), body[i : i + size])
+                            for i in range(0, len(body), size)) + b"0\r\n\r\n"
+            framing = b"Transfer-Encoding: chunked"
+        pad = b"a" * rng.randint(0, 20_000)
+        head = b"POST /v1/evaluate HTTP/1.1\r\nHost: h\r\nX-Pad: %s\r\n%s\r\n\r\n" % (pad, framing)
         if not body and rng.random() < 0.5:
             head = b"GET /healthz HTTP/1.1\r\nHost: h\r\n\r\n"
         heads.append((len(stream), len(stream) + len(head)))
+        if framing.startswith(b"Transfer"):
+            chunked_bodies.append((len(stream) + len(head), len(stream) + len(head) + len(body)))
         stream += head + body
-    return stream, heads
+    return stream, heads, chunked_bodies
 
 
+@pytest.mark.parametrize("chunked", [False, True], ids=["content_length", "chunked"])
 @pytest.mark.parametrize("seed", range(40))
-def test_only_the_unfinished_heads_bytes_count_whatever_the_reads(seed, monkeypatch):
+def test_only_the_unfinished_heads_bytes_count_whatever_the_reads(seed, chunked, monkeypatch):
     """After each read, the bytes counted for the connection's head are exactly those of its unfinished head received
     so far: not the bodies or the heads before it in the same read (they were: an honest pipelining client got 431),
-    and not fewer (a head's blank line split over two reads ends it where it ends)."""
+    and not fewer (a head's blank line split over two reads ends it where it ends). After a chunked body in the read
+    where the head began, never fewer, and more by at most the bytes of that read before the head."""
     rng = random.Random(seed)
     monkeypatch.setattr(timeouts.ReadTimeoutProtocol, "heads_held", 0)
     loop = asyncio.new_event_loop()
@@ -73,18 +84,26 @@ def test_only_the_unfinished_heads_bytes_count_whatever_the_reads(seed, monkeypa
             config=config, server_state=ServerState(), app_state={}, _loop=loop)
         protocol._start_asgi_task = lambda cycle, app: None  # the parse alone: no request runs
         protocol.connection_made(_Transport())
-        stream, heads = _requests(rng)
-        fed = 0
+        stream, heads, chunked_bodies = _requests(rng, chunked)
+        fed, began = 0, {}  # where the read began in which each head began
         while fed < len(stream):
             n = rng.choice((1, 2, 3, 5, rng.randint(1, 3000), rng.randint(1, 256 * 1024)))
             inside = [end - k - fed for _, end in heads for k in (1, 2, 3) if end - k > fed]
             if inside and rng.random() < 0.3:  # this read ends inside the next head's blank line
                 n = min(inside)
             protocol.data_received(stream[fed : fed + n])
+            began.update((start, fed) for start, _ in heads if fed <= start < fed + n)
             fed = min(fed + n, len(stream))
-            within = [fed - start for start, end in heads if start < fed < end]  # the head the parser is in, if any
-            assert protocol._head_size == (within[0] if within else 0), (seed, fed)
             assert timeouts.ReadTimeoutProtocol.heads_held == protocol._head_size
+            within = [start for start, end in heads if start < fed < end]  # the head the parser is in, if any
+            if not within:
+                assert protocol._head_size == 0, (seed, fed)
+                continue
+            start = within[0]
+            if any(began[start] < body_end and body_start < start for body_start, body_end in chunked_bodies):
+                assert fed - start <= protocol._head_size <= fed - began[start], (seed, fed)
+            else:
+                assert protocol._head_size == fed - start, (seed, fed)
         assert not protocol.transport.is_closing()
         protocol.connection_lost(None)
     finally:

@@ -323,9 +323,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
 
     def on_headers_complete(self) -> None:
         self._in_head = False
-        # The head ends past its first CRLF CRLF (llhttp is strict: a line ends in CRLF, a head at its first blank
-        # line), which may straddle two reads if the head began in the one before (`_at` 0). Never past the true
-        # end while `_at` is not past the head's start (after a chunked body it is short of it: an over-count).
+        # Past its first CRLF CRLF (llhttp is strict), which straddles two reads if the head began in the one before
+        # (`_at` 0): never past the true end while `_at` is not past the head's start (short after a chunked body).
         i = (self._tail + self._read[:3]).find(b"\r\n\r\n") if self._at == 0 else -1
         if i >= 0:
             self._at = i + 4 - len(self._tail)

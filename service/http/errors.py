@@ -21,10 +21,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jointlimits.service.core import Fault, InputError
 from jointlimits.service.core.errors import MAX_FAULTS, DeadlineExceeded
-from jointlimits.service.http.timeouts import BODY_TIMED_OUT
-
-RETRY_AFTER_SECONDS = 5
-"""`Retry-After` of a 503 (busy, past the request deadline): the worker is free again at once, a busy pod soon."""
+from jointlimits.service.http.timeouts import BODY_TIMED_OUT, RETRY_AFTER_SECONDS
 MAX_KEY_CHARS = 64
 """A `loc` element echoed back (an unknown key) is cut to this many characters plus `...`."""
 MAX_MSG_CHARS = 1024

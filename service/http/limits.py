@@ -34,9 +34,9 @@ async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool
         if size > max_bytes:
             raise _too_large(("body",), f"request body exceeds {max_bytes} bytes, the most this service accepts")
         if chunks_in is not None and too_many_pieces(chunks_in[0], size):
-            raise _too_large(("body",), f"request body arrived in {chunks_in[0]} chunks for {size} bytes; this service "
-                             f"reads {MIN_CHUNKS} chunks, then one per {CHUNK_BYTES} bytes: send it with Content-Length "
-                             "or in larger chunks")
+            raise _too_large(("body",), f"request body arrived in {chunks_in[0]} pieces (chunks, or reads of "
+                             f"its bytes) for {size} bytes; this service reads {MIN_CHUNKS} pieces, then one per "
+                             f"{CHUNK_BYTES} bytes: send it in larger chunks or writes")
         if chunks is not None and take(len(chunk)):
             chunks.append(chunk)
         else:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
 import socket
 import struct
 import sys
@@ -33,6 +34,8 @@ from jointlimits.service.settings import Settings
 from jointlimits.service.sizing import UPLOAD_FACTOR
 
 BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `errors.client_gone`
+RETRY_AFTER_SECONDS = 5
+"""`Retry-After` of every 503 (busy, past the request deadline): the worker is free again at once, a busy pod soon."""
 DRAIN = "jointlimits.drain"
 """Key in a connection's ASGI scope `extensions` of its `Drain` (absent in-process: TestClient, no transport)."""
 OPENED = "jointlimits.opened"
@@ -47,7 +50,8 @@ client sent behind it before it read the close (tests/http/test_session_closes.p
 SHUTDOWN_REASON = "the server is shutting down: reopen the session (another worker or pod answers)"
 _PONG = b"\x8a"  # the first byte of a server's pong frame (FIN, opcode 0xA; no extensions are negotiated)
 MAX_HEAD_BYTES = 64 * 1024
-"""Bytes a request line and its headers may take (the deadline bounds their time only): past it, 431 and closed.
+"""Bytes a request line and its headers may take (the deadline bounds their time only), from the head's first byte
+(not a body or a request ahead of it in the same read): past it, 431 and closed.
 httptools joins a header's or a URL's pieces by copying them, so an unbounded head costs memory and quadratic time:
 one connection streaming a header for the 10 s deadline took a worker from 69 to 533 MiB and stalled it 5.5 s."""
 MAX_HEADS_HELD = 16 * 2**20
@@ -59,12 +63,14 @@ REFUSED_LINGER, MAX_LINGERING = 1.0, 32
 the client reads the answer rather than a reset; it closes as soon as the client does. At most `MAX_LINGERING` of a
 worker's at once (within `cli.FD_RESERVE`): past them, a flood's are closed at once."""
 MIN_CHUNKS, CHUNK_BYTES = 1024, 256
-"""A chunked body may arrive in `MIN_CHUNKS` chunks, then one per `CHUNK_BYTES` bytes; past it, nothing more is read,
-the request is answered 413 (`limits.read_body`) and the connection closed. Each chunk is a Python call in uvicorn:
-1-byte chunks took 0.39 us of CPU per byte (16 x Content-Length's), and the worker's other clients waited 0.4 s per
-request (6 ms alone) for the body deadline, 5 s while the rest of a refused body was read."""
+"""A body may arrive in `MIN_CHUNKS` pieces (chunks; without chunking, reads), then one per `CHUNK_BYTES` bytes; past
+it, nothing more is read, 413 (`limits.read_body`) and closed. Each piece is Python calls in uvicorn: 1-byte chunks
+took 0.39 us of CPU a byte (16 x Content-Length's) and the worker's other clients waited 0.4 s a request (6 ms alone)
+for the body deadline; 1-byte writes (TCP_NODELAY) 2.2 us a byte. An honest body is never refused: a TCP segment
+carries 536 bytes or more (IPv4's smallest MSS; 1460 on Ethernet) but the last of a write, and a read takes all that
+arrived, so reads are under 256 bytes only from a client writing less than that at a time with Nagle's algorithm off."""
 CHUNKS = "jointlimits.chunks"
-"""Key in an HTTP request's scope `extensions` of its body's chunks and bytes so far (a two-item list)."""
+"""Key in an HTTP request's scope `extensions` of its body's pieces and bytes so far (a two-item list)."""
 MAX_PIPELINED = 16
 """Requests one connection may send ahead of the one being answered (HTTP/1.1 pipelining): the next one is not read,
 and the connection is closed after the answers owed (RFC 9112 9.3.2: the client resends what was not answered).
@@ -88,9 +94,11 @@ def _answer(status: bytes, msg: str, type: str, *headers: bytes) -> bytes:
 
 def _busy(what: str) -> bytes:
     """503 `busy` with `Retry-After`, as the worker's other budgets answer (`errors.busy`)."""
-    return _answer(b"503 Service Unavailable", f"{what}: retry after Retry-After seconds", "busy", b"retry-after: 5")
+    retry = b"retry-after: %d" % RETRY_AFTER_SECONDS
+    return _answer(b"503 Service Unavailable", f"{what}: retry after Retry-After seconds", "busy", retry)
 
 
+_HEAD_START = re.compile(rb"[^\r\n]")  # a request's first byte: llhttp skips CR and LF between requests
 _408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"
 log = logging.getLogger("jointlimits.timeouts")
 
@@ -245,6 +253,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self._head_timer = _Timer(self.loop, self._head_expired)
         self._head_bytes, self._head_size = False, 0  # bytes of the current head have arrived (any; how many)
         self._in_head = False  # the parser is inside a request's head (not in the rest of an answered one's body)
+        self._read, self._at, self._tail = b"", 0, b""  # the read being parsed; where in it the head began (or the
+        # parser is: never past it); the last 3 bytes read before it (a head's blank line may straddle two reads)
 
     def on_message_begin(self) -> None:
         if len(self.pipeline) >= MAX_PIPELINED:
@@ -252,18 +262,23 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             raise _Cut  # httptools stops here: the rest of this read is dropped (`send_400_response`)
         super().on_message_begin()
         self._in_head = True
+        self._at = _HEAD_START.search(self._read, self._at).start()
         if self._head_timer.handle is None:  # a pipelined head: its deadline too
             self._head_timer.start(self.header_timeout)  # type: ignore[arg-type]
-        self._chunks = [0, 0]
+        self._chunks, self._chunked = [0, 0], False
         extensions = {**self.scope.get("extensions", {}), DRAIN: self.drain, OPENED: self.opened, CHUNKS: self._chunks}
         self.scope["extensions"] = extensions  # type: ignore[typeddict-item]
 
     def on_body(self, body: bytes) -> None:
         super().on_body(body)
         self._chunks[1] += len(body)
+        self._at += len(body)  # exact for a Content-Length body; a chunked one's sizes and CRLFs are not counted
+        if not self._chunked:  # each read of a Content-Length body is a piece
+            self.on_chunk_header(chunked=False)
 
-    def on_chunk_header(self) -> None:
-        chunks = self._chunks
+    def on_chunk_header(self, chunked: bool = True) -> None:
+        """One more piece of the body: a chunk begins (or, `chunked` False, a read of a Content-Length body)."""
+        chunks, self._chunked = self._chunks, chunked
         chunks[0] += 1
         if too_many_pieces(*chunks):
             self.cycle.message_event.set()  # the application wakes to refuse the body (`limits.read_body`)
@@ -290,12 +305,15 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         if self._head_timer.handle is None and (self.cycle is None or self.cycle.response_complete):
             self._arm()  # the first bytes of the next request on a keep-alive connection
         self._head_bytes = True
+        self._read, self._at = data, 0
         super().data_received(data)
+        self._read, self._tail = b"", (self._tail + data[-3:])[-3:]
         # Still in a head: the rest of a body answered early (a 413 on its declared size) is no head, though
-        # the timer is armed for the next request once the answer is complete.
+        # the timer is armed for the next request once the answer is complete. Of this read, only the bytes from
+        # where the head began count (`_at`: 0 if it began in an earlier read), not the requests before it.
         if self._in_head and not self.transport.is_closing():
-            self._head_size += len(data)  # counted after the parse: at most one read past the bound is held
-            ReadTimeoutProtocol.heads_held += len(data)
+            self._head_size += len(data) - self._at  # counted after the parse: at most one read past the bound is held
+            ReadTimeoutProtocol.heads_held += len(data) - self._at
             if self._head_size > MAX_HEAD_BYTES:
                 msg = f"request line and headers exceed {MAX_HEAD_BYTES} bytes, the most this service reads"
                 self._refuse("head_too_large", _answer(b"431 Request Header Fields Too Large", msg, "too_large"))
@@ -305,6 +323,13 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
 
     def on_headers_complete(self) -> None:
         self._in_head = False
+        # Past its first CRLF CRLF (llhttp is strict), which straddles two reads if the head began in the one before
+        # (`_at` 0): never past the true end while `_at` is not past the head's start (short after a chunked body).
+        i = (self._tail + self._read[:3]).find(b"\r\n\r\n") if self._at == 0 else -1
+        if i >= 0:
+            self._at = i + 4 - len(self._tail)
+        elif (end := self._read.find(b"\r\n\r\n", self._at)) >= 0:
+            self._at = end + 4
         self._head_timer.stop()
         self._drop_head()
         super().on_headers_complete()

@@ -78,7 +78,7 @@ def ask(live: inprocess.Live, path: str) -> bytes:
 
 def assert_busy(got: bytes) -> None:
     head, _, body = got.partition(b"\r\n\r\n")
-    assert head.startswith(b"HTTP/1.1 503 ") and b"retry-after: 5" in head.lower(), head
+    assert head.startswith(b"HTTP/1.1 503 ") and b"retry-after: %d" % RETRY_AFTER_SECONDS in head.lower(), head
     assert b"connection: close" in head.lower()
     fault = json.loads(body)["detail"][0]
     assert fault["type"] == "busy" and fault["loc"] == ["header"]

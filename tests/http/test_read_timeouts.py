@@ -31,8 +31,8 @@ SLACK = 1.5  # scheduling on a loaded 2-core machine; the timers themselves are 
 
 
 @contextmanager
-def serve_with_timeouts() -> Iterator[int]:
-    settings = Settings(max_body_bytes=2_000_000, token=None, cors_origins=(), body_timeout=BODY_TIMEOUT)
+def serve_with_timeouts(body_timeout: float = BODY_TIMEOUT) -> Iterator[int]:
+    settings = Settings(max_body_bytes=2_000_000, token=None, cors_origins=(), body_timeout=body_timeout)
     http = timeouts.bounded(timeouts.ReadTimeoutProtocol, header_timeout=HEADER_TIMEOUT)
     config = uvicorn.Config(create_app(settings), log_level="warning", lifespan="on", http=http)
     with running(config) as (_, port):
@@ -355,5 +355,70 @@ def test_a_body_in_tiny_chunks_gets_413_once_its_chunks_outrun_its_bytes(port):
     assert closed_counted(port, "body_chunks") == before + 1
     with socket.create_connection(("127.0.0.1", port)) as s:  # the same body in chunks of CHUNK_BYTES: answered
         s.sendall(HEAD + b"Transfer-Encoding: chunked\r\n\r\n" + chunked(body, timeouts.CHUNK_BYTES))
+        s.settimeout(10)
+        assert s.recv(12) == b"HTTP/1.1 200"
+
+
+def test_a_pipelined_head_counts_only_its_own_bytes_not_a_body_or_a_head_before_it(port):
+    """An honest client pipelines a POST whose body is larger than the head's bound, or a request with a large head,
+    and the next request, in one write; the read ends inside the next head. Only that head's bytes count toward
+    `MAX_HEAD_BYTES` (and `MAX_HEADS_HELD`). The whole read was counted: the next head got 431 (the connection closed
+    after the first answer). Each write is under 100 kB, which loopback hands over in one read (asyncio reads up to
+    256 KiB); however the reads fall, each request gets its own answer."""
+    body = json.dumps(_json()).encode() + b" " * (timeouts.MAX_HEAD_BYTES + 16_000)  # JSON allows trailing spaces
+    near = b"X-Near: " + b"a" * (timeouts.MAX_HEAD_BYTES - 200) + b"\r\n"
+    pad = b"X-Pad: " + b"a" * 4000  # the next head's unfinished header
+    before = closed_counted(port, "head_too_large")
+    for first in (HEAD + f"Content-Length: {len(body)}\r\n\r\n".encode() + body,  # a body past the bound
+                  GET[:-2] + near + b"\r\n"):  # a complete head within the bound, nearly at it
+        with socket.create_connection(("127.0.0.1", port)) as s:
+            s.sendall(first + GET[:-2] + pad)  # the next head, unfinished
+            time.sleep(0.3)  # read and parsed
+            s.sendall(b"\r\nConnection: close\r\n\r\n")
+            _, got = wait_closed(s, HEADER_TIMEOUT + 10)
+        assert [h[:4] for h in answers(got)] == [b"200 ", b"200 "], got[:300]
+    assert closed_counted(port, "head_too_large") == before
+    assert timeouts.ReadTimeoutProtocol.heads_held == 0
+
+
+@pytest.fixture(scope="module")
+def patient() -> Iterator[int]:
+    """A server whose body deadline leaves a loaded machine time to read a body in many small reads."""
+    with serve_with_timeouts(body_timeout=20.0) as p:
+        yield p
+
+
+def test_a_content_length_body_in_tiny_writes_gets_413_once_its_reads_outrun_its_bytes(patient):
+    """A Content-Length body was bounded by the body deadline alone: 1-byte writes with Nagle off (each its own read)
+    cost 2.2 us of the worker's CPU a byte, 41% of a core for the 30 s deadline, against 0.01 us for the same body
+    sent at once. Now each read of it is a piece, as a chunk is: `MIN_CHUNKS`, then one per `CHUNK_BYTES`; past it, 413
+    naming the body, closed. An honest slow link's reads (a segment, 536 bytes or more) never come near it."""
+    before = closed_counted(patient, "body_chunks")
+    with socket.create_connection(("127.0.0.1", patient)) as s:
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        s.sendall(HEAD + b"Content-Length: 1000000\r\n\r\n")
+        try:
+            for _ in range(20 * timeouts.MIN_CHUNKS):  # each byte given time to be read alone
+                s.sendall(b" ")
+                time.sleep(0.0002)
+        except OSError:  # closed: the answer is in the receive buffer
+            pass
+        _, got = wait_closed(s, 30)
+    assert closed_counted(patient, "body_chunks") == before + 1
+    head, _, rest = got.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 413 ") and b"connection: close" in head.lower(), got[:300]
+    fault = json.loads(rest)["detail"][0]
+    assert fault["loc"] == ["body"] and fault["type"] == "too_large" and "pieces" in fault["msg"], fault
+
+
+def test_a_content_length_body_over_a_slow_link_is_answered(patient):
+    """1460-byte segments (Ethernet's MSS), each read alone: more reads than `MIN_CHUNKS`, far below the bound."""
+    body = json.dumps(_json()).encode() + b" " * 1_900_000  # JSON allows trailing spaces
+    with socket.create_connection(("127.0.0.1", patient)) as s:
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        s.sendall(HEAD + f"Content-Length: {len(body)}\r\n\r\n".encode())
+        for i in range(0, len(body), 1460):  # ~1300 segments
+            s.sendall(body[i : i + 1460])
+            time.sleep(0.0002)
         s.settimeout(10)
         assert s.recv(12) == b"HTTP/1.1 200"

@@ -100,8 +100,8 @@ _METRICS: tuple[tuple[str, Any, str, str, tuple[str, ...], dict[str, Any]], ...]
     ("connections_closed", Counter, "jointlimits_connections_closed_total",
      "Connections the server closed, by reason: for want of a complete request head within "
      "JOINTLIMITS_HEADER_TIMEOUT (silent: not a byte, closed without an answer; slow_head: part of a head, "
-     "answered 408); head_too_large: a head past 64 KiB (431); heads_full: the worker's unfinished heads past "
-     "16 MiB (503); connections_full: one past JOINTLIMITS_MAX_CONNECTIONS (503); pipelined: a request pipelined "
+     "answered 408); head_too_large: a head past 64 KiB (431); heads_full: the worker's unfinished and queued heads "
+     "past 16 MiB (503); connections_full: one past JOINTLIMITS_MAX_CONNECTIONS (503); pipelined: a request pipelined "
      "past 16 queued (the answers owed are sent, then closed); body_chunks: a body in chunks or reads of under 256 "
      "bytes (413, closed); slow_read: a full write buffer for "
      "JOINTLIMITS_WRITE_TIMEOUT (dropped); slow_message: a session message not received within "

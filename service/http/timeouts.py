@@ -18,6 +18,7 @@ import socket
 import struct
 import sys
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -239,7 +240,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
 
     header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read per connection
     max_connections: int | None = None  # None: JOINTLIMITS_MAX_CONNECTIONS, read per connection
-    heads_held = 0  # bytes of every connection's unfinished head in this worker (MAX_HEADS_HELD)
+    heads_held = 0  # bytes of every connection's unfinished and queued heads in this worker (MAX_HEADS_HELD)
     _cut = False  # a pipelined head or a body refused: the answers owed are sent, nothing more is read
     _lingers = False  # refused and half-closed (`REFUSED_LINGER`), counted in `lingering`
     lingering = 0  # this worker's connections that do
@@ -255,10 +256,11 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self._in_head = False  # the parser is inside a request's head (not in the rest of an answered one's body)
         self._read, self._at, self._tail = b"", 0, b""  # the read being parsed; where in it the head began (or the
         # parser is: never past it); the last 3 bytes read before it (a head's blank line may straddle two reads)
+        self._queued: deque[int] = deque()  # bytes of the heads pipelined behind an unanswered request, oldest first
 
     def on_message_begin(self) -> None:
-        if len(self.pipeline) >= MAX_PIPELINED:
-            self._refuse("pipelined", b"")
+        if len(self.pipeline) >= MAX_PIPELINED or (self.pipeline and self.heads_held > MAX_HEADS_HELD):
+            self._refuse("pipelined" if len(self.pipeline) >= MAX_PIPELINED else "heads_full", b"")
             raise _Cut  # httptools stops here: the rest of this read is dropped (`send_400_response`)
         super().on_message_begin()
         self._in_head = True
@@ -286,7 +288,10 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             raise _Cut  # the rest is not parsed
 
     def on_response_complete(self) -> None:
+        queued = len(self.pipeline)
         super().on_response_complete()
+        if len(self.pipeline) < queued:  # the oldest queued request started: its head is no longer held here
+            ReadTimeoutProtocol.heads_held -= self._queued.popleft()
         self._linger()
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
@@ -332,11 +337,20 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             self._at = end + 4
         self._head_timer.stop()
         self._drop_head()
+        cycle = self.cycle
         super().on_headers_complete()
+        if self.cycle is not cycle and self.pipeline and self.pipeline[0][0] is self.cycle:  # queued behind another
+            # Held until it starts: its URL and headers, as uvicorn keeps them (MAX_PIPELINED heads of up to
+            # MAX_HEAD_BYTES each, 1 MiB a connection behind a stalled request, were counted nowhere).
+            size = len(self.url) + sum(len(n) + len(v) for n, v in self.cycle.scope["headers"])
+            self._queued.append(size)
+            ReadTimeoutProtocol.heads_held += size
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._head_timer.stop()
         self._drop_head()
+        ReadTimeoutProtocol.heads_held -= sum(self._queued)
+        self._queued.clear()
         ReadTimeoutProtocol.lingering -= self._lingers
         super().connection_lost(exc)
 

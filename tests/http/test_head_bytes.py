@@ -68,6 +68,11 @@ def _requests(rng: random.Random, chunked: bool) -> tuple[bytes, list[tuple[int,
     return stream, heads, chunked_bodies
 
 
+def _kept(head: bytes) -> int:
+    line, *headers = head.split(b"\r\n")[:-2]
+    return len(line.split(b" ")[1]) + sum(len(h) - 2 for h in headers)  # "name: value": the name and the value
+
+
 @pytest.mark.parametrize("chunked", [False, True], ids=["content_length", "chunked"])
 @pytest.mark.parametrize("seed", range(40))
 def test_only_the_unfinished_heads_bytes_count_whatever_the_reads(seed, chunked, monkeypatch):
@@ -94,7 +99,10 @@ def test_only_the_unfinished_heads_bytes_count_whatever_the_reads(seed, chunked,
             protocol.data_received(stream[fed : fed + n])
             began.update((start, fed) for start, _ in heads if fed <= start < fed + n)
             fed = min(fed + n, len(stream))
-            assert timeouts.ReadTimeoutProtocol.heads_held == protocol._head_size
+            # The first request never ends here (no request runs), so each later complete head is queued behind it
+            # and held by what uvicorn keeps of it: its URL, its headers' names and values.
+            assert list(protocol._queued) == [_kept(stream[start:end]) for start, end in heads[1:] if end <= fed]
+            assert timeouts.ReadTimeoutProtocol.heads_held == protocol._head_size + sum(protocol._queued)
             within = [start for start, end in heads if start < fed < end]  # the head the parser is in, if any
             if not within:
                 assert protocol._head_size == 0, (seed, fed)
@@ -106,5 +114,33 @@ def test_only_the_unfinished_heads_bytes_count_whatever_the_reads(seed, chunked,
                 assert protocol._head_size == fed - start, (seed, fed)
         assert not protocol.transport.is_closing()
         protocol.connection_lost(None)
+        assert timeouts.ReadTimeoutProtocol.heads_held == 0  # the queued heads are released with their connection
+    finally:
+        loop.close()
+
+
+def test_queued_heads_count_toward_the_workers_heads_and_past_it_nothing_more_is_read(monkeypatch):
+    """A connection's requests pipelined behind a stalled one are held whole (uvicorn keeps their scopes until their
+    turn): up to MAX_PIPELINED heads of MAX_HEAD_BYTES, 1 MiB a connection, that the worker's budget did not see.
+    Now they count toward MAX_HEADS_HELD until they start; a worker past it reads no more pipelined requests from
+    the connection (its owed answers are sent, then it closes, as past MAX_PIPELINED), and releases them all when
+    the connection ends."""
+    loop = asyncio.new_event_loop()
+    try:
+        monkeypatch.setattr(timeouts.ReadTimeoutProtocol, "heads_held", 0)
+        config = uvicorn.Config(_app, log_level="warning")
+        protocol = timeouts.bounded(timeouts.ReadTimeoutProtocol, header_timeout=10.0, max_connections=10)(
+            config=config, server_state=ServerState(), app_state={}, _loop=loop)
+        protocol._start_asgi_task = lambda cycle, app: None  # the first request stalls: the others queue behind it
+        protocol.connection_made(_Transport())
+        head = b"GET /healthz HTTP/1.1\r\nHost: h\r\nX-Pad: %s\r\n\r\n" % (b"a" * 60_000)
+        protocol.data_received(head * 3)
+        assert list(protocol._queued) == [_kept(head)] * 2
+        assert timeouts.ReadTimeoutProtocol.heads_held == 2 * _kept(head)
+        timeouts.ReadTimeoutProtocol.heads_held += timeouts.MAX_HEADS_HELD  # other connections' heads
+        protocol.data_received(head * 2)  # past the bound: not read, the connection cut
+        assert len(protocol.pipeline) == 2 and protocol._cut
+        protocol.connection_lost(None)
+        assert timeouts.ReadTimeoutProtocol.heads_held == timeouts.MAX_HEADS_HELD
     finally:
         loop.close()

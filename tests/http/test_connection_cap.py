@@ -233,3 +233,23 @@ def test_a_refused_client_sending_a_large_body_for_longer_than_the_linger_reads_
         assert time.monotonic() - t0 > REFUSED_LINGER  # the body was still being sent when the server closed
         assert r.status_code == 503 and r.headers["retry-after"] == "5"
         assert r.json()["detail"][0]["type"] == "busy"
+
+
+def test_pipelined_heads_are_held_until_their_request_starts_then_released(live):
+    """Ten requests in one write: the nine behind the first are queued, their heads counted in the worker's
+    `heads_held`, each released as its request starts; all answered, the count back to 0. Then the same, the client
+    gone before its answers: released with the connection."""
+    settle(live, 0)
+    pipelined = (b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Pad: " + b"a" * 1000 + b"\r\n\r\n") * 10
+    with socket.create_connection(("127.0.0.1", live.port)) as s:
+        s.sendall(pipelined)
+        s.settimeout(10)
+        got = b""
+        while got.count(b"HTTP/1.1 200") < 10:
+            got += s.recv(65536)
+        assert timeouts.ReadTimeoutProtocol.heads_held == 0
+    with socket.create_connection(("127.0.0.1", live.port)) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        s.sendall(pipelined)
+    settle(live, 0)
+    assert wait_for(lambda: timeouts.ReadTimeoutProtocol.heads_held, 0) == 0

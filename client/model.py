@@ -289,6 +289,8 @@ class BatchResult:
     coordinate: Array | None = None
     size: int | None = None
     """Joints in the request's batch (N); the clients set it, so `joint` can tell an inactive joint from no joint."""
+    request: JointBatch | None = None
+    """The request's batch; the clients set it, so `joint` can tell a handle of another scene's joint at its row."""
 
     def outputs(self) -> list[str]:
         """What this answer carries: `x`, `energy`, and `gradient` / `hessian` when asked for."""
@@ -307,9 +309,13 @@ class BatchResult:
 
         Raises `IndexError` when the batch has no joint `k`.
         """
-        k = int(k)
+        handle, k = k, int(k)
         if k < 0 or (self.size is not None and k >= self.size):
             raise IndexError(f"joint {k} out of range: the batch has {self.size} joint{'' if self.size == 1 else 's'}")
+        here = None if self.request is None or getattr(handle, "key", None) is None else self.request.key(k)
+        if here is not None and here != handle.key:  # type: ignore[union-attr]
+            raise KeyError(f"{handle!r} is not a joint of this answer's request (its row there is another joint, "
+                           f"{here}): pass the handle of the Scene that made it, or of one of the same joints")
         index = np.asarray(self.index)
         at = int(np.searchsorted(index, k))  # index is ascending (rows in request order)
         if at < index.size and index[at] == k:
@@ -349,8 +355,7 @@ class Evaluation:
         """Itself, each batch told how many joints its request batch has (what `joint` needs under `active_only`),
         and told the request's batches (what `joint` checks a handle against)."""
         for r, b in zip(self.batches, request.batches):
-            r.size = len(b)
-        self._request_batches = request.batches
+            r.size, r.request = len(b), b
         if self.assembled is not None and self.assembled.n_bodies < 0:  # a session's reply does not say
             self.assembled.n_bodies = int(np.shape(request.q)[0])
         return self
@@ -368,13 +373,7 @@ class Evaluation:
             if not 0 <= j.batch < len(self.batches) or self.batches[j.batch].constitution_uid != j.constitution_uid:
                 raise KeyError(f"{j!r} is not a joint of this answer's request (its batch {j.batch} is not one of "
                                f"constitution {j.constitution_uid}): pass the handle of the Scene that made it")
-            found = self.batches[j.batch].joint(j)  # first: IndexError past the batch
-            mine = getattr(self, "_request_batches", None)  # None: an Evaluation no client made
-            if j.key is not None and mine is not None and mine[j.batch].key(j) != j.key:
-                raise KeyError(f"{j!r} is not a joint of this answer's request (its row there is another joint, "
-                               f"{mine[j.batch].key(j)}): pass the handle of the Scene that made it, or of one of "
-                               "the same joints")
-            return found
+            return self.batches[j.batch].joint(j)
         if len(self.batches) != 1:
             raise TypeError(
                 f"joint({j!r}): a plain row is ambiguous with {len(self.batches)} batches; pass the handle "

@@ -140,6 +140,8 @@ def test_a_handle_of_another_scene_of_the_same_constitutions_is_refused(live, ho
         said = f"{j!r} is not a joint of this answer's request (its row there is another joint, ((0, {2 - j})"  # swapped
         with pytest.raises(KeyError, match=re.escape(said)):
             answer.joint(j)
+        with pytest.raises(KeyError, match=re.escape(said)):  # the batch's own lookup checks it too
+            answer.batch(670).joint(j)
     mine = LocalClient().evaluate(s.request())
     assert [answer.joint(k).energy for k in theirs] == [mine.joint(j).energy for j in js]
     assert mine.joint(js[1]).energy == pytest.approx(7.0 * 0.4**3, rel=1e-13)

@@ -159,10 +159,8 @@ class Robot:
 
     def _fk(self, q: Mapping[str, float]) -> list[np.ndarray]:
         """Each body's frame (4, 4) in the root's, by yourdfpy's FK at the positions `q` (mimic joints follow)."""
-        cfg = {n: float(q.get(n, 0.0)) for n in self.names}
-        # trimesh keeps a joint's old transform when the new one is within 1e-8 of it (a step of ~1e-9 would be
-        # lost): a step of 1 (rad or m) away first makes every transform the one at `q`, whatever came before.
-        self.urdf.update_cfg({n: v + 1.0 for n, v in cfg.items()})
+        cfg = {n: float(q.get(n, 0.0)) for n in self.names}  # first 1 (rad or m) away: trimesh keeps a transform
+        self.urdf.update_cfg({n: v + 1.0 for n, v in cfg.items()})  # within 1e-8 of the new one (1e-9 rad is lost)
         self.urdf.update_cfg(cfg)
         return [np.array(self.urdf.get_transform(link), dtype=np.float64) for link in self.frames]
 
@@ -171,10 +169,8 @@ class Robot:
         return transforms_to_q(self._fk(dict(zip(self.names, self.vector(q)))))
 
     def _poses_at(self, v: np.ndarray, *known: tuple[bytes, np.ndarray]) -> tuple[bytes, np.ndarray]:
-        """(`v`'s bytes, its poses (B, 12)): a known vector's poses where its bytes match (by value: a caller may
-        change an array it passed; bitwise: -0.0 is not 0.0 to a sine's sign), else by FK."""
-        key = v.tobytes()
-        return next((k for k in known if k[0] == key), None) or (key, self.poses(v))
+        """(`v`'s bytes, its poses (B, 12)): a `known` pair's if its bytes match (-0.0 is not 0.0), else FK's."""
+        return next((k for k in known if k[0] == v.tobytes()), None) or (v.tobytes(), self.poses(v))
 
     def scene(self, q: JointVector, q_prev: JointVector | None = None, reference: JointVector | None = None,
               strength: float | Mapping[str, float] = STRENGTH_DEFAULT) -> tuple[Scene, dict[str, Joint]]:

@@ -125,6 +125,7 @@ class Robot:
         if self.unmodelled:
             warnings.warn(f"{urdf.robot.name}: not modelled by the joint limits: " + "; ".join(self.unmodelled),
                           stacklevel=3)  # the caller of `Robot.load`
+        self._ref = (np.zeros(len(self.names)).tobytes(), transforms_to_q(zero))  # the default reference's poses
         _, self.handles = self.scene(np.zeros(len(self.names)))  # checks every limit once, by name
 
     @classmethod
@@ -158,12 +159,18 @@ class Robot:
 
     def _fk(self, q: Mapping[str, float]) -> list[np.ndarray]:
         """Each body's frame (4, 4) in the root's, by yourdfpy's FK at the positions `q` (mimic joints follow)."""
-        self.urdf.update_cfg({n: float(q.get(n, 0.0)) for n in self.names})
+        cfg = {n: float(q.get(n, 0.0)) for n in self.names}  # first 1 (rad or m) away: trimesh keeps a transform
+        self.urdf.update_cfg({n: v + 1.0 for n, v in cfg.items()})  # within 1e-8 of the new one (1e-9 rad is lost)
+        self.urdf.update_cfg(cfg)
         return [np.array(self.urdf.get_transform(link), dtype=np.float64) for link in self.frames]
 
     def poses(self, q: JointVector | None) -> np.ndarray:
         """Every body's 12 DOFs (B, 12) at the joint vector `q`: what a session's `evaluate` and `commit` take."""
         return transforms_to_q(self._fk(dict(zip(self.names, self.vector(q)))))
+
+    def _poses_at(self, v: np.ndarray, *known: tuple[bytes, np.ndarray]) -> tuple[bytes, np.ndarray]:
+        """(`v`'s bytes, its poses (B, 12)): a `known` pair's if its bytes match (-0.0 is not 0.0), else FK's."""
+        return next((k for k in known if k[0] == v.tobytes()), None) or (v.tobytes(), self.poses(v))
 
     def scene(self, q: JointVector, q_prev: JointVector | None = None, reference: JointVector | None = None,
               strength: float | Mapping[str, float] = STRENGTH_DEFAULT) -> tuple[Scene, dict[str, Joint]]:
@@ -178,8 +185,10 @@ class Robot:
         v_ref = self.vector(reference, "reference")
         if isinstance(strength, Mapping) and (unknown := sorted(set(strength) - set(self.handles))):
             raise ValueError(f"strength: no limited joint named {unknown} (the limited joints: {list(self.handles)})")
+        at_q = self._poses_at(v)  # one FK at q; q_prev equal to q and the last reference reuse theirs
+        self._ref = self._poses_at(v_ref, self._ref)
         scene = Scene()
-        for now, prev, ref in zip(self.poses(v), self.poses(v_prev), self.poses(v_ref)):
+        for now, prev, ref in zip(at_q[1], self._poses_at(v_prev, at_q)[1], self._ref[1]):
             scene.add_body(now, prev=prev, ref=ref)
         handles: dict[str, Joint] = {}
         for kind in ("revolute", "prismatic"):  # one batch each, in this order: the handles never change

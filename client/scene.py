@@ -150,26 +150,29 @@ class Scene:
         facts = registry.CONSTITUTIONS.get(uid)
         faults: list[Fault] = []
         named = ("lower", "upper", "strength", "offset") + ("prev_coordinate",) * (prev is not None)
-        values = {name: _array(v, name, faults) for name, v in zip(named, (*numbers, prev))}
-        faults += [Fault((name,), f"must be one number, got shape {a.shape}")
-                   for name, a in values.items() if a is not None and a.size != 1]
-        if faults:
-            raise invalid(faults, where)
-        one = {name: a.reshape(1).astype(np.float64) for name, a in values.items()}  # type: ignore[union-attr]
-        nums = [float(a[0]) for a in one.values()]
+        given = (*numbers, prev)[:len(named)]
+        if not all(type(v) in (float, np.float64) for v in given):  # one float each: nothing for `_array` to name
+            values = {name: _array(v, name, faults) for name, v in zip(named, given)}
+            faults += [Fault((name,), f"must be one number, got shape {a.shape}")
+                       for name, a in values.items() if a is not None and a.size != 1]
+            if faults:
+                raise invalid(faults, where)
+            given = tuple(a.reshape(1)[0] for a in values.values())  # type: ignore[union-attr]
+        nums = [float(v) for v in given]
         lo, up, strength, offset = nums[:4]
         n_bodies = len(self._q)
-        g = edge if kind == "edges" else edge[0]  # p0 -> p1, or l0 -> l1: the vector the service normalises
-        with np.errstate(over="ignore", invalid="ignore"):
-            plain = (facts is not None and (prev is None or facts.stateful)
-                     and 0 <= min(ids) and max(ids) < n_bodies and ids[0] != ids[1] and origin in ORIGINS
-                     and all(map(math.isfinite, (*nums, lo - offset, up - offset))) and lo <= up and strength >= 0
-                     and bool(np.isfinite(edge).all() and np.isfinite(g[1] - g[0]).all() and (g[1] != g[0]).any()))
+        e = edge.ravel().tolist()  # [p0, p1] or [l0, l1, r0, r1]: p1 - p0 or l1 - l0 is what the service normalises
+        g = [b - a for a, b in zip(e[:3], e[3:6])]  # Python floats: an overflow is inf, without a warning
+        plain = (facts is not None and (prev is None or facts.stateful)
+                 and 0 <= min(ids) and max(ids) < n_bodies and ids[0] != ids[1] and origin in ORIGINS
+                 and all(map(math.isfinite, (*nums, lo - offset, up - offset, *e, *g))) and lo <= up and strength >= 0
+                 and any(g))
         if plain:  # nothing the service would name (the common case): its checks, 3x this call's cost, are skipped
             return nums
         joint = Joints(constitution_uid=uid, base_uid=-1 if facts is None else facts.base_uid, body_ids=np.array([ids], dtype=np.int64),
                        edges=edge[None] if kind == "edges" else None, origin=origin,
-                       local_edges=edge[None] if kind == "local_edges" else None, **one)  # prev_coordinate too
+                       local_edges=edge[None] if kind == "local_edges" else None,
+                       **{name: np.array([v]) for name, v in zip(named, nums)})  # prev_coordinate too
 
         def argument(loc: tuple) -> tuple:  # ("batches", 0, field, 0, *rest) -> the argument that holds it
             field, rest = loc[2], tuple(loc[4:])

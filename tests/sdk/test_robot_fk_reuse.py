@@ -1,0 +1,91 @@
+"""A robot's stateless call runs yourdfpy's FK once per distinct joint vector (brief robot-speed): `q_prev` equal
+to `q` reuses q's poses, the reference's are kept for the next call while it is the same (by value: an array the
+caller changes in place is a new reference), and no reuse or call order changes a bit of a pose or an answer.
+
+FK calls are counted with a spy on yourdfpy's `get_transform` (one sweep over `Robot.frames` is one FK)."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("yourdfpy")
+
+from jointlimits.client import LocalClient  # noqa: E402
+from jointlimits.client.robot import Robot  # noqa: E402
+from tests.conftest import same_evaluation  # noqa: E402
+
+ARM = Path(__file__).parents[1] / "robots" / "arm7.urdf"
+OUT = ("energy", "gradient", "hessian")
+
+
+def load() -> Robot:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # arm7's mimic finger, warned about in test_robot.py
+        return Robot.load(ARM)
+
+
+@pytest.fixture
+def counted(monkeypatch) -> tuple[Robot, list[int]]:
+    """A fresh arm7 and a one-item list counting FK sweeps (get_transform calls over `robot.frames`)."""
+    robot, calls = load(), []
+    real = robot.urdf.get_transform
+    monkeypatch.setattr(robot.urdf, "get_transform", lambda *a, **k: calls.append(1) or real(*a, **k))
+    return robot, calls
+
+
+def fks(robot: Robot, calls: list[int], **kw) -> int:
+    """FK sweeps one `robot.request(**kw)` ran."""
+    calls.clear()
+    robot.request(**kw)
+    assert len(calls) % len(robot.frames) == 0
+    return len(calls) // len(robot.frames)
+
+
+def test_one_fk_per_call_with_the_default_previous_pose_and_reference(counted):
+    robot, calls = counted
+    q = np.linspace(-0.6, 0.9, len(robot.names))
+    assert fks(robot, calls, q=q) == 1  # 3 before: q, q_prev (= q) and the zero reference
+    assert fks(robot, calls, q=q + 0.1) == 1
+    assert fks(robot, calls, q=q, q_prev=q.copy()) == 1  # the same vector by value
+    assert fks(robot, calls, q=q, q_prev=q + 0.1) == 2
+    assert fks(robot, calls, q={"joint1": 0.3}) == 1  # by name too
+
+
+def test_the_reference_is_kept_by_value(counted):
+    robot, calls = counted
+    q, ref = np.full(len(robot.names), 0.2), np.full(len(robot.names), -0.1)
+    assert fks(robot, calls, q=q, reference=ref) == 2
+    assert fks(robot, calls, q=q, reference=ref.copy()) == 1
+    ref[3] = 0.4  # changed in place: a new reference
+    assert fks(robot, calls, q=q, reference=ref) == 2
+    assert fks(robot, calls, q=q, reference=ref) == 1
+    assert fks(robot, calls, q=q) == 2  # back to zero: the last one is kept, not every one
+    assert fks(robot, calls, q=q, reference=-0.0 * ref) == 2  # -0.0 is not 0.0 to FK's sines: not reused
+
+
+def test_no_reuse_or_order_changes_an_answer():
+    """One robot through a sequence of calls answers bitwise as a fresh robot does for each call alone."""
+    robot, lc = load(), LocalClient()
+    n = len(robot.names)
+    base, ref = np.linspace(-0.6, 0.9, n), np.full(n, 0.05)
+    calls = [dict(q=base), dict(q=base + 3e-9), dict(q=base, q_prev=base.copy()), dict(q=base, q_prev=base - 0.2),
+             dict(q=base, reference=ref), dict(q=base + 1e-10, reference=ref.copy(), q_prev=base),
+             dict(q=base, reference=ref + 1e-9), dict(q=np.zeros(n)), dict(q=np.full(n, -0.0)), dict(q=base)]
+    for kw in calls:
+        same_evaluation(lc.evaluate(robot.request(**kw, outputs=OUT)), lc.evaluate(load().request(**kw, outputs=OUT)))
+
+
+def test_poses_do_not_depend_on_the_pose_before():
+    """trimesh keeps a joint's transform when the new one is within 1e-8 of it: a step of 3e-9 rad after a pose
+    was lost (the poses stayed those of the pose before, 2.9e-9 off), so the poses depended on the call before."""
+    robot = load()
+    q = np.full(len(robot.names), 0.3)
+    q2 = q.copy()
+    q2[2] += 3e-9
+    fresh = load().poses(q2)
+    robot.poses(q)
+    assert robot.poses(q2).tobytes() == fresh.tobytes()

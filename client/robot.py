@@ -1,7 +1,8 @@
 """A robot from its URDF: links become bodies, joint limits become #670 and #669, posed by a joint vector.
 
 Read with yourdfpy (the `robot` extra), which parses the file without loading meshes and gives the joint
-tree, types, limits, mimic joints and the forward kinematics (FK) that poses the links. Links joined by
+tree, types, limits, mimic joints, origins and axes; the forward kinematics (FK) that poses the links composes
+each joint's origin and motion (trimesh's, as yourdfpy's own FK) from the root (`Robot._fk` says why). Links joined by
 fixed joints are one body, whose frame is the link nearest the root; the root body is fixed (it is the
 frame every pose is given in). A revolute joint with limits is a #670 limit, a prismatic one a #669,
 each with its edge in its two bodies' own coordinates (`local_edge`, contract v1.2): through the joint's
@@ -92,8 +93,10 @@ class Robot:
                     raise ValueError(f"joint {jt.name}: its axis {jt.axis.tolist()} has no direction")
                 jt.axis = jt.axis / length
         frame, order, todo = {root: root}, [root], [root]  # frame: a link's body frame; order: the bodies' frames
+        self._chain: list[Any] = []  # the joints joined to the root, each after the one that moves its parent
         while todo:
             for jt in kids.get(todo.pop(0), []):
+                self._chain.append(jt)
                 frame[jt.child] = frame[jt.parent] if jt.type == "fixed" else jt.child
                 order += [] if jt.type == "fixed" else [jt.child]
                 todo.append(jt.child)
@@ -158,11 +161,21 @@ class Robot:
         return v
 
     def _fk(self, q: Mapping[str, float]) -> list[np.ndarray]:
-        """Each body's frame (4, 4) in the root's, by yourdfpy's FK at the positions `q` (mimic joints follow)."""
-        cfg = {n: float(q.get(n, 0.0)) for n in self.names}  # first 1 (rad or m) away: trimesh keeps a transform
-        self.urdf.update_cfg({n: v + 1.0 for n, v in cfg.items()})  # within 1e-8 of the new one (1e-9 rad is lost)
-        self.urdf.update_cfg(cfg)
-        return [np.array(self.urdf.get_transform(link), dtype=np.float64) for link in self.frames]
+        """Each body's frame (4, 4) in the root's at the positions `q`: each joint's origin and motion as yourdfpy
+        reads and moves them (a mimic joint follows its joint), composed from the root. Not yourdfpy's own FK: its
+        scene graph (trimesh) drops a transform within 1e-8 of the identity from a link's path and keeps a joint's
+        old one when the new one is within 1e-8 of it, so a joint 1e-9 rad or m from zero read 0."""
+        import trimesh.transformations as tra  # yourdfpy's (it depends on trimesh): the same joint motions
+
+        at = {self.urdf.base_link: np.eye(4)}
+        for jt in self._chain:
+            m = jt.mimic  # yourdfpy: a joint that follows one not moved by `q` takes 0 + offset
+            v = float(q.get(jt.name, 0.0)) if m is None else float(q.get(m.joint, 0.0)) * m.multiplier + m.offset
+            move = (tra.translation_matrix(v * jt.axis) if jt.type == "prismatic" else
+                    tra.rotation_matrix(v, jt.axis) if jt.type in ("revolute", "continuous") else None)  # fixed, ...
+            origin = np.eye(4) if jt.origin is None else jt.origin
+            at[jt.child] = at[jt.parent] @ (origin if move is None else origin @ move)
+        return [at[link] for link in self.frames]
 
     def poses(self, q: JointVector | None) -> np.ndarray:
         """Every body's 12 DOFs (B, 12) at the joint vector `q`: what a session's `evaluate` and `commit` take."""

@@ -104,7 +104,10 @@ class BaseClient:
         if not isinstance(timeout, httpx.Timeout):  # `timeout` reads, writes and waits; `connect_timeout` connects
             timeout = httpx.Timeout(timeout, connect=connect_timeout)
         self._headers = {"Accept": codec.BINARY if binary else codec.JSON}
-        token = os.environ.get(TOKEN_ENV) if token is None else token  # "": none, as an empty variable
+        given, token = token is not None, os.environ.get(TOKEN_ENV) if token is None else token  # "": none
+        if token and (token != token.strip() or not all(" " <= c <= "~" for c in token)):  # httpx's words otherwise
+            raise ValueError(f"{'token' if given else TOKEN_ENV}: a bearer token is printable ASCII, without line "
+                             "breaks or spaces around it (it goes in the Authorization header)")
         if token:
             self._headers["Authorization"] = f"Bearer {token}"
         verify = _ssl_context(os.environ.get("SSL_CERT_FILE"), os.environ.get("SSL_CERT_DIR"))

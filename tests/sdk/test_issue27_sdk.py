@@ -233,3 +233,18 @@ def test_the_sdk_takes_the_servers_token_variable(monkeypatch):
         with pytest.raises(ServiceError) as e, Client(url) as c:
             c.evaluate(doc)
         assert e.value.status == 401
+
+
+@pytest.mark.parametrize("token", ["a\nb", "tab\there", " lead", "trail ", "caf\u00e9"])
+def test_a_token_no_header_can_carry_is_named_at_construction(token, monkeypatch):
+    """Before, `Client(token="a\\nb").evaluate` raised httpx's LocalProtocolError and a session WrongURL ("no
+    joint-limit service"); now both clients refuse it where it is given, naming the argument or the variable."""
+    for make in (Client, AsyncClient):
+        with pytest.raises(ValueError, match=r"^token: a bearer token is printable ASCII"):
+            make("http://127.0.0.1:9", token=token)
+        monkeypatch.setenv("JOINTLIMITS_TOKEN", token)
+        with pytest.raises(ValueError, match=r"^JOINTLIMITS_TOKEN: a bearer token"):
+            make("http://127.0.0.1:9")
+        monkeypatch.delenv("JOINTLIMITS_TOKEN")
+    with Client("http://127.0.0.1:9", token="Abc-._~+/=") as client:  # RFC 6750's characters pass
+        assert client._headers["Authorization"] == "Bearer Abc-._~+/="

@@ -100,7 +100,6 @@ def _busy(what: str) -> bytes:
 
 
 _HEAD_START = re.compile(rb"[^\r\n]")  # a request's first byte: llhttp skips CR and LF between requests
-_408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain\r\ncontent-length: 33\r\nconnection: close\r\n\r\nrequest headers not sent in time\n"
 log = logging.getLogger("jointlimits.timeouts")
 
 
@@ -389,7 +388,9 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     def _head_expired(self) -> None:
         if not self.transport.is_closing():
             log.debug("request head not complete within %s s: closing %s", self.header_timeout, self.client)
-            reason, answer = ("slow_head", _408) if self._head_bytes else ("silent", b"")
+            msg = f"request headers not received within {self.header_timeout:g} s (JOINTLIMITS_HEADER_TIMEOUT)"
+            timed_out = _answer(b"408 Request Timeout", msg, "timeout")  # as the body's 408 (`errors.client_gone`)
+            reason, answer = ("slow_head", timed_out) if self._head_bytes else ("silent", b"")
             self._refuse(reason, answer)
 
 

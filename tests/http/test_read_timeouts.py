@@ -91,6 +91,9 @@ def test_half_headers_get_408_and_are_closed(port):
         after, got = wait_closed(s, HEADER_TIMEOUT + 10)
     assert after is not None and HEADER_TIMEOUT - 0.1 < after < HEADER_TIMEOUT + SLACK, after
     assert got.startswith(b"HTTP/1.1 408 ")
+    said = json.loads(got.split(b"\r\n\r\n", 1)[1])  # a fault list, as every other refusal (was plain text)
+    assert said == {"detail": [{"loc": ["header"], "type": "timeout", "msg": "request headers not received within "
+                                f"{HEADER_TIMEOUT:g} s (JOINTLIMITS_HEADER_TIMEOUT)"}]}
     assert closed_counted(port, "slow_head") == before[1] + 1 and closed_counted(port, "silent") == before[0]
     assert requests_counted(port, "408") == before[2]  # not a request: its head never completed
 

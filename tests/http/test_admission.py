@@ -196,24 +196,9 @@ def test_nested_lists_count_as_values_before_parsing(monkeypatch):
     numbers), whatever the nesting; an honest request's count is its commas, as before."""
     body, _ = codec.encode(scene(50, outputs=("energy",)), binary=False)
     assert limits.check_json(body, 10**9) == body.count(b",") + 1  # an honest request: the commas (more than brackets)
-    items = b",".join([b"[" * 8 + b"0" + b"]" * 8] * 1000)  # 1000 commas, 8000 brackets
-    nested = b'{"bodies":{"q":[' + items + b']},"batches":[]}'  # 8002 brackets + 2 braces: 16009 values
-    message = b'{"kind":"evaluate","q":[' + items + b"]}"  # a session's later message: 16005
-
-    def no_parse(*a, **kw):
-        raise AssertionError("parsed a document that should have been refused")
-
-    c = client(max_json_values=16004)  # each of the two is under it by its commas (1001, 1000)
-    with c.websocket_connect("/v1/sessions") as ws:
-        ws.send_text(codec.encode(scene(1, outputs=("energy",)), binary=False)[0].decode())
-        assert orjson.loads(ws.receive_text())["kind"] == "opened"
-        monkeypatch.setattr(convert, "from_json", no_parse)
-        ws.send_text(message.decode())
-        reply = orjson.loads(ws.receive_text())
-        assert reply["kind"] == "error" and reply["status"] == 413 and "up to 16005 values" in reply["detail"][0]["msg"]
-    r = c.post("/v1/evaluate", content=nested, headers={"Content-Type": J})
-    assert r.status_code == 413 and r.json()["detail"][0]["loc"] == ["body"], r.text
-    assert "up to 16009 values (counted by its commas, brackets and keys)" in r.json()["detail"][0]["msg"]
+    items = b"[" + b",".join([b"[" * 8 + b"0" + b"]" * 8] * 1000) + b"]"  # 1000 commas, 8002 brackets
+    # Each under 16004 by its commas (1001, 1000): the request counts 16009 (and 2 braces), the message 16005.
+    refused_unparsed(monkeypatch, items, items, 16004, 16009, 16005)
 
 
 def test_an_objects_keys_count_before_parsing(monkeypatch):
@@ -225,24 +210,31 @@ def test_an_objects_keys_count_before_parsing(monkeypatch):
     wherever that is near the bound."""
     body, _ = codec.encode(scene(50, outputs=("energy",)), binary=False)
     assert limits.check_json(body, 10**9) == body.count(b",") + 1  # an honest request: still its commas
-    keys = b",".join(b'"k%05d":0' % i for i in range(1000))  # 999 commas, 1000 colons
-    nested = b'{"bodies":{"q":[[{' + keys + b'}]]},"batches":[]}'  # 8025 values by its colons
-    message = b'{"kind":"evaluate","q":[{' + keys + b"}]}"  # a session's later message: 8017
+    keys = b"{" + b",".join(b'"k%05d":0' % i for i in range(1000)) + b"}"  # 999 commas, 1000 colons
+    # Each far under 8000 by its commas and brackets: the request counts 8025 by its colons, the message 8017.
+    refused_unparsed(monkeypatch, b"[[" + keys + b"]]", b"[" + keys + b"]", 8000, 8025, 8017)
+
+
+def refused_unparsed(monkeypatch, request_q: bytes, message_q: bytes, bound: int, request_count: int,
+                     message_count: int) -> None:
+    """Under `max_json_values=bound`, a request whose `q` is `request_q` and a session's later message whose `q`
+    is `message_q` are refused 413 with these counts, neither parsed."""
 
     def no_parse(*a, **kw):
         raise AssertionError("parsed a document that should have been refused")
 
-    c = client(max_json_values=8000)  # each of the two is far under it by its commas and brackets
+    c = client(max_json_values=bound)
     with c.websocket_connect("/v1/sessions") as ws:
         ws.send_text(codec.encode(scene(1, outputs=("energy",)), binary=False)[0].decode())
         assert orjson.loads(ws.receive_text())["kind"] == "opened"
         monkeypatch.setattr(convert, "from_json", no_parse)
-        ws.send_text(message.decode())
+        ws.send_text((b'{"kind":"evaluate","q":' + message_q + b"}").decode())
         reply = orjson.loads(ws.receive_text())
-        assert reply["kind"] == "error" and reply["status"] == 413 and "up to 8017 values" in reply["detail"][0]["msg"]
-    r = c.post("/v1/evaluate", content=nested, headers={"Content-Type": J})
+        assert reply["kind"] == "error" and reply["status"] == 413
+        assert f"up to {message_count} values" in reply["detail"][0]["msg"]
+    r = c.post("/v1/evaluate", content=b'{"bodies":{"q":' + request_q + b'},"batches":[]}', headers={"Content-Type": J})
     assert r.status_code == 413 and r.json()["detail"][0]["loc"] == ["body"], r.text
-    assert "up to 8025 values (counted by its commas, brackets and keys)" in r.json()["detail"][0]["msg"]
+    assert f"up to {request_count} values (counted by its commas, brackets and keys)" in r.json()["detail"][0]["msg"]
 
 
 def test_msgpack_refuses_an_array_beyond_its_largest_bin():

@@ -84,6 +84,14 @@ class Robot:
         root = urdf.base_link
         if root is None:  # yourdfpy reads a file whose joints close a loop, with no link at the root
             raise ValueError(f"{urdf.robot.name}: no root link (each link is some joint's child: a loop)")
+        self._joint = {jt.name: jt for jt in urdf.robot.joints}
+        for jt in urdf.robot.joints:  # a mimic of a mimic follows that one's position (URDF): no loop, no unknown name
+            chain = [jt.name]
+            while (m := self._joint[chain[-1]].mimic) is not None:
+                if m.joint not in self._joint or m.joint in chain:
+                    raise ValueError(f"{urdf.robot.name}: joint {chain[-1]} mimics {m.joint}, " + (
+                        "no joint of the file" if m.joint not in self._joint else f"a loop of mimics {chain}"))
+                chain.append(m.joint)
         kids: dict[str, list[Any]] = {}
         for jt in urdf.robot.joints:
             kids.setdefault(jt.parent, []).append(jt)
@@ -167,10 +175,13 @@ class Robot:
         old one when the new one is within 1e-8 of it, so a joint 1e-9 rad or m from zero read 0."""
         import trimesh.transformations as tra  # yourdfpy's (it depends on trimesh): the same joint motions
 
+        def position(jt: Any) -> float:  # a mimic joint: multiplier x its joint's position + offset (0 if not moving)
+            m = jt.mimic
+            return float(q.get(jt.name, 0.0)) if m is None else position(self._joint[m.joint]) * m.multiplier + m.offset
+
         at = {self.urdf.base_link: np.eye(4)}
         for jt in self._chain:
-            m = jt.mimic  # yourdfpy: a joint that follows one not moved by `q` takes 0 + offset
-            v = float(q.get(jt.name, 0.0)) if m is None else float(q.get(m.joint, 0.0)) * m.multiplier + m.offset
+            v = position(jt)
             move = (tra.translation_matrix(v * jt.axis) if jt.type == "prismatic" else
                     tra.rotation_matrix(v, jt.axis) if jt.type in ("revolute", "continuous") else None)  # fixed, ...
             origin = np.eye(4) if jt.origin is None else jt.origin

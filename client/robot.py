@@ -93,13 +93,14 @@ class Robot:
                         "no joint of the file" if m.joint not in self._joint else f"a loop of mimics {chain}"))
                 chain.append(m.joint)
         kids: dict[str, list[Any]] = {}
+        self._axis: dict[str, np.ndarray] = {}  # each moving joint's unit axis (the caller's `urdf` is left as it is)
         for jt in urdf.robot.joints:
             kids.setdefault(jt.parent, []).append(jt)
-            if jt.type in MOVING:  # yourdfpy moves a prismatic joint by q * axis: make it unit
+            if jt.type in MOVING:  # yourdfpy would slide a prismatic joint by q * axis as written: make it unit
                 length = float(np.linalg.norm(jt.axis))
                 if not 0 < length < math.inf:
                     raise ValueError(f"joint {jt.name}: its axis {jt.axis.tolist()} has no direction")
-                jt.axis = jt.axis / length
+                self._axis[jt.name] = jt.axis / length
         frame, order, todo = {root: root}, [root], [root]  # frame: a link's body frame; order: the bodies' frames
         self._chain: list[Any] = []  # the joints joined to the root, each after the one that moves its parent
         while todo:
@@ -129,7 +130,8 @@ class Robot:
                     raise ValueError(f"{urdf.robot.name}: joint {jt.name} moves link {jt.child}, not joined to {root}")
                 i, j = order.index(frame[jt.parent]), order.index(jt.child)
                 M = np.linalg.solve(zero[i], zero[j])  # the joint's frame at zero in the parent body's
-                edge = [[M[:3, 3], M[:3, 3] + M[:3, :3] @ jt.axis], [np.zeros(3), jt.axis]]
+                a = self._axis[jt.name]
+                edge = [[M[:3, 3], M[:3, 3] + M[:3, :3] @ a], [np.zeros(3), a]]
                 limited = jt.type != "continuous" and jt.limit is not None
                 lo, up = ((jt.limit.lower or 0.0, jt.limit.upper or 0.0) if limited else (None, None))  # URDF: 0
                 self.joints.append(RobotJoint(jt.name, jt.type, lo, up, (i, j), np.array(edge, dtype=np.float64)))
@@ -182,8 +184,9 @@ class Robot:
         at = {self.urdf.base_link: np.eye(4)}
         for jt in self._chain:
             v = position(jt)
-            move = (tra.translation_matrix(v * jt.axis) if jt.type == "prismatic" else
-                    tra.rotation_matrix(v, jt.axis) if jt.type in ("revolute", "continuous") else None)  # fixed, ...
+            a = self._axis.get(jt.name)
+            move = (tra.translation_matrix(v * a) if jt.type == "prismatic" else
+                    tra.rotation_matrix(v, a) if jt.type in ("revolute", "continuous") else None)  # fixed, ...
             origin = np.eye(4) if jt.origin is None else jt.origin
             at[jt.child] = at[jt.parent] @ (origin if move is None else origin @ move)
         return [at[link] for link in self.frames]

@@ -213,9 +213,9 @@ class Robot:
         if isinstance(strength, Mapping) and (unknown := sorted(set(strength) - set(self.handles))):
             raise ValueError(f"strength: no limited joint named {unknown} (the limited joints: {list(self.handles)})")
         at_q = self._poses_at(v)  # one FK at q; q_prev equal to q and the last reference reuse theirs
-        self._ref = self._poses_at(v_ref, self._ref)
+        at_ref = self._ref = self._poses_at(v_ref, self._ref)  # kept for the next call; this one reads its own
         scene = Scene()
-        for now, prev, ref in zip(at_q[1], self._poses_at(v_prev, at_q)[1], self._ref[1]):
+        for now, prev, ref in zip(at_q[1], self._poses_at(v_prev, at_q)[1], at_ref[1]):
             scene.add_body(now, prev=prev, ref=ref)
         handles: dict[str, Joint] = {}
         for kind in ("revolute", "prismatic"):  # one batch each, in this order: the handles never change

@@ -183,3 +183,22 @@ def test_the_comparison_sees_a_difference(scenes):
         s.add_body(np.eye(4)), s.add_body(np.eye(4))
     call = ("add_revolute_limit", (0, 1), dict(p0=[0, 0, 0], p1=[0, 0, 1], lower=1.0, upper=0.0))
     assert outcome(blind, call)[0] == "ok" and outcome(checked, call)[0] == "InvalidInput"
+
+
+def test_a_local_edge_array_changed_after_the_call_changes_nothing():
+    """A float64 `local_edge` array was kept by reference: a caller reusing one array for each joint (filled in
+    place in a loop) gave every joint the last one's edge (the first joint's handle then raised KeyError, and
+    the request's arrays were silently another scene's)."""
+    from jointlimits import LocalClient
+
+    s = today.Scene()
+    a, b, c = (s.add_body(np.eye(4)) for _ in range(3))
+    e = np.array([[[0, 0, 0], [0, 0, 1.0]], [[0, 0, 0], [0, 0, 1.0]]])
+    first = s.add_revolute_limit(a, b, lower=-1.0, upper=1.0, local_edge=e)
+    e[:, 1] = [1.0, 0, 0]
+    second = s.add_revolute_limit(b, c, lower=-1.0, upper=1.0, local_edge=e)
+    e[:] = np.nan
+    request = s.request()
+    assert request.batches[0].local_edges[:, 0, 1].tolist() == [[0, 0, 1.0], [1.0, 0, 0]]
+    answer = LocalClient().evaluate(request)
+    assert answer.joint(first).x == answer.joint(second).x == 0.0

@@ -183,8 +183,7 @@ class Robot:
 
         at = {self.urdf.base_link: np.eye(4)}
         for jt in self._chain:
-            v = position(jt)
-            a = self._axis.get(jt.name)
+            v, a = position(jt), self._axis.get(jt.name)
             move = (tra.translation_matrix(v * a) if jt.type == "prismatic" else
                     tra.rotation_matrix(v, a) if jt.type in ("revolute", "continuous") else None)  # fixed, ...
             origin = np.eye(4) if jt.origin is None else jt.origin

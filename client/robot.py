@@ -84,14 +84,23 @@ class Robot:
         root = urdf.base_link
         if root is None:  # yourdfpy reads a file whose joints close a loop, with no link at the root
             raise ValueError(f"{urdf.robot.name}: no root link (each link is some joint's child: a loop)")
+        self._joint = {jt.name: jt for jt in urdf.robot.joints}
+        for jt in urdf.robot.joints:  # a mimic of a mimic follows that one's position (URDF): no loop, no unknown name
+            chain = [jt.name]
+            while (m := self._joint[chain[-1]].mimic) is not None:
+                if m.joint not in self._joint or m.joint in chain:
+                    raise ValueError(f"{urdf.robot.name}: joint {chain[-1]} mimics {m.joint}, " + (
+                        "no joint of the file" if m.joint not in self._joint else f"a loop of mimics {chain}"))
+                chain.append(m.joint)
         kids: dict[str, list[Any]] = {}
+        self._axis: dict[str, np.ndarray] = {}  # each moving joint's unit axis (the caller's `urdf` is left as it is)
         for jt in urdf.robot.joints:
             kids.setdefault(jt.parent, []).append(jt)
-            if jt.type in MOVING:  # yourdfpy moves a prismatic joint by q * axis: make it unit
+            if jt.type in MOVING:  # yourdfpy would slide a prismatic joint by q * axis as written: make it unit
                 length = float(np.linalg.norm(jt.axis))
                 if not 0 < length < math.inf:
                     raise ValueError(f"joint {jt.name}: its axis {jt.axis.tolist()} has no direction")
-                jt.axis = jt.axis / length
+                self._axis[jt.name] = jt.axis / length
         frame, order, todo = {root: root}, [root], [root]  # frame: a link's body frame; order: the bodies' frames
         self._chain: list[Any] = []  # the joints joined to the root, each after the one that moves its parent
         while todo:
@@ -121,7 +130,8 @@ class Robot:
                     raise ValueError(f"{urdf.robot.name}: joint {jt.name} moves link {jt.child}, not joined to {root}")
                 i, j = order.index(frame[jt.parent]), order.index(jt.child)
                 M = np.linalg.solve(zero[i], zero[j])  # the joint's frame at zero in the parent body's
-                edge = [[M[:3, 3], M[:3, 3] + M[:3, :3] @ jt.axis], [np.zeros(3), jt.axis]]
+                a = self._axis[jt.name]
+                edge = [[M[:3, 3], M[:3, 3] + M[:3, :3] @ a], [np.zeros(3), a]]
                 limited = jt.type != "continuous" and jt.limit is not None
                 lo, up = ((jt.limit.lower or 0.0, jt.limit.upper or 0.0) if limited else (None, None))  # URDF: 0
                 self.joints.append(RobotJoint(jt.name, jt.type, lo, up, (i, j), np.array(edge, dtype=np.float64)))
@@ -167,12 +177,15 @@ class Robot:
         old one when the new one is within 1e-8 of it, so a joint 1e-9 rad or m from zero read 0."""
         import trimesh.transformations as tra  # yourdfpy's (it depends on trimesh): the same joint motions
 
+        def position(jt: Any) -> float:  # a mimic joint: multiplier x its joint's position + offset (0 if not moving)
+            m = jt.mimic
+            return float(q.get(jt.name, 0.0)) if m is None else position(self._joint[m.joint]) * m.multiplier + m.offset
+
         at = {self.urdf.base_link: np.eye(4)}
         for jt in self._chain:
-            m = jt.mimic  # yourdfpy: a joint that follows one not moved by `q` takes 0 + offset
-            v = float(q.get(jt.name, 0.0)) if m is None else float(q.get(m.joint, 0.0)) * m.multiplier + m.offset
-            move = (tra.translation_matrix(v * jt.axis) if jt.type == "prismatic" else
-                    tra.rotation_matrix(v, jt.axis) if jt.type in ("revolute", "continuous") else None)  # fixed, ...
+            v, a = position(jt), self._axis.get(jt.name)
+            move = (tra.translation_matrix(v * a) if jt.type == "prismatic" else
+                    tra.rotation_matrix(v, a) if jt.type in ("revolute", "continuous") else None)  # fixed, ...
             origin = np.eye(4) if jt.origin is None else jt.origin
             at[jt.child] = at[jt.parent] @ (origin if move is None else origin @ move)
         return [at[link] for link in self.frames]
@@ -199,9 +212,9 @@ class Robot:
         if isinstance(strength, Mapping) and (unknown := sorted(set(strength) - set(self.handles))):
             raise ValueError(f"strength: no limited joint named {unknown} (the limited joints: {list(self.handles)})")
         at_q = self._poses_at(v)  # one FK at q; q_prev equal to q and the last reference reuse theirs
-        self._ref = self._poses_at(v_ref, self._ref)
+        at_ref = self._ref = self._poses_at(v_ref, self._ref)  # kept for the next call; this one reads its own
         scene = Scene()
-        for now, prev, ref in zip(at_q[1], self._poses_at(v_prev, at_q)[1], self._ref[1]):
+        for now, prev, ref in zip(at_q[1], self._poses_at(v_prev, at_q)[1], at_ref[1]):
             scene.add_body(now, prev=prev, ref=ref)
         handles: dict[str, Joint] = {}
         for kind in ("revolute", "prismatic"):  # one batch each, in this order: the handles never change

@@ -201,7 +201,8 @@ class Scene:
                 faults.append(Fault((name,), f"must be {what}, got shape {a.shape}"))
         if faults:
             raise invalid(faults, "Scene: a joint's " + ("local edge" if "local_edge" in given else "edge"))
-        return arrays["local_edge"] if "local_edge" in arrays else np.stack([arrays["p0"], arrays["p1"]])
+        # A copy: a float64 array is the caller's own, which they may fill again for the next joint.
+        return arrays["local_edge"].copy() if "local_edge" in arrays else np.stack([arrays["p0"], arrays["p1"]])
 
     def request(self, outputs: Sequence[str] = OUTPUTS, hessian_mode: str = "exact", active_only: bool = False,
                 layout: str = "joints") -> Request:

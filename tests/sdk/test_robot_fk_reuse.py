@@ -119,3 +119,28 @@ def test_a_tiny_move_from_a_joints_identity_origin_is_not_lost(tmp_path, tiny):
     below = tiny < 0  # turn and slide are past their lower limit 0: E = (-x)^3 (strength 1: x = position)
     for name in ("turn", "slide"):
         assert result.joint(robot.handles[name]).energy == pytest.approx((-tiny) ** 3 if below else 0.0, rel=1e-9)
+
+
+def test_a_call_between_another_calls_reference_and_its_scene_changes_nothing(monkeypatch):
+    """The reference's poses are kept on the robot for the next call: a call made from another thread after this
+    one stored its reference and before it built its bodies (forced here, deterministically, when the first
+    call makes its Scene) gave this call the other reference's poses under its own offsets: a wrong x."""
+    import jointlimits.client.robot as module
+
+    robot, fresh = load(), load()
+    n = len(robot.names)
+    q, mine, theirs = np.full(n, 0.4), np.full(n, 0.1), np.full(n, -0.3)
+    real, nested = module.Scene, []
+
+    def interleaved():
+        if not nested:
+            nested.append(None)
+            nested[0] = robot.request(q, reference=theirs)  # "another thread"
+        return real()
+
+    monkeypatch.setattr(module, "Scene", interleaved)
+    got = robot.request(q, reference=mine)
+    monkeypatch.setattr(module, "Scene", real)
+    want = fresh.request(q, reference=mine)
+    assert got.q_ref.tobytes() == want.q_ref.tobytes()
+    assert nested[0].q_ref.tobytes() == load().request(q, reference=theirs).q_ref.tobytes()

@@ -96,6 +96,8 @@ class Robot:
         self._axis: dict[str, np.ndarray] = {}  # each moving joint's unit axis (the caller's `urdf` is left as it is)
         for jt in urdf.robot.joints:
             kids.setdefault(jt.parent, []).append(jt)
+            if jt.origin is not None and not np.isfinite(jt.origin).all():  # else named later at a limit below it
+                raise ValueError(f"joint {jt.name}: its <origin> is not finite (xyz and rpy are finite numbers)")
             if jt.type in MOVING:  # yourdfpy would slide a prismatic joint by q * axis as written: make it unit
                 length = float(np.linalg.norm(jt.axis))
                 if not 0 < length < math.inf:

@@ -188,6 +188,19 @@ def test_a_joint_without_a_direction_is_named(tmp_path):
         Robot.load(urdf)
 
 
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # yourdfpy's scene graph (trimesh), built at load
+@pytest.mark.parametrize("origin", ['xyz="nan 0 0"', 'xyz="1e400 0 0"', 'rpy="0 inf 0"'])
+def test_a_joint_whose_origin_is_not_finite_is_named(tmp_path, origin):
+    """Before, the fault named the limited joint below it, by its local edge (`joint k: ... local_edge.0.0.0`),
+    or, with no limit below, a 422 on `bodies.q` at the first call."""
+    urdf = tmp_path / "far.urdf"
+    urdf.write_text(f"""<robot name="far"><link name="a"/><link name="b"/><link name="c"/>
+      <joint name="j" type="fixed"><parent link="a"/><child link="b"/><origin {origin}/></joint>
+      <joint name="k" type="revolute"><parent link="b"/><child link="c"/><limit lower="-1" upper="1"/></joint></robot>""")
+    with pytest.raises(ValueError, match=r"^joint j: its <origin> is not finite"):
+        Robot.load(urdf)
+
+
 def test_two_joints_of_one_name_are_refused(tmp_path):
     """yourdfpy reads them (urdfdom refuses: names must be unique); `q` by name or position then moved both by
     the first one's position, so the second's energy was that of the wrong angle (0 at 3 rad past [-1, 1])."""

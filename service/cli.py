@@ -24,7 +24,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from jointlimits.service.settings import ENV_PREFIX, TABLE, Setting, Settings, boolean, positive_float, positive_int
+from jointlimits.service.settings import ENV_PREFIX, TABLE, Setting, Settings, bearer_token, boolean, positive_float
+from jointlimits.service.settings import positive_int
 
 BOOL = "true|false"
 """What boolean options show; 1/0, yes/no, on/off are accepted too."""
@@ -161,14 +162,19 @@ def serve(args: argparse.Namespace) -> int:
     given = {t.name: getattr(args, t.name) for t in TABLE if t.flag}
     if args.token_file:  # else Settings reads JOINTLIMITS_TOKEN
         try:
-            given["token"] = Path(args.token_file).read_text().strip()
-        except OSError as e:  # a mistyped path, a secret not mounted: one line, as an empty file gets
-            print(f"jointlimits: token file {args.token_file}: {e.strerror or e}", file=sys.stderr)
+            given["token"] = bearer_token(Path(args.token_file).read_text().strip())
+        except (OSError, argparse.ArgumentTypeError) as e:  # a mistyped path, a secret not mounted: one line
+            print(f"jointlimits: token file {args.token_file}: {getattr(e, 'strerror', None) or e}", file=sys.stderr)
             return 2
         if not given["token"]:
             print(f"jointlimits: token file {args.token_file} is empty", file=sys.stderr)
             return 2
-    os.environ.update(Settings(**given).environ())  # what every worker's Settings() reads
+    try:
+        settings = Settings(**given)
+    except ValueError as e:  # a variable without a flag (JOINTLIMITS_TOKEN), named by `Setting.from_env`
+        print(f"jointlimits: {e}", file=sys.stderr)
+        return 2
+    os.environ.update(settings.environ())  # what every worker's Settings() reads
     fd_room(args.max_connections + args.backlog + FD_RESERVE)  # + what one turn of the accept loop takes (<= backlog)
 
     if args.workers > 1:

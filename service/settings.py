@@ -57,7 +57,10 @@ def boolean(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"must be true or false (or 1/0, yes/no, on/off), got {text!r}")
 
 
-def _token(text: str) -> str | None:
+def bearer_token(text: str) -> str | None:
+    """A token the Authorization header can carry (none if empty); a client could send no other."""
+    if text != text.strip() or not all(" " <= c <= "~" for c in text):
+        raise argparse.ArgumentTypeError("a bearer token is printable ASCII, without line breaks or spaces around it")
     return text or None
 
 
@@ -96,7 +99,7 @@ class Settings:
     cors_origins: tuple[str, ...] = _setting("", str, "comma-separated origins allowed by CORS; empty = CORS off")
     # No flag: a flag shows in `ps` (`jointlimits serve --token-file` reads it from a file instead).
     token: str | None = _setting(
-        None, _token, "bearer token required on /v1/*; the API is open when unset", flag=False
+        None, bearer_token, "bearer token required on /v1/*; the API is open when unset", flag=False
     )
     # WebSocket sessions (service/http/sessions.py); a scene's joints are bounded by max_joints too.
     max_sessions: int = _setting(64, positive_int, "open WebSocket sessions per worker; one more is closed with code 4429")

@@ -239,3 +239,29 @@ def test_serve_caps_a_workers_connections_and_raises_its_fd_limit():
         finally:
             for s in held:
                 s.close()
+
+
+@pytest.mark.parametrize("token", ["a\nb", " lead", "caf\u00e9"])
+def test_a_token_no_header_can_carry_is_refused_at_start(token, monkeypatch, capsys):
+    """Before, the server started and answered every client 401: no client could send such a token (the SDK refuses
+    it at construction, httpx in its own words)."""
+    monkeypatch.setattr("uvicorn.run", never_started)
+    monkeypatch.setenv("JOINTLIMITS_TOKEN", token)
+    assert cli.main(["serve"]) == 2
+    assert capsys.readouterr().err == f"jointlimits: JOINTLIMITS_TOKEN: {BAD_TOKEN}\n"
+
+
+@pytest.mark.parametrize("token", ["a\nb", "caf\u00e9"])
+def test_a_token_file_whose_token_no_header_can_carry_is_refused(token, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr("uvicorn.run", never_started)
+    secret = tmp_path / "token"
+    secret.write_text(f"{token}\n", encoding="utf-8")  # stripped: the line break inside stays
+    assert cli.main(["serve", "--token-file", str(secret)]) == 2
+    assert capsys.readouterr().err == f"jointlimits: token file {secret}: {BAD_TOKEN}\n"
+
+
+BAD_TOKEN = "a bearer token is printable ASCII, without line breaks or spaces around it"
+
+
+def never_started(*args, **kwargs):
+    raise AssertionError("the server started")

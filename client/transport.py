@@ -25,6 +25,7 @@ from jointlimits.client.errors import Busy, Fault, ServiceError, Unreachable, Wr
 from jointlimits.client.model import Evaluation, Request, in_body, null_arrays
 from jointlimits.schemas import OUTPUTS, ConstitutionsResponse, answer
 from jointlimits.schemas import session as proto
+from jointlimits.service.settings import bearer_token
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 RETRYABLE = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError, httpx.WriteError)
@@ -105,9 +106,10 @@ class BaseClient:
             timeout = httpx.Timeout(timeout, connect=connect_timeout)
         self._headers = {"Accept": codec.BINARY if binary else codec.JSON}
         given, token = token is not None, os.environ.get(TOKEN_ENV) if token is None else token  # "": none
-        if token and (token != token.strip() or not all(" " <= c <= "~" for c in token)):  # httpx's words otherwise
-            raise ValueError(f"{'token' if given else TOKEN_ENV}: a bearer token is printable ASCII, without line "
-                             "breaks or spaces around it (it goes in the Authorization header)")
+        try:  # the server's rule (httpx's words otherwise, at the first call)
+            bearer_token(token or "")
+        except ValueError as e:
+            raise ValueError(f"{'token' if given else TOKEN_ENV}: {e} (it goes in the Authorization header)") from None
         if token:
             self._headers["Authorization"] = f"Bearer {token}"
         verify = _ssl_context(os.environ.get("SSL_CERT_FILE"), os.environ.get("SSL_CERT_DIR"))

@@ -163,7 +163,7 @@ def serve(args: argparse.Namespace) -> int:
     if args.token_file:  # else Settings reads JOINTLIMITS_TOKEN
         try:
             given["token"] = bearer_token(Path(args.token_file).read_text().strip())
-        except (OSError, argparse.ArgumentTypeError) as e:  # a mistyped path, a secret not mounted: one line
+        except (OSError, ValueError) as e:  # a mistyped path, a secret not mounted, a token no header carries
             print(f"jointlimits: token file {args.token_file}: {getattr(e, 'strerror', None) or e}", file=sys.stderr)
             return 2
         if not given["token"]:

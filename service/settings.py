@@ -58,9 +58,10 @@ def boolean(text: str) -> bool:
 
 
 def bearer_token(text: str) -> str | None:
-    """A token the Authorization header can carry (none if empty); a client could send no other."""
+    """A token the Authorization header can carry (none if empty): the server refuses another at start, the SDK's
+    clients at construction (a client could send no other). ValueError: it has no flag for argparse to word."""
     if text != text.strip() or not all(" " <= c <= "~" for c in text):
-        raise argparse.ArgumentTypeError("a bearer token is printable ASCII, without line breaks or spaces around it")
+        raise ValueError("a bearer token is printable ASCII, without line breaks or spaces around it")
     return text or None
 
 

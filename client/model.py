@@ -142,10 +142,15 @@ class JointBatch:
         return int(np.shape(self.body_ids)[0])
 
     def key(self, row: int) -> tuple:
-        """Which joint row `row` is, as its `Joint` handle knows it: body_ids, edge (nested lists), origin; not its
-        limits, strength or offset (a `Robot` rebuilds the same joints with others)."""
+        """Which joint row `row` is, as its `Joint` handle knows it (`joint_key`)."""
         edges = self.edges if self.edges is not None else self.local_edges  # array-likes: a batch built by hand
-        return tuple(np.asarray(self.body_ids)[row].tolist()), np.asarray(edges)[row].tolist(), self.origin
+        return joint_key(np.asarray(self.body_ids)[row], np.asarray(edges)[row], self.origin)
+
+
+def joint_key(body_ids: NDArray[Any], edge: NDArray[Any], origin: str) -> tuple:
+    """Which joint it is, for a `Joint` handle: its bodies (2,), its edge (2, 3) or (2, 2, 3) as nested lists, its
+    origin; not its limits, strength or offset (a `Robot` rebuilds the same joints with others)."""
+    return tuple(body_ids.tolist()), edge.tolist(), origin
 
 
 @dataclass

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from jointlimits.client.model import PRISMATIC_LIMIT, REVOLUTE_LIMIT, Joint, JointBatch, Request, _array, invalid
+from jointlimits.client.model import joint_key
 from jointlimits.service.core import registry
 from jointlimits.service.core.errors import Fault
 from jointlimits.service.core.scene import Bodies, Joints
@@ -139,7 +140,7 @@ class Scene:
         key = (uid, kind, origin, prev is not None)
         rows = self._joints.setdefault(key, [])
         rows.append((ids, edge, lower, upper, *rest))
-        return Joint(len(rows) - 1, uid, list(self._joints).index(key), (ids, edge.tolist(), origin))  # JointBatch.key
+        return Joint(len(rows) - 1, uid, list(self._joints).index(key), joint_key(np.array(ids), edge, origin))
 
     def _check(self, uid: int, where: str, ids: tuple[int, int], kind: str, edge: np.ndarray, origin: str,
                numbers: tuple[ArrayLike, ...], prev: ArrayLike | None = None) -> list[float]:

@@ -275,11 +275,15 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self._chunks[1] += len(body)
         self._at += len(body)  # exact for a Content-Length body; a chunked one's sizes and CRLFs are not counted
         if not self._chunked:  # each read of a Content-Length body is a piece
-            self.on_chunk_header(chunked=False)
+            self._piece()
 
-    def on_chunk_header(self, chunked: bool = True) -> None:
-        """One more piece of the body: a chunk begins (or, `chunked` False, a read of a Content-Length body)."""
-        chunks, self._chunked = self._chunks, chunked
+    def on_chunk_header(self) -> None:
+        self._chunked = True  # the chunks are the pieces, not the reads
+        self._piece()
+
+    def _piece(self) -> None:
+        """One more piece of the body: a chunk, or a read of a Content-Length body."""
+        chunks = self._chunks
         chunks[0] += 1
         if too_many_pieces(*chunks):
             self.cycle.message_event.set()  # the application wakes to refuse the body (`limits.read_body`)

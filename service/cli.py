@@ -116,7 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
         "serve",
         help="serve the HTTP API",
         description="Serve the HTTP API. Each option defaults to its JOINTLIMITS_* environment variable.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter, allow_abbrev=False,  # `--token x` is no --token-file
     )
     for row in (*FIRST, *(t for t in TABLE if t.flag)):  # the token has no flag
         _option(s, row)

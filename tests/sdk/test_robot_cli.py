@@ -151,3 +151,15 @@ def test_the_console_script_runs_it():
     assert [g["energy"] for g in json.loads(done.stdout)] == [r.energy for r in expected()]
     help_text = subprocess.run([*console_script(), "--help"], capture_output=True, text=True).stdout
     assert "evaluate" in help_text and "serve" in help_text
+
+
+def test_a_robot_with_no_moving_joint_reads_as_an_empty_table(capsys, tmp_path):
+    """Before: a table of no rows raised TypeError (`max` of one int) from the column widths, a traceback."""
+    urdf = tmp_path / "rigid.urdf"
+    urdf.write_text('<robot name="rigid"><link name="a"/><link name="b"/>'
+                    '<joint name="w" type="fixed"><parent link="a"/><child link="b"/></joint></robot>')
+    request = tmp_path / "q.json"
+    request.write_text('{"q": []}')
+    code, out, err = run(capsys, str(urdf), "--request", str(request))
+    assert (code, err) == (0, "")
+    assert out.splitlines() == ["joint  position  limits  energy  active", "total energy 0; 0 active of 0 joints"]

@@ -8,7 +8,7 @@ core in-process with the same API. Server faults raise `ServiceError` / `Invalid
 (`Busy`: a busy 503 still busy after the retries).
 `client.session(request)` on any of the three keeps the scene prepared (a WebSocket session,
 or in-process) for a solver loop: `evaluate(q)`, `commit(q)`, `update(...)`; a lost connection
-raises `SessionClosed` and `reopen()` continues from the last commit.
+resumes from the last commit (with `resume=False` it raises `SessionClosed`, and `reopen()` does it).
 `Robot.load("arm.urdf")` reads a URDF (the `robot` extra): `robot.request(q)` poses it by its joint vector.
 """
 

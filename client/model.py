@@ -225,7 +225,7 @@ def as_request(request: Any) -> Request:
 class Joint(int):
     """A joint's handle, as `Scene.add_revolute_limit` / `add_prismatic_limit` return it.
 
-    It is the joint's row in its batch (an `int`: `result.batch(670).energy[j]` indexes rows) and
+    It is the joint's row in its batch (an `int`: `result.batches[j.batch].energy[j]` indexes rows) and
     knows its `constitution_uid` and its batch's position in the request, so `result.joint(j)` finds
     it whatever the batch (a scene with world and body-local edges, or both origins, has several
     batches of one constitution), and which joint it is (`JointBatch.key`): another scene's row is not read.
@@ -345,7 +345,7 @@ class Evaluation:
     """With `layout="bodies"`: `.gradient` (B, 12), `.rows`, `.cols`, `.blocks` (K, 12, 12), `.matrix()` (scipy)."""
 
     def batch(self, constitution_uid: int) -> BatchResult:
-        """The first batch of a constitution (a `Scene` makes one per constitution)."""
+        """The first batch of a constitution (a `Scene` makes more where edges, origins or states differ)."""
         for b in self.batches:
             if b.constitution_uid == constitution_uid:
                 return b

@@ -165,7 +165,10 @@ class Robot:
             if unknown:
                 raise ValueError(f"{name}: no moving joint named {unknown} (the joints are {self.names})")
             q = [q.get(n, 0.0) for n in self.names]
-        v = np.asarray(q, dtype=np.float64)
+        try:  # a position that is no number: NumPy's words, after the vector's name
+            v = np.asarray(q, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{name}: {e}") from None
         if v.shape != (len(self.names),):
             raise ValueError(f"{name}: {len(self.names)} positions, one per joint of {self.names}, got shape {v.shape}")
         if not np.isfinite(v).all():

@@ -78,7 +78,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows = [(r.name, f"{r.position:.6g} {unit(r)}",
              "no limit" if r.lower is None else f"[{r.lower:.6g}, {r.upper:.6g}]",
              f"{r.energy:.6g}", "ACTIVE" if r.active else "") for r in readings]
-    widths = [max(len(h), *(len(row[k]) for row in rows)) for k, h in enumerate(HEADER)]
+    widths = [max([len(h), *(len(row[k]) for row in rows)]) for k, h in enumerate(HEADER)]  # no rows: the header's
     for row in (HEADER, *rows):
         print("  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip())
     total = math.fsum(r.energy for r in readings)

@@ -80,7 +80,7 @@ FIRST = (
 LAST = (
     Setting("healthcheck_timeout", 30, positive_int, "seconds uvicorn's supervisor waits for a worker's health ping "
             "before killing it; above the longest step that holds the GIL (a JSON parse at --max-json-values)", True),
-    Setting("graceful_timeout", 30.0, positive_float, "seconds in-flight requests get to finish after SIGTERM", True),
+    Setting("graceful_timeout", 30.0, positive_float, "seconds in-flight requests get after --shutdown-delay", True),
     Setting("keepalive_timeout", 75.0, positive_float, "seconds an idle keep-alive connection stays open; keep it "
             "above your load balancer's idle timeout", True),
     Setting("backlog", 2048, positive_int, "listen backlog", True),
@@ -116,7 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
         "serve",
         help="serve the HTTP API",
         description="Serve the HTTP API. Each option defaults to its JOINTLIMITS_* environment variable.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter, allow_abbrev=False,  # `--token x` is no --token-file
     )
     for row in (*FIRST, *(t for t in TABLE if t.flag)):  # the token has no flag
         _option(s, row)

@@ -117,8 +117,8 @@ class Settings:
     # Connection deadlines, enforced by the protocols of service/http/timeouts.py (`jointlimits serve` runs them).
     header_timeout: float = _setting(
         10.0, positive_float,
-        "seconds a connection has to send a request's headers, from its first byte (or from connecting); "
-        "then 408 and closed: slowloris",
+        "seconds a connection has to send a request's headers, from connecting (on a keep-alive connection, from "
+        "the next request's first byte); then 408 and closed: slowloris",
     )
     body_timeout: float = _setting(  # also a session message's bound, from its first byte to its last (close 1008)
         30.0, positive_float, "seconds from a request's headers to the end of its body; then 408 and closed"

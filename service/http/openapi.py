@@ -123,8 +123,8 @@ UNAUTHORIZED = {
 BEARER = {
     "type": "http",
     "scheme": "bearer",
-    "description": "Only when the deployment sets JOINTLIMITS_TOKEN (otherwise the API is open); /healthz, "
-    "/metrics and /openapi.json are always open.",
+    "description": "Only when the deployment sets JOINTLIMITS_TOKEN (otherwise the API is open); only /v1/ needs it "
+    "(/healthz, /readyz, /metrics, /openapi.json and /docs do not).",
 }
 
 REQUEST_BODY: dict[str, Any] = {  # the route's body: the JSON schema of `EvaluateRequest`, or the binary document

@@ -165,7 +165,7 @@ CASES: dict[str, Callable[[str], httpx.Response]] = {
     "`Accept` names neither": _doc(lambda doc: None, Accept="text/html"),
     "answer bound (joints x outputs x encoding) over `JOINTLIMITS_MAX_ANSWER_BYTES`, before any work": _joints(100),
     "more batches than `JOINTLIMITS_MAX_BATCHES`": _doc(_set("batches", value=[EMPTY_BATCH] * 4097)),
-    "JSON body with more values than `JOINTLIMITS_MAX_JSON_VALUES` (commas + 1, or twice its lists, or 8 times its keys, before parsing)": _raw(
+    "JSON body with more values than `JOINTLIMITS_MAX_JSON_VALUES` (commas + 1, or twice its lists and objects, or 8 times its keys, before parsing)": _raw(
         b'{"bodies": {"q": [' + b"0," * 2_000_000 + b"0]}}", J),
     "evaluation past `JOINTLIMITS_REQUEST_TIMEOUT`": _past_deadline,
     "body over the worker's upload budget (other bodies being received)": _busy("uploads"),

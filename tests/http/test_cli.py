@@ -96,6 +96,15 @@ def test_bad_options_are_refused(argv, capsys):
     assert e.value.code == 2
 
 
+@pytest.mark.parametrize("argv", [["--token", "s3cret"], ["--max-joint", "5"], ["--graceful", "5"]])
+def test_a_flag_is_read_whole_not_by_its_prefix(argv, capsys):
+    """Before: argparse took a prefix for the flag it starts, so `--token s3cret` (a newcomer's guess: the token is
+    JOINTLIMITS_TOKEN, no flag) was read as `--token-file s3cret`, "token file s3cret: No such file or directory"."""
+    with pytest.raises(SystemExit) as e:
+        parse(argv)
+    assert e.value.code == 2 and f"unrecognized arguments: {' '.join(argv)}" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("flag", ["--request-timeout", "--header-timeout", "--shutdown-delay"])
 def test_a_duration_that_is_no_number_is_refused_in_the_settings_words(flag, capsys):
     """`float('foo')` raised ValueError inside the reader, which argparse worded "invalid positive_float value"."""

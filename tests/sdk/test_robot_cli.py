@@ -151,3 +151,24 @@ def test_the_console_script_runs_it():
     assert [g["energy"] for g in json.loads(done.stdout)] == [r.energy for r in expected()]
     help_text = subprocess.run([*console_script(), "--help"], capture_output=True, text=True).stdout
     assert "evaluate" in help_text and "serve" in help_text
+
+
+def test_a_robot_with_no_moving_joint_reads_as_an_empty_table(capsys, tmp_path):
+    """Before: a table of no rows raised TypeError (`max` of one int) from the column widths, a traceback."""
+    urdf = tmp_path / "rigid.urdf"
+    urdf.write_text('<robot name="rigid"><link name="a"/><link name="b"/>'
+                    '<joint name="w" type="fixed"><parent link="a"/><child link="b"/></joint></robot>')
+    request = tmp_path / "q.json"
+    request.write_text('{"q": []}')
+    code, out, err = run(capsys, str(urdf), "--request", str(request))
+    assert (code, err) == (0, "")
+    assert out.splitlines() == ["joint  position  limits  energy  active", "total energy 0; 0 active of 0 joints"]
+
+
+@pytest.mark.parametrize(("doc", "name"), [({"q": {"joint1": "abc"}}, "q"), ({"q": Q, "q_prev": [0] * 8 + ["x"]}, "q_prev")])
+def test_a_position_that_is_no_number_is_named(capsys, tmp_path, doc, name):
+    """Before: numpy's words alone ("could not convert string to float: 'abc'"), naming no vector."""
+    request = tmp_path / "q.json"
+    request.write_text(json.dumps(doc))
+    code, out, err = run(capsys, ARM, "--request", str(request))
+    assert code == 2 and out == "" and err.startswith(f"jointlimits evaluate: {name}: ") and "float" in err

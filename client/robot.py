@@ -169,6 +169,8 @@ class Robot:
             v = np.asarray(q, dtype=np.float64)
         except (TypeError, ValueError) as e:
             raise ValueError(f"{name}: {e}") from None
+        if v.shape == (len(self.names),) and any(isinstance(x, (bool, np.bool_)) for x in np.asarray(q, dtype=object)):
+            raise ValueError(f"{name}: a position is a number, not a boolean")  # as the wire and `Scene` refuse them
         if v.shape != (len(self.names),):
             raise ValueError(f"{name}: {len(self.names)} positions, one per joint of {self.names}, got shape {v.shape}")
         if not np.isfinite(v).all():

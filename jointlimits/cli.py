@@ -4,6 +4,7 @@ so that the service never imports the SDK; each side is imported only when its c
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Sequence
 
@@ -13,7 +14,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args[:1] == ["evaluate"]:
         from jointlimits.client.robot_cli import main as evaluate
 
-        return evaluate(args[1:])
+        try:
+            return evaluate(args[1:])
+        except BrokenPipeError:  # `jointlimits evaluate ... --json | head`: the reader left; no traceback
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's recipe: exit's flush goes nowhere
+            return 1
     from jointlimits.service.cli import main as service
 
     return service(args)

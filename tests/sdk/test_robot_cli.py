@@ -172,3 +172,21 @@ def test_a_position_that_is_no_number_is_named(capsys, tmp_path, doc, name):
     request.write_text(json.dumps(doc))
     code, out, err = run(capsys, ARM, "--request", str(request))
     assert code == 2 and out == "" and err.startswith(f"jointlimits evaluate: {name}: ") and "float" in err
+
+
+@pytest.mark.parametrize("doc", [{"q": {"joint1": True}}, {"q": Q, "q_prev": [False] + [0] * 8}])
+def test_a_boolean_position_is_refused(capsys, tmp_path, doc):
+    """Before: JSON `true` read as 1 rad, where the wire and `Scene` refuse a boolean as a number."""
+    request = tmp_path / "q.json"
+    request.write_text(json.dumps(doc))
+    code, out, err = run(capsys, ARM, "--request", str(request))
+    assert code == 2 and out == "" and "not a boolean" in err
+
+
+def test_a_reader_that_leaves_early_gets_no_traceback():
+    """Before: `jointlimits evaluate ... --json | head -c 1` ended in a BrokenPipeError traceback on stderr."""
+    with subprocess.Popen([*console_script(), "evaluate", ARM, *map(str, Q), "--json"], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True) as proc:
+        proc.stdout.close()  # the reader is gone before the command writes (Python ignores SIGPIPE: EPIPE)
+        err = proc.stderr.read()
+    assert proc.returncode == 1 and err == ""

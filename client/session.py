@@ -16,9 +16,10 @@ import orjson
 from numpy.typing import ArrayLike
 
 from jointlimits.client import codec
-from jointlimits.client.errors import Fault, ServiceError, Unreachable
+from jointlimits.client.errors import Busy, Fault, ServiceError, Unreachable
 from jointlimits.client.model import Array, Evaluation, Request, as_flag, as_outputs, as_request, in_body
-from jointlimits.client.transport import PROXY_STATUSES, Steps, T, delays, is_fault_list, proxy_page, wrong_url
+from jointlimits.client.transport import (MAX_RETRY_AFTER, PROXY_STATUSES, Retry, Steps, T, is_fault_list, proxy_page,
+                                         retry_after, wrong_url)
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core import registry
@@ -62,19 +63,22 @@ def resumable(e: Exception) -> bool:
 
 
 class Resume:
-    """The retries of one step of a session (an open, a message and its reply): `backoff` doubling, `retries` times."""
+    """The retries of one step of a session (an open, a message and its reply): `backoff` doubling, `retries` times,
+    a busy 503 to the upgrade after its `Retry-After`, by the HTTP clients' rule (`transport.Retry.wait`)."""
 
-    def __init__(self, retries: int, backoff: float, on: bool) -> None:
-        self._pauses = iter(delays(retries, backoff) if on else ())
+    def __init__(self, retries: int, backoff: float, on: bool, max_retry_after: float = MAX_RETRY_AFTER) -> None:
+        self._retry = Retry(retries if on else 0, backoff, "", max_retry_after)
         self._first: ServiceError | None = None
         self._unreachable = 0  # attempts that reached no server: the count `Unreachable` reports
 
     def pause(self, e: ServiceError) -> float:
         """Seconds to wait after `e` if another server can take over (`resumable`); past the retries, the first
-        failure (the last as its cause); a failure no server would mend (a fault, 401, 4408, ...) at once."""
+        failure (the last as its cause), or `Busy` if the last was (at once when its `Retry-After` is over
+        `max_retry_after`); a failure no server would mend (a fault, 401, 4408, ...) at once."""
         self._first = first = self._first or e
         self._unreachable += isinstance(e, Unreachable)
-        pause = next(self._pauses, None) if resumable(e) else None
+        busy = e if isinstance(e, Busy) else None  # a worker at its connection cap: `Busy` raised when not waited
+        pause = self._retry.wait(busy.retry_after if busy else None, busy) if resumable(e) else None
         if pause is not None:
             return pause
         if first is e or not resumable(e):
@@ -168,12 +172,12 @@ class Exchange(SessionState):
 
     def __init__(self, url: str, request: Request, *, binary: bool = True, timeout: float | None = 60.0,
                  headers: dict[str, str] | None = None, retries: int = 3, backoff: float = 0.2,
-                 resume: bool = True) -> None:
+                 resume: bool = True, max_retry_after: float = MAX_RETRY_AFTER) -> None:
         super().__init__(request, url)
         self.binary = binary
         self.bytes_sent = self.bytes_received = 0
         self.timeout, self.headers = timeout, dict(headers or {})
-        self.retries, self.backoff, self.resume = retries, backoff, resume
+        self.retries, self.backoff, self.resume, self.max_retry_after = retries, backoff, resume, max_retry_after
         self._ws = None
         self._closed = False  # by `close()`: no more resuming
         self._begin()
@@ -257,7 +261,7 @@ class Exchange(SessionState):
 
     def _resuming(self, step: Callable[[], Steps[T]]) -> Steps[T]:
         """`step()`, tried again after a failure another server can take over (`Resume`)."""
-        resume = Resume(self.retries, self.backoff, self.resume)
+        resume = Resume(self.retries, self.backoff, self.resume, self.max_retry_after)
         while True:
             try:
                 return (yield from step())
@@ -330,7 +334,8 @@ def handshake_error(url: str, e: Exception) -> Exception:
             return Unreachable(url, 1, status=status, proxy=proxy_page(body))
         if status == 404 or not is_fault_list(body):
             return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade", 404)
-        return codec.error(status, body)
+        error = codec.error(status, body)  # a worker at its connection cap: `Busy`, waited as it asks (`Resume`)
+        return Busy(status, error.faults, retry_after=retry_after(e.response)) if isinstance(error, Busy) else error
     # Refused, unresolvable, no answer within the open timeout, or closed before any answer (`evaluate` retries it)
     if isinstance(e, (OSError, TimeoutError)) or isinstance(e.__cause__, EOFError):
         return Unreachable(url, 1, e)

@@ -3,6 +3,7 @@ on `websockets.sync.client`), each step of `client/transport.py` and `client/ses
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from contextlib import ExitStack
@@ -86,7 +87,7 @@ class Client(BaseClient):
         "Sessions"): `with client.session(r) as s:`. `resume`: a session closed by a server that stops (1012,
         1001) or is full for now (1013, 4429), or dropped, is reopened in its committed state and the message
         in flight sent again, and an open that reaches no server, or one that drains, is tried again: `retries`
-        times with `backoff`."""
+        times with `backoff`; a busy 503 (the worker's connection cap) after its `Retry-After`, as `evaluate`."""
         return Session(request=request, resume=resume, **self._session_options())
 
     def _send(self, request: httpx.Request) -> httpx.Response:
@@ -134,8 +135,9 @@ class Session(Exchange):
             try:
                 # websockets 17 wants its connection used as a context manager: entered here, exited by "drop".
                 self._stack = ExitStack()
-                self._ws = self._stack.enter_context(
-                    connect(self.url, additional_headers=self.headers, open_timeout=self.timeout, **CONNECT_OPTIONS))
+                self._ws = self._stack.enter_context(connect(self.url, additional_headers=self.headers,
+                                                             open_timeout=self.timeout, create_connection=_connection(),
+                                                             **CONNECT_OPTIONS))
             except Exception as e:
                 raise handshake_error(self.url, e) from None
         else:  # "send": the reply
@@ -188,3 +190,22 @@ class Session(Exchange):
         if getattr(self, "_ws", None) is not None and not sys.is_finalizing():
             self._ws.close_timeout = min(self._ws.close_timeout or 1.0, 1.0)
             self._stack.close()
+
+
+@functools.cache
+def _connection() -> type:
+    """websockets' blocking connection, raising the server's answer to the upgrade once read, whatever else failed:
+    a worker at its connection cap answers 503 at accept, before the request is sent, and websockets' two threads
+    raced (`ConnectionClosed`, or its own `AssertionError`: 1 opening in 5 here), its `Retry-After` unread."""
+    from websockets.sync.client import ClientConnection
+
+    class Connection(ClientConnection):
+        def handshake(self, *args: Any, **kwargs: Any) -> None:
+            try:
+                super().handshake(*args, **kwargs)
+            except Exception:
+                if self.protocol.handshake_exc is None:
+                    raise
+                raise self.protocol.handshake_exc  # with its cause (an `EOFError`: `handshake_error` reads it)
+
+    return Connection

@@ -123,7 +123,8 @@ class BaseClient:
         t = self._http.timeout
         return dict(url={"http": "ws", "https": "wss"}.get(scheme, scheme) + "://" + rest + proto.PATH,
                     headers={k: v for k, v in self._headers.items() if k == "Authorization"},
-                    timeout=t.read, binary=self.binary, retries=self.retries, backoff=self.backoff)
+                    timeout=t.read, binary=self.binary, retries=self.retries, backoff=self.backoff,
+                    max_retry_after=self.max_retry_after)
 
     def _constitutions_request(self) -> httpx.Request:
         return self._http.build_request("GET", "/v1/constitutions")
@@ -205,13 +206,9 @@ def _ssl_context(cert_file: str | None, cert_dir: str | None) -> ssl.SSLContext:
     return httpx.create_ssl_context()
 
 
-def delays(retries: int, backoff: float) -> list[float]:
-    """Sleep before each retry: `backoff`, `2 backoff`, `4 backoff`, ..."""
-    return [backoff * 2**k for k in range(retries)]
-
-
-def retry_after(response: httpx.Response) -> float | None:
-    """The seconds of `response`'s `Retry-After` header (digits, with or without a decimal part), else None."""
+def retry_after(response: Any) -> float | None:
+    """The seconds of `response`'s `Retry-After` header (digits, with or without a decimal part), else None;
+    `response` is httpx's, or websockets' answer to a session's upgrade."""
     value = response.headers.get("retry-after", "").strip()
     return float(value) if re.fullmatch(r"[0-9]+(\.[0-9]+)?", value) else None
 
@@ -249,7 +246,7 @@ class Retry:
     budget and the same backoff steps: each retry, whatever its cause, spends the next step."""
 
     def __init__(self, retries: int, backoff: float, url: str, max_retry_after: float = MAX_RETRY_AFTER) -> None:
-        self._pauses = iter(delays(retries, backoff))
+        self._pauses = (backoff * 2**k for k in range(retries))  # the sleep before each retry
         self.url = url
         self.max_retry_after = max_retry_after
         self.attempts = 0
@@ -272,17 +269,25 @@ class Retry:
             error = codec.error(response.status_code, response.content) if response.status_code == 503 else None
             if not isinstance(error, Busy):  # the deadline's 503 ran for the whole timeout: not retried
                 return None
+        pause = self.wait(retry_after(response), error)
+        if pause is None:
+            raise Unreachable(self.url, self.attempts, status=response.status_code, proxy=proxy_page(response.content))
+        return pause
+
+    def wait(self, after: float | None, busy: Busy | None = None) -> float | None:
+        """Seconds to sleep after a refusal that computed nothing (`busy`, or a proxy's answer) whose `Retry-After`
+        is `after`: at least the backoff step. No retry left, or `after` over `max_retry_after`: `Busy` raised
+        (`busy`'s faults, `after`, the attempts) or, for a proxy's answer, None. A session's opening waits by it too
+        (`client/session.py:Resume`)."""
         self.attempts += 1
-        after = retry_after(response)
         too_long = after is not None and after > self.max_retry_after
         step = None if too_long else next(self._pauses, None)
-        if step is None:
-            if error is None:
-                raise Unreachable(self.url, self.attempts, status=response.status_code,
-                                  proxy=proxy_page(response.content))
-            raise Busy(error.status, error.faults, retry_after=after, attempts=self.attempts,
+        if step is not None:
+            return max(step, after or 0.0)
+        if busy is not None:
+            raise Busy(busy.status, busy.faults, retry_after=after, attempts=self.attempts,
                        max_retry_after=self.max_retry_after if too_long else None)
-        return max(step, after or 0.0)
+        return None
 
 
 def part_joints(limits: ConstitutionsResponse | None, binary: bool, user_max: int | None,

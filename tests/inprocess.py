@@ -42,10 +42,10 @@ class Live:
 
 @contextmanager
 def serve(settings: Settings, header_timeout: float = 5.0, write_timeout: float = 1.0,
-          message_timeout: float | None = None, max_connections: int | None = None) -> Iterator[Live]:
+          message_timeout: float | None = None, max_connections: int | None = None, app: Any = None) -> Iterator[Live]:
     """uvicorn in a thread; `log_config=None` leaves logging to the test (caplog sees uvicorn's records).
-    `max_connections` None: JOINTLIMITS_MAX_CONNECTIONS (its default)."""
-    app = create_app(settings)
+    `max_connections` None: JOINTLIMITS_MAX_CONNECTIONS (its default); `app`: `create_app(settings)` unless given."""
+    app = app or create_app(settings)
     message_timeout = settings.body_timeout if message_timeout is None else message_timeout
     config = uvicorn.Config(
         app, log_config=None, log_level="info", lifespan="on",

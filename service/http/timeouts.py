@@ -242,6 +242,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     heads_held = 0  # bytes of every connection's unfinished and queued heads in this worker (MAX_HEADS_HELD)
     _cut = False  # a pipelined head or a body refused: the answers owed are sent, nothing more is read
     _lingers = False  # refused and half-closed (`REFUSED_LINGER`), counted in `lingering`
+    _running: Any = None  # the request being answered (`_start_asgi_task`)
     lingering = 0  # this worker's connections that do
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -349,6 +350,10 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
             self._queued.append(size)
             ReadTimeoutProtocol.heads_held += size
 
+    def _start_asgi_task(self, cycle: Any, app: Any) -> None:
+        self._running = cycle  # the request being answered; with requests pipelined, `self.cycle` is the last read
+        super()._start_asgi_task(cycle, app)
+
     def connection_lost(self, exc: Exception | None) -> None:
         self._head_timer.stop()
         self._drop_head()
@@ -356,6 +361,11 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         self._queued.clear()
         ReadTimeoutProtocol.lingering -= self._lingers
         super().connection_lost(exc)
+        # uvicorn tells only `self.cycle`, the last request read, that the client is gone: with requests pipelined, the
+        # one answered ahead of it wrote to the closed transport (uvloop raises), logged as an application's error.
+        if self._running is not None and not self._running.response_complete:
+            self._running.disconnected = True
+            self._running.message_event.set()
 
     def _arm(self) -> None:
         self._head_bytes = False

@@ -9,6 +9,7 @@ Every scenario runs for `Client` and `AsyncClient`.
 from __future__ import annotations
 
 import asyncio
+import json
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -22,6 +23,7 @@ from fastapi.testclient import TestClient
 from jointlimits.client import AsyncClient, Busy, Client, Evaluation, LocalClient, Request, ServiceError, Unreachable
 from jointlimits.client import split, transport
 from jointlimits.client.errors import Fault
+from jointlimits.client.session import Resume, handshake_error
 from jointlimits.service.app import create_app
 from jointlimits.service.settings import Settings
 from tests.sdk.test_client_sdk import chain, readme_scene
@@ -282,3 +284,48 @@ def test_max_retry_after_is_an_option_of_every_client():
     assert Client("http://test").max_retry_after == 30.0 == AsyncClient("http://test").max_retry_after
     assert Client("http://test", max_retry_after=5).max_retry_after == 5
     LocalClient(max_retry_after=5)  # accepted and ignored, as the other HTTP options
+
+
+def upgrade_refused(after: str | None) -> Exception:
+    """websockets' failure of a session's upgrade answered a busy 503 with `Retry-After: after` (none when None), as a
+    worker at its connection cap answers it."""
+    from websockets.datastructures import Headers
+    from websockets.exceptions import InvalidStatus
+    from websockets.http11 import Response
+
+    headers = Headers({"Content-Type": "application/json", **({} if after is None else {"Retry-After": after})})
+    body = json.dumps({"detail": [{"loc": ["body"], "msg": BUSY_MSG, "type": "busy"}]}).encode()
+    return InvalidStatus(Response(503, "Service Unavailable", headers, body))
+
+
+@pytest.mark.parametrize(("script", "options"), [
+    (("5",), {}),
+    (("1.5", "7"), {"backoff": 0.25}),
+    (("0", "0.25", None, "Wed, 21 Oct 2026 07:28:00 GMT"), {"retries": 4, "backoff": 0.5}),
+    (("31",), {"max_retry_after": 30}),
+    (("30", "30.5"), {}),
+    (("1.5",) * 10, {"retries": 3, "backoff": 1.0}),
+    ((None,), {"retries": 0}),
+])  # fmt: skip
+def test_a_session_opening_waits_a_busy_503_as_evaluate_does(app, pauses, script, options):
+    """The same busy 503s to a session's upgrade (`handshake_error`, then `Resume`, as `Exchange._opening` meets
+    them) and to `POST /v1/evaluate`: the same sleeps, then the same `Busy` (its `retry_after`, attempts, words) or
+    none. The opening slept 0.2, 0.4, 0.8 s whatever the server asked, and raised the first 503."""
+    try:
+        evaluate("sync", Server(app, *[busy(after) for after in script]), readme_scene().request(), **options)
+        http = None
+    except Busy as e:
+        http = e
+    http_pauses, session = list(pauses), None
+    given = {"retries": 3, "backoff": 0.2, "max_retry_after": transport.MAX_RETRY_AFTER, **options}  # the clients'
+    resume = Resume(given["retries"], given["backoff"], True, given["max_retry_after"])
+    session_pauses = []
+    try:
+        for after in script:
+            session_pauses.append(resume.pause(handshake_error("ws://test/v1/sessions", upgrade_refused(after))))
+    except Busy as e:
+        session = e
+    assert session_pauses == http_pauses
+    assert (session is None) == (http is None)
+    if session is not None and http is not None:
+        assert (str(session), session.retry_after, session.attempts) == (str(http), http.retry_after, http.attempts)

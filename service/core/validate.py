@@ -90,8 +90,15 @@ def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | 
         return None, faults
     try:
         return np.array(value, dtype=np.int64 if integer else np.float64), []
-    except OverflowError:  # an integer outside int64
-        return None, [Fault(loc, "Input should be a valid integer in int64 range", "int_type")]
+    except OverflowError:  # an integer past float64 (JSON's 1 and 400 zeros; int64's are named above): +-inf, as 1e400
+        return np.array(_past_range(value), dtype=np.float64), []  # the finiteness check names each element
+
+
+def _past_range(value: Any) -> Any:
+    """Nested lists `value`, each integer that rounds past float64 (from 2^1024 - 2^970) made +-inf."""
+    if isinstance(value, (list, tuple)):
+        return [_past_range(x) for x in value]
+    return value if not isinstance(value, int) or abs(value) < 2**1024 - 2**970 else np.inf if value > 0 else -np.inf
 
 
 def _element_faults(value: Any, loc: Loc, integer: bool, row: tuple[int, ...] | None = None) -> list[Fault]:

@@ -33,8 +33,8 @@ from jointlimits.service.core.kinematics import (PREV_STEP, REF, STEP, STEPS, TO
 from jointlimits.service.core.geometry import axis_and_anchors
 from jointlimits.service.core.registry import CONSTITUTIONS, numerics
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
-from jointlimits.service.core.validate import (check_bodies, check_coordinates, check_dofs, check_evaluation, check_options,
-                                               check_rotations, check_update_index, check_update_ranges,
+from jointlimits.service.core.validate import (check_bodies, check_coordinates, check_dofs, check_evaluation, check_moved,
+                                               check_options, check_rotations, check_update_index, check_update_ranges,
                                                check_update_values, joint_faults, raise_if)
 
 # 2 pi in two parts (Cody-Waite): `k * _TWO_PI_HI` is exact for |k| < 2**24 turns (24 trailing zero
@@ -318,6 +318,9 @@ class PreparedScene:
         after = {k: values[k] if k in values else getattr(jb, k)[index] for k in ("lower", "upper", "strength", "offset")}
         with np.errstate(all="ignore"):
             raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
+            if offset is not None:  # the committed coordinates it moves stay finite
+                x = jb.theta[index] if jb.committed is not None else self.coordinates()[batch][index] - jb.offset[index]
+                raise_if(check_moved(batch, x, after["offset"], index))
         for k, a in after.items():
             getattr(jb, k)[index] = a
         if jb.committed is not None and offset is not None:  # the same angle, in the words of the new offset

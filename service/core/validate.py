@@ -324,6 +324,11 @@ def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarra
     return _rows(b, "offset", bad, lambda j: "lower - offset or upper - offset overflows float64", index)
 
 
+def check_moved(b: int, x: np.ndarray, offset: np.ndarray, index: NDArray[np.int64]) -> list[Fault]:
+    """Joints `index` (M,) of batch `b` whose coordinate `x + offset` (each (M,)) a new offset would overflow."""
+    return _rows(b, "offset", ~np.isfinite(x + offset), lambda j: "the coordinate x + offset overflows float64", index)
+
+
 def check_update_index(b: int, n_batches: int, n_joints: int, index: np.ndarray) -> list[Fault]:
     """The joints `index` of an update of batch `b`: distinct, in range (the batch has `n_joints`)."""
     if not 0 <= b < n_batches:

@@ -341,6 +341,22 @@ def test_update_is_validated_and_atomic(kwargs: dict, loc: tuple) -> None:
     _same(scene.evaluate(bodies.q), before)
 
 
+@pytest.mark.parametrize("committed", [False, True])
+def test_an_offset_that_would_overflow_a_committed_coordinate_changes_nothing(committed: bool) -> None:
+    """The angle 1e308 (prev_coordinate) plus a new offset 1e308 (its bounds finite) is inf: the update is refused
+    naming the offset, and nothing changes; before, it was applied and the coordinates read inf."""
+    bodies, joints = _screw(0.0, prev_coordinate=1e308, lower=-1.5e308, upper=1.5e308)
+    scene = prepare(bodies, [joints])
+    if committed:
+        scene.commit(_q(0.5))
+    before = scene.coordinates()
+    with pytest.raises(InputError) as e:
+        scene.update(0, [0], lower=[1.5e308], upper=[1.7e308], offset=[1e308])
+    assert [(f.loc, f.msg) for f in e.value.faults] == [(("batches", 0, "offset", 0), "the coordinate x + offset overflows float64")]
+    assert scene.coordinates()[0].tolist() == before[0].tolist()
+    assert scene.evaluate(_q(0.5)).batches[0].energy.tolist() == [0.0]
+
+
 def test_update_of_a_missing_batch() -> None:
     bodies, joints = _screw(0.5)
     scene = prepare(bodies, [joints])

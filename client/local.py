@@ -140,8 +140,9 @@ class LocalSession(SessionState):
     def _open(self) -> None:
         r = self.request
         bodies = core.Bodies(np.asarray(r.q, np.float64), np.asarray(r.q_prev, np.float64), np.asarray(r.q_ref, np.float64))
-        self._scene = _call(lambda: prepare(bodies, core_batches(r, copy=True), threads=self.threads))
-        self._coordinates = [owned(c) for c in self._scene.coordinates()]
+        scene = _call(lambda: prepare(bodies, core_batches(r, copy=True), threads=self.threads))
+        self._coordinates = [owned(c) for c in _call(scene.coordinates)]  # InvalidInput where they overflow
+        self._scene = scene
 
     def _live(self) -> Any:
         if self._scene is None:

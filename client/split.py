@@ -7,6 +7,7 @@ the original batch, joint and body indices.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, replace
 
@@ -86,7 +87,10 @@ def merge(request: Request, parts: list[Part], results: list[Evaluation]) -> Eva
         cat = {k: None if getattr(rs[0], k) is None else np.concatenate([getattr(r, k) for r in rs])
                for k in ("index", "x", "energy", "gradient", "hessian", "coordinate")}
         merged.append(BatchResult(b.constitution_uid, **cat))
-    return Evaluation(total_energy=float(sum(ev.total_energy for ev in results)), batches=merged, assembled=assembled)
+    total = sum(float(ev.total_energy) for ev in results)  # Python floats: an overflow is inf, no warning
+    if not math.isfinite(total):  # finite parts whose sum is not: the whole request's fault, as the core words it
+        raise in_body([Fault(("batches",), "the total energy overflows float64")])
+    return Evaluation(total_energy=total, batches=merged, assembled=assembled)
 
 
 def _merge_assembled(request: Request, parts: list[Part], results: list[Evaluation]) -> Assembled | None:

@@ -41,6 +41,9 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
     g, side = penalty.gap(x, lo, up) if want_g or want_h else (penalty.distance(x, lo, up), None)
     energy, r, w, wide = penalty.energy_and_relative(g, x, lo, up, s, w)
     overflow = nonfinite_rows(energy)
+    if overflow:  # s = 0 pays nothing however far out: 0 * inf is no overflow (nor active, below)
+        energy[s == 0] = 0.0
+        overflow = nonfinite_rows(energy)
     active = gradient = hessian = None
     if want_g or want_h or compact:
         active = ((g > 0) & (s > 0)).nonzero()[0]

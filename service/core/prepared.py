@@ -33,9 +33,9 @@ from jointlimits.service.core.kinematics import (PREV_STEP, REF, STEP, STEPS, TO
 from jointlimits.service.core.geometry import axis_and_anchors
 from jointlimits.service.core.registry import CONSTITUTIONS, numerics
 from jointlimits.service.core.scene import OUTPUTS, BatchResult, Bodies, Evaluation, Joints
-from jointlimits.service.core.validate import (check_bodies, check_dofs, check_evaluation, check_options, check_rotations,
-                                               check_update_index, check_update_ranges, check_update_values,
-                                               joint_faults, raise_if)
+from jointlimits.service.core.validate import (check_bodies, check_coordinates, check_dofs, check_evaluation, check_moved,
+                                               check_options, check_rotations, check_update_index, check_update_ranges,
+                                               check_update_values, joint_faults, raise_if)
 
 # 2 pi in two parts (Cody-Waite): `k * _TWO_PI_HI` is exact for |k| < 2**24 turns (24 trailing zero
 # bits), so `rem` of a many-turn angle loses nothing to the rounding of 2 pi.
@@ -249,13 +249,15 @@ class PreparedScene:
                     x = r + rem(x - r)
                 new.append((F_q, x))
             log.raise_if_any()
+            coordinates = [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
+            raise_if(check_coordinates([(np.arange(len(x)), x, c) for (_, x), c in zip(new, coordinates)]))
             for jb, (F_q, x) in zip(self._batches, new):
                 if jb.c.facts.stateful:  # its steps start at q_prev (state 1)
                     jb.starts, jb.fixed, jb.committed = [F_q], [], _plus_offset(x, jb.offset)
                     jb.theta = _angle_of(jb.committed, jb.offset, jb.lo.dtype)
                     jb.progress = {"ref": jb.progress["ref"]} if "ref" in jb.progress else {}
             self._table.load(1, self._table.dofs[2].T)
-            return [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
+            return coordinates
 
     def _from_ref(self, jb: _Batch) -> tuple[Array, Array, CarefulFrames | None, object]:
         """Frames (N, 4, 3) at `q` (loaded with `TOTAL_STEP`), the coordinate from `q_ref` in one
@@ -278,12 +280,14 @@ class PreparedScene:
         return _from_origin(x, jb)
 
     def coordinates(self) -> list[Array]:
-        """The committed coordinates at `q_prev`, one (N,) per batch (`x(q_prev) + offset`)."""
-        out = []
+        """The committed coordinates at `q_prev`, one (N,) per batch (`x(q_prev) + offset`); `InputError` naming
+        the joints where they overflow."""
+        out, xs = [], []
         with np.errstate(all="ignore"):
             for jb in self._batches:
                 if jb.committed is not None:  # as a prev_coordinate carried it or the last commit answered it
                     out.append(jb.committed.copy())
+                    xs.append(out[-1])
                     continue
                 if not jb.c.facts.stateful:
                     self._load(self._table.dofs[1].T, (TOTAL_STEP,), (TOTAL_STEP,))
@@ -291,6 +295,8 @@ class PreparedScene:
                 else:
                     x = self._angle(jb)
                 out.append(_plus_offset(x, jb.offset))
+                xs.append(x)
+        raise_if(check_coordinates([(np.arange(len(x)), x, c) for x, c in zip(xs, out)]))
         return out
 
     def update(self, batch: int, index: ArrayLike, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
@@ -312,6 +318,9 @@ class PreparedScene:
         after = {k: values[k] if k in values else getattr(jb, k)[index] for k in ("lower", "upper", "strength", "offset")}
         with np.errstate(all="ignore"):
             raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
+            if offset is not None:  # the committed coordinates it moves stay finite
+                x = jb.theta[index] if jb.committed is not None else self.coordinates()[batch][index] - jb.offset[index]
+                raise_if(check_moved(batch, x, after["offset"], index))
         for k, a in after.items():
             getattr(jb, k)[index] = a
         if jb.committed is not None and offset is not None:  # the same angle, in the words of the new offset

@@ -90,8 +90,15 @@ def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | 
         return None, faults
     try:
         return np.array(value, dtype=np.int64 if integer else np.float64), []
-    except OverflowError:  # an integer outside int64
-        return None, [Fault(loc, "Input should be a valid integer in int64 range", "int_type")]
+    except OverflowError:  # an integer past float64 (JSON's 1 and 400 zeros; int64's are named above): +-inf, as 1e400
+        return np.array(_past_range(value), dtype=np.float64), []  # the finiteness check names each element
+
+
+def _past_range(value: Any) -> Any:
+    """Nested lists `value`, each integer that rounds past float64 (from 2^1024 - 2^970) made +-inf."""
+    if isinstance(value, (list, tuple)):
+        return [_past_range(x) for x in value]
+    return value if not isinstance(value, int) or abs(value) < 2**1024 - 2**970 else np.inf if value > 0 else -np.inf
 
 
 def _element_faults(value: Any, loc: Loc, integer: bool, row: tuple[int, ...] | None = None) -> list[Fault]:
@@ -317,6 +324,11 @@ def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarra
     return _rows(b, "offset", bad, lambda j: "lower - offset or upper - offset overflows float64", index)
 
 
+def check_moved(b: int, x: np.ndarray, offset: np.ndarray, index: NDArray[np.int64]) -> list[Fault]:
+    """Joints `index` (M,) of batch `b` whose coordinate `x + offset` (each (M,)) a new offset would overflow."""
+    return _rows(b, "offset", ~np.isfinite(x + offset), lambda j: "the coordinate x + offset overflows float64", index)
+
+
 def check_update_index(b: int, n_batches: int, n_joints: int, index: np.ndarray) -> list[Fault]:
     """The joints `index` of an update of batch `b`: distinct, in range (the batch has `n_joints`)."""
     if not 0 <= b < n_batches:
@@ -354,19 +366,25 @@ def check_update_ranges(
 def check_evaluation(ev: Evaluation) -> list[Fault]:
     """Faults of a finished evaluation that would put NaN or Infinity in an answer: the core names overflowing
     energies and derivatives itself; this also catches an overflowed `x` of an inactive joint (x = NaN has no
-    gap, so zero energy)."""
+    gap, so zero energy). (A total energy that overflows: `PreparedScene._run`, before the answer exists.)"""
+    return check_coordinates([(r.index, r.x, r.coordinate) for r in ev.batches])
+
+
+def check_coordinates(batches: Sequence[tuple[NDArray[np.int64], Array, Array | None]]) -> list[Fault]:
+    """Per batch (joints `index`, their `x` and `coordinate` (M,) or None), the joints whose x or coordinate is
+    not finite: an answer's, a commit's, the committed coordinates a session reports."""
     faults = [
-        Fault(("batches", b, "body_ids", int(r.index[i])), "the joint coordinate x overflows float64 at this configuration (positions or edge too large)")
-        for b, r in enumerate(ev.batches)
-        for i in nonfinite_rows(r.x)
+        Fault(("batches", b, "body_ids", int(index[i])), "the joint coordinate x overflows float64 at this configuration (positions or edge too large)")
+        for b, (index, x, _) in enumerate(batches)
+        for i in nonfinite_rows(x)
     ]
     faults += [
-        Fault(("batches", b, "offset", int(r.index[i])), "the coordinate x + offset overflows float64")
-        for b, r in enumerate(ev.batches)
-        if r.coordinate is not None and not np.isfinite(r.coordinate).all()  # the common case: one flat test
-        for i in _where(np.isfinite(r.x) & ~np.isfinite(r.coordinate))
+        Fault(("batches", b, "offset", int(index[i])), "the coordinate x + offset overflows float64")
+        for b, (index, x, c) in enumerate(batches)
+        if c is not None and not np.isfinite(c).all()  # the common case: one flat test
+        for i in _where(np.isfinite(x) & ~np.isfinite(c))
     ]
-    return faults[:MAX_FAULTS]  # (a total energy that overflows: `PreparedScene._run`, before the answer exists)
+    return faults[:MAX_FAULTS]
 
 
 def raise_if(faults: list[Fault]) -> None:

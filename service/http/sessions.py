@@ -251,6 +251,7 @@ def _open(frame: Frame, settings: Settings, state: Any, session: Session) -> Fra
         _reserve(state, session, joints, settings.max_session_joints, bodies)  # everything the scene will hold
         try:
             scene = prepare(kwargs["bodies"], kwargs["batches"])
+            coordinates = scene.coordinates()  # the reply's: an InputError where they overflow
         except BaseException:
             _reserve(state, session, 0, settings.max_session_joints)  # a refused scene holds nothing
             raise
@@ -261,7 +262,7 @@ def _open(frame: Frame, settings: Settings, state: Any, session: Session) -> Fra
     session.scene, session.joints = scene, joints
     session.defaults = {k: kwargs[k] for k in ("outputs", "hessian_mode", "active_only", "layout")}
     opened = {"kind": proto.OPENED, "bodies": scene.n_bodies, "batch_sizes": list(scene.batch_sizes),
-              "coordinates": scene.coordinates(),
+              "coordinates": coordinates,
               "limits": {"max_frame_bytes": settings.max_frame_bytes, "idle_seconds": settings.session_idle_seconds}}
     if kwargs["id"] is not None:
         opened["id"] = kwargs["id"]

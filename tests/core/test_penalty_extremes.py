@@ -111,3 +111,21 @@ def test_http_an_energy_beyond_float64_is_a_422_naming_the_joint():
         r = client.post("/v1/evaluate", json=_revolute(1.7e308, -1.0000001e308, -1e308, 1e300))
     assert r.status_code == 422, r.text
     assert [d["loc"] for d in r.json()["detail"]] == [["body", "batches", 0, "strength", 0]]
+
+
+
+@pytest.mark.parametrize("uid", [670, 669])
+def test_strength_zero_pays_nothing_however_far_out(uid):
+    """`s = 0` (a limit switched off) is E = 0 and zero derivatives even where `(g / w)^3` overflows (a width of
+    1e-200, a gap of 0.5): before, `0 * inf` was NaN and the request a 422 naming a joint whose energy is exactly 0."""
+    from jointlimits.service.core import Bodies, Joints, evaluate
+    from tests.scenes import pack, rotation_about
+
+    eye = pack(np.zeros(3), np.eye(3))
+    moved = pack(np.array([0.0, 0.0, 0.5]), rotation_about(np.array([0.0, 0.0, 1.0]), 0.5))  # x = 0.5 either way
+    joints = Joints(uid, 18 if uid == 670 else 20, np.array([[0, 1]]), np.array([[[0.0, 0, 0], [0, 0, 1]]]),
+                    np.array([-1e-200]), np.array([0.0]), np.array([0.0]))
+    ev = evaluate(Bodies(np.stack([eye, moved]), np.stack([eye, eye]), np.stack([eye, eye])), [joints])
+    r = ev.batches[0]
+    assert abs(r.x[0] - 0.5) < 1e-15 and r.energy.tolist() == [0.0] and ev.total_energy == 0.0
+    assert not r.gradient.any() and not r.hessian.any()

@@ -263,6 +263,37 @@ def test_commit_is_all_or_nothing() -> None:
     assert abs(scene.evaluate(_q(1.2)).batches[0].x[0] - 1.2) <= 1e-15
 
 
+X_OVERFLOWS = "the joint coordinate x overflows float64 at this configuration (positions or edge too large)"
+
+
+def _slide(far: np.ndarray) -> tuple[Bodies, Joints]:
+    """A #669 joint along +z between two bodies at the origin, then body 1's DOFs `far` at q_prev and q."""
+    eye = pack(np.zeros(3), np.eye(3))
+    ref = np.stack([eye, eye])
+    joints = Joints(669, 20, np.array([[0, 1]]), EDGE[None], np.array([-1.0]), np.array([1.0]), np.array([1.0]))
+    return Bodies(np.stack([eye, far]), np.stack([eye, far]), ref), joints
+
+
+def test_a_slide_past_float64_is_named_at_commit_and_in_the_committed_coordinates_never_returned() -> None:
+    """x = (C_j - C_i) . (T_i + T_j) / 2 with C_j and T_j near 1e300 overflows: evaluate names the joint; so must
+    commit (all or nothing) and the coordinates at q_prev (a session's opening reply): they returned inf."""
+    far = pack(np.array([0.0, 0.0, 1e300]), 1e300 * np.eye(3))
+    bodies, joints = _slide(pack(np.zeros(3), np.eye(3)))
+    scene = prepare(bodies, [joints])
+    with pytest.raises(InputError) as e:
+        scene.evaluate(np.stack([bodies.q[0], far]))
+    assert [f.loc[:2] + f.loc[-1:] for f in e.value.faults] == [("batches", 0, 0)]  # (its energy overflows first)
+    with pytest.raises(InputError) as e:
+        scene.commit(np.stack([bodies.q[0], far]))
+    assert [(f.loc, f.msg) for f in e.value.faults] == [(("batches", 0, "body_ids", 0), X_OVERFLOWS)]
+    assert scene.coordinates()[0].tolist() == [0.0]  # unchanged
+    bodies, joints = _slide(far)  # q_prev far: the stateless answer at q needs no coordinate there
+    scene = prepare(bodies, [joints])
+    with pytest.raises(InputError) as e:
+        scene.coordinates()
+    assert [(f.loc, f.msg) for f in e.value.faults] == [(("batches", 0, "body_ids", 0), X_OVERFLOWS)]
+
+
 # ---------------------------------------------------------------- update
 
 
@@ -308,6 +339,22 @@ def test_update_is_validated_and_atomic(kwargs: dict, loc: tuple) -> None:
         scene.update(0, **kwargs)
     assert e.value.faults[0].loc == loc
     _same(scene.evaluate(bodies.q), before)
+
+
+@pytest.mark.parametrize("committed", [False, True])
+def test_an_offset_that_would_overflow_a_committed_coordinate_changes_nothing(committed: bool) -> None:
+    """The angle 1e308 (prev_coordinate) plus a new offset 1e308 (its bounds finite) is inf: the update is refused
+    naming the offset, and nothing changes; before, it was applied and the coordinates read inf."""
+    bodies, joints = _screw(0.0, prev_coordinate=1e308, lower=-1.5e308, upper=1.5e308)
+    scene = prepare(bodies, [joints])
+    if committed:
+        scene.commit(_q(0.5))
+    before = scene.coordinates()
+    with pytest.raises(InputError) as e:
+        scene.update(0, [0], lower=[1.5e308], upper=[1.7e308], offset=[1e308])
+    assert [(f.loc, f.msg) for f in e.value.faults] == [(("batches", 0, "offset", 0), "the coordinate x + offset overflows float64")]
+    assert scene.coordinates()[0].tolist() == before[0].tolist()
+    assert scene.evaluate(_q(0.5)).batches[0].energy.tolist() == [0.0]
 
 
 def test_update_of_a_missing_batch() -> None:

@@ -1,6 +1,6 @@
 """One NaN, one message: a non-finite number gets the same `loc` (to the element), words and type on every path.
 
-Paths: JSON `null`, `NaN`, `Infinity`, `-Infinity`, `1e400` (raw bodies); msgpack NaN and infinity bits;
+Paths: JSON `null`, `NaN`, `Infinity`, `-Infinity`, `1e400` and a 401-digit integer (raw bodies); msgpack NaN and infinity bits;
 the SDK over HTTP in both encodings (its JSON writes NaN as `null`); the local mode.
 """
 
@@ -21,6 +21,7 @@ from tests.http.test_errors_http import base_request, edit, edit_body, with_batc
 pytestmark = pytest.mark.slow  # each fault through JSON, msgpack, local and sessions on a live server (~3 s)
 
 FINITE = ("Input should be a finite number", "finite_number")
+PAST_RANGE = "1" + "0" * 400  # 1e400 as a JSON integer: no float64 holds it, so it is infinite as 1e400 is
 
 # Where the bad number goes: the path in the request document, and the mutation of the SDK request.
 PLACES = [
@@ -81,7 +82,7 @@ def test_every_path_says_the_same(live, path, mutate):
     want = [(("body", *path), *FINITE)]
     got = {
         **{f"json {t}": _raw(live, "application/json", _json_with(t, path))
-           for t in ("null", "NaN", "Infinity", "-Infinity", "1e400", "-1e400")},
+           for t in ("null", "NaN", "Infinity", "-Infinity", "1e400", "-1e400", PAST_RANGE, "-" + PAST_RANGE)},
         **{f"msgpack {v}": _raw(live, "application/msgpack", _msgpack_with(v, path)) for v in (np.nan, np.inf, -np.inf)},
         **{f"sdk binary {v}": _sdk(Client(live), mutate(base_request(), v)) for v in (np.nan, -np.inf)},
         **{f"sdk json {v}": _sdk(Client(live, binary=False), mutate(base_request(), v)) for v in (np.nan, np.inf)},

@@ -12,6 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketDenialResponse
 
+from jointlimits.client import InvalidInput, LocalClient
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service import sizing
@@ -203,6 +204,45 @@ def test_a_faulty_opening_document_is_a_fault_then_a_good_one_opens():
         reply = msgpack.unpackb(ws.receive_bytes())
         assert reply["detail"][0]["type"] == "msgpack_invalid"
         assert s.send(BODY)["kind"] == "opened"
+
+
+EYE = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+FAR = [0.0, 0.0, 1e300] + [1e300 * v for v in EYE[3:]]  # p and A near 1e300: a slide (C_j - C_i) . T_j overflows
+X_OVERFLOWS = {"loc": ["body", "batches", 0, "body_ids", 0], "type": "value_error",
+               "msg": "the joint coordinate x overflows float64 at this configuration (positions or edge too large)"}
+
+
+def slide(q_prev: list) -> dict:
+    """A #669 joint along +z between two bodies at the origin; body 1 at `q_prev` at the previous step."""
+    return {"bodies": {"q": [EYE, EYE], "q_prev": [EYE, q_prev], "q_ref": [EYE, EYE]},
+            "batches": [{"constitution_uid": 669, "base_uid": 20, "body_ids": [[0, 1]], "edges": [[[0, 0, 0], [0, 0, 1]]],
+                         "lower": [-1.0], "upper": [1.0], "strength": [1.0]}]}
+
+
+@pytest.mark.parametrize("Side", [Json, Binary], ids=["json", "msgpack"])
+def test_a_slide_past_float64_is_a_fault_at_the_opening_and_at_a_commit(Side):
+    """The opening (its coordinates at q_prev) and a commit name the joint whose slide overflows; before, their
+    replies carried inf (JSON: null). A refused scene holds no room."""
+    with app(max_session_joints=sizing.session_weight(1, 2)).websocket_connect(PATH) as ws:
+        s = Side(ws)
+        reply = s.send(slide(FAR))
+        assert (reply["kind"], reply["status"], reply["detail"]) == ("error", 422, [X_OVERFLOWS]), reply
+        assert s.send(slide(EYE))["kind"] == "opened"  # the worker's room for one scene was given back
+        reply = s.send({"kind": "commit", "q": [EYE, FAR]})
+        assert (reply["kind"], reply["status"], reply["detail"]) == ("error", 422, [X_OVERFLOWS]), reply
+        assert arrays(s.send({"kind": "commit", "q": [EYE, EYE]}))["coordinates"][0].tolist() == [0.0]
+
+
+def test_a_slide_past_float64_in_a_local_session():
+    want = [(tuple(X_OVERFLOWS["loc"]), X_OVERFLOWS["msg"], X_OVERFLOWS["type"])]
+    with pytest.raises(InvalidInput) as e:
+        LocalClient().session(slide(FAR))
+    assert [(f.loc, f.msg, f.type) for f in e.value.faults] == want
+    with LocalClient().session(slide(EYE)) as s:
+        with pytest.raises(InvalidInput) as e:
+            s.commit([EYE, FAR])
+        assert [(f.loc, f.msg, f.type) for f in e.value.faults] == want
+        assert s.commit([EYE, EYE])[0].tolist() == [0.0]
 
 
 def test_the_bearer_token_is_checked_on_the_upgrade():

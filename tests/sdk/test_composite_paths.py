@@ -362,6 +362,24 @@ def test_a_per_body_sum_that_overflows_only_once_merged_is_the_whole_requests_fa
 
 
 @pytest.mark.parametrize("size", [1, 2])
+def test_a_total_energy_that_overflows_only_once_merged_is_the_whole_requests_fault(size):
+    """Each part's total energy is finite (0.6 of float64's largest per joint), their sum is not: the merge must
+    refuse it as the whole request is refused (422 on `batches`), never answer an infinity (it did)."""
+    from jointlimits.client import InvalidInput
+
+    local = LocalClient()
+    energy = lambda d: {**d, "layout": "joints", "outputs": ["energy"]}  # noqa: E731
+    one = local.evaluate(energy(_two_slides(1.0, 1))).total_energy
+    d = energy(_two_slides(0.6 * np.finfo(np.float64).max / one, 3))
+    with pytest.raises(InvalidInput) as whole:
+        local.evaluate(d)
+    with pytest.raises(InvalidInput) as merged:
+        _in_parts(as_request(d), size)
+    assert merged.value.status == whole.value.status == 422
+    assert [(f.loc, f.msg, f.type) for f in merged.value.faults] == [(f.loc, f.msg, f.type) for f in whole.value.faults]
+
+
+@pytest.mark.parametrize("size", [1, 2])
 def test_a_parts_fault_names_the_callers_bodies(size):
     """Parts carry only their joints' bodies, renumbered; a fault whose message names a body (a joint coupling a
     body to itself, a per-body sum that overflows within the part) must name it as the caller numbered it."""

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -206,7 +207,10 @@ def as_request(request: Any) -> Request:
     try:
         body = orjson.dumps(request, option=orjson.OPT_SERIALIZE_NUMPY)
     except TypeError as e:
-        raise TypeError(f"evaluate(): the dict is not wire JSON ({e})") from None
+        try:  # an integer past 64 bits (orjson's bound, not JSON's: the server reads it): the standard library's JSON
+            body = json.dumps(request, default=lambda a: np.asarray(a).tolist()).encode()
+        except (TypeError, ValueError):
+            raise TypeError(f"evaluate(): the dict is not wire JSON ({e})") from None
     # The service's own JSON reader (imported here: HTTP alone never loads it): the same faults, in the same words.
     from jointlimits.service.core import InputError
     from jointlimits.service.http.convert import read

@@ -45,6 +45,28 @@ def test_a_dict_and_a_wire_model_give_what_the_request_gives(live, mode):
     same(client.evaluate(arrays), client.evaluate(unit))
 
 
+def test_an_integer_past_64_bits_reads_as_the_server_reads_its_json(live):
+    """Before: a dict holding 10**24 raised TypeError ("not wire JSON": orjson's 64-bit bound), where the server
+    reads the same JSON number (a body id past int64: its 422; a bound: -1e24)."""
+    import httpx
+
+    d = wire_dict()
+    d["batches"][0]["body_ids"][1][0] = 10**24
+    served = httpx.post(f"{live}/v1/evaluate", content=json.dumps(d), headers={"Content-Type": "application/json"})
+    assert served.status_code == 422
+    for client in (LocalClient(), Client(live, binary=False), Client(live)):
+        with pytest.raises(InvalidInput) as err:
+            client.evaluate(d)
+        assert [[list(f.loc), f.msg, f.type] for f in err.value.faults] == [
+            [f["loc"], f["msg"], f["type"]] for f in served.json()["detail"]]
+    d = wire_dict()
+    d["batches"][0]["lower"][0] = -(10**24)
+    want = LocalClient().evaluate({**d, "batches": [{**d["batches"][0], "lower": [-1e24, *d["batches"][0]["lower"][1:]]},
+                                                    *d["batches"][1:]]})
+    same(LocalClient().evaluate(d), want)
+    same(Client(live).evaluate(d), want)
+
+
 def test_a_bad_dict_gets_the_servers_loc_and_words(live):
     d = wire_dict()
     d["batches"][1]["lower"][2] = float("nan")

@@ -208,4 +208,13 @@ def _connection() -> type:
                     raise
                 raise self.protocol.handshake_exc  # with its cause (an `EOFError`: `handshake_error` reads it)
 
+        def send_data(self) -> None:
+            # Refused: nothing more is sent. The upgrade queued after the refusal was read (the `AssertionError`)
+            # was written by websockets' reader thread to the closed socket, outside any `try`: it logged
+            # "unexpected internal error" with a traceback (EBADF, EPIPE) in the user's process.
+            if self.protocol.handshake_exc is None:
+                super().send_data()
+            else:
+                self.protocol.data_to_send()  # dropped (the caller holds the protocol's lock)
+
     return Connection

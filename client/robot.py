@@ -150,6 +150,15 @@ class Robot:
             import yourdfpy
         except ImportError as e:  # pragma: no cover (the `robot` extra)
             raise ImportError("reading a URDF needs yourdfpy: pip install yourdfpy (the robot extra)") from e
+        from lxml import etree  # yourdfpy's parser, strict: yourdfpy logs its error and reads what it can recover
+
+        try:  # what is wrong said first (a missing file: the OSError), not yourdfpy's KeyError or "Invalid input"
+            root = etree.fromstring(Path(path).read_bytes())
+        except etree.XMLSyntaxError as e:
+            raise ValueError(f"{path}: not XML ({e.msg})") from None
+        if root.tag != "robot" or "name" not in root.attrib:
+            raise ValueError(f"{path}: not a URDF: its root element is <{root.tag}>, a URDF's is <robot name=...>"
+                             if root.tag != "robot" else f"{path}: its <robot> has no name (URDF requires one)")
         try:
             urdf = yourdfpy.URDF.load(str(path), load_meshes=False, build_collision_scene_graph=False)
         except Exception as e:  # yourdfpy's own exceptions (ValueError, KeyError, lxml's), said with the file's name

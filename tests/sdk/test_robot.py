@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -219,6 +220,25 @@ def test_a_file_yourdfpy_cannot_read_is_named(tmp_path):
       <parent link="a"/><child link="b"/><origin xyz="$(optenv X 0) 0 0"/><limit lower="-1" upper="1"/></joint></robot>""")
     with pytest.raises(ValueError, match=r"xacro.urdf: not a URDF yourdfpy reads \(ValueError: could not convert"):
         Robot.load(urdf)
+
+
+@pytest.mark.parametrize("content, said", [
+    ("hello", r"not XML \(Start tag expected, '<' not found, line 1, column 1\)$"),
+    ('{"robot": 1}', r"not XML \(Start tag expected"),
+    ("", r"not XML \(Document is empty"),
+    ('<robot name="r"><link name="a"/>', r"not XML \(Premature end of data in tag robot"),
+    ('<?xml version="1.0"?><sdf version="1.9"><model name="m"/></sdf>', r"not a URDF: its root element is <sdf>"),
+    ('<robot><link name="a"/></robot>', r"its <robot> has no name \(URDF requires one\)$"),
+])
+def test_a_file_that_is_not_a_urdf_says_what_is_wrong_in_one_line(tmp_path, capfd, content, said):
+    """Before: yourdfpy logged lxml's error and "Using different parsing approach." to stderr, then the message
+    carried its "Invalid input object: NoneType" or "KeyError: 'name'"; a file cut short loaded what lxml
+    recovered of it, silently (a robot missing its end)."""
+    urdf = tmp_path / "odd.urdf"
+    urdf.write_text(content)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(urdf))}: {said}"):
+        Robot.load(urdf)
+    assert capfd.readouterr().err == ""
 
 
 def test_a_joint_vector_of_the_wrong_size_or_names_is_refused(arm):

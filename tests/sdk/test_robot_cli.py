@@ -96,7 +96,7 @@ def test_without_positions_it_lists_the_joints(capsys):
 
 @pytest.mark.parametrize("argv, words", [
     ([ARM, "0.1", "0.2"], "q: 9 positions, one per joint of ['wheel'"),
-    (["no/such.urdf", "0"], "no/such.urdf is not a file"),
+    (["no/such.urdf", "0"], "No such file or directory: 'no/such.urdf'"),
     ([ARM, "0", "--request", "no/such.json"], "No such file"),
 ])
 def test_mistakes_are_said_in_one_line(capsys, argv, words):

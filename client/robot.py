@@ -75,13 +75,14 @@ class Robot:
     """
 
     def __init__(self, urdf: Any) -> None:
-        """From a loaded `yourdfpy.URDF` (built with its scene graph); `Robot.load` reads a file."""
+        """From a loaded `yourdfpy.URDF` (its `robot`: a scene graph is not needed); `Robot.load` reads a file."""
         self.urdf = urdf
         self.unmodelled: list[str] = []
         names = [jt.name for jt in urdf.robot.joints]  # yourdfpy reads repeated names; `q` by name cannot tell them
         if twice := sorted({n for n in names if names.count(n) > 1}):
             raise ValueError(f"{urdf.robot.name}: joint names must be unique: {twice} is more than one joint's")
-        root = urdf.base_link
+        moved = {jt.child for jt in urdf.robot.joints}  # the root, as yourdfpy finds it (`base_link`: None without a graph)
+        root = next((link.name for link in urdf.robot.links if link.name not in moved), None)
         if root is None:  # yourdfpy reads a file whose joints close a loop, with no link at the root
             raise ValueError(f"{urdf.robot.name}: no root link (each link is some joint's child: a loop)")
         self._joint = {jt.name: jt for jt in urdf.robot.joints}
@@ -197,7 +198,7 @@ class Robot:
             m = jt.mimic
             return float(q.get(jt.name, 0.0)) if m is None else position(self._joint[m.joint]) * m.multiplier + m.offset
 
-        at = {self.urdf.base_link: np.eye(4)}
+        at = {self.frames[0]: np.eye(4)}  # the root
         for jt in self._chain:
             v, a = position(jt), self._axis.get(jt.name)
             move = (tra.translation_matrix(v * a) if jt.type == "prismatic" else

@@ -202,6 +202,18 @@ def test_a_joint_whose_origin_is_not_finite_is_named(tmp_path, origin):
         Robot.load(urdf)
 
 
+def test_a_yourdfpy_object_built_without_its_scene_graph_is_read(arm):
+    """Before: `Robot(URDF.load(path, build_scene_graph=False))` said "no root link (... a loop)", which was false:
+    yourdfpy leaves `base_link` None without a scene graph, and the robot needs none (its FK is ours)."""
+    import yourdfpy
+
+    with pytest.warns(UserWarning, match="finger_right: mimics finger_left"):
+        bare = Robot(yourdfpy.URDF.load(str(ARM), build_scene_graph=False, load_meshes=False))
+    q = np.linspace(-2.0, 2.0, len(arm.names))
+    assert bare.names == arm.names and bare.links == arm.links and bare.frames == arm.frames
+    assert codec.encode(bare.request(q), binary=True)[0] == codec.encode(arm.request(q), binary=True)[0]
+
+
 def test_two_joints_of_one_name_are_refused(tmp_path):
     """yourdfpy reads them (urdfdom refuses: names must be unique); `q` by name or position then moved both by
     the first one's position, so the second's energy was that of the wrong angle (0 at 3 rad past [-1, 1])."""

@@ -69,9 +69,12 @@ class Reading:
 class Robot:
     """A URDF robot for the service: `request(q)` poses it and builds the request, `readings` reads the answer.
 
-    >>> robot = Robot.load("tests/robots/arm7.urdf")
-    >>> result = LocalClient().evaluate(robot.request(q))
-    >>> for r in robot.readings(result, q): print(r.name, r.position, r.energy, r.active)
+    >>> from jointlimits import LocalClient, Robot
+    >>> robot = Robot.load("tests/robots/arm7.urdf")  # from the repository's root; it warns of its mimic joint
+    >>> q = {"joint1": -3.81, "joint4": -1.0, "finger_left": 0.02}  # by name, or a list in `robot.names`' order
+    >>> result = LocalClient().evaluate(robot.request(q))  # a joint left out is at 0
+    >>> [r.name for r in robot.readings(result, q) if r.active]  # past their limits: energy, gradient, Hessian
+    ['joint1']
     """
 
     def __init__(self, urdf: Any) -> None:

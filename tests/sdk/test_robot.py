@@ -262,6 +262,21 @@ def test_a_joint_vector_of_the_wrong_size_or_names_is_refused(arm):
         arm.request({}, q_prev=vec(arm, {"joint2": math.nan}))
 
 
+@pytest.mark.parametrize("value, kind", [(True, "a boolean"), (np.True_, "a boolean"), ("0.5", "a string"),
+                                         (None, "None")])
+@pytest.mark.parametrize("given", ["q", "q_prev", "reference"])
+def test_a_position_that_is_not_a_number_is_refused_in_every_vector(arm, given, value, kind):
+    """The wire and `Scene` refuse a boolean, a string and null as a number. Before, NumPy read "0.5" as 0.5 rad in
+    any vector, and None as nan ("not finite"); a boolean was refused (f04a107). Each names its vector and joint."""
+    vectors = {"q": {"joint1": 0.1}, given: {"joint1": value}}
+    with pytest.raises(ValueError, match=rf"^{given}: a position is a number, not {kind} \(joint1: "):
+        arm.request(**vectors)
+    with pytest.raises(ValueError, match=rf"^{given}: a position is a number, not {kind} \(wheel: "):
+        arm.request(**{**vectors, given: [value] + [0.0] * 8})
+    with pytest.raises(ValueError, match=r"^joint joint1: .*strength: Input should be a (valid|finite) number"):
+        arm.request({"joint1": 0.1}, strength={"joint1": value})  # held before: `Scene`'s fault, the joint named
+
+
 def test_a_strength_for_no_limited_joint_is_refused(arm):
     """A misspelt name (or one without a limit) in a strength mapping was dropped: that joint silently kept
     strength 1 (energy 0.0034 instead of 0.34 for joint1 at 3.1 below)."""

@@ -84,7 +84,7 @@ class Robot:
         names = [jt.name for jt in urdf.robot.joints]  # yourdfpy reads repeated names; `q` by name cannot tell them
         if twice := sorted({n for n in names if names.count(n) > 1}):
             raise ValueError(f"{urdf.robot.name}: joint names must be unique: {twice} is more than one joint's")
-        moved = {jt.child for jt in urdf.robot.joints}  # the root, as yourdfpy finds it (`base_link`: None without a graph)
+        moved = {jt.child for jt in urdf.robot.joints}  # the root, as yourdfpy finds it (no `base_link` without a graph)
         root = next((link.name for link in urdf.robot.links if link.name not in moved), None)
         if root is None:  # yourdfpy reads a file whose joints close a loop, with no link at the root
             raise ValueError(f"{urdf.robot.name}: no root link (each link is some joint's child: a loop)")

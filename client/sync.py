@@ -198,9 +198,10 @@ class Session(Exchange):
 
 @functools.cache
 def _connection() -> type:
-    """websockets' blocking connection, raising the server's answer to the upgrade once read, whatever else failed:
-    a worker at its connection cap answers 503 at accept, before the request is sent, and websockets' two threads
-    raced (`ConnectionClosed`, or its own `AssertionError`: 1 opening in 5 here), its `Retry-After` unread."""
+    """websockets' blocking connection, raising the server's answer to the upgrade once read, whatever else failed,
+    and sending nothing after it: a worker at its connection cap answers 503 at accept, before the request is sent,
+    and websockets' two threads raced (`ConnectionClosed`, or its own `AssertionError`: 1 opening in 5 here), its
+    `Retry-After` unread, then wrote the upgrade to the closed socket (its "unexpected internal error" logged)."""
     from websockets.sync.client import ClientConnection
 
     class Connection(ClientConnection):
@@ -212,10 +213,7 @@ def _connection() -> type:
                     raise
                 raise self.protocol.handshake_exc  # with its cause (an `EOFError`: `handshake_error` reads it)
 
-        def send_data(self) -> None:
-            # Refused: nothing more is sent. The upgrade queued after the refusal was read (the `AssertionError`)
-            # was written by websockets' reader thread to the closed socket, outside any `try`: it logged
-            # "unexpected internal error" with a traceback (EBADF, EPIPE) in the user's process.
+        def send_data(self) -> None:  # the reader thread's last write, outside any `try`: EBADF, EPIPE, logged
             if self.protocol.handshake_exc is None:
                 super().send_data()
             else:

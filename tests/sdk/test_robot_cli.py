@@ -183,6 +183,7 @@ def test_a_boolean_position_is_refused(capsys, tmp_path, doc):
     assert code == 2 and out == "" and "not a boolean" in err
 
 
+@pytest.mark.slow  # the console script in a process of its own (~1 s)
 def test_a_reader_that_leaves_early_gets_no_traceback():
     """Before: `jointlimits evaluate ... --json | head -c 1` ended in a BrokenPipeError traceback on stderr."""
     with subprocess.Popen([*console_script(), "evaluate", ARM, *map(str, Q), "--json"], stdout=subprocess.PIPE,

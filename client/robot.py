@@ -84,10 +84,11 @@ class Robot:
         names = [jt.name for jt in urdf.robot.joints]  # yourdfpy reads repeated names; `q` by name cannot tell them
         if twice := sorted({n for n in names if names.count(n) > 1}):
             raise ValueError(f"{urdf.robot.name}: joint names must be unique: {twice} is more than one joint's")
-        moved = {jt.child for jt in urdf.robot.joints}  # the root, as yourdfpy finds it (no `base_link` without a graph)
+        moved = {jt.child for jt in urdf.robot.joints}  # the root by yourdfpy's rule (no `base_link` without a graph)
         root = next((link.name for link in urdf.robot.links if link.name not in moved), None)
         if root is None:  # yourdfpy reads a file whose joints close a loop, with no link at the root
-            raise ValueError(f"{urdf.robot.name}: no root link (each link is some joint's child: a loop)")
+            raise ValueError(f"{urdf.robot.name}: no root link (" + ("each link is some joint's child: a loop)"
+                                                                      if urdf.robot.links else "no <link> at all)"))
         self._joint = {jt.name: jt for jt in urdf.robot.joints}
         for jt in urdf.robot.joints:  # a mimic of a mimic follows that one's position (URDF): no loop, no unknown name
             chain = [jt.name]
@@ -102,6 +103,9 @@ class Robot:
             kids.setdefault(jt.parent, []).append(jt)
             if jt.origin is not None and not np.isfinite(jt.origin).all():  # else named later at a limit below it
                 raise ValueError(f"joint {jt.name}: its <origin> is not finite (xyz and rpy are finite numbers)")
+            if jt.type not in (*MOVING, "fixed", "floating", "planar"):  # yourdfpy reads any: it moved as fixed
+                raise ValueError(f"joint {jt.name}: its type {jt.type!r} is none of URDF's (revolute, continuous, "
+                                 "prismatic, fixed, floating, planar)")
             if jt.type in MOVING:  # yourdfpy would slide a prismatic joint by q * axis as written: make it unit
                 length = float(np.linalg.norm(jt.axis))
                 if not 0 < length < math.inf:
@@ -163,6 +167,11 @@ class Robot:
         if root.tag != "robot" or "name" not in root.attrib:
             raise ValueError(f"{path}: not a URDF: its root element is <{root.tag}>, a URDF's is <robot name=...>"
                              if root.tag != "robot" else f"{path}: its <robot> has no name (URDF requires one)")
+        links = {link.get("name") for link in root.findall("link")}  # else yourdfpy's "x not in list", AttributeError
+        if odd := [(j.get("name"), end, at) for j in root.findall("joint") for end in ("parent", "child")
+                   if (at := j.xpath(f"string({end}/@link)")) not in links]:
+            name, end, at = odd[0]
+            raise ValueError(f"{path}: joint {name}: its <{end} link={at!r}> names no <link> of the file")
         try:
             urdf = yourdfpy.URDF.load(str(path), load_meshes=False, build_collision_scene_graph=False)
         except Exception as e:  # yourdfpy's own exceptions (ValueError, KeyError, lxml's), said with the file's name

@@ -241,6 +241,10 @@ def test_a_file_yourdfpy_cannot_read_is_named(tmp_path):
     ('<robot name="r"><link name="a"/>', r"not XML \(Premature end of data in tag robot"),
     ('<?xml version="1.0"?><sdf version="1.9"><model name="m"/></sdf>', r"not a URDF: its root element is <sdf>"),
     ('<robot><link name="a"/></robot>', r"its <robot> has no name \(URDF requires one\)$"),
+    ('<robot name="r"><link name="a"/><joint name="j" type="fixed"><parent link="a"/><child link="c"/></joint></robot>',
+     r"joint j: its <child link='c'> names no <link> of the file$"),  # was yourdfpy's "list.remove(x): x not in list"
+    ('<robot name="r"><link name="a"/><joint name="j" type="fixed"><child link="a"/></joint></robot>',
+     r"joint j: its <parent link=''> names no <link> of the file$"),  # was "AttributeError: 'NoneType' object ..."
 ])
 def test_a_file_that_is_not_a_urdf_says_what_is_wrong_in_one_line(tmp_path, capfd, content, said):
     """Before: yourdfpy logged lxml's error and "Using different parsing approach." to stderr, then the message
@@ -251,6 +255,20 @@ def test_a_file_that_is_not_a_urdf_says_what_is_wrong_in_one_line(tmp_path, capf
     with pytest.raises(ValueError, match=rf"^{re.escape(str(urdf))}: {said}"):
         Robot.load(urdf)
     assert capfd.readouterr().err == ""
+
+
+@pytest.mark.parametrize("kind", ['type="hinge"', 'type="Revolute"', ""])
+def test_a_joint_of_no_urdf_type_is_named_and_a_robot_of_no_link_is_no_loop(tmp_path, kind):
+    """yourdfpy reads any joint type (or none): such a joint, a typo of "revolute", was posed as fixed and carried
+    no limit, silently (`names == []`). And a <robot> with no <link> was said to close a loop."""
+    urdf = tmp_path / "typo.urdf"
+    urdf.write_text(f"""<robot name="typo"><link name="a"/><link name="b"/><joint name="elbow" {kind}>
+      <parent link="a"/><child link="b"/><limit lower="-1" upper="1"/></joint></robot>""")
+    with pytest.raises(ValueError, match=r"^joint elbow: its type .* is none of URDF's \(revolute, continuous, pr"):
+        Robot.load(urdf)
+    urdf.write_text('<robot name="bare"/>')
+    with pytest.raises(ValueError, match=r"^bare: no root link \(no <link> at all\)$"):
+        Robot.load(urdf)
 
 
 def test_a_joint_vector_of_the_wrong_size_or_names_is_refused(arm):

@@ -69,21 +69,26 @@ class Reading:
 class Robot:
     """A URDF robot for the service: `request(q)` poses it and builds the request, `readings` reads the answer.
 
-    >>> robot = Robot.load("tests/robots/arm7.urdf")
-    >>> result = LocalClient().evaluate(robot.request(q))
-    >>> for r in robot.readings(result, q): print(r.name, r.position, r.energy, r.active)
+    >>> from jointlimits import LocalClient, Robot
+    >>> robot = Robot.load("tests/robots/arm7.urdf")  # from the repository's root; it warns of its mimic joint
+    >>> q = {"joint1": -3.81, "joint4": -1.0, "finger_left": 0.02}  # by name, or a list in `robot.names`' order
+    >>> result = LocalClient().evaluate(robot.request(q))  # a joint left out is at 0
+    >>> [r.name for r in robot.readings(result, q) if r.active]  # past their limits: energy, gradient, Hessian
+    ['joint1']
     """
 
     def __init__(self, urdf: Any) -> None:
-        """From a loaded `yourdfpy.URDF` (built with its scene graph); `Robot.load` reads a file."""
+        """From a loaded `yourdfpy.URDF` (its `robot`: a scene graph is not needed); `Robot.load` reads a file."""
         self.urdf = urdf
         self.unmodelled: list[str] = []
         names = [jt.name for jt in urdf.robot.joints]  # yourdfpy reads repeated names; `q` by name cannot tell them
         if twice := sorted({n for n in names if names.count(n) > 1}):
             raise ValueError(f"{urdf.robot.name}: joint names must be unique: {twice} is more than one joint's")
-        root = urdf.base_link
+        moved = {jt.child for jt in urdf.robot.joints}  # the root by yourdfpy's rule (no `base_link` without a graph)
+        root = next((link.name for link in urdf.robot.links if link.name not in moved), None)
         if root is None:  # yourdfpy reads a file whose joints close a loop, with no link at the root
-            raise ValueError(f"{urdf.robot.name}: no root link (each link is some joint's child: a loop)")
+            raise ValueError(f"{urdf.robot.name}: no root link (" + ("each link is some joint's child: a loop)"
+                                                                      if urdf.robot.links else "no <link> at all)"))
         self._joint = {jt.name: jt for jt in urdf.robot.joints}
         for jt in urdf.robot.joints:  # a mimic of a mimic follows that one's position (URDF): no loop, no unknown name
             chain = [jt.name]
@@ -98,6 +103,9 @@ class Robot:
             kids.setdefault(jt.parent, []).append(jt)
             if jt.origin is not None and not np.isfinite(jt.origin).all():  # else named later at a limit below it
                 raise ValueError(f"joint {jt.name}: its <origin> is not finite (xyz and rpy are finite numbers)")
+            if jt.type not in (*MOVING, "fixed", "floating", "planar"):  # yourdfpy reads any: it moved as fixed
+                raise ValueError(f"joint {jt.name}: its type {jt.type!r} is none of URDF's (revolute, continuous, "
+                                 "prismatic, fixed, floating, planar)")
             if jt.type in MOVING:  # yourdfpy would slide a prismatic joint by q * axis as written: make it unit
                 length = float(np.linalg.norm(jt.axis))
                 if not 0 < length < math.inf:
@@ -150,6 +158,20 @@ class Robot:
             import yourdfpy
         except ImportError as e:  # pragma: no cover (the `robot` extra)
             raise ImportError("reading a URDF needs yourdfpy: pip install yourdfpy (the robot extra)") from e
+        from lxml import etree  # yourdfpy's parser, strict: yourdfpy logs its error and reads what it can recover
+
+        try:  # what is wrong said first (a missing file: the OSError), not yourdfpy's KeyError or "Invalid input"
+            root = etree.fromstring(Path(path).read_bytes())
+        except etree.XMLSyntaxError as e:
+            raise ValueError(f"{path}: not XML ({e.msg})") from None
+        if root.tag != "robot" or "name" not in root.attrib:
+            raise ValueError(f"{path}: not a URDF: its root element is <{root.tag}>, a URDF's is <robot name=...>"
+                             if root.tag != "robot" else f"{path}: its <robot> has no name (URDF requires one)")
+        links = {link.get("name") for link in root.findall("link")}  # else yourdfpy's "x not in list", AttributeError
+        if odd := [(j.get("name"), end, at) for j in root.findall("joint") for end in ("parent", "child")
+                   if (at := j.xpath(f"string({end}/@link)")) not in links]:
+            name, end, at = odd[0]
+            raise ValueError(f"{path}: joint {name}: its <{end} link={at!r}> names no <link> of the file")
         try:
             urdf = yourdfpy.URDF.load(str(path), load_meshes=False, build_collision_scene_graph=False)
         except Exception as e:  # yourdfpy's own exceptions (ValueError, KeyError, lxml's), said with the file's name
@@ -166,11 +188,13 @@ class Robot:
                 raise ValueError(f"{name}: no moving joint named {unknown} (the joints are {self.names})")
             q = [q.get(n, 0.0) for n in self.names]
         try:  # a position that is no number: NumPy's words, after the vector's name
-            v = np.asarray(q, dtype=np.float64)
+            v, given = np.asarray(q, dtype=np.float64), np.asarray(q, dtype=object)
         except (TypeError, ValueError) as e:
             raise ValueError(f"{name}: {e}") from None
-        if v.shape == (len(self.names),) and any(isinstance(x, (bool, np.bool_)) for x in np.asarray(q, dtype=object)):
-            raise ValueError(f"{name}: a position is a number, not a boolean")  # as the wire and `Scene` refuse them
+        for n, x in zip(self.names, given if v.shape == (len(self.names),) else []):  # NumPy reads "1", True, None
+            if x is None or isinstance(x, (bool, np.bool_, str, bytes)):  # as the wire and `Scene` refuse them
+                kind = "None" if x is None else "a boolean" if isinstance(x, (bool, np.bool_)) else "a string"
+                raise ValueError(f"{name}: a position is a number, not {kind} ({n}: {x!r})")
         if v.shape != (len(self.names),):
             raise ValueError(f"{name}: {len(self.names)} positions, one per joint of {self.names}, got shape {v.shape}")
         if not np.isfinite(v).all():
@@ -188,7 +212,7 @@ class Robot:
             m = jt.mimic
             return float(q.get(jt.name, 0.0)) if m is None else position(self._joint[m.joint]) * m.multiplier + m.offset
 
-        at = {self.urdf.base_link: np.eye(4)}
+        at = {self.frames[0]: np.eye(4)}  # the root
         for jt in self._chain:
             v, a = position(jt), self._axis.get(jt.name)
             move = (tra.translation_matrix(v * a) if jt.type == "prismatic" else

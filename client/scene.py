@@ -54,15 +54,20 @@ def dofs(pose: Pose, loc: tuple[str | int, ...] = ("pose",), where: str = "dofs"
 class Scene:
     """Collects bodies and joint limits; `request()` assembles the arrays of the wire.
 
-    >>> scene = Scene()
+    >>> import numpy as np
+    >>> from jointlimits import LocalClient, Scene
+    >>> c, s, scene = np.cos(0.7), np.sin(0.7), Scene()
     >>> a = scene.add_body(np.eye(4))
-    >>> b = scene.add_body(turned, ref=np.eye(4))       # current pose, and the pose the joint was built at
+    >>> b = scene.add_body(([0, 0, 0], [[c, -s, 0], [s, c, 0], [0, 0, 1]]), ref=np.eye(4))  # turned; `ref`: when built
     >>> j = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5, strength=100)
-    >>> result = client.evaluate(scene.request())
-    >>> result.joint(j).hessian                           # (24, 24) in the DOFs [q_a, q_b]
+    >>> result = LocalClient().evaluate(scene.request())  # or a `Client(url)`'s
+    >>> result.joint(j).hessian.shape                     # in the DOFs [q_a, q_b]
+    (24, 24)
 
-    A joint given in the bodies' own coordinates, as a libuipc scene holds it (CONTRACT.md v1.2):
+    A joint given in the bodies' own coordinates, as a libuipc scene holds it (CONTRACT.md v1.2): its edge's two
+    points in body a's frame (`l0`, `l1`), then in body b's (`r0`, `r1`):
 
+    >>> l0, l1, r0, r1 = [0, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1]
     >>> k = scene.add_revolute_limit(a, b, lower=-0.5, upper=0.5, local_edge=[[l0, l1], [r0, r1]], origin="absolute")
     """
 

@@ -332,15 +332,17 @@ def handshake_error(url: str, e: Exception) -> Exception:
         status, body = e.response.status_code, bytes(e.response.body or b"")
         if status in PROXY_STATUSES and not is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
             return Unreachable(url, 1, status=status, proxy=proxy_page(body))
-        if status == 404 or not is_fault_list(body):
-            return wrong_url(url, f"answered HTTP {status} to the WebSocket upgrade", 404)
+        if status == 404 or not is_fault_list(body):  # the status read, not 404 (a FastAPI app with no route: 403)
+            return wrong_url(url, f"answered HTTP {status} {e.response.reason_phrase} to the WebSocket upgrade", status)
         error = codec.error(status, body)  # a worker at its connection cap: `Busy`, waited as it asks (`Resume`)
         return Busy(status, error.faults, retry_after=retry_after(e.response)) if isinstance(error, Busy) else error
-    # Refused, unresolvable, no answer within the open timeout, or closed before any answer (`evaluate` retries it)
-    if isinstance(e, (OSError, TimeoutError)) or isinstance(e.__cause__, EOFError):
-        return Unreachable(url, 1, e)
+    # Refused, unresolvable, no answer within the open timeout, or closed before any answer (`evaluate` retries it);
+    # `InvalidMessage` says only "did not receive a valid HTTP response": its cause says what was read instead.
+    why = e.__cause__ if isinstance(e, InvalidMessage) and e.__cause__ is not None else e
+    if isinstance(e, (OSError, TimeoutError)) or isinstance(why, EOFError):
+        return Unreachable(url, 1, why)
     if isinstance(e, (InvalidHandshake, InvalidMessage)):  # a server that speaks something else (HTTP/1.0, TLS, ...)
-        return wrong_url(url, f"did not answer as a WebSocket server ({type(e).__name__}: {e})", 404)
+        return wrong_url(url, f"did not answer as a WebSocket server ({why})", 0)  # no status was read
     # The connection lost during the handshake (websockets' ConnectionClosed, or its reader's race with a refusal's
     # close): nothing was opened, so the opening is tried again, as after a drop.
     return SessionClosed(url, None, "", f"not opened ({type(e).__name__}: {e})", resumable=True)

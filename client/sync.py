@@ -69,12 +69,16 @@ class Client(BaseClient):
         a proxy's 502/503/504, after the retries), `WrongURL` (`base_url` is not the service), `TypeError` (not a request).
         Requests over the server's limits are split and merged; `progress` overrides the client's.
 
-        >>> scene = Scene()
+        >>> import numpy as np
+        >>> from jointlimits import LocalClient, Scene
+        >>> c, s, scene = np.cos(0.7), np.sin(0.7), Scene()
+        >>> turned = np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])  # 0.7 rad about +z
         >>> a, b = scene.add_body(np.eye(4)), scene.add_body(turned, ref=np.eye(4))
         >>> j = scene.add_revolute_limit(a, b, [0, 0, 0], [0, 0, 1], lower=-0.5, upper=0.5, strength=100.0)
+        >>> client = LocalClient()  # in-process: a `Client(url)` answers the same, bit for bit
         >>> r = client.evaluate(scene.request()).joint(j)
-        >>> r.x, r.energy
-        (0.7, 0.7999999999999995)
+        >>> round(r.x, 12), round(r.energy, 12)  # 0.2 rad past the upper limit
+        (0.7, 0.8)
         """
         request = as_request(request)
         if self._limits is None:
@@ -194,9 +198,10 @@ class Session(Exchange):
 
 @functools.cache
 def _connection() -> type:
-    """websockets' blocking connection, raising the server's answer to the upgrade once read, whatever else failed:
-    a worker at its connection cap answers 503 at accept, before the request is sent, and websockets' two threads
-    raced (`ConnectionClosed`, or its own `AssertionError`: 1 opening in 5 here), its `Retry-After` unread."""
+    """websockets' blocking connection, raising the server's answer to the upgrade once read, whatever else failed,
+    and sending nothing after it: a worker at its connection cap answers 503 at accept, before the request is sent,
+    and websockets' two threads raced (`ConnectionClosed`, or its own `AssertionError`: 1 opening in 5 here), its
+    `Retry-After` unread, then wrote the upgrade to the closed socket (its "unexpected internal error" logged)."""
     from websockets.sync.client import ClientConnection
 
     class Connection(ClientConnection):
@@ -207,5 +212,11 @@ def _connection() -> type:
                 if self.protocol.handshake_exc is None:
                     raise
                 raise self.protocol.handshake_exc  # with its cause (an `EOFError`: `handshake_error` reads it)
+
+        def send_data(self) -> None:  # the reader thread's last write, outside any `try`: EBADF, EPIPE, logged
+            if self.protocol.handshake_exc is None:
+                super().send_data()
+            else:
+                self.protocol.data_to_send()  # dropped (the caller holds the protocol's lock)
 
     return Connection

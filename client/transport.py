@@ -335,4 +335,4 @@ def wrong_url(url: str, what: str, status: int) -> WrongURL:
     hint = " (drop the trailing /v1: the client adds it)" if root.endswith("/v1") else ""
     msg = (f"{url} {what}: no joint-limit service at base_url {root!r}{hint}; "
            "base_url is the service's root, e.g. http://127.0.0.1:8000")
-    return WrongURL(status, [Fault((), msg, "wrong_url")])
+    return WrongURL(status, [Fault((), msg, "wrong_url")], where=None if status else "wrong url")  # 0: none read

@@ -56,3 +56,26 @@ def test_bash_blocks_run(block, live):
                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, (block.id, out.stdout[-2000:], out.stderr[-2000:])
     assert out.stdout.strip(), f"{block.id} printed nothing"
+
+
+def test_the_sdks_docstring_examples_run_as_written(monkeypatch):
+    """Every `>>>` example of the SDK's docstrings (`help()` and the API reference show them) runs in a namespace of
+    its own, as a reader pastes it, from the repository's root. Before, `Client.evaluate`'s and `Scene`'s used
+    `turned` and `client`, `Robot`'s `q`, and `Scene`'s `l0, l1, r0, r1`, none of them defined."""
+    import doctest
+    import importlib
+    import warnings
+
+    monkeypatch.chdir(ROOT)
+    ran, failed = [], []
+    for path in sorted((ROOT / "client").glob("*.py")):
+        module = importlib.import_module(f"jointlimits.client.{path.stem}")
+        for test in doctest.DocTestFinder().find(module, globs={}):  # globs={}: none of the module's names
+            if test.examples and test.name.startswith(module.__name__):
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", UserWarning)  # the test robot's mimic joint, as documented
+                    result = doctest.DocTestRunner().run(test, out=lambda text: failed.append(text))
+                ran.append((test.name, result.attempted))
+    assert not failed, "\n".join(failed)
+    assert {name for name, _ in ran} >= {"jointlimits.client.sync.Client.evaluate", "jointlimits.client.scene.Scene",
+                                         "jointlimits.client.robot.Robot"}, ran

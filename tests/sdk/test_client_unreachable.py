@@ -8,17 +8,19 @@ a wrong base URL, and a small unrelated HTTP server.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 import threading
 import time
 from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, HTTPServer
+from http.server import BaseHTTPRequestHandler, HTTPServer, SimpleHTTPRequestHandler
 
 import httpx
 import pytest
+from fastapi import FastAPI
 
 from jointlimits.client import AsyncClient, Client, ServiceError, Unreachable, WrongURL
-from tests.http.test_contract_live import live  # noqa: F401 (fixture)
+from tests.http.test_contract_live import live, serve  # noqa: F401 (fixture)
 from tests.sdk.test_client_sdk import readme_scene
 
 pytestmark = [pytest.mark.slow, pytest.mark.serial]  # connect timeouts, refused ports, unrelated servers (~4 s)
@@ -172,6 +174,54 @@ def test_session_to_an_unrelated_server_says_wrong_url(unrelated):
     with pytest.raises(WrongURL, match="no joint-limit service") as err:
         Client(unrelated).session(readme_scene().request())
     assert "<html>" not in str(err.value) and "reopen" not in str(err.value)
+
+
+def test_a_refused_session_opening_says_what_the_server_answered():
+    """Before, each said "HTTP 404" where no 404 was read: Python's `http.server` answers `HTTP/1.0 404 File not
+    found`, which websockets does not read (HTTP/1.1 only) and which was said as "InvalidMessage: did not receive a
+    valid HTTP response"; a FastAPI app without the route answers 403 ("HTTP 404: ... answered HTTP 403"); a
+    server that closes at once was "cannot reach (InvalidMessage: ...)". Now the message says what happened."""
+
+    class Files(SimpleHTTPRequestHandler):
+        def log_message(self, *args) -> None:
+            pass
+
+    files = HTTPServer(("127.0.0.1", 0), Files)
+    threading.Thread(target=files.serve_forever, daemon=True).start()
+    closer = socket.socket()
+    closer.bind(("127.0.0.1", 0))
+    closer.listen(8)
+
+    def close_at_once() -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                closer.accept()[0].close()
+
+    threading.Thread(target=close_at_once, daemon=True).start()
+
+    async def opened(url: str) -> None:
+        async with AsyncClient(url, retries=0) as c:
+            await c.session(readme_scene().request())
+
+    try:
+        with serve(app=FastAPI()) as fastapi:
+            for url, kind, status, said in [
+                (f"http://127.0.0.1:{files.server_port}", WrongURL, 0, "(unsupported protocol; expected HTTP/1.1: "
+                 "HTTP/1.0 404 File not found): no joint-limit service"),
+                (fastapi, WrongURL, 403, "answered HTTP 403 Forbidden to the WebSocket upgrade"),
+                (f"http://127.0.0.1:{closer.getsockname()[1]}", Unreachable, 0,
+                 "(EOFError: connection closed while reading HTTP status line) after 1 attempt"),
+            ]:
+                for open_ in (lambda: Client(url, retries=0).session(readme_scene().request()),
+                              lambda: asyncio.run(opened(url))):
+                    with pytest.raises(kind) as err:
+                        open_()
+                    assert said in str(err.value) and err.value.status == status, str(err.value)
+                    assert "404:" not in str(err.value) and "InvalidMessage" not in str(err.value)
+    finally:
+        files.shutdown()
+        files.server_close()
+        closer.close()
 
 
 def test_session_to_a_closed_port_is_unreachable():

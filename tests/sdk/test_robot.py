@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -201,6 +202,18 @@ def test_a_joint_whose_origin_is_not_finite_is_named(tmp_path, origin):
         Robot.load(urdf)
 
 
+def test_a_yourdfpy_object_built_without_its_scene_graph_is_read(arm):
+    """Before: `Robot(URDF.load(path, build_scene_graph=False))` said "no root link (... a loop)", which was false:
+    yourdfpy leaves `base_link` None without a scene graph, and the robot needs none (its FK is ours)."""
+    import yourdfpy
+
+    with pytest.warns(UserWarning, match="finger_right: mimics finger_left"):
+        bare = Robot(yourdfpy.URDF.load(str(ARM), build_scene_graph=False, load_meshes=False))
+    q = np.linspace(-2.0, 2.0, len(arm.names))
+    assert bare.names == arm.names and bare.links == arm.links and bare.frames == arm.frames
+    assert codec.encode(bare.request(q), binary=True)[0] == codec.encode(arm.request(q), binary=True)[0]
+
+
 def test_two_joints_of_one_name_are_refused(tmp_path):
     """yourdfpy reads them (urdfdom refuses: names must be unique); `q` by name or position then moved both by
     the first one's position, so the second's energy was that of the wrong angle (0 at 3 rad past [-1, 1])."""
@@ -221,6 +234,43 @@ def test_a_file_yourdfpy_cannot_read_is_named(tmp_path):
         Robot.load(urdf)
 
 
+@pytest.mark.parametrize("content, said", [
+    ("hello", r"not XML \(Start tag expected, '<' not found, line 1, column 1\)$"),
+    ('{"robot": 1}', r"not XML \(Start tag expected"),
+    ("", r"not XML \(Document is empty"),
+    ('<robot name="r"><link name="a"/>', r"not XML \(Premature end of data in tag robot"),
+    ('<?xml version="1.0"?><sdf version="1.9"><model name="m"/></sdf>', r"not a URDF: its root element is <sdf>"),
+    ('<robot><link name="a"/></robot>', r"its <robot> has no name \(URDF requires one\)$"),
+    ('<robot name="r"><link name="a"/><joint name="j" type="fixed"><parent link="a"/><child link="c"/></joint></robot>',
+     r"joint j: its <child link='c'> names no <link> of the file$"),  # was yourdfpy's "list.remove(x): x not in list"
+    ('<robot name="r"><link name="a"/><joint name="j" type="fixed"><child link="a"/></joint></robot>',
+     r"joint j: its <parent link=''> names no <link> of the file$"),  # was "AttributeError: 'NoneType' object ..."
+])
+def test_a_file_that_is_not_a_urdf_says_what_is_wrong_in_one_line(tmp_path, capfd, content, said):
+    """Before: yourdfpy logged lxml's error and "Using different parsing approach." to stderr, then the message
+    carried its "Invalid input object: NoneType" or "KeyError: 'name'"; a file cut short loaded what lxml
+    recovered of it, silently (a robot missing its end)."""
+    urdf = tmp_path / "odd.urdf"
+    urdf.write_text(content)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(urdf))}: {said}"):
+        Robot.load(urdf)
+    assert capfd.readouterr().err == ""
+
+
+@pytest.mark.parametrize("kind", ['type="hinge"', 'type="Revolute"', ""])
+def test_a_joint_of_no_urdf_type_is_named_and_a_robot_of_no_link_is_no_loop(tmp_path, kind):
+    """yourdfpy reads any joint type (or none): such a joint, a typo of "revolute", was posed as fixed and carried
+    no limit, silently (`names == []`). And a <robot> with no <link> was said to close a loop."""
+    urdf = tmp_path / "typo.urdf"
+    urdf.write_text(f"""<robot name="typo"><link name="a"/><link name="b"/><joint name="elbow" {kind}>
+      <parent link="a"/><child link="b"/><limit lower="-1" upper="1"/></joint></robot>""")
+    with pytest.raises(ValueError, match=r"^joint elbow: its type .* is none of URDF's \(revolute, continuous, pr"):
+        Robot.load(urdf)
+    urdf.write_text('<robot name="bare"/>')
+    with pytest.raises(ValueError, match=r"^bare: no root link \(no <link> at all\)$"):
+        Robot.load(urdf)
+
+
 def test_a_joint_vector_of_the_wrong_size_or_names_is_refused(arm):
     with pytest.raises(ValueError, match=r"q: 9 positions, one per joint of \['wheel'"):
         arm.request([0.0, 1.0])
@@ -228,6 +278,21 @@ def test_a_joint_vector_of_the_wrong_size_or_names_is_refused(arm):
         arm.request({"finger_right": 0.01})
     with pytest.raises(ValueError, match=r"q_prev: not finite at \['joint2'\]"):
         arm.request({}, q_prev=vec(arm, {"joint2": math.nan}))
+
+
+@pytest.mark.parametrize("value, kind", [(True, "a boolean"), (np.True_, "a boolean"), ("0.5", "a string"),
+                                         (None, "None")])
+@pytest.mark.parametrize("given", ["q", "q_prev", "reference"])
+def test_a_position_that_is_not_a_number_is_refused_in_every_vector(arm, given, value, kind):
+    """The wire and `Scene` refuse a boolean, a string and null as a number. Before, NumPy read "0.5" as 0.5 rad in
+    any vector, and None as nan ("not finite"); a boolean was refused (f04a107). Each names its vector and joint."""
+    vectors = {"q": {"joint1": 0.1}, given: {"joint1": value}}
+    with pytest.raises(ValueError, match=rf"^{given}: a position is a number, not {kind} \(joint1: "):
+        arm.request(**vectors)
+    with pytest.raises(ValueError, match=rf"^{given}: a position is a number, not {kind} \(wheel: "):
+        arm.request(**{**vectors, given: [value] + [0.0] * 8})
+    with pytest.raises(ValueError, match=r"^joint joint1: .*strength: Input should be a (valid|finite) number"):
+        arm.request({"joint1": 0.1}, strength={"joint1": value})  # held before: `Scene`'s fault, the joint named
 
 
 def test_a_strength_for_no_limited_joint_is_refused(arm):

@@ -96,7 +96,7 @@ def test_without_positions_it_lists_the_joints(capsys):
 
 @pytest.mark.parametrize("argv, words", [
     ([ARM, "0.1", "0.2"], "q: 9 positions, one per joint of ['wheel'"),
-    (["no/such.urdf", "0"], "no/such.urdf is not a file"),
+    (["no/such.urdf", "0"], "No such file or directory: 'no/such.urdf'"),
     ([ARM, "0", "--request", "no/such.json"], "No such file"),
 ])
 def test_mistakes_are_said_in_one_line(capsys, argv, words):
@@ -183,7 +183,7 @@ def test_a_boolean_position_is_refused(capsys, tmp_path, doc):
     assert code == 2 and out == "" and "not a boolean" in err
 
 
-@pytest.mark.slow  # a process of its own
+@pytest.mark.slow  # the console script in a process of its own (~1 s)
 def test_a_reader_that_leaves_early_gets_no_traceback():
     """Before: `jointlimits evaluate ... --json | head -c 1` ended in a BrokenPipeError traceback on stderr."""
     with subprocess.Popen([*console_script(), "evaluate", ARM, *map(str, Q), "--json"], stdout=subprocess.PIPE,

@@ -12,6 +12,8 @@ The live drill through HAProxy and real replicas is tests/ops/test_lb_drill.py.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import socket
 import threading
 from contextlib import ExitStack
@@ -24,7 +26,7 @@ from websockets.exceptions import ConnectionClosedError, InvalidStatus
 from websockets.frames import Close
 from websockets.http11 import Response
 
-from jointlimits.client import AsyncClient, Client, LocalClient, ServiceError, SessionClosed, Unreachable
+from jointlimits.client import AsyncClient, Busy, Client, LocalClient, ServiceError, SessionClosed, Unreachable
 from jointlimits.client.session import resumable
 from jointlimits.client.session import closed_error, handshake_error
 from jointlimits.schemas import session as proto
@@ -240,3 +242,58 @@ def test_the_three_clients_take_the_same_session_arguments():
     req, _ = chain(2)
     with LocalClient().session(req, resume=False) as s:
         assert s.evaluate(req.q).total_energy > 0
+
+
+def test_a_refusal_read_before_the_upgrade_is_sent_logs_nothing(caplog, monkeypatch):
+    """A worker at its connection cap writes its 503 at accept. When websockets' reader thread reads it before the
+    blocking client queues the upgrade, its `send_context` fails an assertion with the upgrade queued, and the reader
+    thread then wrote it to the closed socket: "unexpected internal error" and an EBADF (or EPIPE) traceback logged
+    in the user's process (12 of 150 refused openings on a live server at its cap). Forced here every time: the
+    upgrade waits until the refusal has been read. Before: the log line, every run; now the SDK's `Busy` alone."""
+    from websockets.client import ClientProtocol
+    from websockets.sync.client import ClientConnection
+
+    body = b'{"detail":[{"loc":["connection"],"msg":"full (JOINTLIMITS_MAX_CONNECTIONS)","type":"busy"}]}'
+    answer = (b"HTTP/1.1 503 Service Unavailable\r\nRetry-After: 5\r\nConnection: close\r\nContent-Type: "
+              b"application/json\r\nContent-Length: %d\r\n\r\n%s" % (len(body), body))
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(4)
+
+    done = threading.Event()
+
+    def refuse_at_accept() -> None:
+        with server.accept()[0] as c:
+            c.sendall(answer)
+            done.wait(5)  # held open (an EOF would end the client's reader before its upgrade is queued)
+
+    connect = ClientProtocol.connect
+
+    def late(self):  # the upgrade made only once the reader thread has read the refusal
+        request = connect(self)
+        for _ in range(2000):
+            if self.handshake_exc is not None:
+                break
+            threading.Event().wait(0.001)
+        return request
+
+    close_socket = ClientConnection.close_socket
+
+    def closed_first(self):  # and the socket closed before the reader thread is woken (it raced its last write)
+        self.socket.close()
+        close_socket(self)
+
+    monkeypatch.setattr(ClientProtocol, "connect", late)
+    monkeypatch.setattr(ClientConnection, "close_socket", closed_first)
+    caplog.set_level(logging.DEBUG, logger="websockets")
+    thread = threading.Thread(target=refuse_at_accept, daemon=True)
+    thread.start()
+    try:
+        with pytest.raises(Busy) as err:
+            Client(f"http://127.0.0.1:{server.getsockname()[1]}", max_retry_after=1).session(chain()[0])
+    finally:
+        done.set()
+        thread.join(5)
+        server.close()
+    assert err.value.retry_after == 5 and "JOINTLIMITS_MAX_CONNECTIONS" in err.value.msg
+    assert not [(r.getMessage(), r.exc_info) for r in caplog.records if r.levelno >= logging.WARNING]

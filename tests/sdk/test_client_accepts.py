@@ -172,3 +172,21 @@ def test_repr_of_an_evaluation_is_a_summary():
     assert "outputs=x, energy, gradient, hessian" in text
     only = LocalClient().evaluate(readme_scene().request(outputs=("energy",), active_only=True))
     assert "outputs=x, energy)" in repr(only)
+
+
+@pytest.mark.parametrize("big", [False, True], ids=["plain", "with an integer past 64 bits"])
+def test_a_dicts_float32_arrays_and_scalars_are_read_at_their_value(big):
+    """A dict's NumPy float32/float16 values are the numbers they hold, as a `Request` of the same arrays reads them
+    (`np.asarray(a, np.float64)` widens exactly). Before, orjson wrote each float32 as its shortest decimal (0.7 for
+    0.699999988...), so the dict was read 1e-8 away from its own values (energy 2.576620 against 2.576617), and a
+    dict that also held an integer past 64 bits (the standard library's json) was read at the exact values."""
+    d32, d64 = wire_dict(), wire_dict()
+    q32 = np.asarray(d32["bodies"]["q"], np.float32)
+    d32["bodies"]["q"], d64["bodies"]["q"] = q32, q32.astype(np.float64)
+    lower = np.float32(-0.1), np.float16(-0.3)
+    d32["batches"][0]["lower"] = list(lower)
+    d64["batches"][0]["lower"] = [float(v) for v in lower]
+    if big:  # an upper bound of 10**24 (the server reads it as 1e24): the standard library's json writes the dict
+        d32["batches"][1]["upper"][0] = d64["batches"][1]["upper"][0] = 10**24
+    assert np.asarray(d64["bodies"]["q"]).tolist() != np.asarray(d64["bodies"]["q"]).round(6).tolist()  # not decimals
+    same(LocalClient().evaluate(d32), LocalClient().evaluate(d64))

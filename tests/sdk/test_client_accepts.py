@@ -190,3 +190,20 @@ def test_a_dicts_float32_arrays_and_scalars_are_read_at_their_value(big):
         d32["batches"][1]["upper"][0] = d64["batches"][1]["upper"][0] = 10**24
     assert np.asarray(d64["bodies"]["q"]).tolist() != np.asarray(d64["bodies"]["q"]).round(6).tolist()  # not decimals
     same(LocalClient().evaluate(d32), LocalClient().evaluate(d64))
+
+
+def test_an_integer_past_float64_in_an_object_array_is_read_as_in_a_list():
+    """10**400 in a NumPy object array is +inf, as in a list (JSON's 1 and 400 zeros): a session's update names it
+    where it is, and `JointBatch.of` takes it as the list (the evaluation names it). Before (since ba7353e), the
+    object array raised OverflowError ('int too large to convert to float') from both."""
+    from jointlimits.client import JointBatch
+
+    r = base_request()
+    b = r.batches[0]
+    for lower in ([10**400] * len(b.lower), np.array([10**400] * len(b.lower), dtype=object)):
+        assert JointBatch.of(670, b.body_ids, b.edges, lower, b.upper, b.strength).lower.tolist() == [np.inf] * len(b.lower)
+        with LocalClient().session(r) as s:
+            with pytest.raises(InvalidInput) as err:
+                s.update(0, [0], lower=lower[:1])
+            assert [(f.loc, f.msg, f.type) for f in err.value.faults] == [
+                (("body", "batches", 0, "lower", 0), "Input should be a finite number", "finite_number")]

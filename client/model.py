@@ -216,7 +216,7 @@ def as_request(request: Any) -> Request:
     except TypeError as e:
         try:  # an integer past 64 bits (orjson's bound, not JSON's: the server reads it): the standard library's JSON
             body = json.dumps(request, default=_plain).encode()
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, RecursionError):  # (orjson's own depth limit is its TypeError)
             raise TypeError(f"evaluate(): the dict is not wire JSON ({e})") from None
     # The service's own JSON reader (imported here: HTTP alone never loads it): the same faults, in the same words.
     from jointlimits.service.core import InputError

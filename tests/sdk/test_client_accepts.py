@@ -207,3 +207,20 @@ def test_an_integer_past_float64_in_an_object_array_is_read_as_in_a_list():
                 s.update(0, [0], lower=lower[:1])
             assert [(f.loc, f.msg, f.type) for f in err.value.faults] == [
                 (("body", "batches", 0, "lower", 0), "Input should be a finite number", "finite_number")]
+
+
+@pytest.mark.parametrize("what", ["a set", "nested 3000 deep"])
+def test_a_dict_no_json_writer_can_write_is_a_type_error(what):
+    """A value JSON has no word for, or nesting deeper than any JSON reader takes: `TypeError` ("not wire JSON"),
+    as the docstring of `as_request` says. Before, the nesting raised the standard library's RecursionError (the
+    json fallback for integers past 64 bits, 6bdd800); orjson's own limit gave this TypeError."""
+    d = wire_dict()
+    if what == "a set":
+        d["batches"][0]["lower"] = set(d["batches"][0]["lower"])
+    else:
+        x: list = [0.0]
+        for _ in range(3000):
+            x = [x]
+        d["bodies"]["q"] = x
+    with pytest.raises(TypeError, match="not wire JSON"):
+        LocalClient().evaluate(d)

@@ -191,6 +191,13 @@ _ACCEPTED = ("a client.Request (Scene().request(), request_from_arrays(...)), a 
              "or a schemas.EvaluateRequest")
 
 
+def _plain(a: Any) -> Any:
+    """A NumPy array or scalar as Python numbers (`tolist`: a float32 widened exactly, as `np.asarray(a, np.float64)`)."""
+    if isinstance(a, (np.ndarray, np.generic)):
+        return a.tolist()
+    raise TypeError(f"Type is not JSON serializable: {type(a).__module__}.{type(a).__qualname__}")
+
+
 def as_request(request: Any) -> Request:
     """`request` as a `Request`.
 
@@ -204,12 +211,12 @@ def as_request(request: Any) -> Request:
         request = request.model_dump(exclude_none=True)  # an absent optional field, as the wire has it
     if not isinstance(request, dict):
         raise TypeError(f"evaluate() takes {_ACCEPTED}; got {type(request).__module__}.{type(request).__qualname__}")
-    try:
-        body = orjson.dumps(request, option=orjson.OPT_SERIALIZE_NUMPY)
+    try:  # NumPy values as Python's (a float32 at its value, not orjson's shortest float32 decimal: 0.7 for 0.69999999)
+        body = orjson.dumps(request, default=_plain)
     except TypeError as e:
         try:  # an integer past 64 bits (orjson's bound, not JSON's: the server reads it): the standard library's JSON
-            body = json.dumps(request, default=lambda a: np.asarray(a).tolist()).encode()
-        except (TypeError, ValueError):
+            body = json.dumps(request, default=_plain).encode()
+        except (TypeError, ValueError, RecursionError):  # (orjson's own depth limit is its TypeError)
             raise TypeError(f"evaluate(): the dict is not wire JSON ({e})") from None
     # The service's own JSON reader (imported here: HTTP alone never loads it): the same faults, in the same words.
     from jointlimits.service.core import InputError

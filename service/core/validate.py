@@ -95,8 +95,9 @@ def as_array(value: Any, loc: Loc, integer: bool = False) -> tuple[np.ndarray | 
 
 
 def _past_range(value: Any) -> Any:
-    """Nested lists `value`, each integer that rounds past float64 (from 2^1024 - 2^970) made +-inf."""
-    if isinstance(value, (list, tuple)):
+    """Nested lists `value` (or an object array: the SDK's), each integer that rounds past float64 (from 2^1024 - 2^970)
+    made +-inf."""
+    if isinstance(value, (list, tuple, np.ndarray)):
         return [_past_range(x) for x in value]
     return value if not isinstance(value, int) or abs(value) < 2**1024 - 2**970 else np.inf if value > 0 else -np.inf
 

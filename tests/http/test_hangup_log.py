@@ -110,3 +110,38 @@ def test_a_route_that_raises_logs_its_traceback_its_client_there_or_gone(live, c
     assert [(r.getMessage().strip(), str(r.exc_info[1])) for r in errors] == 2 * [
         ("Exception in ASGI application", "a genuine fault of the route")]
     assert [r.fields["status"] for r in access] == [500, 500]
+
+
+@pytest.mark.parametrize("first", ["answered", "pipelined"])
+def test_the_request_marked_gone_is_the_one_being_answered_not_the_first_nor_the_last_read(live, caplog, first):
+    """The request answered when the client leaves is neither the connection's first (a keep-alive `/healthz`
+    answered and read before, or pipelined ahead of it) nor the last read (two `/healthz` queued behind it): it
+    alone is told, logs its one access line and count, no error, and its budget is given back."""
+    caplog.set_level(logging.INFO)
+    RELEASE.clear()
+    before = counted(live, "/held", "200")
+    fast, held = b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n", b"GET /held HTTP/1.1\r\nHost: x\r\n\r\n"
+    with socket.create_connection(("127.0.0.1", live.port)) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # a reset: uvloop's write raises
+        if first == "answered":
+            s.sendall(fast)
+            assert s.recv(65536).startswith(b"HTTP/1.1 200")
+            s.sendall(held + 2 * fast)
+        else:
+            s.sendall(fast + held + 2 * fast)
+        deadline = time.monotonic() + 5
+        while len(live.server.server_state.tasks) == 0 or not any(
+                r.name == ACCESS_LOGGER and r.fields["path"] == "/healthz" for r in caplog.records):
+            assert time.monotonic() < deadline
+            time.sleep(0.01)  # /healthz answered, /held started
+    deadline = time.monotonic() + 5
+    while live.connections() and time.monotonic() < deadline:  # the server saw the hang-up
+        time.sleep(0.01)
+    RELEASE.set()
+    while live.server.server_state.tasks and time.monotonic() < deadline:  # the held route answered (to nobody)
+        time.sleep(0.01)
+    time.sleep(0.1)  # anything logged after the task ends
+    assert not [(r.name, r.getMessage()) for r in caplog.records if r.levelno >= logging.WARNING or r.exc_info]
+    access = [(r.fields["path"], r.fields["status"]) for r in caplog.records if r.name == ACCESS_LOGGER]
+    assert [a for a in access if a[0] != "/metrics"] == [("/healthz", 200), ("/held", 200)]
+    assert counted(live, "/held", "200") == before + 1 and live.held() == 0

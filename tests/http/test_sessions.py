@@ -50,7 +50,8 @@ def open_binary(body: dict) -> bytes:
         "bodies": {k: f(b[k], (-1, 12)) for k in ("q", "q_prev", "q_ref")},
         "batches": [{"constitution_uid": j["constitution_uid"], "base_uid": j["base_uid"],
                      "body_ids": wire.pack_array(np.array(j["body_ids"], dtype=np.int64).reshape(-1, 2), wire.INT64),
-                     "edges": f(j["edges"], (-1, 2, 3)), **{k: f(j[k], (-1,)) for k in ("lower", "upper", "strength")}}
+                     "edges": f(j["edges"], (-1, 2, 3)),
+                     **{k: f(j[k], (-1,)) for k in ("lower", "upper", "strength", "offset", "prev_coordinate") if k in j}}
                     for j in body["batches"]],
         **{k: v for k, v in body.items() if k not in ("bodies", "batches")},  # options, id
     })  # fmt: skip
@@ -243,6 +244,45 @@ def test_a_slide_past_float64_in_a_local_session():
             s.commit([EYE, FAR])
         assert [(f.loc, f.msg, f.type) for f in e.value.faults] == want
         assert s.commit([EYE, EYE])[0].tolist() == [0.0]
+
+
+OFFSET_OVERFLOWS = (("body", "batches", 0, "offset", 0), "the coordinate x + offset overflows float64", "value_error")
+
+
+def far_hinge() -> dict:
+    """A #670 hinge about +z carried in at the angle 1e308 (`prev_coordinate`), its bounds +-1.5e308."""
+    return {"bodies": {"q": [EYE, EYE], "q_prev": [EYE, EYE], "q_ref": [EYE, EYE]},
+            "batches": [{"constitution_uid": 670, "base_uid": 18, "body_ids": [[0, 1]], "edges": [[[0, 0, 0], [0, 0, 1]]],
+                         "lower": [-1.5e308], "upper": [1.5e308], "strength": [1.0], "prev_coordinate": [1e308]}]}
+
+
+@pytest.mark.parametrize("side", ["json", "msgpack", "local"])
+def test_an_offset_that_would_overflow_the_committed_coordinate_is_refused_alike_and_changes_nothing(side):
+    """An update whose offset 1e308 moves the committed 1e308 past float64 (update's `check_moved`): the same
+    fault on every session path (tests/core/test_prepared.py has it in-process), and the scene answers after it
+    bit for bit as before (an evaluation and a commit)."""
+    update = {"batch": 0, "index": [0], "lower": [1.5e308], "upper": [1.7e308], "offset": [1e308]}
+    with LocalClient().session(far_hinge()) as fresh:
+        committed = fresh.commit([EYE, EYE])[0].tolist()  # (1e308 + 1 ulp: rem() of the angle at that scale)
+    if side == "local":
+        with LocalClient().session(far_hinge()) as s:
+            before = s.evaluate([EYE, EYE])
+            with pytest.raises(InvalidInput) as e:
+                s.update(0, [0], lower=[1.5e308], upper=[1.7e308], offset=[1e308])
+            assert [(f.loc, f.msg, f.type) for f in e.value.faults] == [OFFSET_OVERFLOWS]
+            after = s.evaluate([EYE, EYE])
+            assert (after.total_energy, after.batches[0].coordinate.tolist()) == (before.total_energy, [1e308])
+            assert s.commit([EYE, EYE])[0].tolist() == committed
+        return
+    with app().websocket_connect(PATH) as ws:
+        s = Json(ws) if side == "json" else Binary(ws)
+        assert arrays(s.send(far_hinge()))["coordinates"][0].tolist() == [1e308]
+        before = s.send({"kind": "evaluate", "q": [EYE, EYE]})
+        reply = s.send({"kind": "update", **update})
+        assert (reply["kind"], reply["status"]) == ("error", 422)
+        assert [(tuple(f["loc"]), f["msg"], f["type"]) for f in reply["detail"]] == [OFFSET_OVERFLOWS]
+        same(s.send({"kind": "evaluate", "q": [EYE, EYE]}), before)
+        assert arrays(s.send({"kind": "commit", "q": [EYE, EYE]}))["coordinates"][0].tolist() == committed
 
 
 def test_the_bearer_token_is_checked_on_the_upgrade():

@@ -172,3 +172,55 @@ def test_repr_of_an_evaluation_is_a_summary():
     assert "outputs=x, energy, gradient, hessian" in text
     only = LocalClient().evaluate(readme_scene().request(outputs=("energy",), active_only=True))
     assert "outputs=x, energy)" in repr(only)
+
+
+@pytest.mark.parametrize("big", [False, True], ids=["plain", "with an integer past 64 bits"])
+def test_a_dicts_float32_arrays_and_scalars_are_read_at_their_value(big):
+    """A dict's NumPy float32/float16 values are the numbers they hold, as a `Request` of the same arrays reads them
+    (`np.asarray(a, np.float64)` widens exactly). Before, orjson wrote each float32 as its shortest decimal (0.7 for
+    0.699999988...), so the dict was read 1e-8 away from its own values (energy 2.576620 against 2.576617), and a
+    dict that also held an integer past 64 bits (the standard library's json) was read at the exact values."""
+    d32, d64 = wire_dict(), wire_dict()
+    q32 = np.asarray(d32["bodies"]["q"], np.float32)
+    d32["bodies"]["q"], d64["bodies"]["q"] = q32, q32.astype(np.float64)
+    lower = np.float32(-0.1), np.float16(-0.3)
+    d32["batches"][0]["lower"] = list(lower)
+    d64["batches"][0]["lower"] = [float(v) for v in lower]
+    if big:  # an upper bound of 10**24 (the server reads it as 1e24): the standard library's json writes the dict
+        d32["batches"][1]["upper"][0] = d64["batches"][1]["upper"][0] = 10**24
+    assert np.asarray(d64["bodies"]["q"]).tolist() != np.asarray(d64["bodies"]["q"]).round(6).tolist()  # not decimals
+    same(LocalClient().evaluate(d32), LocalClient().evaluate(d64))
+
+
+def test_an_integer_past_float64_in_an_object_array_is_read_as_in_a_list():
+    """10**400 in a NumPy object array is +inf, as in a list (JSON's 1 and 400 zeros): a session's update names it
+    where it is, and `JointBatch.of` takes it as the list (the evaluation names it). Before (since ba7353e), the
+    object array raised OverflowError ('int too large to convert to float') from both."""
+    from jointlimits.client import JointBatch
+
+    r = base_request()
+    b = r.batches[0]
+    for lower in ([10**400] * len(b.lower), np.array([10**400] * len(b.lower), dtype=object)):
+        assert JointBatch.of(670, b.body_ids, b.edges, lower, b.upper, b.strength).lower.tolist() == [np.inf] * len(b.lower)
+        with LocalClient().session(r) as s:
+            with pytest.raises(InvalidInput) as err:
+                s.update(0, [0], lower=lower[:1])
+            assert [(f.loc, f.msg, f.type) for f in err.value.faults] == [
+                (("body", "batches", 0, "lower", 0), "Input should be a finite number", "finite_number")]
+
+
+@pytest.mark.parametrize("what", ["a set", "nested 3000 deep"])
+def test_a_dict_no_json_writer_can_write_is_a_type_error(what):
+    """A value JSON has no word for, or nesting deeper than any JSON reader takes: `TypeError` ("not wire JSON"),
+    as the docstring of `as_request` says. Before, the nesting raised the standard library's RecursionError (the
+    json fallback for integers past 64 bits, 6bdd800); orjson's own limit gave this TypeError."""
+    d = wire_dict()
+    if what == "a set":
+        d["batches"][0]["lower"] = set(d["batches"][0]["lower"])
+    else:
+        x: list = [0.0]
+        for _ in range(3000):
+            x = [x]
+        d["bodies"]["q"] = x
+    with pytest.raises(TypeError, match="not wire JSON"):
+        LocalClient().evaluate(d)

@@ -282,22 +282,18 @@ class PreparedScene:
     def coordinates(self) -> list[Array]:
         """The committed coordinates at `q_prev`, one (N,) per batch (`x(q_prev) + offset`); `InputError` naming
         the joints where they overflow."""
-        out, xs = [], []
-        with np.errstate(all="ignore"):
-            for jb in self._batches:
-                if jb.committed is not None:  # as a prev_coordinate carried it or the last commit answered it
-                    out.append(jb.committed.copy())
-                    xs.append(out[-1])
-                    continue
-                if not jb.c.facts.stateful:
-                    self._load(self._table.dofs[1].T, (TOTAL_STEP,), (TOTAL_STEP,))
-                    x = self._from_ref(jb)[1]
-                else:
-                    x = self._angle(jb)
-                out.append(_plus_offset(x, jb.offset))
-                xs.append(x)
+        with np.errstate(all="ignore"):  # as a prev_coordinate carried it or the last commit answered it, else x + offset
+            xs = [jb.committed if jb.committed is not None else self._x_prev(jb) for jb in self._batches]
+            out = [x.copy() if jb.committed is not None else _plus_offset(x, jb.offset) for jb, x in zip(self._batches, xs)]
         raise_if(check_coordinates([(np.arange(len(x)), x, c) for x, c in zip(xs, out)]))
         return out
+
+    def _x_prev(self, jb: _Batch) -> Array:
+        """x (N,) at `q_prev` of a batch with no committed coordinate."""
+        if jb.c.facts.stateful:
+            return self._angle(jb)
+        self._load(self._table.dofs[1].T, (TOTAL_STEP,), (TOTAL_STEP,))
+        return self._from_ref(jb)[1]
 
     def update(self, batch: int, index: ArrayLike, lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
@@ -319,7 +315,7 @@ class PreparedScene:
         with np.errstate(all="ignore"):
             raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
             if offset is not None:  # the committed coordinates it moves stay finite
-                x = jb.theta[index] if jb.committed is not None else self.coordinates()[batch][index] - jb.offset[index]
+                x = (jb.theta if jb.committed is not None else self._x_prev(jb))[index]  # this batch's alone
                 raise_if(check_moved(batch, x, after["offset"], index))
         for k, a in after.items():
             getattr(jb, k)[index] = a

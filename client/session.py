@@ -64,7 +64,7 @@ def resumable(e: Exception) -> bool:
 
 class Resume:
     """The retries of one step of a session (an open, a message and its reply), by the HTTP clients' rule
-    (`transport.Retry.wait`): `backoff` doubling, `retries` times, a busy 503's `Retry-After` waited."""
+    (`transport.Retry.wait`): `backoff` doubling, `retries` times, a busy 503's or a proxy's `Retry-After` waited."""
 
     def __init__(self, retries: int, backoff: float, on: bool, max_retry_after: float = MAX_RETRY_AFTER) -> None:
         self._retry = Retry(retries if on else 0, backoff, "", max_retry_after)
@@ -72,14 +72,14 @@ class Resume:
 
     def pause(self, e: ServiceError) -> float:
         """Seconds to wait after `e` if another server can take over (`resumable`); a failure no server would
-        mend (a fault, 401, 4408, ...) at once. Past the retries (or a busy `Retry-After` over `max_retry_after`),
+        mend (a fault, 401, 4408, ...) at once. Past the retries (or a `Retry-After` over `max_retry_after`),
         as the HTTP clients do, the last failure, `Busy` and `Unreachable` saying every attempt; but a lost session's
         `SessionClosed` (the first failure) stays the one raised, the last as its cause, unless the last was busy."""
         self._first = first = self._first or e
         if not resumable(e):
             raise e
         busy = e if isinstance(e, Busy) else None  # `Busy` raised by `wait` when not waited
-        pause = self._retry.wait(busy.retry_after if busy else None, busy)
+        pause = self._retry.wait(e.retry_after if isinstance(e, (Busy, Unreachable)) else None, busy)
         if pause is not None:
             return pause
         if isinstance(first, SessionClosed) and first is not e:
@@ -332,7 +332,7 @@ def handshake_error(url: str, e: Exception) -> Exception:
     if isinstance(e, InvalidStatus):
         status, body = e.response.status_code, bytes(e.response.body or b"")
         if status in PROXY_STATUSES and not is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
-            return Unreachable(url, 1, status=status, proxy=proxy_page(body))
+            return Unreachable(url, 1, status=status, proxy=proxy_page(body), retry_after=retry_after(e.response))
         if status == 404 or not is_fault_list(body):  # the status read, not 404 (a FastAPI app with no route: 403)
             return wrong_url(url, f"answered HTTP {status} {e.response.reason_phrase} to the WebSocket upgrade", status)
         error = codec.error(status, body)  # a worker at its connection cap: `Busy`, waited as it asks (`Resume`)

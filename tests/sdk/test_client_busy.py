@@ -365,11 +365,16 @@ B, P, R = "busy", "proxy", "refused"
     (((R, None), (P, None), (B, "0")), {"retries": 2}),
     (((R, None),) * 4, {}),
     (((P, None),) * 10, {"retries": 3, "backoff": 1.0}),
+    (((P, "3"),), {"backoff": 1.0}),  # a proxy's Retry-After over the step: waited
+    (((P, "60"),), {"max_retry_after": 30}),  # over max_retry_after: Unreachable at once
+    (((P, "30"), (P, "30.5")), {}),
+    (((P, "1.5"),) * 10, {"retries": 3, "backoff": 1.0}),
 ])  # fmt: skip
 def test_a_session_opening_retries_every_cause_as_evaluate_does(app, pauses, script, options):
-    """Busy 503s, a proxy's 503s and no server, to a session's upgrade (`handshake_error`, then `Resume`) and to
-    `POST /v1/evaluate`: the same sleeps, then the same failure (its kind, attempts, proxy status) or none. Before,
-    the opening raised its first failure said of one attempt (busy x3 then refused: `Busy`, "busy after 1 attempt")."""
+    """Busy 503s, a proxy's 503s (with or without `Retry-After`) and no server, to a session's upgrade
+    (`handshake_error`, then `Resume`) and to `POST /v1/evaluate`: the same sleeps, then the same failure (its kind,
+    attempts, `Retry-After`, proxy status) or none. Before, the opening raised its first failure said of one attempt
+    (busy x3 then refused: `Busy`, "busy after 1 attempt"), and slept only the backoff steps after a proxy's 503."""
     steps = {B: busy, P: proxy_503, R: lambda after: refused}
     http: ServiceError | None = None
     try:
@@ -389,9 +394,7 @@ def test_a_session_opening_retries_every_cause_as_evaluate_does(app, pauses, scr
     assert session_pauses == http_pauses
     assert type(session) is type(http)
     if isinstance(http, ServiceError):
-        assert (session.status, session.attempts) == (http.status, http.attempts)
+        assert (session.status, session.attempts, session.retry_after) == (http.status, http.attempts, http.retry_after)
         assert f"after {http.attempts} attempt" in str(session)
     if isinstance(http, Unreachable):
         assert (session.proxy, session.cause is None) == (http.proxy, http.cause is None)
-    if isinstance(http, Busy):
-        assert session.retry_after == http.retry_after

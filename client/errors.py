@@ -61,12 +61,11 @@ class Unreachable(ServiceError):
     or a proxy in front of the service answered for it (a 502, 503 or 504 that is not the service's
     own error: an HTML page saying no upstream answered), on every attempt (`attempts` = 1 + the
     retries). `url` is what was asked; `status` is 0, or the proxy's status when a proxy answered
-    the last attempt (`proxy`: its page in a few words)."""
+    the last attempt (`proxy`: its page in a few words; `retry_after`: its `Retry-After` seconds, or None)."""
 
-    def __init__(
-        self, url: str, attempts: int, cause: Exception | None = None, *, status: int = 0, proxy: str | None = None
-    ) -> None:
-        self.url, self.attempts, self.proxy, self.cause = url, attempts, proxy, cause
+    def __init__(self, url: str, attempts: int, cause: Exception | None = None, *, status: int = 0,
+                 proxy: str | None = None, retry_after: float | None = None) -> None:
+        self.url, self.attempts, self.proxy, self.cause, self.retry_after = url, attempts, proxy, cause, retry_after
         tries = f"{attempts} attempt{'s' * (attempts != 1)}"
         if cause is None:
             msg = (f"cannot reach the service at {url}: a proxy answered HTTP {status} in its stead ({proxy}) "
@@ -78,7 +77,8 @@ class Unreachable(ServiceError):
 
     def after(self, attempts: int) -> Unreachable:
         """The same failure, said of `attempts` attempts (a session's open retried by `Resume`)."""
-        return Unreachable(self.url, attempts, self.cause, status=self.status, proxy=self.proxy)
+        return Unreachable(self.url, attempts, self.cause, status=self.status, proxy=self.proxy,
+                           retry_after=self.retry_after)
 
 
 class WrongURL(ServiceError):

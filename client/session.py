@@ -63,27 +63,28 @@ def resumable(e: Exception) -> bool:
 
 
 class Resume:
-    """The retries of one step of a session (an open, a message and its reply): `backoff` doubling, `retries` times,
-    a busy 503 to the upgrade after its `Retry-After`, by the HTTP clients' rule (`transport.Retry.wait`)."""
+    """The retries of one step of a session (an open, a message and its reply), by the HTTP clients' rule
+    (`transport.Retry.wait`): `backoff` doubling, `retries` times, a busy 503's or a proxy's `Retry-After` waited."""
 
     def __init__(self, retries: int, backoff: float, on: bool, max_retry_after: float = MAX_RETRY_AFTER) -> None:
         self._retry = Retry(retries if on else 0, backoff, "", max_retry_after)
         self._first: ServiceError | None = None
-        self._unreachable = 0  # attempts that reached no server: the count `Unreachable` reports
 
     def pause(self, e: ServiceError) -> float:
-        """Seconds to wait after `e` if another server can take over (`resumable`); past the retries, the first
-        failure (the last as its cause), or `Busy` if the last was (at once when its `Retry-After` is over
-        `max_retry_after`); a failure no server would mend (a fault, 401, 4408, ...) at once."""
+        """Seconds to wait after `e` if another server can take over (`resumable`); a failure no server would
+        mend (a fault, 401, 4408, ...) at once. Past the retries (or a `Retry-After` over `max_retry_after`),
+        as the HTTP clients do, the last failure, `Busy` and `Unreachable` saying every attempt; but a lost session's
+        `SessionClosed` (the first failure) stays the one raised, the last as its cause, unless the last was busy."""
         self._first = first = self._first or e
-        self._unreachable += isinstance(e, Unreachable)
-        busy = e if isinstance(e, Busy) else None  # a worker at its connection cap: `Busy` raised when not waited
-        pause = self._retry.wait(busy.retry_after if busy else None, busy) if resumable(e) else None
+        if not resumable(e):
+            raise e
+        busy = e if isinstance(e, Busy) else None  # `Busy` raised by `wait` when not waited
+        pause = self._retry.wait(e.retry_after if isinstance(e, (Busy, Unreachable)) else None, busy)
         if pause is not None:
             return pause
-        if first is e or not resumable(e):
-            raise e
-        raise (first.after(self._unreachable) if isinstance(first, Unreachable) else first) from e
+        if isinstance(first, SessionClosed) and first is not e:
+            raise first from e
+        raise (e.after(self._retry.attempts) if isinstance(e, Unreachable) else e) from None  # its cause: `e.cause`
 
 
 class SessionState:
@@ -331,7 +332,7 @@ def handshake_error(url: str, e: Exception) -> Exception:
     if isinstance(e, InvalidStatus):
         status, body = e.response.status_code, bytes(e.response.body or b"")
         if status in PROXY_STATUSES and not is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
-            return Unreachable(url, 1, status=status, proxy=proxy_page(body))
+            return Unreachable(url, 1, status=status, proxy=proxy_page(body), retry_after=retry_after(e.response))
         if status == 404 or not is_fault_list(body):  # the status read, not 404 (a FastAPI app with no route: 403)
             return wrong_url(url, f"answered HTTP {status} {e.response.reason_phrase} to the WebSocket upgrade", status)
         error = codec.error(status, body)  # a worker at its connection cap: `Busy`, waited as it asks (`Resume`)

@@ -269,9 +269,11 @@ class Retry:
             error = codec.error(response.status_code, response.content) if response.status_code == 503 else None
             if not isinstance(error, Busy):  # the deadline's 503 ran for the whole timeout: not retried
                 return None
-        pause = self.wait(retry_after(response), error)
+        after = retry_after(response)
+        pause = self.wait(after, error)
         if pause is None:
-            raise Unreachable(self.url, self.attempts, status=response.status_code, proxy=proxy_page(response.content))
+            raise Unreachable(self.url, self.attempts, status=response.status_code, proxy=proxy_page(response.content),
+                              retry_after=after)
         return pause
 
     def wait(self, after: float | None, busy: Busy | None = None) -> float | None:

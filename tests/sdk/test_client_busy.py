@@ -329,3 +329,72 @@ def test_a_session_opening_waits_a_busy_503_as_evaluate_does(app, pauses, script
     assert (session is None) == (http is None)
     if session is not None and http is not None:
         assert (str(session), session.retry_after, session.attempts) == (str(http), http.retry_after, http.attempts)
+
+
+PROXY_PAGE = b"<html><body><h1>503 Service Unavailable</h1>\nNo server is available to handle this request.\n</body></html>"
+
+
+def proxy_503(after: str | None = None) -> Step:
+    """A proxy's 503 (its HTML page, not the service's fault list) with `Retry-After: after` (none when None)."""
+    headers = {"Content-Type": "text/html", **({} if after is None else {"Retry-After": after})}
+    return lambda request: httpx.Response(503, headers=headers, content=PROXY_PAGE)
+
+
+def upgrade_failed(step: tuple[str, str | None]) -> Exception:
+    """What websockets raises when a session's upgrade meets `step`: a busy 503, a proxy's 503, or no server."""
+    from websockets.datastructures import Headers
+    from websockets.exceptions import InvalidStatus
+    from websockets.http11 import Response
+
+    kind, after = step
+    if kind == "refused":
+        return ConnectionRefusedError(111, "Connect call failed")
+    if kind == "busy":
+        return upgrade_refused(after)
+    headers = Headers({"Content-Type": "text/html", **({} if after is None else {"Retry-After": after})})
+    return InvalidStatus(Response(503, "Service Unavailable", headers, PROXY_PAGE))
+
+
+B, P, R = "busy", "proxy", "refused"
+
+
+@pytest.mark.parametrize(("script", "options"), [
+    (((B, "0"),) * 3 + ((R, None),), {}),  # the audit's sequence: Unreachable after 4 attempts
+    (((B, "0"), (R, None), (P, None)), {"retries": 2}),  # the last kind is raised, every attempt counted
+    (((R, None), (B, "0"), (R, None), (R, None)), {}),
+    (((R, None), (P, None), (B, "0")), {"retries": 2}),
+    (((R, None),) * 4, {}),
+    (((P, None),) * 10, {"retries": 3, "backoff": 1.0}),
+    (((P, "3"),), {"backoff": 1.0}),  # a proxy's Retry-After over the step: waited
+    (((P, "60"),), {"max_retry_after": 30}),  # over max_retry_after: Unreachable at once
+    (((P, "30"), (P, "30.5")), {}),
+    (((P, "1.5"),) * 10, {"retries": 3, "backoff": 1.0}),
+])  # fmt: skip
+def test_a_session_opening_retries_every_cause_as_evaluate_does(app, pauses, script, options):
+    """Busy 503s, a proxy's 503s (with or without `Retry-After`) and no server, to a session's upgrade
+    (`handshake_error`, then `Resume`) and to `POST /v1/evaluate`: the same sleeps, then the same failure (its kind,
+    attempts, `Retry-After`, proxy status) or none. Before, the opening raised its first failure said of one attempt
+    (busy x3 then refused: `Busy`, "busy after 1 attempt"), and slept only the backoff steps after a proxy's 503."""
+    steps = {B: busy, P: proxy_503, R: lambda after: refused}
+    http: ServiceError | None = None
+    try:
+        evaluate("sync", Server(app, *[steps[kind](after) for kind, after in script]), readme_scene().request(),
+                 **options)
+    except ServiceError as e:
+        http = e
+    http_pauses, session = list(pauses), None
+    given = {"retries": 3, "backoff": 0.2, "max_retry_after": transport.MAX_RETRY_AFTER, **options}  # the clients'
+    resume = Resume(given["retries"], given["backoff"], True, given["max_retry_after"])
+    session_pauses = []
+    try:
+        for step in script:
+            session_pauses.append(resume.pause(handshake_error("ws://test/v1/sessions", upgrade_failed(step))))
+    except ServiceError as e:
+        session = e
+    assert session_pauses == http_pauses
+    assert type(session) is type(http)
+    if isinstance(http, ServiceError):
+        assert (session.status, session.attempts, session.retry_after) == (http.status, http.attempts, http.retry_after)
+        assert f"after {http.attempts} attempt" in str(session)
+    if isinstance(http, Unreachable):
+        assert (session.proxy, session.cause is None) == (http.proxy, http.cause is None)

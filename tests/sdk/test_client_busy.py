@@ -298,39 +298,6 @@ def upgrade_refused(after: str | None) -> Exception:
     return InvalidStatus(Response(503, "Service Unavailable", headers, body))
 
 
-@pytest.mark.parametrize(("script", "options"), [
-    (("5",), {}),
-    (("1.5", "7"), {"backoff": 0.25}),
-    (("0", "0.25", None, "Wed, 21 Oct 2026 07:28:00 GMT"), {"retries": 4, "backoff": 0.5}),
-    (("31",), {"max_retry_after": 30}),
-    (("30", "30.5"), {}),
-    (("1.5",) * 10, {"retries": 3, "backoff": 1.0}),
-    ((None,), {"retries": 0}),
-])  # fmt: skip
-def test_a_session_opening_waits_a_busy_503_as_evaluate_does(app, pauses, script, options):
-    """The same busy 503s to a session's upgrade (`handshake_error`, then `Resume`, as `Exchange._opening` meets
-    them) and to `POST /v1/evaluate`: the same sleeps, then the same `Busy` (its `retry_after`, attempts, words) or
-    none. The opening slept 0.2, 0.4, 0.8 s whatever the server asked, and raised the first 503."""
-    try:
-        evaluate("sync", Server(app, *[busy(after) for after in script]), readme_scene().request(), **options)
-        http = None
-    except Busy as e:
-        http = e
-    http_pauses, session = list(pauses), None
-    given = {"retries": 3, "backoff": 0.2, "max_retry_after": transport.MAX_RETRY_AFTER, **options}  # the clients'
-    resume = Resume(given["retries"], given["backoff"], True, given["max_retry_after"])
-    session_pauses = []
-    try:
-        for after in script:
-            session_pauses.append(resume.pause(handshake_error("ws://test/v1/sessions", upgrade_refused(after))))
-    except Busy as e:
-        session = e
-    assert session_pauses == http_pauses
-    assert (session is None) == (http is None)
-    if session is not None and http is not None:
-        assert (str(session), session.retry_after, session.attempts) == (str(http), http.retry_after, http.attempts)
-
-
 PROXY_PAGE = b"<html><body><h1>503 Service Unavailable</h1>\nNo server is available to handle this request.\n</body></html>"
 
 
@@ -359,6 +326,13 @@ B, P, R = "busy", "proxy", "refused"
 
 
 @pytest.mark.parametrize(("script", "options"), [
+    (((B, "5"),), {}),  # busy 503s alone: the opening slept 0.2, 0.4, 0.8 s whatever the server asked
+    (((B, "1.5"), (B, "7")), {"backoff": 0.25}),
+    (((B, "0"), (B, "0.25"), (B, None), (B, "Wed, 21 Oct 2026 07:28:00 GMT")), {"retries": 4, "backoff": 0.5}),
+    (((B, "31"),), {"max_retry_after": 30}),
+    (((B, "30"), (B, "30.5")), {}),
+    (((B, "1.5"),) * 10, {"retries": 3, "backoff": 1.0}),
+    (((B, None),), {"retries": 0}),
     (((B, "0"),) * 3 + ((R, None),), {}),  # the audit's sequence: Unreachable after 4 attempts
     (((B, "0"), (R, None), (P, None)), {"retries": 2}),  # the last kind is raised, every attempt counted
     (((R, None), (B, "0"), (R, None), (R, None)), {}),
@@ -396,5 +370,7 @@ def test_a_session_opening_retries_every_cause_as_evaluate_does(app, pauses, scr
     if isinstance(http, ServiceError):
         assert (session.status, session.attempts, session.retry_after) == (http.status, http.attempts, http.retry_after)
         assert f"after {http.attempts} attempt" in str(session)
+    if isinstance(http, Busy):
+        assert str(session) == str(http)
     if isinstance(http, Unreachable):
         assert (session.proxy, session.cause is None) == (http.proxy, http.cause is None)

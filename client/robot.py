@@ -160,10 +160,13 @@ class Robot:
             raise ImportError("reading a URDF needs yourdfpy: pip install yourdfpy (the robot extra)") from e
         from lxml import etree  # yourdfpy's parser, strict: yourdfpy logs its error and reads what it can recover
 
-        try:  # what is wrong said first (a missing file: the OSError), not yourdfpy's KeyError or "Invalid input"
-            root = etree.fromstring(Path(path).read_bytes())
-        except etree.XMLSyntaxError as e:
-            raise ValueError(f"{path}: not XML ({e.msg})") from None
+        data = Path(path).read_bytes()  # a missing file: the OSError
+        try:  # what is wrong said first, not yourdfpy's KeyError or "Invalid input"
+            root = etree.fromstring(data, strict := etree.XMLParser())
+        except etree.XMLSyntaxError as e:  # a prefix never declared (<xacro:...>, <sensor:...>): yourdfpy drops them
+            if any(x.domain_name != "NAMESPACE" for x in strict.error_log):
+                raise ValueError(f"{path}: not XML ({e.msg})") from None
+            root = etree.fromstring(data, etree.XMLParser(recover=True))
         if root.tag != "robot" or "name" not in root.attrib:
             raise ValueError(f"{path}: not a URDF: its root element is <{root.tag}>, a URDF's is <robot name=...>"
                              if root.tag != "robot" else f"{path}: its <robot> has no name (URDF requires one)")

@@ -398,3 +398,24 @@ def test_a_session_opening_retries_every_cause_as_evaluate_does(app, pauses, scr
         assert f"after {http.attempts} attempt" in str(session)
     if isinstance(http, Unreachable):
         assert (session.proxy, session.cause is None) == (http.proxy, http.cause is None)
+
+
+@pytest.mark.parametrize("script", [(R, R, R), (P, P, P), (B, R, P), (R, B, R)])
+def test_a_lost_message_whose_reopenings_reach_no_server_counts_every_attempt(script):
+    """A message step (not the opening) whose connection drops, then whose reopenings meet no server (`Resume`, as
+    `Exchange._exchange` meets them): `SessionClosed` (sessions.md: "a resume that found no server"), its cause the
+    last failure said of every attempt, as `Busy` is when the last was busy. Before, the cause said "after 1 attempt"
+    whatever the retries (the failure as `handshake_error` made it)."""
+    from jointlimits.client import SessionClosed
+
+    url = "ws://test/v1/sessions"
+    resume = Resume(3, 0.0, True)
+    lost = SessionClosed(url, None, "", "dropped (no close frame)", resumable=True)
+    assert resume.pause(lost) == 0.0
+    with pytest.raises(SessionClosed) as err:
+        for kind in script:
+            resume.pause(handshake_error(url, upgrade_failed((kind, None if kind == R else "0"))))
+    assert err.value is lost
+    cause = err.value.__cause__
+    assert isinstance(cause, Unreachable) and cause.attempts == 4 and "after 4 attempts" in str(cause)
+    assert cause.status == (0 if script[-1] == R else 503)

@@ -190,14 +190,16 @@ class Robot:
             if unknown:
                 raise ValueError(f"{name}: no moving joint named {unknown} (the joints are {self.names})")
             q = [q.get(n, 0.0) for n in self.names]
+        given = np.asarray(q, dtype=object)  # NumPy reads "1", True, None, and a complex number's real part alone
+        for n, x in zip(self.names, given if given.shape == (len(self.names),) else []):
+            if x is None or isinstance(x, (bool, np.bool_, str, bytes, complex, np.complexfloating)):  # as `Scene`
+                kind = ("None" if x is None else "a boolean" if isinstance(x, (bool, np.bool_)) else
+                        "a string" if isinstance(x, (str, bytes)) else "a complex number")
+                raise ValueError(f"{name}: a position is a number, not {kind} ({n}: {x!r})")
         try:  # a position that is no number: NumPy's words, after the vector's name
-            v, given = np.asarray(q, dtype=np.float64), np.asarray(q, dtype=object)
+            v = np.asarray(q, dtype=np.float64)
         except (TypeError, ValueError) as e:
             raise ValueError(f"{name}: {e}") from None
-        for n, x in zip(self.names, given if v.shape == (len(self.names),) else []):  # NumPy reads "1", True, None
-            if x is None or isinstance(x, (bool, np.bool_, str, bytes)):  # as the wire and `Scene` refuse them
-                kind = "None" if x is None else "a boolean" if isinstance(x, (bool, np.bool_)) else "a string"
-                raise ValueError(f"{name}: a position is a number, not {kind} ({n}: {x!r})")
         if v.shape != (len(self.names),):
             raise ValueError(f"{name}: {len(self.names)} positions, one per joint of {self.names}, got shape {v.shape}")
         if not np.isfinite(v).all():

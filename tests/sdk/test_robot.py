@@ -296,11 +296,13 @@ def test_a_joint_vector_of_the_wrong_size_or_names_is_refused(arm):
 
 
 @pytest.mark.parametrize("value, kind", [(True, "a boolean"), (np.True_, "a boolean"), ("0.5", "a string"),
-                                         (None, "None")])
+                                         (None, "None"), (np.complex128(0.5 + 2j), "a complex number"),
+                                         (np.complex64(0.5 + 2j), "a complex number")])
 @pytest.mark.parametrize("given", ["q", "q_prev", "reference"])
 def test_a_position_that_is_not_a_number_is_refused_in_every_vector(arm, given, value, kind):
-    """The wire and `Scene` refuse a boolean, a string and null as a number. Before, NumPy read "0.5" as 0.5 rad in
-    any vector, and None as nan ("not finite"); a boolean was refused (f04a107). Each names its vector and joint."""
+    """The wire and `Scene` refuse a boolean, a string, null and a complex number as a number. Before, NumPy read
+    "0.5" as 0.5 rad in any vector, None as nan ("not finite"), and a NumPy complex 0.5+2j as 0.5 (a ComplexWarning,
+    until the audit of 08c7530); a boolean was refused (f04a107). Each names its vector and joint."""
     vectors = {"q": {"joint1": 0.1}, given: {"joint1": value}}
     with pytest.raises(ValueError, match=rf"^{given}: a position is a number, not {kind} \(joint1: "):
         arm.request(**vectors)

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from jointlimits.client import (AsyncClient, Busy, Client, Evaluation, LocalClient, Request, ServiceError, SessionClosed,
-                               Unreachable)
+from jointlimits.client import (AsyncClient, Busy, Client, Evaluation, LocalClient, Request, ServiceError,
+                               SessionClosed, Unreachable)
 from jointlimits.client import split, transport
 from jointlimits.client.errors import Fault
 from jointlimits.client.session import Exchange, Resume, handshake_error
@@ -448,7 +448,8 @@ class _ScriptedSession(Exchange):
         return None
 
 
-@pytest.mark.parametrize(("script", "raised"), [((B, B, B), Busy), ((R, R, R), SessionClosed), ((B, R, P), SessionClosed)])
+@pytest.mark.parametrize(("script", "raised"), [((B, B, B), Busy), ((R, R, R), SessionClosed),
+                                                ((B, R, P), SessionClosed)])
 def test_a_lost_message_past_its_retries_leaves_the_session_usable(script, raised):
     """A commit whose connection drops, then whose reopenings meet busy 503s, no server or a proxy (the message step
     through `Exchange._exchange`, not the opening): the backoff steps slept, `Busy` (every attempt: 4) or

@@ -172,7 +172,8 @@ def test_a_position_that_is_no_number_is_named(capsys, tmp_path, doc, name):
     request = tmp_path / "q.json"
     request.write_text(json.dumps(doc))
     code, out, err = run(capsys, ARM, "--request", str(request))
-    assert code == 2 and out == "" and err.startswith(f"jointlimits evaluate: {name}: a position is a number, not a string")
+    assert code == 2 and out == ""
+    assert err.startswith(f"jointlimits evaluate: {name}: a position is a number, not a string")
 
 
 @pytest.mark.parametrize("doc", [{"q": {"joint1": True}}, {"q": Q, "q_prev": [False] + [0] * 8}])

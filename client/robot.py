@@ -160,10 +160,13 @@ class Robot:
             raise ImportError("reading a URDF needs yourdfpy: pip install yourdfpy (the robot extra)") from e
         from lxml import etree  # yourdfpy's parser, strict: yourdfpy logs its error and reads what it can recover
 
-        try:  # what is wrong said first (a missing file: the OSError), not yourdfpy's KeyError or "Invalid input"
-            root = etree.fromstring(Path(path).read_bytes())
-        except etree.XMLSyntaxError as e:
-            raise ValueError(f"{path}: not XML ({e.msg})") from None
+        data = Path(path).read_bytes()  # a missing file: the OSError
+        try:  # what is wrong said first, not yourdfpy's KeyError or "Invalid input"
+            root = etree.fromstring(data, strict := etree.XMLParser())
+        except etree.XMLSyntaxError as e:  # a prefix never declared (<xacro:...>, <sensor:...>): yourdfpy drops them
+            if any(x.domain_name != "NAMESPACE" for x in strict.error_log):
+                raise ValueError(f"{path}: not XML ({e.msg})") from None
+            root = etree.fromstring(data, etree.XMLParser(recover=True))
         if root.tag != "robot" or "name" not in root.attrib:
             raise ValueError(f"{path}: not a URDF: its root element is <{root.tag}>, a URDF's is <robot name=...>"
                              if root.tag != "robot" else f"{path}: its <robot> has no name (URDF requires one)")
@@ -187,14 +190,16 @@ class Robot:
             if unknown:
                 raise ValueError(f"{name}: no moving joint named {unknown} (the joints are {self.names})")
             q = [q.get(n, 0.0) for n in self.names]
+        given = np.asarray(q, dtype=object)  # NumPy reads "1", True, None, and a complex number's real part alone
+        for n, x in zip(self.names, given if given.shape == (len(self.names),) else []):
+            if x is None or isinstance(x, (bool, np.bool_, str, bytes, complex, np.complexfloating)):  # as `Scene`
+                kind = ("None" if x is None else "a boolean" if isinstance(x, (bool, np.bool_)) else
+                        "a string" if isinstance(x, (str, bytes)) else "a complex number")
+                raise ValueError(f"{name}: a position is a number, not {kind} ({n}: {x!r})")
         try:  # a position that is no number: NumPy's words, after the vector's name
-            v, given = np.asarray(q, dtype=np.float64), np.asarray(q, dtype=object)
+            v = np.asarray(q, dtype=np.float64)
         except (TypeError, ValueError) as e:
             raise ValueError(f"{name}: {e}") from None
-        for n, x in zip(self.names, given if v.shape == (len(self.names),) else []):  # NumPy reads "1", True, None
-            if x is None or isinstance(x, (bool, np.bool_, str, bytes)):  # as the wire and `Scene` refuse them
-                kind = "None" if x is None else "a boolean" if isinstance(x, (bool, np.bool_)) else "a string"
-                raise ValueError(f"{name}: a position is a number, not {kind} ({n}: {x!r})")
         if v.shape != (len(self.names),):
             raise ValueError(f"{name}: {len(self.names)} positions, one per joint of {self.names}, got shape {v.shape}")
         if not np.isfinite(v).all():

@@ -82,9 +82,10 @@ class Resume:
         pause = self._retry.wait(e.retry_after if isinstance(e, (Busy, Unreachable)) else None, busy)
         if pause is not None:
             return pause
+        last = e.after(self._retry.attempts) if isinstance(e, Unreachable) else e  # every attempt said
         if isinstance(first, SessionClosed) and first is not e:
-            raise first from e
-        raise (e.after(self._retry.attempts) if isinstance(e, Unreachable) else e) from None  # its cause: `e.cause`
+            raise first from last
+        raise last from None  # its cause: `e.cause`
 
 
 class SessionState:

@@ -20,10 +20,12 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from jointlimits.client import AsyncClient, Busy, Client, Evaluation, LocalClient, Request, ServiceError, Unreachable
+from jointlimits.client import (AsyncClient, Busy, Client, Evaluation, LocalClient, Request, ServiceError,
+                               SessionClosed, Unreachable)
 from jointlimits.client import split, transport
 from jointlimits.client.errors import Fault
-from jointlimits.client.session import Resume, handshake_error
+from jointlimits.client.session import Exchange, Resume, handshake_error
+from jointlimits.client.transport import run
 from jointlimits.service.app import create_app
 from jointlimits.service.settings import Settings
 from tests.sdk.test_client_sdk import chain, readme_scene
@@ -374,3 +376,64 @@ def test_a_session_opening_retries_every_cause_as_evaluate_does(app, pauses, scr
         assert str(session) == str(http)
     if isinstance(http, Unreachable):
         assert (session.proxy, session.cause is None) == (http.proxy, http.cause is None)
+
+
+@pytest.mark.parametrize("script", [(R, R, R), (P, P, P), (B, R, P), (R, B, R)])
+def test_a_lost_message_whose_reopenings_reach_no_server_counts_every_attempt(script):
+    """A message step (not the opening) whose connection drops, then whose reopenings meet no server (`Resume`, as
+    `Exchange._exchange` meets them): `SessionClosed` (sessions.md: "a resume that found no server"), its cause the
+    last failure said of every attempt, as `Busy` is when the last was busy. Before, the cause said "after 1 attempt"
+    whatever the retries (the failure as `handshake_error` made it)."""
+    url = "ws://test/v1/sessions"
+    resume = Resume(3, 0.0, True)
+    lost = SessionClosed(url, None, "", "dropped (no close frame)", resumable=True)
+    assert resume.pause(lost) == 0.0
+    with pytest.raises(SessionClosed) as err:
+        for kind in script:
+            resume.pause(handshake_error(url, upgrade_failed((kind, None if kind == R else "0"))))
+    assert err.value is lost
+    cause = err.value.__cause__
+    assert isinstance(cause, Unreachable) and cause.attempts == 4 and "after 4 attempts" in str(cause)
+    assert cause.status == (0 if script[-1] == R else 503)
+
+
+class _ScriptedSession(Exchange):
+    """A session run against a script (no server): each connect of a reopening meets the next failure of
+    `script`; a commit's connection drops `lose` times; every other send is answered."""
+
+    def __init__(self, script: list[tuple[str, str | None]]) -> None:
+        self.script, self.sleeps, self.lose = list(script), [], 0
+        super().__init__("ws://test/v1/sessions", readme_scene().request(), binary=False)
+        run(self._opening(), self._io)
+
+    def _io(self, op: str, arg: object) -> object:
+        if op == "sleep":
+            self.sleeps.append(arg)
+        elif op == "drop":
+            self._ws = None
+        elif op == "connect":
+            if self.script:
+                raise handshake_error(self.url, upgrade_failed(self.script.pop(0)))
+            self._ws = "open"
+        elif op == "send":
+            kind = json.loads(arg).get("kind")
+            if kind == "commit" and self.lose:
+                self.lose, self._ws = self.lose - 1, None
+                raise SessionClosed(self.url, None, "", "dropped (no close frame)", resumable=True)
+            return json.dumps({"kind": "committed" if kind == "commit" else "opened", "coordinates": [[0.0]]})
+        return None
+
+
+@pytest.mark.parametrize(("script", "raised"), [((B, B, B), Busy), ((R, R, R), SessionClosed),
+                                                ((B, R, P), SessionClosed)])
+def test_a_lost_message_past_its_retries_leaves_the_session_usable(script, raised):
+    """A commit whose connection drops, then whose reopenings meet busy 503s, no server or a proxy (the message step
+    through `Exchange._exchange`, not the opening): the backoff steps slept, `Busy` (every attempt: 4) or
+    `SessionClosed` raised; the session holds no connection, and the next call reopens it and is answered."""
+    s = _ScriptedSession([])
+    s.script, s.lose = [(kind, "0" if kind == B else None) for kind in script], 1
+    with pytest.raises(raised) as err:
+        run(s._commit(s.request.q_prev), s._io)
+    assert s.sleeps == [0.2, 0.4, 0.8] and s._ws is None and not s.script
+    assert getattr(err.value, "attempts", 4) == 4
+    assert run(s._commit(s.request.q_prev), s._io)[0].tolist() == [0.0] and s._ws == "open"

@@ -234,6 +234,21 @@ def test_a_file_yourdfpy_cannot_read_is_named(tmp_path):
         Robot.load(urdf)
 
 
+def test_a_urdf_with_an_undeclared_namespace_prefix_loads_as_yourdfpy_reads_it(tmp_path):
+    """xacro leftovers (<xacro:property>) and old Gazebo tags (<sensor:camera>) whose prefix no xmlns declares: ROS's
+    parser reads such a file, and so does yourdfpy (it drops the prefixed elements). Since 0197cbf, lxml's strict
+    pre-parse refused it as "not XML (Namespace prefix xacro on property is not defined)"; at cac2726 it loaded.
+    The same request bytes as arm7's."""
+    urdf = tmp_path / "leftovers.urdf"
+    urdf.write_text(ARM.read_text().replace('<link name="world"/>', '<link name="world"/><xacro:property name="pi" '
+                                            'value="3.14"/><gazebo><sensor:camera name="c"/></gazebo>'))
+    q = {"joint1": -3.81, "joint4": -1.0, "finger_left": 0.02}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # arm7's mimic joint
+        got, want = Robot.load(urdf).request(q), Robot.load(ARM).request(q)
+    assert codec.encode(got, True)[0] == codec.encode(want, True)[0]
+
+
 @pytest.mark.parametrize("content, said", [
     ("hello", r"not XML \(Start tag expected, '<' not found, line 1, column 1\)$"),
     ('{"robot": 1}', r"not XML \(Start tag expected"),
@@ -281,11 +296,13 @@ def test_a_joint_vector_of_the_wrong_size_or_names_is_refused(arm):
 
 
 @pytest.mark.parametrize("value, kind", [(True, "a boolean"), (np.True_, "a boolean"), ("0.5", "a string"),
-                                         (None, "None")])
+                                         (None, "None"), (np.complex128(0.5 + 2j), "a complex number"),
+                                         (np.complex64(0.5 + 2j), "a complex number")])
 @pytest.mark.parametrize("given", ["q", "q_prev", "reference"])
 def test_a_position_that_is_not_a_number_is_refused_in_every_vector(arm, given, value, kind):
-    """The wire and `Scene` refuse a boolean, a string and null as a number. Before, NumPy read "0.5" as 0.5 rad in
-    any vector, and None as nan ("not finite"); a boolean was refused (f04a107). Each names its vector and joint."""
+    """The wire and `Scene` refuse a boolean, a string, null and a complex number as a number. Before, NumPy read
+    "0.5" as 0.5 rad in any vector, None as nan ("not finite"), and a NumPy complex 0.5+2j as 0.5 (a ComplexWarning,
+    until the audit of 08c7530); a boolean was refused (f04a107). Each names its vector and joint."""
     vectors = {"q": {"joint1": 0.1}, given: {"joint1": value}}
     with pytest.raises(ValueError, match=rf"^{given}: a position is a number, not {kind} \(joint1: "):
         arm.request(**vectors)

@@ -250,7 +250,7 @@ class PreparedScene:
                 new.append((F_q, x))
             log.raise_if_any()
             coordinates = [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
-            raise_if(check_coordinates([(np.arange(len(x)), x, c) for (_, x), c in zip(new, coordinates)]))
+            raise_if(check_coordinates([(jb.index, x, c) for jb, (_, x), c in zip(self._batches, new, coordinates)]))
             for jb, (F_q, x) in zip(self._batches, new):
                 if jb.c.facts.stateful:  # its steps start at q_prev (state 1)
                     jb.starts, jb.fixed, jb.committed = [F_q], [], _plus_offset(x, jb.offset)
@@ -285,7 +285,7 @@ class PreparedScene:
         with np.errstate(all="ignore"):  # as a prev_coordinate carried it or the last commit answered it, else x + offset
             xs = [jb.committed if jb.committed is not None else self._x_prev(jb) for jb in self._batches]
             out = [x.copy() if jb.committed is not None else _plus_offset(x, jb.offset) for jb, x in zip(self._batches, xs)]
-        raise_if(check_coordinates([(np.arange(len(x)), x, c) for x, c in zip(xs, out)]))
+        raise_if(check_coordinates([(jb.index, x, c) for jb, x, c in zip(self._batches, xs, out)]))
         return out
 
     def _x_prev(self, jb: _Batch) -> Array:

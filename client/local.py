@@ -168,7 +168,7 @@ class LocalSession(SessionState):
         _call(lambda: scene.update(b, idx, **given))
         self._apply_update(batch, index, values)
         if offset is not None:  # a new offset moves the batch's committed coordinates with it
-            self._coordinates[batch] = owned(scene.coordinates()[batch])
+            self._coordinates[batch] = owned(scene.coordinates([batch])[0])
 
     def reopen(self) -> None:
         self.request = self.request_for_reopen()

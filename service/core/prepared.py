@@ -250,7 +250,8 @@ class PreparedScene:
                 new.append((F_q, x))
             log.raise_if_any()
             coordinates = [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
-            raise_if(check_coordinates([(jb.index, x, c) for jb, (_, x), c in zip(self._batches, new, coordinates)]))
+            raise_if(check_coordinates([(b, jb.index, x, c) for b, (jb, (_, x), c)
+                                        in enumerate(zip(self._batches, new, coordinates))]))
             for jb, (F_q, x) in zip(self._batches, new):
                 if jb.c.facts.stateful:  # its steps start at q_prev (state 1)
                     jb.starts, jb.fixed, jb.committed = [F_q], [], _plus_offset(x, jb.offset)
@@ -279,13 +280,14 @@ class PreparedScene:
             x[jb.prev_careful.idx] = jb.c.careful_coordinate(jb.prev_careful)
         return _from_origin(x, jb)
 
-    def coordinates(self) -> list[Array]:
-        """The committed coordinates at `q_prev`, one (N,) per batch (`x(q_prev) + offset`); `InputError` naming
-        the joints where they overflow."""
+    def coordinates(self, batches: Sequence[int] | None = None) -> list[Array]:
+        """The committed coordinates at `q_prev` of `batches` (default every batch), one (N,) each (`x(q_prev) +
+        offset`); `InputError` naming the joints where they overflow."""
+        chosen = [(b, self._batches[b]) for b in (range(len(self._batches)) if batches is None else batches)]
         with np.errstate(all="ignore"):  # as a prev_coordinate carried it or the last commit answered it, else x + offset
-            xs = [jb.committed if jb.committed is not None else self._x_prev(jb) for jb in self._batches]
-            out = [x.copy() if jb.committed is not None else _plus_offset(x, jb.offset) for jb, x in zip(self._batches, xs)]
-        raise_if(check_coordinates([(jb.index, x, c) for jb, x, c in zip(self._batches, xs, out)]))
+            xs = [jb.committed if jb.committed is not None else self._x_prev(jb) for _, jb in chosen]
+            out = [x.copy() if jb.committed is not None else _plus_offset(x, jb.offset) for (_, jb), x in zip(chosen, xs)]
+        raise_if(check_coordinates([(b, jb.index, x, c) for (b, jb), x, c in zip(chosen, xs, out)]))
         return out
 
     def _x_prev(self, jb: _Batch) -> Array:

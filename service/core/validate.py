@@ -368,20 +368,20 @@ def check_evaluation(ev: Evaluation) -> list[Fault]:
     """Faults of a finished evaluation that would put NaN or Infinity in an answer: the core names overflowing
     energies and derivatives itself; this also catches an overflowed `x` of an inactive joint (x = NaN has no
     gap, so zero energy). (A total energy that overflows: `PreparedScene._run`, before the answer exists.)"""
-    return check_coordinates([(r.index, r.x, r.coordinate) for r in ev.batches])
+    return check_coordinates([(b, r.index, r.x, r.coordinate) for b, r in enumerate(ev.batches)])
 
 
-def check_coordinates(batches: Sequence[tuple[NDArray[np.int64], Array, Array | None]]) -> list[Fault]:
-    """Per batch (joints `index`, their `x` and `coordinate` (M,) or None), the joints whose x or coordinate is
-    not finite: an answer's, a commit's, the committed coordinates a session reports."""
+def check_coordinates(batches: Sequence[tuple[int, NDArray[np.int64], Array, Array | None]]) -> list[Fault]:
+    """Per batch (its number `b`, joints `index`, their `x` and `coordinate` (M,) or None), the joints whose x or
+    coordinate is not finite: an answer's, a commit's, the committed coordinates a session reports."""
     faults = [
         Fault(("batches", b, "body_ids", int(index[i])), "the joint coordinate x overflows float64 at this configuration (positions or edge too large)")
-        for b, (index, x, _) in enumerate(batches)
+        for b, index, x, _ in batches
         for i in nonfinite_rows(x)
     ]
     faults += [
         Fault(("batches", b, "offset", int(index[i])), "the coordinate x + offset overflows float64")
-        for b, (index, x, c) in enumerate(batches)
+        for b, index, x, c in batches
         if c is not None and not np.isfinite(c).all()  # the common case: one flat test
         for i in _where(np.isfinite(x) & ~np.isfinite(c))
     ]

@@ -294,7 +294,7 @@ async def _answer(session: Session, m: Message, binary_frame: bool, settings: Se
         await _run(session, lambda: scene.update(m.batch, m.index, **m.values))
         reply = {"kind": proto.UPDATED, "batch": m.batch, "joints": int(m.index.shape[0])}
         if "offset" in m.values:  # a new offset moves the batch's committed coordinates with it
-            reply["coordinates"] = scene.coordinates()[m.batch]
+            reply["coordinates"] = scene.coordinates([m.batch])[0]
     if m.id is not None:
         reply["id"] = m.id
     return encode(reply, binary_frame)

@@ -448,3 +448,23 @@ def test_rem_is_exact_to_rounding_over_many_turns() -> None:
         want = [float(mpf(float(v)) - two_pi * mp.nint(mpf(float(v)) / two_pi)) for v in y]
     assert np.all(np.abs(got) <= np.pi + 1e-15)
     np.testing.assert_allclose(got, want, rtol=0, atol=2e-16 * 4)
+
+
+def test_the_coordinates_of_chosen_batches_are_theirs_alone_and_named_by_their_own_number(monkeypatch) -> None:
+    """An offset update's reply carries its batch's coordinates: `coordinates([b])` computes that batch's alone (a
+    scene of many batches paid for all of them per update) and names a fault in it as batch `b`, not as the first."""
+    far = pack(np.array([0.0, 0.0, 1e300]), 1e300 * np.eye(3))
+    bodies, joints = _slide(far)  # x at q_prev overflows in batch 1 (batch 0 is a revolute screw, fine)
+    screw = replace(joints, constitution_uid=670, base_uid=18)
+    scene = prepare(bodies, [screw, joints, joints])
+    computed = []
+    x_prev = type(scene)._x_prev
+    monkeypatch.setattr(type(scene), "_x_prev", lambda self, jb: computed.append(jb) or x_prev(self, jb))
+    np.testing.assert_array_equal(scene.coordinates([0])[0], np.zeros(1))
+    assert computed == [scene._batches[0]]
+    with pytest.raises(InputError) as e:
+        scene.coordinates([2])
+    assert [f.loc for f in e.value.faults] == [("batches", 2, "body_ids", 0)]
+    with pytest.raises(InputError) as e:
+        scene.coordinates()
+    assert [f.loc for f in e.value.faults] == [("batches", 1, "body_ids", 0), ("batches", 2, "body_ids", 0)]

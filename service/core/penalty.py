@@ -67,7 +67,7 @@ def _cube(r: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tu
     there. Three passes and two counts when none is."""
     c = r * r * r
     E = strength * c
-    out = _outside(c, _limits(c.dtype)[0])
+    out = _outside(c, CUBE)
     if np.count_nonzero(out) == r.size - np.count_nonzero(r):  # the zeros of r alone (inside their range)
         return E, False
     rows = (out & (r > 0)).nonzero()[0]
@@ -76,6 +76,7 @@ def _cube(r: Array, x: Array, lower: Array, upper: Array, strength: Array) -> tu
     return E, True
 
 
+CUBE, SLOPE, CURVE = range(3)  # `_limits`' windows
 Window = tuple[np.unsignedinteger, np.unsignedinteger]
 
 
@@ -92,10 +93,11 @@ def _limits(dtype: np.dtype) -> tuple[Window, Window, Window]:
     return tuple((bits(lo), bits(hi) - bits(lo)) for lo, hi in bounds)
 
 
-def _outside(a: Array, window: Window) -> NDArray[np.bool_]:
-    """`~(lo <= a < hi)` of `a >= +0` (N,), NaN outside too, for `window` `(bits(lo), bits(hi) - bits(lo))`:
-    read as unsigned integers, the bits of such floats keep their order, and below `lo` the difference wraps."""
-    base, span = window
+def _outside(a: Array, window: int) -> NDArray[np.bool_]:
+    """`~(lo <= a < hi)` of `a >= +0` (N,), NaN outside too, for `_limits(a.dtype)[window]` = `(bits(lo),
+    bits(hi) - bits(lo))`: read as unsigned integers, the bits of such floats keep their order, and below `lo`
+    the difference wraps."""
+    base, span = _limits(a.dtype)[window]
     return (a.view(base.dtype) - base) >= span
 
 
@@ -136,17 +138,17 @@ def scale_up(dE: Array, d2E: Array, x: Array, lower: Array, upper: Array, streng
     2^k E'' are formed from the exponents of s, g and w (k the least that brings both into that range: their
     exponents are at most ~1100 apart, E''/E' = 2/g), and the caller scales the derivatives back by 2^-k.
     """
-    cube, slope, curve = _limits(dE.dtype)
-    bad = _outside(np.abs(dE), slope) | _outside(d2E, curve)
+    dtype = d2E.dtype  # the products' own (float32 ones give a float64 dE: `gap`'s side is float64)
+    bad = _outside(np.abs(dE).astype(dtype, copy=False), SLOPE) | _outside(d2E, CURVE)
     if r is not None:
-        bad |= _outside(r * r * r, cube)
+        bad |= _outside(r * r * r, CUBE)
     rows = bad.nonzero()[0]
     if rows.shape[0] == 0:
         return None
     at = (np.broadcast_to(v, dE.shape)[rows] for v in (x, lower, upper, strength))
     side, (ms, es), (mr, er), (mw, ew) = _parts(*at)
     e2, e1 = es + er - 2 * ew, es + 2 * er - ew  # E'' = 6 s r / w^2, |E'| = 3 s r^2 / w: mantissas in [3/8, 48)
-    f = finfo(dE.dtype)
+    f = finfo(dtype)
     low, high = f.minexp + 22, f.maxexp - 24
     k = np.zeros_like(e1)
     if lift:

@@ -102,8 +102,8 @@ def _outside(a: Array, window: int) -> NDArray[np.bool_]:
 
 
 def slopes(r: Array, w: Array, side: Array, strength: Array) -> tuple[Array, Array]:
-    """`derivatives`' `dE/dx`, `d2E/dx2` from the `r`, `w` that `energy_and_relative` took where nothing
-    overflowed and `gap`'s side: the very operations, so the very bits."""
+    """`derivatives`' plain `dE/dx`, `d2E/dx2` from the `r`, `w` that `energy_and_relative` took where it flagged
+    nothing and `gap`'s side: the very operations, so the very bits (`scale_up` forms those out of range again)."""
     sw = strength / w
     sww = sw / w
     return side * 3.0 * sw * (r * r), 6.0 * sww * r

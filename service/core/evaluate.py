@@ -39,7 +39,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
     """
     # one gap for the energy, the active joints and their slopes (the side only for these)
     g, side = penalty.gap(x, lo, up) if want_g or want_h else (penalty.distance(x, lo, up), None)
-    energy, r, w, wide = penalty.energy_and_relative(g, x, lo, up, s, w)
+    energy, r, w, careful = penalty.energy_and_relative(g, x, lo, up, s, w)
     overflow = nonfinite_rows(energy)
     if overflow:  # s = 0 pays nothing however far out: 0 * inf is no overflow (nor active, below)
         energy[s == 0] = 0.0
@@ -60,7 +60,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
         at_active = (x, lo, up, s, r, w, side)
         if not every:
             at_active = tuple(take_joints(q, active) for q in at_active)
-        if wide:  # a gap or width overflowed: from halves
+        if careful:  # a gap or width overflowed, or r^3 left the normal range: from halves and exponents
             _, dE, d2E = penalty.derivatives(*at_active[:4])
         else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
             dE, d2E = penalty.slopes(*at_active[4:], at_active[3])
@@ -87,6 +87,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`): back by 2^-k
                 k = shift[part]
                 lifted = k.nonzero()[0]
+                h_finite = h_finite and bool(k.min(initial=0) >= 0)  # scaled back up (k < 0): may overflow
                 for out in (g_out, h_out):
                     if out is not None and lifted.shape[0]:
                         out[lifted] = np.ldexp(out[lifted], -k[lifted].reshape(-1, *(1,) * (out.ndim - 1)))

@@ -384,16 +384,18 @@ def test_threads_over_derivative_chunks(active_only: bool) -> None:
 
 def test_threads_keep_the_callers_error_state() -> None:
     """An overflow on a worker thread is an InputError naming the joint, under the caller's np.errstate
-    (no RuntimeWarning escapes from the workers)."""
+    (no RuntimeWarning escapes from the workers). Joint 0 is 1e-10 above a range 1e-10 wide at strength 1e300:
+    E ~ 1e300, E' ~ 3e310 and the gradient ~ 1e310, beyond float64 (at 1e308 and a degenerate range a gap of 1,
+    as before, the gradient is 1.3e308 and the Hessian 1.4e308: answered since E' is formed scaled)."""
     import warnings
 
     sc = scene(4)
     b = sc.batches[0]
     s = b.strength.copy()
-    s[0] = 1e308
+    s[0] = 1e300
     lo, up = b.lower.copy(), b.upper.copy()
     x = sc.x()[0]
-    lo[0], up[0] = x[0] - 1e-300 - 1.0, x[0] - 1.0
+    lo[0], up[0] = x[0] - 2e-10, x[0] - 1e-10
     sc = replace(sc, batches=[replace(b, lower=lo, upper=up, strength=s), *sc.batches[1:]])
     with warnings.catch_warnings():
         warnings.simplefilter("error")

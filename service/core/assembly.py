@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature
-from jointlimits.service.core.kinematics import SMALL, component_major, finfo
+from jointlimits.service.core.kinematics import GATHER, SMALL, component_major, finfo
 
 BLOCK = 1024
 """Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just written stay
@@ -37,9 +37,15 @@ def finite_factor(dtype: type) -> float:
     return float(np.sqrt(np.finfo(dtype).max / MAX_FACTORS))
 
 
-def chain(alpha: Array, v: Array, dF: Array) -> Array:
-    """`J^T dF` (N, e, 24) component-major of vectors `dF` (N, e, 4, 3) in F; `v` (N, 4, 3)."""
+def chain(alpha: Array, v: Array, dF: Array, w: Array | None = None) -> Array:
+    """`J^T dF` (N, e, 24) component-major of vectors `dF` (N, e, 4, 3) in F; `v` (N, 4, 3); `w` (N, 4, 4) the
+    frames' `[alpha_k, v_k]`, if already formed."""
     n, e = dF.shape[:2]
+    if n <= SMALL:
+        if w is None:
+            w = component_major(n, (4, 4), v.dtype)
+            w[..., 0], w[..., 1:] = alpha, v
+        return _chained(w, dF)
     out = component_major(n, (e, 2, 12), dF.dtype)
     chain_directions(v, dF, out=out[..., 3:].reshape(n, e, 2, 3, 3))  # a view: written in place
     a = alpha.reshape(2, 2, 1)  # (body, frame, 1)
@@ -48,6 +54,44 @@ def chain(alpha: Array, v: Array, dF: Array) -> Array:
     np.multiply(db[:, :, :, 0], a[:, 0], out=out[..., :3])
     out[..., :3] += db[:, :, :, 1] * a[:, 1]
     return out.reshape(n, e, 24)
+
+
+def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
+    """`J^T dF` on the `A` entries, for frames without points: (N, e, 18) component-major, entry `(b, r, c)` =
+    sum over body b's frames k of `dF[k, r] v_k[c]`; or into `out` (N, e, 2, 3, 3). `v` (N, 4, 3), `dF` (N, e, 4, 3)."""
+    n, e = dF.shape[:2]
+    if n <= SMALL and out is None:
+        return _chained(v, dF)
+    given = out is not None
+    out = component_major(n, (e, 2, 3, 3), dF.dtype) if out is None else out
+    vb = v.reshape(n, 1, 2, 2, 1, 3)  # (joint, 1, body, frame, 1, c)
+    db = dF.reshape(n, e, 2, 2, 3, 1)  # (joint, e, body, frame, r, 1)
+    np.multiply(db[:, :, :, 0], vb[:, :, :, 0], out=out)
+    out += db[:, :, :, 1] * vb[:, :, :, 1]
+    return out if given else out.reshape(n, e, 18)
+
+
+def _chained(w: Array, dF: Array) -> Array:
+    """`chain` of a few joints (N, e, 2 c) component-major: entry (b, r, j) = sum over body b's frames k of
+    `dF[k, r] w_k[j]`, `w` (N, 4, c) ([alpha_k, v_k]: the position rows r with j = 0, else the A entries (r, j - 1);
+    or `v_k`: the A entries alone)."""
+    n, e, cols = dF.shape[0], dF.shape[1], w.shape[2]
+    left, right = _chain_rows(e, cols)
+    # Both products of every entry in one pass over (rows, N) arrays, body b's frame 2b's first.
+    p = dF.transpose(1, 2, 3, 0).reshape(12 * e, n).take(left, axis=0, mode=GATHER)
+    p *= w.transpose(1, 2, 0).reshape(4 * cols, n).take(right, axis=0, mode=GATHER)
+    h = p.shape[0] // 2
+    return (p[:h] + p[h:]).reshape(e, -1, n).transpose(2, 0, 1)
+
+
+@cache
+def _chain_rows(e: int, cols: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """`_chained`'s rows of dF (12 e', 3 k + r) and of w (cols k + j) of each product, frame 2b's, then 2b + 1's."""
+    entries = [(r, 0) for r in range(3)] if cols == 4 else []  # the positions' rows (w_k[0] = alpha_k)
+    entries += [(r, c + cols - 3) for r in range(3) for c in range(3)]  # the A entries (r, c)
+    left = [12 * f + 3 * (2 * b + k) + r for k in (0, 1) for f in range(e) for b in (0, 1) for r, _ in entries]
+    right = [cols * (2 * b + k) + j for k in (0, 1) for _ in range(e) for b in (0, 1) for _, j in entries]
+    return np.array(left, dtype=np.intp), np.array(right, dtype=np.intp)
 
 
 def hessian(alpha: Array, v: Array, curvature: Curvature, dE: Array, d2E: Array, out: Array, dx: Array | None = None,
@@ -103,7 +147,7 @@ def _hessian_points(alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: 
     wv[..., 0] = alpha.reshape(2, 2)
     wv[..., 1:] = v.reshape(n, 2, 2, 3)
     for q in blocks:
-        Y = chain(alpha, v[q], basis[q])  # (M, k, 24): the basis chained to DOFs, component-major
+        Y = chain(alpha, v[q], basis[q], wv.reshape(n, 4, 4)[q])  # (M, k, 24): the basis chained to DOFs
         mq = mix.rows(q)
         Xl = mq.factors(Y)
         mq.jdx(Y, out=Jdx[q])
@@ -113,20 +157,30 @@ def _hessian_points(alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: 
         t = component_major(M, (m, 2, 4), dtype)
         np.multiply(fs[q][:, :, :, 0], wv[q][:, None, :, 0], out=t)
         t += fs[q][:, :, :, 1] * wv[q][:, None, :, 1]
-        t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
-        X = np.zeros((M, k + 3 * m, 2, 12), dtype=dtype)
-        X[:, :k] = Xl.reshape(M, k, 2, 12)
-        Xk = X[:, k:].reshape(M, m, 3, 2, 12)  # (joint, e, row r, body, DOF)
-        for r in range(3):
-            Xk[:, :, r, :, 3 + 3 * r : 6 + 3 * r] = t[..., 1:]
-            Xk[:, :, r, :, r] = t[..., 0]
-        X = X.reshape(M, k + 3 * m, 24)
+        X = np.zeros((M, k + 3 * m, 24), dtype=dtype)
+        X[:, :k] = Xl
+        at, src = _kron_places(k, m)  # t's entries into X's Kronecker rows, one scatter
+        X.reshape(M, -1)[:, at] = t.transpose(1, 2, 3, 0).reshape(8 * m, M).take(src, axis=0, mode=GATHER).T
         # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
         # in the same order: the product is bitwise symmetric without a symmetrising pass.
         np.matmul((X * sign[q, :, None]).transpose(0, 2, 1), X, out=out[q])
         # X holds the values of Xl and t, and zeros (NaN fails the test).
         finite = finite and bool(max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0)) < finite_factor(dtype))
     return Jdx, finite
+
+
+@cache
+def _kron_places(k: int, m: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Where `_hessian_points` puts its t (M, m, 2, 4) in X (M, k + 3 m, 2, 12): row k + 3 e + r (the Kronecker factor
+    (e, r)), body b, takes t[e, b, 0] in column r and t[e, b, 1:] in columns 3 + 3 r ... 5 + 3 r (flat indices)."""
+    at, src = [], []
+    for e in range(m):
+        for r in range(3):
+            for b in range(2):
+                row = ((k + 3 * e + r) * 2 + b) * 12
+                at += [row + r, *(row + 3 + 3 * r + c for c in range(3))]
+                src += [(2 * e + b) * 4 + j for j in range(4)]
+    return np.array(at, dtype=np.intp), np.array(src, dtype=np.intp)
 
 
 def balance(alpha: Array, v: Array) -> Array:
@@ -156,8 +210,9 @@ def _hessian_directions(
     """
     n, dtype, k = v.shape[0], v.dtype, mix.lam.shape[1]
     sign = np.sign(mix.lam)
-    same = bool(kron[:, :2, :2].any() or kron[:, 2:, 2:].any())  # only after a PSD projection
-    dK = dE[:, None, None] * kron  # E' K
+    K = kron.transpose(1, 2, 0).reshape(16, -1)  # row 4 k + k' (a view of the constitutions' component-major K)
+    same = bool(K.take(_SAME_BODY, axis=0, mode=GATHER).any())  # only after a PSD projection
+    dK = K * dE  # E' K
     at, src = _KRON_SCATTER[same]
     Jdx = np.zeros((n, 2, 12), dtype=dtype)  # the translations stay 0: no points
     # |LR| <= k finite_factor^2 <= max / 4 and |W| < max / 4: no sum overflows (NaN fails both tests).
@@ -175,15 +230,15 @@ def _hessian_directions(
         X[..., 3:] = Xl.reshape(m, k, 2, 9)
         X = X.reshape(m, k, 24)
         np.matmul((X * sign[q, :, None]).transpose(0, 2, 1), X, out=out[q])
-        W = _kron_blocks(v[q], dK[q], same).reshape(m, -1)
+        W = _kron_blocks(v[q], dK[:, q], same)
         H = out[q].reshape(m, 576)
         # Each entry of H takes at most one entry of W: any order. A few joints: one scatter; more, column
         # by column (the scatter's (M, P) gather costs more than P strided passes there).
         if m <= SMALL:
-            H[:, at] += W[:, src]
+            H[:, at] += W.take(src, axis=0, mode=GATHER).T
         else:
             for p, w in zip(at.tolist(), src.tolist()):
-                H[:, p] += W[:, w]
+                H[:, p] += W[w]
         finite = finite and bool(np.abs(Xl).max(initial=0.0) < finite_factor(dtype))
         finite = finite and bool(np.abs(W).max(initial=0.0) < big)
     return Jdx.reshape(n, 24), finite
@@ -207,24 +262,25 @@ def _kron_scatter(same: bool) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
 _KRON_SCATTER = {same: _kron_scatter(same) for same in (False, True)}
 
 
-def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
-    """`J^T dF` on the `A` entries, for frames without points: (N, e, 18) component-major, entry `(b, r, c)` =
-    sum over body b's frames k of `dF[k, r] v_k[c]`; or into `out` (N, e, 2, 3, 3). `v` (N, 4, 3), `dF` (N, e, 4, 3)."""
-    n, e = dF.shape[:2]
-    given = out is not None
-    out = component_major(n, (e, 2, 3, 3), dF.dtype) if out is None else out
-    vb = v.reshape(n, 1, 2, 2, 1, 3)  # (joint, 1, body, frame, 1, c)
-    db = dF.reshape(n, e, 2, 2, 3, 1)  # (joint, e, body, frame, r, 1)
-    np.multiply(db[:, :, :, 0], vb[:, :, :, 0], out=out)
-    out += db[:, :, :, 1] * vb[:, :, :, 1]
-    return out if given else out.reshape(n, e, 18)
-
-
 def _kron_blocks(v: Array, dK: Array, same: bool) -> Array:
-    """The nonzero blocks `W_bb'` (N, nb, 3, 3) = `sum_kk' dK_kk' v_k v_k'^T` over body b's frames k and
-    b''s k': (0, 1) (`W_10` is its transpose), then (0, 0) and (1, 1) when `same` (K has same-body
-    entries). `dK` (N, 4, 4) is `E' K`. Component-major: every pass runs along the joints."""
+    """The nonzero blocks `W_bb'` (9 nb, N), entry (b, b', a, c) = `sum_kk' dK_kk' v_k[a] v_k'[c]` over body b's
+    frames k and b''s k': (0, 1) (`W_10` is its transpose), then (0, 0) and (1, 1) when `same` (K has same-body
+    entries). `dK` (16, N) is `E' K` (row 4 k + k'), `v` (N, 4, 3); every pass runs along the joints."""
     n = v.shape[0]
+    if n <= SMALL:  # a few joints: each product's rows taken at once, the passes over whole (rows, N) arrays
+        vv = v.transpose(1, 2, 0).reshape(12, n).take(_KB_V, axis=0, mode=GATHER)  # the v rows of every product
+        W = np.empty((27 if same else 9, n), dtype=v.dtype)
+        p = dK.take(_KB_U, axis=0, mode=GATHER) * vv[:12]  # K_kk' v_k[a], k = 0 then 1, k' = 2, 3
+        u = p[:6] + p[6:]
+        p = u.take(_KB_W, axis=0, mode=GATHER) * vv[12:30]  # u_k'[a] v_k'[c]
+        np.add(p[:9], p[9:], out=W[:9])
+        if same:  # both bodies at once, p = 2b, q = 2b + 1, as below
+            o = vv[30:102] * vv[102:]  # (pp, qq, pq, qp; b; a; c)
+            kd = dK.take(_KB_K, axis=0, mode=GATHER)  # K_pp, K_qq (b = 0, 1), then K_pq
+            t = o[:36].reshape(2, 2, 9, n) * kd[:4].reshape(2, 2, 1, n)
+            np.add(t[0] + t[1], (o[36:54] + o[54:]).reshape(2, 9, n) * kd[4:, None], out=W[9:].reshape(2, 9, n))
+        return W
+    dK = dK.reshape(4, 4, n).transpose(2, 0, 1)
     W = component_major(n, (3 if same else 1, 3, 3), v.dtype)
     u = dK[:, 0, 2:, None] * v[:, 0, None, :]  # (N, 2, 3): sum over body i's k of K_kk' v_k, for k' = 2, 3
     u += dK[:, 1, 2:, None] * v[:, 1, None, :]
@@ -238,7 +294,24 @@ def _kron_blocks(v: Array, dK: Array, same: bool) -> Array:
         np.multiply(o[:, :, 0, 0], Kb[:, 0, 0], out=W[:, 1:])
         W[:, 1:] += o[:, :, 1, 1] * Kb[:, 1, 1]
         W[:, 1:] += (o[:, :, 0, 1] + o[:, :, 1, 0]) * Kb[:, 0, 1]
-    return W
+    return W.transpose(1, 2, 3, 0).reshape(-1, n)
+
+
+def _kron_block_rows() -> tuple[NDArray[np.intp], ...]:
+    """`_kron_blocks`' rows: of v (3 k + a) for its products in order, of K (4 k + k'), of u (3 (k' - 2) + a), of K again."""
+    r3 = np.arange(3)
+    u_k = [4 * k + kp for k in (0, 1) for kp in (2, 3) for _ in r3]
+    u_v = [3 * k + a for k in (0, 1) for _ in (2, 3) for a in r3]
+    w_u = [3 * kp + a for kp in (0, 1) for a in r3 for _ in r3]
+    w_v = [3 * (2 + kp) + c for kp in (0, 1) for _ in r3 for c in r3]
+    terms = ((0, 0), (1, 1), (0, 1), (1, 0))
+    o_l = [3 * (2 * b + i) + a for i, _ in terms for b in (0, 1) for a in r3 for _ in r3]
+    o_r = [3 * (2 * b + j) + c for _, j in terms for b in (0, 1) for _ in r3 for c in r3]
+    return tuple(np.array(a) for a in (u_v + w_v + o_l + o_r, u_k, w_u, [0, 10, 5, 15, 1, 11]))
+
+
+_KB_V, _KB_U, _KB_W, _KB_K = _kron_block_rows()
+_SAME_BODY = np.array([0, 1, 4, 5, 10, 11, 14, 15])  # K's entries within one body (rows of `_kron_blocks`' dK)
 
 
 @dataclass

@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
 from jointlimits.service.core.kinematics import BLOCK_BODY, SMALL, CarefulFrames, component_major, cross, dot, finfo
-from jointlimits.service.core.kinematics import to_local, unit
+from jointlimits.service.core.kinematics import frame_quantities, unit
 from jointlimits.service.core.polar import squared_norms
 from jointlimits.service.core.registry import register
 
@@ -215,10 +215,9 @@ class Revolute:
         n[:, 2] = np.where(y, t[:, 0], -t[:, 1])
         n = unit(n)
         b = unit(cross(t, n))
-        v = component_major(t.shape[0], (4, 3), t.dtype)
-        for k, (side, w) in enumerate(((0, b), (0, n), (1, b), (1, n))):
-            to_local(R_ref[:, side], w, out=v[:, k])  # body-local b_k = R_k^T b
-        return v
+        w = component_major(t.shape[0], (4, 3), t.dtype)  # (b, n, b, n), body-local b_k = R_k^T b: the frames of R^T
+        w[:, 0::2], w[:, 1::2] = b[:, None], n[:, None]
+        return frame_quantities(None, R_ref.transpose(0, 1, 3, 2), FACTS.alpha, w)
 
     def value(self, F: Array) -> Array:
         return np.arctan2(*_cos_sin(F)[::-1])

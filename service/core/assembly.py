@@ -37,14 +37,12 @@ def finite_factor(dtype: type) -> float:
     return float(np.sqrt(np.finfo(dtype).max / MAX_FACTORS))
 
 
-def chain(alpha: Array, v: Array, dF: Array, w: Array | None = None) -> Array:
-    """`J^T dF` (N, e, 24) component-major of vectors `dF` (N, e, 4, 3) in F; `v` (N, 4, 3); `w` (N, 4, 4) the
-    frames' `[alpha_k, v_k]`, if already formed."""
+def chain(alpha: Array, v: Array, dF: Array) -> Array:
+    """`J^T dF` (N, e, 24) component-major of vectors `dF` (N, e, 4, 3) in F; `v` (N, 4, 3)."""
     n, e = dF.shape[:2]
     if n <= SMALL:
-        if w is None:
-            w = component_major(n, (4, 4), v.dtype)
-            w[..., 0], w[..., 1:] = alpha, v
+        w = component_major(n, (4, 4), v.dtype)  # [alpha_k, v_k] per frame k
+        w[..., 0], w[..., 1:] = alpha, v
         return _chained(w, dF)
     out = component_major(n, (e, 2, 12), dF.dtype)
     chain_directions(v, dF, out=out[..., 3:].reshape(n, e, 2, 3, 3))  # a view: written in place
@@ -72,12 +70,10 @@ def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
 
 
 def _chained(w: Array, dF: Array) -> Array:
-    """`chain` of a few joints (N, e, 2 c) component-major: entry (b, r, j) = sum over body b's frames k of
-    `dF[k, r] w_k[j]`, `w` (N, 4, c) ([alpha_k, v_k]: the position rows r with j = 0, else the A entries (r, j - 1);
-    or `v_k`: the A entries alone)."""
+    """`chain` of a few joints, (N, e, 2 c): entry (b, r, j) = sum over body b's frames k of `dF[k, r] w_k[j]`, `w`
+    (N, 4, c) `[alpha_k, v_k]` (j = 0 the positions, else the A entries (r, j - 1)) or `v_k` (the A entries)."""
     n, e, cols = dF.shape[0], dF.shape[1], w.shape[2]
-    left, right = _chain_rows(e, cols)
-    # Both products of every entry in one pass over (rows, N) arrays, body b's frame 2b's first.
+    left, right = _chain_rows(e, cols)  # every product in one pass over (rows, N) views, frame 2b's first
     p = dF.transpose(1, 2, 3, 0).reshape(12 * e, n).take(left, axis=0, mode=GATHER)
     p *= w.transpose(1, 2, 0).reshape(4 * cols, n).take(right, axis=0, mode=GATHER)
     h = p.shape[0] // 2
@@ -86,12 +82,11 @@ def _chained(w: Array, dF: Array) -> Array:
 
 @cache
 def _chain_rows(e: int, cols: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """`_chained`'s rows of dF (12 e', 3 k + r) and of w (cols k + j) of each product, frame 2b's, then 2b + 1's."""
-    entries = [(r, 0) for r in range(3)] if cols == 4 else []  # the positions' rows (w_k[0] = alpha_k)
-    entries += [(r, c + cols - 3) for r in range(3) for c in range(3)]  # the A entries (r, c)
-    left = [12 * f + 3 * (2 * b + k) + r for k in (0, 1) for f in range(e) for b in (0, 1) for r, _ in entries]
-    right = [cols * (2 * b + k) + j for k in (0, 1) for _ in range(e) for b in (0, 1) for _, j in entries]
-    return np.array(left, dtype=np.intp), np.array(right, dtype=np.intp)
+    """`_chained`'s rows of dF (12 e' + 3 k + r) and of w (cols k + j) of each product, frame 2b's, then 2b + 1's."""
+    r, j = np.divmod(np.arange(9), 3)  # the A entries (r, c), then with w = [alpha, v] the positions' rows first
+    r, j = (np.r_[0:3, r], np.r_[0, 0, 0, j + 1]) if cols == 4 else (r, j)
+    k, f, b = np.arange(2)[:, None, None, None], np.arange(e)[:, None, None], np.arange(2)[:, None]
+    return (12 * f + 3 * (2 * b + k) + r).ravel(), (cols * (2 * b + k) + j + 0 * f).ravel()
 
 
 def hessian(alpha: Array, v: Array, curvature: Curvature, dE: Array, d2E: Array, out: Array, dx: Array | None = None,
@@ -147,7 +142,7 @@ def _hessian_points(alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: 
     wv[..., 0] = alpha.reshape(2, 2)
     wv[..., 1:] = v.reshape(n, 2, 2, 3)
     for q in blocks:
-        Y = chain(alpha, v[q], basis[q], wv.reshape(n, 4, 4)[q])  # (M, k, 24): the basis chained to DOFs
+        Y = chain(alpha, v[q], basis[q])  # (M, k, 24): the basis chained to DOFs, component-major
         mq = mix.rows(q)
         Xl = mq.factors(Y)
         mq.jdx(Y, out=Jdx[q])
@@ -157,30 +152,20 @@ def _hessian_points(alpha: Array, v: Array, basis: Array, mix: _Mix, curvature: 
         t = component_major(M, (m, 2, 4), dtype)
         np.multiply(fs[q][:, :, :, 0], wv[q][:, None, :, 0], out=t)
         t += fs[q][:, :, :, 1] * wv[q][:, None, :, 1]
-        X = np.zeros((M, k + 3 * m, 24), dtype=dtype)
-        X[:, :k] = Xl
-        at, src = _kron_places(k, m)  # t's entries into X's Kronecker rows, one scatter
-        X.reshape(M, -1)[:, at] = t.transpose(1, 2, 3, 0).reshape(8 * m, M).take(src, axis=0, mode=GATHER).T
+        t = np.ascontiguousarray(t)  # C order, as X: the placements below copy rows of 3
+        X = np.zeros((M, k + 3 * m, 2, 12), dtype=dtype)
+        X[:, :k] = Xl.reshape(M, k, 2, 12)
+        Xk = X[:, k:].reshape(M, m, 3, 2, 12)  # (joint, e, row r, body, DOF)
+        for r in range(3):
+            Xk[:, :, r, :, 3 + 3 * r : 6 + 3 * r] = t[..., 1:]
+            Xk[:, :, r, :, r] = t[..., 0]
+        X = X.reshape(M, k + 3 * m, 24)
         # (s_e X_ei) X_ej == (s_e X_ej) X_ei bitwise (s_e is a sign) and a GEMM sums each entry over e
         # in the same order: the product is bitwise symmetric without a symmetrising pass.
         np.matmul((X * sign[q, :, None]).transpose(0, 2, 1), X, out=out[q])
         # X holds the values of Xl and t, and zeros (NaN fails the test).
         finite = finite and bool(max(np.abs(Xl).max(initial=0.0), np.abs(t).max(initial=0.0)) < finite_factor(dtype))
     return Jdx, finite
-
-
-@cache
-def _kron_places(k: int, m: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Where `_hessian_points` puts its t (M, m, 2, 4) in X (M, k + 3 m, 2, 12): row k + 3 e + r (the Kronecker factor
-    (e, r)), body b, takes t[e, b, 0] in column r and t[e, b, 1:] in columns 3 + 3 r ... 5 + 3 r (flat indices)."""
-    at, src = [], []
-    for e in range(m):
-        for r in range(3):
-            for b in range(2):
-                row = ((k + 3 * e + r) * 2 + b) * 12
-                at += [row + r, *(row + 3 + 3 * r + c for c in range(3))]
-                src += [(2 * e + b) * 4 + j for j in range(4)]
-    return np.array(at, dtype=np.intp), np.array(src, dtype=np.intp)
 
 
 def balance(alpha: Array, v: Array) -> Array:
@@ -210,9 +195,9 @@ def _hessian_directions(
     """
     n, dtype, k = v.shape[0], v.dtype, mix.lam.shape[1]
     sign = np.sign(mix.lam)
-    K = kron.transpose(1, 2, 0).reshape(16, -1)  # row 4 k + k' (a view of the constitutions' component-major K)
-    same = bool(K.take(_SAME_BODY, axis=0, mode=GATHER).any())  # only after a PSD projection
-    dK = K * dE  # E' K
+    K = kron.transpose(1, 2, 0).reshape(4, 4, -1)  # joints last (a view of the constitutions' component-major K)
+    same = bool(K[:2, :2].any() or K[2:, 2:].any())  # only after a PSD projection
+    dK = K.reshape(16, -1) * dE  # E' K, row 4 k + k'
     at, src = _KRON_SCATTER[same]
     Jdx = np.zeros((n, 2, 12), dtype=dtype)  # the translations stay 0: no points
     # |LR| <= k finite_factor^2 <= max / 4 and |W| < max / 4: no sum overflows (NaN fails both tests).
@@ -298,20 +283,16 @@ def _kron_blocks(v: Array, dK: Array, same: bool) -> Array:
 
 
 def _kron_block_rows() -> tuple[NDArray[np.intp], ...]:
-    """`_kron_blocks`' rows: of v (3 k + a) for its products in order, of K (4 k + k'), of u (3 (k' - 2) + a), of K again."""
-    r3 = np.arange(3)
-    u_k = [4 * k + kp for k in (0, 1) for kp in (2, 3) for _ in r3]
-    u_v = [3 * k + a for k in (0, 1) for _ in (2, 3) for a in r3]
-    w_u = [3 * kp + a for kp in (0, 1) for a in r3 for _ in r3]
-    w_v = [3 * (2 + kp) + c for kp in (0, 1) for _ in r3 for c in r3]
-    terms = ((0, 0), (1, 1), (0, 1), (1, 0))
-    o_l = [3 * (2 * b + i) + a for i, _ in terms for b in (0, 1) for a in r3 for _ in r3]
-    o_r = [3 * (2 * b + j) + c for _, j in terms for b in (0, 1) for _ in r3 for c in r3]
-    return tuple(np.array(a) for a in (u_v + w_v + o_l + o_r, u_k, w_u, [0, 10, 5, 15, 1, 11]))
+    """`_kron_blocks`' rows: of v (3 k + a) for its products in order (u, W_01, then body b's terms pp, qq, pq, qp),
+    of K (4 k + k'), of u, of K again."""
+    c, a, b = np.arange(3), np.arange(3)[:, None], np.arange(2)[:, None, None]
+    i, j = (np.array(x)[:, None, None, None] for x in ([0, 1, 0, 1], [0, 1, 1, 0]))
+    o_l, o_r = (3 * (2 * b + i) + a + 0 * c).ravel(), (3 * (2 * b + j) + c + 0 * a).ravel()
+    v = np.concatenate([np.repeat([0, 3], 6) + np.tile(c, 4), np.repeat([6, 9], 9) + np.tile(c, 6), o_l, o_r])
+    return v, np.repeat([2, 3, 6, 7], 3), np.repeat(np.arange(6), 3), np.array([0, 10, 5, 15, 1, 11])
 
 
 _KB_V, _KB_U, _KB_W, _KB_K = _kron_block_rows()
-_SAME_BODY = np.array([0, 1, 4, 5, 10, 11, 14, 15])  # K's entries within one body (rows of `_kron_blocks`' dK)
 
 
 @dataclass

@@ -258,12 +258,15 @@ def _kron_blocks(v: Array, dK: Array, same: bool) -> Array:
         p = dK.take(_KB_U, axis=0, mode=GATHER) * vv[:12]  # K_kk' v_k[a], k = 0 then 1, k' = 2, 3
         u = p[:6] + p[6:]
         p = u.take(_KB_W, axis=0, mode=GATHER) * vv[12:30]  # u_k'[a] v_k'[c]
-        np.add(p[:9], p[9:], out=W[:9])
+        W[:9] = p[:9]  # each partial sum rounded to W's dtype, as below (a float32 W of float64 E' K)
+        W[:9] += p[9:]
         if same:  # both bodies at once, p = 2b, q = 2b + 1, as below
             o = vv[30:102] * vv[102:]  # (pp, qq, pq, qp; b; a; c)
             kd = dK.take(_KB_K, axis=0, mode=GATHER)  # K_pp, K_qq (b = 0, 1), then K_pq
-            t = o[:36].reshape(2, 2, 9, n) * kd[:4].reshape(2, 2, 1, n)
-            np.add(t[0] + t[1], (o[36:54] + o[54:]).reshape(2, 9, n) * kd[4:, None], out=W[9:].reshape(2, 9, n))
+            t, Ws = o[:36].reshape(2, 2, 9, n) * kd[:4].reshape(2, 2, 1, n), W[9:].reshape(2, 9, n)
+            Ws[...] = t[0]
+            Ws += t[1]
+            Ws += (o[36:54] + o[54:]).reshape(2, 9, n) * kd[4:, None]
         return W
     dK = dK.reshape(4, 4, n).transpose(2, 0, 1)
     W = component_major(n, (3 if same else 1, 3, 3), v.dtype)

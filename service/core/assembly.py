@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature
-from jointlimits.service.core.kinematics import SMALL, component_major, finfo
+from jointlimits.service.core.kinematics import GATHER, SMALL, component_major, finfo
 
 BLOCK = 1024
 """Joints whose factors are formed and multiplied at once: their factors and the Hessian rows just written stay
@@ -40,6 +40,10 @@ def finite_factor(dtype: type) -> float:
 def chain(alpha: Array, v: Array, dF: Array) -> Array:
     """`J^T dF` (N, e, 24) component-major of vectors `dF` (N, e, 4, 3) in F; `v` (N, 4, 3)."""
     n, e = dF.shape[:2]
+    if n <= SMALL:
+        w = component_major(n, (4, 4), v.dtype)  # [alpha_k, v_k] per frame k
+        w[..., 0], w[..., 1:] = alpha, v
+        return _chained(w, dF)
     out = component_major(n, (e, 2, 12), dF.dtype)
     chain_directions(v, dF, out=out[..., 3:].reshape(n, e, 2, 3, 3))  # a view: written in place
     a = alpha.reshape(2, 2, 1)  # (body, frame, 1)
@@ -48,6 +52,41 @@ def chain(alpha: Array, v: Array, dF: Array) -> Array:
     np.multiply(db[:, :, :, 0], a[:, 0], out=out[..., :3])
     out[..., :3] += db[:, :, :, 1] * a[:, 1]
     return out.reshape(n, e, 24)
+
+
+def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
+    """`J^T dF` on the `A` entries, for frames without points: (N, e, 18) component-major, entry `(b, r, c)` =
+    sum over body b's frames k of `dF[k, r] v_k[c]`; or into `out` (N, e, 2, 3, 3). `v` (N, 4, 3), `dF` (N, e, 4, 3)."""
+    n, e = dF.shape[:2]
+    if n <= SMALL and out is None:
+        return _chained(v, dF)
+    given = out is not None
+    out = component_major(n, (e, 2, 3, 3), dF.dtype) if out is None else out
+    vb = v.reshape(n, 1, 2, 2, 1, 3)  # (joint, 1, body, frame, 1, c)
+    db = dF.reshape(n, e, 2, 2, 3, 1)  # (joint, e, body, frame, r, 1)
+    np.multiply(db[:, :, :, 0], vb[:, :, :, 0], out=out)
+    out += db[:, :, :, 1] * vb[:, :, :, 1]
+    return out if given else out.reshape(n, e, 18)
+
+
+def _chained(w: Array, dF: Array) -> Array:
+    """`chain` of a few joints, (N, e, 2 c): entry (b, r, j) = sum over body b's frames k of `dF[k, r] w_k[j]`, `w`
+    (N, 4, c) `[alpha_k, v_k]` (j = 0 the positions, else the A entries (r, j - 1)) or `v_k` (the A entries)."""
+    n, e, cols = dF.shape[0], dF.shape[1], w.shape[2]
+    left, right = _chain_rows(e, cols)  # every product in one pass over (rows, N) views, frame 2b's first
+    p = dF.transpose(1, 2, 3, 0).reshape(12 * e, n).take(left, axis=0, mode=GATHER)
+    p *= w.transpose(1, 2, 0).reshape(4 * cols, n).take(right, axis=0, mode=GATHER)
+    h = p.shape[0] // 2
+    return (p[:h] + p[h:]).reshape(e, -1, n).transpose(2, 0, 1)
+
+
+@cache
+def _chain_rows(e: int, cols: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """`_chained`'s rows of dF (12 e' + 3 k + r) and of w (cols k + j) of each product, frame 2b's, then 2b + 1's."""
+    r, j = np.divmod(np.arange(9), 3)  # the A entries (r, c), then with w = [alpha, v] the positions' rows first
+    r, j = (np.r_[0:3, r], np.r_[0, 0, 0, j + 1]) if cols == 4 else (r, j)
+    k, f, b = np.arange(2)[:, None, None, None], np.arange(e)[:, None, None], np.arange(2)[:, None]
+    return (12 * f + 3 * (2 * b + k) + r).ravel(), (cols * (2 * b + k) + j + 0 * f).ravel()
 
 
 def hessian(alpha: Array, v: Array, curvature: Curvature, dE: Array, d2E: Array, out: Array, dx: Array | None = None,
@@ -156,8 +195,9 @@ def _hessian_directions(
     """
     n, dtype, k = v.shape[0], v.dtype, mix.lam.shape[1]
     sign = np.sign(mix.lam)
-    same = bool(kron[:, :2, :2].any() or kron[:, 2:, 2:].any())  # only after a PSD projection
-    dK = dE[:, None, None] * kron  # E' K
+    K = kron.transpose(1, 2, 0).reshape(4, 4, -1)  # joints last (a view of the constitutions' component-major K)
+    same = bool(K[:2, :2].any() or K[2:, 2:].any())  # only after a PSD projection
+    dK = K.reshape(16, -1) * dE  # E' K, row 4 k + k'
     at, src = _KRON_SCATTER[same]
     Jdx = np.zeros((n, 2, 12), dtype=dtype)  # the translations stay 0: no points
     # |LR| <= k finite_factor^2 <= max / 4 and |W| < max / 4: no sum overflows (NaN fails both tests).
@@ -175,15 +215,15 @@ def _hessian_directions(
         X[..., 3:] = Xl.reshape(m, k, 2, 9)
         X = X.reshape(m, k, 24)
         np.matmul((X * sign[q, :, None]).transpose(0, 2, 1), X, out=out[q])
-        W = _kron_blocks(v[q], dK[q], same).reshape(m, -1)
+        W = _kron_blocks(v[q], dK[:, q], same)
         H = out[q].reshape(m, 576)
         # Each entry of H takes at most one entry of W: any order. A few joints: one scatter; more, column
         # by column (the scatter's (M, P) gather costs more than P strided passes there).
         if m <= SMALL:
-            H[:, at] += W[:, src]
+            H[:, at] += W.take(src, axis=0, mode=GATHER).T
         else:
             for p, w in zip(at.tolist(), src.tolist()):
-                H[:, p] += W[:, w]
+                H[:, p] += W[w]
         finite = finite and bool(np.abs(Xl).max(initial=0.0) < finite_factor(dtype))
         finite = finite and bool(np.abs(W).max(initial=0.0) < big)
     return Jdx.reshape(n, 24), finite
@@ -207,24 +247,28 @@ def _kron_scatter(same: bool) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
 _KRON_SCATTER = {same: _kron_scatter(same) for same in (False, True)}
 
 
-def chain_directions(v: Array, dF: Array, out: Array | None = None) -> Array:
-    """`J^T dF` on the `A` entries, for frames without points: (N, e, 18) component-major, entry `(b, r, c)` =
-    sum over body b's frames k of `dF[k, r] v_k[c]`; or into `out` (N, e, 2, 3, 3). `v` (N, 4, 3), `dF` (N, e, 4, 3)."""
-    n, e = dF.shape[:2]
-    given = out is not None
-    out = component_major(n, (e, 2, 3, 3), dF.dtype) if out is None else out
-    vb = v.reshape(n, 1, 2, 2, 1, 3)  # (joint, 1, body, frame, 1, c)
-    db = dF.reshape(n, e, 2, 2, 3, 1)  # (joint, e, body, frame, r, 1)
-    np.multiply(db[:, :, :, 0], vb[:, :, :, 0], out=out)
-    out += db[:, :, :, 1] * vb[:, :, :, 1]
-    return out if given else out.reshape(n, e, 18)
-
-
 def _kron_blocks(v: Array, dK: Array, same: bool) -> Array:
-    """The nonzero blocks `W_bb'` (N, nb, 3, 3) = `sum_kk' dK_kk' v_k v_k'^T` over body b's frames k and
-    b''s k': (0, 1) (`W_10` is its transpose), then (0, 0) and (1, 1) when `same` (K has same-body
-    entries). `dK` (N, 4, 4) is `E' K`. Component-major: every pass runs along the joints."""
+    """The nonzero blocks `W_bb'` (9 nb, N), entry (b, b', a, c) = `sum_kk' dK_kk' v_k[a] v_k'[c]` over body b's
+    frames k and b''s k': (0, 1) (`W_10` is its transpose), then (0, 0) and (1, 1) when `same` (K has same-body
+    entries). `dK` (16, N) is `E' K` (row 4 k + k'), `v` (N, 4, 3); every pass runs along the joints."""
     n = v.shape[0]
+    if n <= SMALL:  # a few joints: each product's rows taken at once, the passes over whole (rows, N) arrays
+        vv = v.transpose(1, 2, 0).reshape(12, n).take(_KB_V, axis=0, mode=GATHER)  # the v rows of every product
+        W = np.empty((27 if same else 9, n), dtype=v.dtype)
+        p = dK.take(_KB_U, axis=0, mode=GATHER) * vv[:12]  # K_kk' v_k[a], k = 0 then 1, k' = 2, 3
+        u = p[:6] + p[6:]
+        p = u.take(_KB_W, axis=0, mode=GATHER) * vv[12:30]  # u_k'[a] v_k'[c]
+        W[:9] = p[:9]  # each partial sum rounded to W's dtype, as below (a float32 W of float64 E' K)
+        W[:9] += p[9:]
+        if same:  # both bodies at once, p = 2b, q = 2b + 1, as below
+            o = vv[30:102] * vv[102:]  # (pp, qq, pq, qp; b; a; c)
+            kd = dK.take(_KB_K, axis=0, mode=GATHER)  # K_pp, K_qq (b = 0, 1), then K_pq
+            t, Ws = o[:36].reshape(2, 2, 9, n) * kd[:4].reshape(2, 2, 1, n), W[9:].reshape(2, 9, n)
+            Ws[...] = t[0]
+            Ws += t[1]
+            Ws += (o[36:54] + o[54:]).reshape(2, 9, n) * kd[4:, None]
+        return W
+    dK = dK.reshape(4, 4, n).transpose(2, 0, 1)
     W = component_major(n, (3 if same else 1, 3, 3), v.dtype)
     u = dK[:, 0, 2:, None] * v[:, 0, None, :]  # (N, 2, 3): sum over body i's k of K_kk' v_k, for k' = 2, 3
     u += dK[:, 1, 2:, None] * v[:, 1, None, :]
@@ -238,7 +282,20 @@ def _kron_blocks(v: Array, dK: Array, same: bool) -> Array:
         np.multiply(o[:, :, 0, 0], Kb[:, 0, 0], out=W[:, 1:])
         W[:, 1:] += o[:, :, 1, 1] * Kb[:, 1, 1]
         W[:, 1:] += (o[:, :, 0, 1] + o[:, :, 1, 0]) * Kb[:, 0, 1]
-    return W
+    return W.transpose(1, 2, 3, 0).reshape(-1, n)
+
+
+def _kron_block_rows() -> tuple[NDArray[np.intp], ...]:
+    """`_kron_blocks`' rows: of v (3 k + a) for its products in order (u, W_01, then body b's terms pp, qq, pq, qp),
+    of K (4 k + k'), of u, of K again."""
+    c, a, b = np.arange(3), np.arange(3)[:, None], np.arange(2)[:, None, None]
+    i, j = (np.array(x)[:, None, None, None] for x in ([0, 1, 0, 1], [0, 1, 1, 0]))
+    o_l, o_r = (3 * (2 * b + i) + a + 0 * c).ravel(), (3 * (2 * b + j) + c + 0 * a).ravel()
+    v = np.concatenate([np.repeat([0, 3], 6) + np.tile(c, 4), np.repeat([6, 9], 9) + np.tile(c, 6), o_l, o_r])
+    return v, np.repeat([2, 3, 6, 7], 3), np.repeat(np.arange(6), 3), np.array([0, 10, 5, 15, 1, 11])
+
+
+_KB_V, _KB_U, _KB_W, _KB_K = _kron_block_rows()
 
 
 @dataclass

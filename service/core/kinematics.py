@@ -302,12 +302,12 @@ def frame_quantities(r: Array | None, A: Array, alpha: Array, v: Array) -> Array
     """`F` (N, 4, 3), component-major, of joints whose bodies have `A` (N, 2, 3, 3), body j at `r` (N, 3) from
     body i (None: `A v` alone, whatever `alpha`); `alpha` (4,), `v` (N, 4, 3). `F` is linear in `(r, A)`."""
     n = A.shape[0]
-    F = component_major(n, (4, 3), A.dtype)
-    if n <= SMALL:  # a few joints: three passes over all 12 quantities, per body's two (the same sums, in order)
-        Fb, p = F.reshape(n, 2, 2, 3), A[:, :, None] * v.reshape(n, 2, 2, 1, 3)  # every product in one pass
-        np.add(p[..., 0], p[..., 1], out=Fb)
-        Fb += p[..., 2]
+    if n <= SMALL:  # a few joints: every product in one pass over (rows, N) views, then the sums over c in order
+        p = A.transpose(2, 3, 1, 0).reshape(18, n).take(_FQ_A, axis=0, mode=GATHER)
+        p *= v.transpose(1, 2, 0).reshape(12, n).take(_FQ_V, axis=0, mode=GATHER)
+        F = (p[:12] + p[12:24] + p[24:]).reshape(4, 3, n).transpose(2, 0, 1)
         return F if r is None else add_positions(F, r, alpha)
+    F = component_major(n, (4, 3), A.dtype)
     tmp = np.empty(n, dtype=A.dtype)
     for k in range(4):
         for row in range(3):
@@ -316,6 +316,10 @@ def frame_quantities(r: Array | None, A: Array, alpha: Array, v: Array) -> Array
             out += np.multiply(a[:, 1], v[:, k, 1], out=tmp)
             out += np.multiply(a[:, 2], v[:, k, 2], out=tmp)
     return F if r is None else add_positions(F, r, alpha)
+
+
+_FQ_A = np.array([(3 * r + c) * 2 + b for c in range(3) for b in BLOCK_BODY for r in range(3)])  # A[b, r, c] of F_k[r]
+_FQ_V = np.array([3 * k + c for c in range(3) for k in range(4) for _ in range(3)])  # v_k[c]
 
 
 def add_positions(F: Array, r: Array, alpha: Array) -> Array:

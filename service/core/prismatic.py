@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from jointlimits.service.core.constitution import Array, Constitution, Curvature, Facts, Progress
-from jointlimits.service.core.kinematics import CarefulFrames, component_major, dot, to_local
+from jointlimits.service.core.kinematics import CarefulFrames, component_major, dot, frame_quantities
 from jointlimits.service.core.registry import register
 
 FACTS = Facts(
@@ -61,10 +61,10 @@ class Prismatic(Constitution):  # its frames never collapse (`Constitution.colla
     facts = FACTS
 
     def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
-        v = component_major(t.shape[0], (4, 3), t.dtype)
-        v[:, 0::2] = anchors  # c_i, c_j
-        for side in range(2):
-            to_local(R_ref[:, side], t, out=v[:, 2 * side + 1])  # t_k = R_k^T t
+        # t_k = R_k^T t (the frames of R^T with every v_k = t), then c_i, c_j in place of the points
+        tt = np.broadcast_to(t[:, None], (t.shape[0], 4, 3))
+        v = frame_quantities(None, R_ref.transpose(0, 1, 3, 2), FACTS.alpha, tt)
+        v[:, 0::2] = anchors
         return v
 
     def value(self, F: Array) -> Array:

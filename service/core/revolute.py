@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 
 from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
 from jointlimits.service.core.kinematics import BLOCK_BODY, SMALL, CarefulFrames, component_major, cross, dot, finfo
-from jointlimits.service.core.kinematics import to_local, unit
+from jointlimits.service.core.kinematics import frame_quantities, unit
 from jointlimits.service.core.polar import squared_norms
 from jointlimits.service.core.registry import register
 
@@ -163,6 +163,7 @@ class _RescaledCurvature(Curvature):
 
 _EYE4 = np.eye(4)
 _SIGMAS = np.array([[1.0], [-1.0]])  # h1 from u takes +sigma J u, h3 from d takes -sigma J d
+_J_SIGNS = np.array([1.0, -1.0, -1.0, 1.0]).reshape(2, 2, 1, 1)  # the signs of c in J's blocks
 _G_BLOCKS = np.array([2, 3, 0, 1, 3, 2, 1, 0])
 _G_HALVES = np.array([0.5, 0.5, 0.5, 0.5, 0.5, -0.5, -0.5, 0.5])[:, None]
 """d cos/dF (blocks 0-3) and d sin/dF (4-7): each the block `_G_BLOCKS` of F times `_G_HALVES`."""
@@ -173,30 +174,33 @@ _COS_AT, _SIN_AT, _MINUS_SIN_AT = np.array([2, 7, 8, 13]), np.array([3, 12]), np
 def _polar_derivatives(F: Array, second: bool, cs: tuple[Array, Array] | None = None) -> tuple[Array, Curvature | None]:
     """dx/dF (N, 4, 3) and d2x/dF2: `d(x) = (cos d(sin) - sin d(cos)) / r^2`, `r^2 = cos^2 + sin^2`
     (`cs`: cos and sin at `F` if already known)."""
-    n = F.shape[0]
+    n, dtype = F.shape[0], F.dtype
     c, s = _cos_sin(F) if cs is None else cs
-    r2 = c * c + s * s
-    x_c, x_s = -s / r2, c / r2
+    cc, ss = c * c, s * s
+    r2 = cc + ss
+    xcs = np.empty((2, n), dtype=dtype)  # rows x_c, x_s: dx_coef (N, 2) is its transpose
+    np.divide(-s, r2, out=xcs[0])
+    np.divide(c, r2, out=xcs[1])
     # d cos/dF and d sin/dF, (N, 2, 4, 3): each block is one other block of F, halved.
-    g8 = component_major(n, (8, 3), F.dtype)
+    g8 = component_major(n, (8, 3), dtype)
     np.multiply(F[:, _G_BLOCKS], _G_HALVES, out=g8)  # one pass: block (e, k) is F's block _G_BLOCKS[4 e + k], halved
     g = g8.reshape(n, 2, 4, 3)
-    dx = x_c[:, None, None] * g[:, 0] + x_s[:, None, None] * g[:, 1]
+    p = g8.transpose(1, 2, 0).reshape(2, 4, 3, n) * xcs[:, None, None]  # x_c g_c, x_s g_s, joints last
+    dx = (p[0] + p[1]).transpose(2, 0, 1)
     if not second:
         return dx, None
     r4 = r2 * r2
-    coef = np.empty((n, 2, 2), dtype=F.dtype)
-    coef[:, 0, 0] = 2.0 * c * s / r4
-    coef[:, 1, 1] = -coef[:, 0, 0]
-    coef[:, 0, 1] = coef[:, 1, 0] = (s * s - c * c) / r4
+    coef = np.empty((4, n), dtype=dtype)  # C (N, 2, 2), component-major
+    np.divide(2.0 * c * s, r4, out=coef[0])
+    np.negative(coef[0], out=coef[3])
+    np.divide(ss - cc, r4, out=coef[1])
+    coef[2] = coef[1]
     # K (N, 4, 4) = x_c COS_PAIRS + x_s SIN_PAIRS, component-major (the assembly reads it entry by entry).
-    kron = np.zeros((16, n), dtype=F.dtype)
-    half_s = 0.5 * x_s
-    kron[_COS_AT], kron[_SIN_AT], kron[_MINUS_SIN_AT] = 0.5 * x_c, half_s, -half_s
-    kron = kron.reshape(4, 4, n).transpose(2, 0, 1)
-    dx_coef = np.empty((n, 2), dtype=F.dtype)  # (x_c, x_s), C order as np.stack's (without its Python)
-    dx_coef[:, 0], dx_coef[:, 1] = x_c, x_s
-    return dx, Curvature(kron=kron, basis=g, coef=coef, dx_coef=dx_coef)
+    kron = np.zeros((16, n), dtype=dtype)
+    half = 0.5 * xcs
+    kron[_COS_AT], kron[_SIN_AT], kron[_MINUS_SIN_AT] = half[0], half[1], -half[1]
+    return dx, Curvature(kron=kron.reshape(4, 4, n).transpose(2, 0, 1), basis=g,
+                         coef=coef.reshape(2, 2, n).transpose(2, 0, 1), dx_coef=xcs.T)
 
 
 class Revolute:
@@ -211,10 +215,9 @@ class Revolute:
         n[:, 2] = np.where(y, t[:, 0], -t[:, 1])
         n = unit(n)
         b = unit(cross(t, n))
-        v = component_major(t.shape[0], (4, 3), t.dtype)
-        for k, (side, w) in enumerate(((0, b), (0, n), (1, b), (1, n))):
-            to_local(R_ref[:, side], w, out=v[:, k])  # body-local b_k = R_k^T b
-        return v
+        w = component_major(t.shape[0], (4, 3), t.dtype)  # (b, n, b, n), body-local b_k = R_k^T b: the frames of R^T
+        w[:, 0::2], w[:, 1::2] = b[:, None], n[:, None]
+        return frame_quantities(None, R_ref.transpose(0, 1, 3, 2), FACTS.alpha, w)
 
     def value(self, F: Array) -> Array:
         return np.arctan2(*_cos_sin(F)[::-1])
@@ -281,8 +284,9 @@ class Revolute:
         coef[:, 0, 0] = coef[:, 1, 1] = -mu / (2.0 * r * (rho2 + r))
         coef[:, 2, 2] = mu / (2.0 * r * r)
         # mu lambda0 P_sigma = |E'| / (4 r) I_4 + E' K / 2, as block coefficients.
-        kron = (0.5 * dE)[:, None, None] * curvature.kron
-        kron += (mu / (4.0 * r))[:, None, None] * _EYE4.astype(dE.dtype, copy=False)
+        kron = curvature.kron.transpose(1, 2, 0).reshape(16, -1) * (0.5 * dE)  # (16, N), component-major
+        kron += _EYE4.reshape(16, 1).astype(dE.dtype, copy=False) * (mu / (4.0 * r))
+        kron = kron.reshape(4, 4, -1).transpose(2, 0, 1)
         if isinstance(curvature, _RescaledCurvature):
             rows = curvature.rows
             kron[rows], basis[rows], coef[rows] = _rescaled_projection(dE[rows], curvature)
@@ -294,24 +298,28 @@ def _psd_vectors(dE: Array, g: Array, x_c: Array, x_s: Array, r: Array) -> tuple
     and `dE`; `x_c`, `x_s`, `r` (N,) give cos_t = x_s r and sin_t = -x_c r. Linear in g (rho^2 quadratic)."""
     rho2 = squared_norms(g[:, 0].transpose(1, 2, 0).reshape(12, -1))  # |g_c|^2 = |g_s|^2 = |F|^2 / 4
     sign = np.where(dE >= 0, 1.0, -1.0).astype(dE.dtype, copy=False)
-    c, s = (x_s * r)[:, None, None], (-x_c * r)[:, None, None]  # cos_t, sin_t: w = r e^{i theta}
-    b = c * g[:, 0] + s * g[:, 1]  # r grad(log r)
-    sa = sign[:, None, None] * (c * g[:, 1] - s * g[:, 0])  # sigma r grad(x)
+    c, s = x_s * r, -x_c * r  # cos_t, sin_t: w = r e^{i theta}
+    # Joints last ((..., N) views of the component-major arrays): each pass runs along the joints, the per-joint
+    # scalars broadcast whole (few joints: few passes; many: contiguous ones).
     n, dtype = g.shape[0], g.dtype
-    ud = component_major(n, (2, 4, 3), dtype)  # u, d = b +- sigma a
-    np.add(b, sa, out=ud[:, 0])
-    np.subtract(b, sa, out=ud[:, 1])
-    # J = (K / lambda0) (x) I_3 (an involution, eigenvalues +-1) on u and d at once, block by block.
-    Jud = np.empty_like(ud)
-    Jud[:, :, 0] = c * ud[:, :, 3] - s * ud[:, :, 2]
-    Jud[:, :, 1] = -c * ud[:, :, 2] - s * ud[:, :, 3]
-    Jud[:, :, 2] = -c * ud[:, :, 1] - s * ud[:, :, 0]
-    Jud[:, :, 3] = c * ud[:, :, 0] - s * ud[:, :, 1]
-    Jud *= (_SIGMAS.astype(dtype, copy=False) * sign).T[:, :, None, None]  # sigma J u, -sigma J d (joints-major)
-    basis = component_major(n, (3, 4, 3), dtype)
-    basis[:, 2] = ud[:, 1]  # d
-    ud += Jud
-    np.multiply(0.5, ud, out=basis[:, :2])  # h1 = P_sigma u, h3 = P_-sigma d
+    gt = g.transpose(1, 2, 3, 0)  # (g_c, g_s) (2, 4, 3, N)
+    cg, sg = gt * c, gt * s
+    b = cg[0] + sg[1]  # r grad(log r)
+    sa = (cg[1] - sg[0]) * sign  # sigma r grad(x)
+    ud = np.empty((2, 4, 3, n), dtype=dtype)  # u, d = b +- sigma a
+    np.add(b, sa, out=ud[0])
+    np.subtract(b, sa, out=ud[1])
+    # J = (K / lambda0) (x) I_3 (an involution, eigenvalues +-1) on u and d at once: blocks (B_i, N_i, B_j, N_j) of
+    # J w are (c N_j - s B_j, -c B_j - s N_j, -c N_i - s B_i, c B_i - s N_i), views of w's reversed ((-c) w is -(c w)).
+    u5 = ud.reshape(2, 2, 2, 3, n)  # (u or d, body, frame, r, joint)
+    Jud = (_J_SIGNS.astype(dtype, copy=False) * c) * u5[:, ::-1, ::-1]
+    Jud -= s * u5[:, ::-1]
+    Jud *= (_SIGMAS.astype(dtype, copy=False) * sign)[:, None, None, None]  # sigma J u, -sigma J d
+    basis = np.empty((3, 4, 3, n), dtype=dtype)  # component-major (N, 3, 4, 3)
+    basis[2] = ud[1]  # d
+    u5 += Jud
+    np.multiply(0.5, ud, out=basis[:2])  # h1 = P_sigma u, h3 = P_-sigma d
+    basis = basis.transpose(3, 0, 1, 2)
     return basis, rho2, sign
 
 

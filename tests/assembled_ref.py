@@ -15,16 +15,13 @@ from jointlimits.service.core.scene import Evaluation, Joints
 
 def assemble(n_bodies: int, batches: Sequence[Joints], ev: Evaluation, active_only: bool) -> Assembled:
     """The scatter-add over the bodies of `batches` of `ev`'s per-joint rows, its active joints' alone (the
-    gap is the core's: `x` against `lower - offset`, `upper - offset`, bitwise its bounds)."""
+    gap is the core's: the coordinate `x + offset` against `lower`, `upper`, bitwise its bounds)."""
     per_joint = []
     for joints, r in zip(batches, ev.batches):
         rows = np.arange(r.index.shape[0])
         if not active_only:
             i = r.index
-            lo, up = joints.lower[i], joints.upper[i]
-            if joints.offset is not None:
-                lo, up = lo - joints.offset[i], up - joints.offset[i]
-            g, _ = penalty.gap(r.x, lo, up)
+            g, _ = penalty.gap(r.coordinate, joints.lower[i], joints.upper[i])
             rows = np.flatnonzero((g > 0) & (joints.strength[i] > 0))
         ids = np.asarray(joints.body_ids, dtype=np.int64)[r.index[rows]]
         per_joint.append((ids, None if r.gradient is None else r.gradient[rows], None if r.hessian is None else r.hessian[rows]))

@@ -8,6 +8,7 @@ from __future__ import annotations
 from functools import partial
 
 import numpy as np
+from numpy.typing import NDArray
 
 from jointlimits.service.core import assembly, penalty
 from jointlimits.service.core.constitution import Array, Constitution, Curvature
@@ -64,7 +65,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             _, dE, d2E = penalty.derivatives(*at_active[:4])
         else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
             dE, d2E = penalty.slopes(*at_active[4:], at_active[3])
-        shift = penalty.scale_up(dE, d2E, *at_active[:4])
+        shift = _near_one(dE, d2E, penalty.scale_up(dE, d2E, *at_active[:4]))
         # Rows written in place when every row is differentiated; else a chunk's go through scratch rows
         # first, kept to a few MB. On threads, at least two chunks per thread (a batch alone keeps them busy).
         size = CHUNK if a == n or not want_h else SCATTER_CHUNK
@@ -84,12 +85,13 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             at = (lambda a: a[part]) if every else (lambda a: take_joints(a, sel))  # noqa: E731
             bc = None if balance is None else at(balance)
             h_finite = _derivatives(c, at(F), at(v), dE[part], d2E[part], g_out, h_out, psd, bc)
-            if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`): back by 2^-k
+            if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`, `_near_one`): back by 2^-k
                 k = shift[part]
                 lifted = k.nonzero()[0]
                 for out in (g_out, h_out):
                     if out is not None and lifted.shape[0]:
                         out[lifted] = np.ldexp(out[lifted], -k[lifted].reshape(-1, *(1,) * (out.ndim - 1)))
+                h_finite = h_finite and not (k < 0).any()  # scaled up: its bound held before
             # Only active rows can overflow: checked while in cache (the Hessian only when its factors
             # do not already bound it).
             bad = nonfinite_rows(g_out) if want_g else []
@@ -108,6 +110,24 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
         for j in sorted(set(overflow))[:MAX_FAULTS]
     ])
     return energy, active, gradient, hessian
+
+
+def _near_one(dE: Array, d2E: Array, shift: NDArray[np.int_] | None) -> NDArray[np.int_] | None:
+    """`shift` (A,) (`penalty.scale_up`'s exponents, or None) plus `k`, with `dE`, `d2E` (A,) replaced in place by
+    `2^k E'`, `2^k E''` (k even: square roots scale exactly) where the larger lies beyond 2^+-500, so that it is
+    near 1. The chain rule splits the Hessian into factors of E', E'' and of the frames: a tiny E'' times a factor
+    of frames far from 1 underflowed where their product does not (E'' 3e-242, frames 1e-65 and 1e133: a Hessian of
+    2.5e-113 answered 0), a huge one overflowed (E'' 1.3e182, frames 3e-61: 1.2e302 refused). Other rows keep their bits."""
+    m = np.abs(dE)
+    np.maximum(m, d2E, out=m)  # E'' >= 0
+    if m.shape[0] == 0 or (m.min() >= 2.0**-500 and m.max() <= 2.0**500):  # the usual case: two reductions
+        return shift
+    far = ((m < 2.0**-500) | (m > 2.0**500)).nonzero()[0]
+    k = -2 * (np.frexp(m[far])[1] // 2)  # 2^k m in [1/2, 2)
+    dE[far], d2E[far] = np.ldexp(dE[far], k), np.ldexp(d2E[far], k)
+    shift = np.zeros(dE.shape[0], dtype=np.int32) if shift is None else shift
+    shift[far] += k.astype(shift.dtype)
+    return shift
 
 
 def _derivatives(c: Constitution, F: Array, v: Array, dE: Array, d2E: Array, g_out: Array, h_out: Array | None,

@@ -9,6 +9,9 @@ DeltaTheta(q, q_prev)` rounds `prev_coordinate` to ulps of `offset`, and `coordi
 0.8. Neither depends on the offset mathematically (perturbing it moves neither the gap, the width nor the
 coordinate), so both were silent wrong numbers of well-conditioned answers. Each case is checked against the
 50-digit reference (`bench/reference.py`), which takes the contract's `lower - offset` exactly.
+
+A small penalty curvature on frames far from 1: the chain rule splits the Hessian into factors of E', E'' and of
+the frames, and such a factor under- or overflowed where the Hessian is a normal number (`evaluate._near_one`).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from mpmath import mp, mpf
 
 from jointlimits.service.core import Bodies, Joints, evaluate, prepare
 from bench.reference import JointRef
+from tests.conftest import relerr
 from tests.scenes import pack, rotation_about
 
 E_Z = np.array([0.0, 0.0, 1.0])
@@ -125,3 +129,24 @@ def test_a_commit_under_an_offset_is_the_contracts_rule(offset: float) -> None:
     bodies, joints = _hinge(0.0, 0.3), _joints(-1.0, 0.6, offset, prev=0.5)
     committed = prepare(bodies, [joints]).commit(bodies.q)[0][0]
     assert abs(committed - _rule(bodies, joints)) <= 4 * np.spacing(max(offset, 1.0)), committed
+
+
+# ---------------------------------------------------------------- the Hessian's factors, from E', E'' near 1
+
+
+@pytest.mark.parametrize("mode", ["exact", "psd"])
+def test_a_small_penalty_curvature_on_frames_far_from_one_keeps_its_hessian(mode: str) -> None:
+    """Body i's A at 1e-65, body j's at 1e133 (the hinge's angle does not see scales), 0.4 above a range 1e80 wide:
+    E'' = 2.4e-240 and the Hessian's body-i block E'' (dx/dA_i)^2 ~ 1e-110, both normal numbers. The chain rule's
+    factors split them as E'' times coefficients of 1/r^2 ~ 1e-136 (r = cos^2 + sin^2 ~ 1e68): 1e-376, zero in
+    float64, and the Hessian was answered 0. E', E'' are taken times a power of two near 1 and the derivatives
+    scaled back (`evaluate._near_one`). Bound: E'' rounds by 2u of the gap, the hinge's frames by a few u: 1e-14."""
+    bodies = _hinge(0.0, 0.5)
+    scale = np.r_[np.ones(3), np.full(9, 1e-65)], np.r_[np.ones(3), np.full(9, 1e133)]
+    bodies = Bodies(*(np.array([state[0] * scale[0], state[1] * scale[1]]) for state in (bodies.q, bodies.q_prev, bodies.q_ref)))
+    joints = Joints(670, 18, np.array([[0, 1]]), EDGE, np.array([0.1 - 1e80]), np.array([0.1]), np.array([1.0]))
+    ref = JointRef(670, bodies.q_ref[0], bodies.q_ref[1], EDGE[0])
+    states = [(getattr(bodies, s)[0], getattr(bodies, s)[1]) for s in ("q", "q_prev", "q_ref")]
+    want = ref.evaluate(*states, 0.1 - 1e80, 0.1, 1.0).as_float()["hessian_" + mode]
+    got = evaluate(bodies, [joints], hessian_mode=mode).batches[0].hessian[0]
+    assert np.max(np.abs(want)) > 1e-120 and relerr(got, want) <= 1e-14, (np.max(np.abs(got)), np.max(np.abs(want)))

@@ -226,7 +226,7 @@ def test_a_hub_body_with_many_joints_on_few_pairs(mode):
 
 
 def test_offsets_move_the_range_and_the_assembly_follows():
-    # v1.1 offsets: the active joints are those whose coordinate x + offset is outside [lower, upper];
+    # v1.1 offsets: the active joints are those outside [lower - offset, upper - offset] in x;
     # `apply` on the per-joint answer finds the same ones as the core (bitwise the same sums).
     sc = shared_scene(11)
     rng = np.random.default_rng(11)

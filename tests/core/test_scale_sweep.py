@@ -1,14 +1,14 @@
 """Scales varied jointly (the scale-sweep audit): the combinations that broke, each at its simplest, then a seeded sweep.
 
-The offset far from the bounds and from the committed coordinate. The contract's penalty bounds the coordinate:
-`l = lower - offset`, `u = upper - offset` on `x`, so the gap `x - u` is `coordinate - upper` and the width `u - l`
-is `upper - lower` whatever the offset. Formed on `x` in float64 they were not: with `|offset|` far above the
-width, `lower - offset` and `upper - offset` round to within ulps of `offset` of each other (a range of 10 read as
-degenerate under an offset of 1e17, 1000x the energy); with a `prev_coordinate`, `x = (prev_coordinate - offset) +
-DeltaTheta(q, q_prev)` rounds `prev_coordinate` to ulps of `offset`, and `coordinate = x + offset` answered 0 for
-0.8. Neither depends on the offset mathematically (perturbing it moves neither the gap, the width nor the
-coordinate), so both were silent wrong numbers of well-conditioned answers. Each case is checked against the
-50-digit reference (`bench/reference.py`), which takes the contract's `lower - offset` exactly.
+The offset far from the bounds and from the committed coordinate. The contract's penalty bounds `x` by `l = lower -
+offset`, `u = upper - offset`: the gap `x - u` is `coordinate - upper` and the width `u - l` is `upper - lower`
+whatever the offset. Formed in float64 they were not always: with `|offset|` far above the width, `lower - offset`
+and `upper - offset` round to within ulps of `offset` of each other (a range of 10 read as degenerate under an
+offset of 1e17, 1000x the energy); with a `prev_coordinate`, `x = (prev_coordinate - offset) + DeltaTheta(q,
+q_prev)` rounds `prev_coordinate` to ulps of `offset`, and `coordinate = x + offset` answered 0 for 0.8. Neither
+depends on the offset mathematically (perturbing it moves neither the gap, the width nor the coordinate), so both
+were silent wrong numbers of well-conditioned answers (`prepared._bounds` says which bounds the penalty takes).
+Each case is checked against the 50-digit reference (`bench/reference.py`), which takes `lower - offset` exactly.
 
 A small penalty curvature on frames far from 1: the chain rule splits the Hessian into factors of E', E'' and of
 the frames, and such a factor under- or overflowed where the Hessian is a normal number (`evaluate._near_one`).
@@ -87,6 +87,16 @@ def test_the_offset_moves_neither_the_gap_nor_the_width(name: str) -> None:
         assert _close(r.energy[0], want["energy"], 1e-14), (path, r.energy[0], want["energy"])
         g = want["gradient"]
         assert np.max(np.abs(r.gradient[0] - g)) <= 1e-14 * np.max(np.abs(g)), path
+
+
+def test_a_far_offset_keeps_x_where_the_bounds_are_near_it() -> None:
+    """No prev_coordinate, offset 1e17 and a degenerate range at 1e17 (the offset itself), x = 0.7: on x the gap is
+    0.7 - (1e17 - 1e17) = 0.7 exactly, E = 0.7^3; on the coordinate, 1e17 + 0.7 rounds to 1e17 (inside, E = 0). The
+    bounds on x are kept wherever their width is `upper - lower`'s (the engine's arithmetic, and x's own digits)."""
+    bodies, joints = _hinge(0.0, 0.7), _joints(1e17, 1e17, 1e17)
+    want = _reference(bodies, joints)
+    for r in (evaluate(bodies, [joints]).batches[0], prepare(bodies, [joints]).evaluate(bodies.q).batches[0]):
+        assert _close(r.energy[0], want["energy"], 1e-15) and want["energy"] > 0.3, (r.energy[0], want["energy"])
 
 
 def test_an_offset_whose_bounds_on_x_overflow_is_answered() -> None:

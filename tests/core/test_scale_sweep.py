@@ -11,7 +11,7 @@ were silent wrong numbers of well-conditioned answers (`prepared._bounds` says w
 Each case is checked against the 50-digit reference (`bench/reference.py`), which takes `lower - offset` exactly.
 
 A small penalty curvature on frames far from 1: the chain rule splits the Hessian into factors of E', E'' and of
-the frames, and such a factor under- or overflowed where the Hessian is a normal number (`evaluate._near_one`).
+the frames, and such a factor under- or overflowed where the Hessian is a normal number (`evaluate._in_band`).
 
 The sweep (`test_sweep_of_joint_scales_...`): body scales, positions, turns, edges, origins, offsets, committed
 coordinates, widths, gaps and strengths drawn together, each answer within its argued conditioning bound or refused
@@ -154,8 +154,8 @@ def test_a_small_penalty_curvature_on_frames_far_from_one_keeps_its_hessian(mode
     """Body i's A at 1e-65, body j's at 1e133 (the hinge's angle does not see scales), 0.4 above a range 1e80 wide:
     E'' = 2.4e-240 and the Hessian's body-i block E'' (dx/dA_i)^2 ~ 1e-110, both normal numbers. The chain rule's
     factors split them as E'' times coefficients of 1/r^2 ~ 1e-136 (r = cos^2 + sin^2 ~ 1e68): 1e-376, zero in
-    float64, and the Hessian was answered 0. E', E'' are taken times a power of two near 1 and the derivatives
-    scaled back (`evaluate._near_one`). Bound: E'' rounds by 2u of the gap, the hinge's frames by a few u: 1e-14."""
+    float64, and the Hessian was answered 0. E', E'' are taken times a power of two up to 2^-500 and the derivatives
+    scaled back (`evaluate._in_band`). Bound: E'' rounds by 2u of the gap, the hinge's frames by a few u: 1e-14."""
     bodies = _hinge(0.0, 0.5)
     scale = np.r_[np.ones(3), np.full(9, 1e-65)], np.r_[np.ones(3), np.full(9, 1e133)]
     bodies = Bodies(*(np.array([state[0] * scale[0], state[1] * scale[1]]) for state in (bodies.q, bodies.q_prev, bodies.q_ref)))
@@ -276,7 +276,7 @@ def test_sweep_of_joint_scales_is_answered_within_its_conditioning_or_refused_as
     keeps prev only past 300 digits.
 
     Before the fixes of this module it failed twice: draw 1, a Hessian of 1.2e302 refused (E'' 1.3e182 times frames
-    of 3e-61: `evaluate._near_one`); draw 5, the offset family (a committed coordinate 54345.7 under an offset of
+    of 3e-61: `evaluate._in_band`); draw 5, the offset family (a committed coordinate 54345.7 under an offset of
     4.8e274 answered as 0, inside its range: energy 0 where the true one overflows). Measured after: the worst error
     0.021 of its bound (the energy; x and the coordinate less)."""
     rng = np.random.default_rng(SWEEP_SEED)

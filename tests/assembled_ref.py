@@ -9,22 +9,28 @@ from dataclasses import replace
 import numpy as np
 
 from jointlimits.service.core import penalty
+from jointlimits.service.core.prepared import _bounds
 from jointlimits.service.core.assembled import Assembled, assemble_active
 from jointlimits.service.core.scene import Evaluation, Joints
 
 
 def assemble(n_bodies: int, batches: Sequence[Joints], ev: Evaluation, active_only: bool) -> Assembled:
     """The scatter-add over the bodies of `batches` of `ev`'s per-joint rows, its active joints' alone (the
-    gap is the core's: `x` against `lower - offset`, `upper - offset`, bitwise its bounds)."""
+    gap is the core's, bitwise its bounds: `x` against `lower - offset`, `upper - offset`, or the coordinate against
+    `lower`, `upper` where the core takes those)."""
     per_joint = []
     for joints, r in zip(batches, ev.batches):
         rows = np.arange(r.index.shape[0])
         if not active_only:
             i = r.index
-            lo, up = joints.lower[i], joints.upper[i]
-            if joints.offset is not None:
-                lo, up = lo - joints.offset[i], up - joints.offset[i]
-            g, _ = penalty.gap(r.x, lo, up)
+            # the core's bounds: on x where `prepared._bounds` keeps them there, else (and with committed
+            # coordinates) on the coordinate
+            lo, up, on_c = _bounds(joints.lower[i], joints.upper[i], None if joints.offset is None else joints.offset[i],
+                                   np.float64)
+            pen = r.x if on_c is None else np.where(on_c, r.coordinate, r.x)
+            if joints.prev_coordinate is not None:
+                pen, lo, up = r.coordinate, joints.lower[i], joints.upper[i]
+            g, _ = penalty.gap(pen, lo, up)
             rows = np.flatnonzero((g > 0) & (joints.strength[i] > 0))
         ids = np.asarray(joints.body_ids, dtype=np.int64)[r.index[rows]]
         per_joint.append((ids, None if r.gradient is None else r.gradient[rows], None if r.hessian is None else r.hessian[rows]))

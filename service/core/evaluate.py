@@ -8,6 +8,7 @@ from __future__ import annotations
 from functools import partial
 
 import numpy as np
+from numpy.typing import NDArray
 
 from jointlimits.service.core import assembly, penalty
 from jointlimits.service.core.constitution import Array, Constitution, Curvature
@@ -65,6 +66,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
         else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
             dE, d2E = penalty.slopes(*at_active[4:], at_active[3])
         shift = penalty.scale_up(dE, d2E, *at_active[:4])
+        shift, plain = _in_band(dE, d2E, shift)
         # Rows written in place when every row is differentiated; else a chunk's go through scratch rows
         # first, kept to a few MB. On threads, at least two chunks per thread (a batch alone keeps them busy).
         size = CHUNK if a == n or not want_h else SCATTER_CHUNK
@@ -83,14 +85,26 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             g_out = gradient[rows] if want_g and contiguous else np.empty((sel.shape[0], 24), dtype)
             at = (lambda a: a[part]) if every else (lambda a: take_joints(a, sel))  # noqa: E731
             bc = None if balance is None else at(balance)
-            h_finite = _derivatives(c, at(F), at(v), dE[part], d2E[part], g_out, h_out, psd, bc)
-            if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`): back by 2^-k
-                k = shift[part]
-                lifted = k.nonzero()[0]
-                h_finite = h_finite and bool(k.min(initial=0) >= 0)  # scaled back up (k < 0): may overflow
-                for out in (g_out, h_out):
-                    if out is not None and lifted.shape[0]:
-                        out[lifted] = np.ldexp(out[lifted], -k[lifted].reshape(-1, *(1,) * (out.ndim - 1)))
+
+            def formed(dE: Array, d2E: Array, shift: NDArray[np.int_] | None, g_out: Array, h_out: Array | None) -> bool:
+                h_finite = _derivatives(c, at(F), at(v), dE[part], d2E[part], g_out, h_out, psd, bc)
+                if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`, `_in_band`): back
+                    k = shift[part]
+                    lifted = k.nonzero()[0]
+                    for out in (g_out, h_out):
+                        if out is not None and lifted.shape[0]:
+                            out[lifted] = np.ldexp(out[lifted], -k[lifted].reshape(-1, *(1,) * (out.ndim - 1)))
+                    h_finite = h_finite and not (k < 0).any()  # scaled up: its bound held before
+                return h_finite
+
+            h_finite = formed(dE, d2E, shift, g_out, h_out)
+            redo = [] if plain is None else sorted(set(nonfinite_rows(g_out) + (nonfinite_rows(h_out) if want_h else [])))
+            if redo:  # rows `_in_band` moved that overflowed from there: as they were (they may not)
+                g2, h2 = np.empty_like(g_out), None if h_out is None else np.empty_like(h_out)
+                formed(*plain, g2, h2)
+                g_out[redo] = g2[redo]
+                if h_out is not None:
+                    h_out[redo], h_finite = h2[redo], False
             # Only active rows can overflow: checked while in cache (the Hessian only when its factors
             # do not already bound it).
             bad = nonfinite_rows(g_out) if want_g else []
@@ -109,6 +123,33 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
         for j in sorted(set(overflow))[:MAX_FAULTS]
     ])
     return energy, active, gradient, hessian
+
+
+def _in_band(dE: Array, d2E: Array, shift: NDArray[np.int_] | None) -> tuple[NDArray[np.int_] | None, tuple | None]:
+    """`shift` (A,) (`penalty.scale_up`'s exponents, or None) plus `k`, with `dE`, `d2E` (A,) replaced in place by
+    `2^k E'`, `2^k E''` (k even: square roots scale exactly) where the larger lies beyond 2^+-500, so that it lies at
+    that edge; and `(E', E'', shift)` as they were (None if no row moved), for rows whose answer overflows from the
+    edge. The chain rule splits the Hessian into factors of E', E'' and of the frames: a tiny E'' times a factor of
+    frames far from 1 underflowed where their product does not (E'' 2.4e-240, frames 1e-65 and 1e133: a Hessian of
+    6e-111 answered 2e-309), a huge one overflowed (E'' 1.3e182, frames 3e-61: 1.2e302 refused). Other rows keep
+    their bits."""
+    m = np.abs(dE)
+    np.maximum(m, d2E, out=m)  # E'' >= 0
+    if m.shape[0] == 0 or (m.min() >= 2.0**-500 and m.max() <= 2.0**500):  # the usual case: two reductions
+        return shift, None
+    far = (m < 2.0**-500) | (m > 2.0**500)
+    if shift is not None:  # rows `penalty.scale_up` placed are left where it put them: moving both again to the
+        far &= shift == 0  # edge put the smaller's product below float64 (E' 3e550 on frames of 1e-300: gradient 0)
+    far = far.nonzero()[0]
+    if far.shape[0] == 0:
+        return shift, None
+    plain = (dE.copy(), d2E.copy(), None if shift is None else shift.copy())
+    e = np.frexp(m[far])[1]  # m = f 2^e, f in [1/2, 1): to f 2^500 from above, f 2^-499 from below
+    k = np.where(m[far] > 1.0, 2 * ((500 - e) // 2), -2 * ((499 + e) // 2))
+    dE[far], d2E[far] = np.ldexp(dE[far], k), np.ldexp(d2E[far], k)
+    shift = np.zeros(dE.shape[0], dtype=np.int32) if shift is None else shift
+    shift[far] += k.astype(shift.dtype)
+    return shift, plain
 
 
 def _derivatives(c: Constitution, F: Array, v: Array, dE: Array, d2E: Array, g_out: Array, h_out: Array | None,

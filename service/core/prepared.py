@@ -44,9 +44,11 @@ _TWO_PI_LO = (2 * np.pi - _TWO_PI_HI) + 2.4492935982947064e-16  # 2 pi - fl(2 pi
 
 
 def rem(y: Array) -> Array:
-    """The representative of `y` (N,) modulo 2 pi closest to 0 (ties either way)."""
+    """The representative of `y` (N,) modulo 2 pi closest to 0 (ties either way), always within [-pi, pi]."""
     k = np.rint(y / (2 * np.pi))
-    return (y - k * _TWO_PI_HI) - k * _TWO_PI_LO
+    # Past 2^24 turns `k * _TWO_PI_HI` rounds by up to ulps of y: an ulp of y is past 1e-8 rad there, and `fmod`
+    # (exact) keeps the result in range, where y of 1e89 rad gave 1e73.
+    return np.where(np.abs(k) < 2**24, (y - k * _TWO_PI_HI) - k * _TWO_PI_LO, np.remainder(y + np.pi, 2 * np.pi) - np.pi)
 
 
 @dataclass
@@ -67,7 +69,7 @@ class _Batch:
     upper: Array
     strength: Array
     offset: Array | None  # None: 0 (only in the stateless call, which saves the arrays)
-    lo: Array  # the penalty's bounds on x (lower - offset, upper - offset) and strength, in the scene's dtype
+    lo: Array  # the penalty's bounds (`_bounds`: on x, or on the coordinate at `on_c`) and strength, in the scene's dtype
     up: Array
     s: Array
     committed: Array | None  # the committed coordinate at q_prev, float64 (the wire's), None: x summed over the steps
@@ -80,7 +82,8 @@ class _Batch:
     index: NDArray[np.int64]  # (N,) 0 ... N - 1, read-only: every answer of the scene's batch shares it
     meets: bool = False  # world edges, points, telescoping: the anchors meet at q_ref, so x = theta(q) (`_to_q`)
     balance: Array | None = None  # (N, 4) `assembly.balance` of `v` (points, a prepared scene): not taken per Hessian
-    w: Array | None = None  # (N,) the penalty's widths of (lo, up) (`penalty.width`): not taken per evaluation
+    w: Array | None = None  # (N,) the penalty's widths `upper - lower` (`penalty.width`): not taken per evaluation
+    on_c: NDArray[np.bool_] | None = None  # (N,) where `lo`, `up` bound the coordinate, not x (`_bounds`); None: nowhere
 
 
 class PreparedScene:
@@ -217,15 +220,21 @@ class PreparedScene:
         if jb.theta is None:  # v1: x summed over every step from q_ref
             F, careful, x, known = self._to_q(jb, jb.starts, jb.fixed, jb.rows, "whole", dF, F_q)
             x = _from_origin(x, jb)
+            coordinate = _plus_offset(x, jb.offset)
+            pen, lo, up = x if jb.on_c is None else np.where(jb.on_c, coordinate, x), jb.lo, jb.up
         else:
-            F, careful, x, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], "last", dF, F_q)
-            x = jb.theta + x
+            F, careful, dx, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], "last", dF, F_q)
+            # the committed coordinate plus the turn: `(committed - offset) + dx + offset` kept `committed` only to
+            # ulps of the offset (0.8 answered 0 under an offset of 1e17)
+            x, coordinate = jb.theta + dx, jb.committed + dx
+            pen, lo, up = coordinate, *(a.astype(x.dtype, copy=False) for a in (jb.lower, jb.upper))  # on the coordinate
         raise_if((jb.faults + self._collapsed(b, jb, F, careful, known))[:MAX_FAULTS])
-        energy, active, gradient, hessian = differentiate(b, jb.c, F, jb.v, x, jb.lo, jb.up, jb.s, want_g, want_h, psd,
-                                                          compact or active_only, self._threads, deadline, jb.balance, jb.w)
-        index, xs, es = (active, x[active], energy[active]) if active_only else (jb.index, x, energy)
-        coordinate = _plus_offset(xs, jb.offset, active if active_only else None)
-        return BatchResult(jb.c.facts.uid, index, xs, es, gradient, hessian, coordinate), energy, active
+        energy, active, gradient, hessian = differentiate(b, jb.c, F, jb.v, pen.astype(x.dtype, copy=False), lo, up, jb.s,
+                                                          want_g, want_h, psd, compact or active_only, self._threads,
+                                                          deadline, jb.balance, jb.w)
+        index, xs, es, cs = (active, x[active], energy[active], coordinate[active]) if active_only else (jb.index, x, energy,
+                                                                                                        coordinate)
+        return BatchResult(jb.c.facts.uid, index, xs, es, gradient, hessian, cs), energy, active
 
     # ---------------------------------------------------------------- state
 
@@ -244,17 +253,20 @@ class PreparedScene:
             for b, jb in enumerate(self._batches):
                 F_q, x, careful, known = self._from_ref(jb)
                 log.add(self._collapsed(b, jb, F_q, careful, known))
+                coordinate = None
                 if jb.c.facts.stateful:
                     r = self._angle(jb)
-                    x = r + rem(x - r)
-                new.append((F_q, x))
+                    turn = rem(x - r)
+                    x = r + turn
+                    if jb.committed is not None:  # the committed coordinate moves by the turn (as in `_evaluate_batch`)
+                        coordinate = jb.committed + turn
+                new.append((F_q, x, _plus_offset(x, jb.offset) if coordinate is None else coordinate))
             log.raise_if_any()
-            coordinates = [_plus_offset(x, jb.offset) for jb, (_, x) in zip(self._batches, new)]
-            raise_if(check_coordinates([(b, jb.index, x, c) for b, (jb, (_, x), c)
-                                        in enumerate(zip(self._batches, new, coordinates))]))
-            for jb, (F_q, x) in zip(self._batches, new):
+            coordinates = [c for _, _, c in new]
+            raise_if(check_coordinates([(b, jb.index, x, c) for b, (jb, (_, x, c)) in enumerate(zip(self._batches, new))]))
+            for jb, (F_q, x, c) in zip(self._batches, new):
                 if jb.c.facts.stateful:  # its steps start at q_prev (state 1)
-                    jb.starts, jb.fixed, jb.committed = [F_q], [], _plus_offset(x, jb.offset)
+                    jb.starts, jb.fixed, jb.committed = [F_q], [], c.copy()
                     jb.theta = _angle_of(jb.committed, jb.offset, jb.lo.dtype)
                     jb.progress = {"ref": jb.progress["ref"]} if "ref" in jb.progress else {}
             self._table.load(1, self._table.dofs[2].T)
@@ -315,19 +327,21 @@ class PreparedScene:
         jb = self._batches[batch]
         after = {k: values[k] if k in values else getattr(jb, k)[index] for k in ("lower", "upper", "strength", "offset")}
         with np.errstate(all="ignore"):
-            raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"], after["offset"]))
+            raise_if(check_update_ranges(batch, index, after["lower"], after["upper"], after["strength"]))
             if offset is not None:  # the committed coordinates it moves stay finite
                 x = (jb.theta if jb.committed is not None else self._x_prev(jb))[index]  # this batch's alone
                 raise_if(check_moved(batch, x, after["offset"], index))
+            lo, up, on_c = _bounds(after["lower"], after["upper"], after["offset"], jb.lo.dtype)
+            w = penalty.width(after["lower"], after["upper"])
         for k, a in after.items():
             getattr(jb, k)[index] = a
         if jb.committed is not None and offset is not None:  # the same angle, in the words of the new offset
             jb.committed[index] = jb.theta[index] + after["offset"]
             jb.theta = _angle_of(jb.committed, jb.offset, jb.lo.dtype)
-        jb.lo[index] = after["lower"] - after["offset"]
-        jb.up[index] = after["upper"] - after["offset"]
-        jb.s[index] = after["strength"]
-        jb.w[index] = penalty.width(jb.lo[index], jb.up[index])
+        jb.lo[index], jb.up[index], jb.s[index], jb.w[index] = lo, up, after["strength"], w
+        if on_c is not None or jb.on_c is not None:
+            jb.on_c = np.zeros(jb.lo.shape[0], dtype=bool) if jb.on_c is None else jb.on_c
+            jb.on_c[index] = False if on_c is None else on_c
 
 
 def prepare(bodies: Bodies, batches: Sequence[Joints], *, threads: int = 1, dtype: type = np.float64) -> PreparedScene:
@@ -455,14 +469,27 @@ def _prepare_batch(b: int, joints: Joints, table: BodyTable, own: bool, pairs: N
     committed = joints.prev_coordinate
     theta = None if committed is None else _angle_of(committed, offset, dtype)
     lower, upper, strength = joints.lower, joints.upper, joints.strength
-    # The contract's l = lower - offset, u = upper - offset (exactly lower, upper when offset = 0).
-    lo, up = ((a if offset is None else a - offset).astype(dtype, copy=False) for a in (lower, upper))
+    lo, up, on_c = _bounds(lower, upper, offset, dtype)
     index = np.arange(pairs.shape[1])
     index.flags.writeable = False
     return _Batch(c, pairs, v, F_ref, starts, fixed, rows, prev_careful, r.get(start), held, lower, upper, strength,
                   offset, lo, up, strength.astype(dtype, copy=own), committed, theta, absolute, x0, faults, progress,
                   index, meets=points and c.facts.telescopes and joints.edges is not None,
-                  balance=assembly.balance(alpha, v) if own and points else None, w=penalty.width(lo, up))
+                  balance=assembly.balance(alpha, v) if own and points else None, w=penalty.width(lower, upper), on_c=on_c)
+
+
+def _bounds(lower: Array, upper: Array, offset: Array | None, dtype: type) -> tuple[Array, Array, NDArray[np.bool_] | None]:
+    """The penalty's bounds (N,) in `dtype` and where they bound the coordinate (N,) (None: nowhere) of a batch without
+    committed coordinates (with them: `lower`, `upper` on the coordinate). The contract's l = lower - offset, u = upper
+    - offset on x (the engine's arithmetic) where their width is `upper - lower`'s; else lower, upper on the coordinate
+    x + offset: `(upper - offset) - (lower - offset)` rounds at the offset's scale (a range [-5, 5] under an offset of
+    1e17 read as degenerate, 1000x the energy) or overflows, `upper - lower` does not."""
+    if offset is None:
+        return lower.astype(dtype, copy=False), upper.astype(dtype, copy=False), None
+    lo, up = (lower - offset).astype(dtype, copy=False), (upper - offset).astype(dtype, copy=False)
+    on_c = (penalty.width(lo, up) != penalty.width(lower, upper)) | ~np.isfinite(lo) | ~np.isfinite(up)
+    lo[on_c], up[on_c] = lower[on_c], upper[on_c]
+    return lo, up, on_c if on_c.any() else None
 
 
 def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: list[Array], fixed: list[Array]) -> Progress:

@@ -226,13 +226,13 @@ def joint_faults(b: int, joints: Joints, n_bodies: int) -> tuple[list[Fault], Ar
 def _clean(joints: Joints, n_bodies: int, edge: Array) -> bool:
     """True only where `_check_rows` finds nothing, from a few flat reductions of a well-shaped batch: each
     quantity below is finite and >= 0 only where its fields are finite and in order (`up - lo`: lower <= upper;
-    `|edge|`: an axis; `|lo - offset|`: the offset's checks). An overflow here takes `_check_rows`' way."""
+    `|edge|`: an axis). An overflow here takes `_check_rows`' way."""
     ids, lo, up, off = joints.body_ids, joints.lower, joints.upper, joints.offset
     if ids.shape[0] == 0 or not (ids.min() >= 0 and ids.max() < n_bodies and (ids[:, 0] != ids[:, 1]).all()):
         return False
     size = max_abs(edge)
-    signed = [up - lo, joints.strength, size] + ([] if off is None else [np.abs(lo - off), np.abs(up - off)])
-    finite = [a for a in (joints.prev_coordinate, None if joints.edges is not None else joints.local_edges[:, 1])
+    signed = [up - lo, joints.strength, size]
+    finite = [a for a in (off, joints.prev_coordinate, None if joints.edges is not None else joints.local_edges[:, 1])
               if a is not None]  # r0, r1 of body-local edges are not in `edge`
     return (size.min() > 0 and all(a.min() >= 0 and a.max() < np.inf for a in signed)  # NaN: False
             and all(np.isfinite(a).all() for a in finite))
@@ -296,9 +296,6 @@ def _check_rows(b: int, joints: Joints, n_bodies: int, geometry: str | None, sha
     if {"lower", "upper"} <= shaped:
         both = np.isfinite(lo) & np.isfinite(up)
         faults += _empty_ranges(b, lo, up, both & (lo > up))
-        if "offset" in shaped:
-            rows = (both & np.isfinite(joints.offset)).nonzero()[0]
-            faults += check_offset(b, lo[rows], up[rows], joints.offset[rows], rows)
     if "strength" in shaped:
         faults += _negative_strengths(b, s, np.isfinite(s) & (s < 0))
     if edge is not None:
@@ -316,13 +313,6 @@ def _check_edges(b: int, joints: Joints, geometry: str, edge: Array) -> list[Fau
     size[~np.isfinite(size) & ~np.isfinite(ends).all(axis=(1, 2))] = 1.0
     return _rows(b, geometry, size == 0, lambda j: f"zero-length edge: {p0} == {p1} gives no joint axis") + _rows(
         b, geometry, ~np.isfinite(size), lambda j: f"edge too long: {p1} - {p0} overflows float64")
-
-
-def check_offset(b: int, lower: np.ndarray, upper: np.ndarray, offset: np.ndarray,
-                 index: NDArray[np.int64] | None = None) -> list[Fault]:
-    """Joints `index` (M,) (default: all) whose bounds relative to the offset (`lower - offset`, ...) overflow."""
-    bad = ~(np.isfinite(lower - offset) & np.isfinite(upper - offset))
-    return _rows(b, "offset", bad, lambda j: "lower - offset or upper - offset overflows float64", index)
 
 
 def check_moved(b: int, x: np.ndarray, offset: np.ndarray, index: NDArray[np.int64]) -> list[Fault]:
@@ -356,12 +346,9 @@ def check_update_values(b: int, index: np.ndarray, values: dict[str, np.ndarray]
     return faults
 
 
-def check_update_ranges(
-    b: int, index: np.ndarray, lower: np.ndarray, upper: np.ndarray, strength: np.ndarray, offset: np.ndarray
-) -> list[Fault]:
+def check_update_ranges(b: int, index: np.ndarray, lower: np.ndarray, upper: np.ndarray, strength: np.ndarray) -> list[Fault]:
     """Joints `index` (M,) of batch `b` with their values after an update, each (M,): the request's range checks."""
-    faults = _empty_ranges(b, lower, upper, lower > upper, index) + _negative_strengths(b, strength, strength < 0, index)
-    return faults + check_offset(b, lower, upper, offset, index)
+    return _empty_ranges(b, lower, upper, lower > upper, index) + _negative_strengths(b, strength, strength < 0, index)
 
 
 def check_evaluation(ev: Evaluation) -> list[Fault]:

@@ -325,7 +325,7 @@ def test_update_equals_a_scene_prepared_with_the_new_values() -> None:
         (dict(index=[0, 99]), ("batches", 0, "index", 1)),
         (dict(index=[1, 1], strength=[1.0, 2.0]), ("batches", 0, "index")),
         (dict(index=[0.5], strength=[1.0]), ("batches", 0, "index")),
-        (dict(index=[0], offset=[1.7e308], lower=[-1.7e308]), ("batches", 0, "offset", 0)),
+        (dict(index=[0], offset=[np.inf]), ("batches", 0, "offset", 0)),
     ],
 )
 def test_update_is_validated_and_atomic(kwargs: dict, loc: tuple) -> None:

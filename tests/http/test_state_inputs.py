@@ -53,9 +53,17 @@ def test_state_list_of_the_wrong_length_is_a_422(field):
     assert _locs_everywhere(doc) == [["body", "batches", 0, field]]
 
 
-def test_offset_that_overflows_the_bounds_is_a_422_naming_the_joint():
+def test_offset_whose_bounds_on_x_overflow_is_answered_on_every_path():
+    """`lower - offset` overflows float64 but no number of the answer does (the penalty takes the coordinate against
+    [lower, upper]): a 200 over JSON and msgpack and an answer in-process, the same coordinate (was a 422 on `offset`)."""
     doc = _with(REVOLUTE, offset=[1.7e308], lower=[-1.7e308], upper=[1.0])
-    assert _locs_everywhere(doc) == [["body", "batches", 0, "offset", 0]]
+    with TestClient(app) as client:
+        r = client.post("/v1/evaluate", json=doc)
+        body, ct = codec.encode(_sdk_request(doc, raw=True), binary=True)
+        rb = client.post("/v1/evaluate", content=body, headers={"Content-Type": ct, "Accept": "application/json"})
+    assert (r.status_code, rb.status_code) == (200, 200), (r.text, rb.text)
+    local = LocalClient().evaluate(_sdk_request(doc, raw=True)).batches[0].coordinate.tolist()
+    assert r.json()["batches"][0]["coordinate"] == rb.json()["batches"][0]["coordinate"] == local
 
 
 @pytest.mark.parametrize("field", ["offset", "prev_coordinate"])

@@ -132,8 +132,6 @@ SCENE_MISTAKES = {
                           ("origin",), "Input should be 'q_ref' or 'absolute'", "literal_error"),
     "an edge too long": (dict(i=0, j=1, p0=[-1e308, 0, 0], p1=[1e308, 0, 0], lower=-1, upper=1),
                          ("p1",), "edge too long: p1 - p0 overflows float64", "value_error"),
-    "an offset too far": (dict(i=0, j=1, lower=-1e308, upper=1, offset=1e308),
-                          ("offset",), "lower - offset or upper - offset overflows float64", "value_error"),
     "a list for a bound": (dict(i=0, j=1, lower=[-1, -2], upper=1), ("lower",), "must be one number, got shape (2,)", "value_error"),
     # A body is an integer, as the wire's body_ids and JointBatch.of say: 1.7 was truncated to body 1 (another
     # joint than asked, silently), "1" and True taken as 1, an array a bare numpy TypeError.

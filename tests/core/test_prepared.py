@@ -204,7 +204,8 @@ def test_commit_across_pi() -> None:
     """3.0 -> 3.3 rad: the wrapped angle jumps to -2.98; the committed one goes on to 3.3."""
     bodies, joints = _screw(3.0)
     scene = prepare(Bodies(bodies.q, bodies.q, bodies.q_ref), [joints])  # q_prev at 3.0
-    assert abs(scene.coordinates()[0][0] - 3.0) <= 1e-15
+    # atan2 on another CPU's kernels is a few ulps off (tests/perturb.py: 3 ulps of 3.0 seen at --perturb-ulps 4)
+    assert abs(scene.coordinates()[0][0] - 3.0) <= 4e-15
     (coord,) = scene.commit(_q(3.3))
     assert abs(coord[0] - 3.3) <= 1e-14
     # The next evaluation measures from the committed angle.
@@ -370,9 +371,9 @@ def test_update_offset_keeps_the_angle_and_moves_the_coordinate() -> None:
     scene = prepare(bodies, [joints])
     scene.commit(_q(1.0))
     scene.update(0, [0], offset=[2.0])
-    assert abs(scene.coordinates()[0][0] - 3.0) <= 1e-15
+    assert abs(scene.coordinates()[0][0] - 3.0) <= 4e-15  # a few ulps: atan2 (as in test_commit_across_pi)
     r = scene.evaluate(_q(1.1)).batches[0]
-    assert abs(r.x[0] - 1.1) <= 1e-15 and abs(r.coordinate[0] - 3.1) <= 1e-15
+    assert abs(r.x[0] - 1.1) <= 4e-15 and abs(r.coordinate[0] - 3.1) <= 4e-15
 
 
 def test_the_committed_coordinate_is_kept_as_the_wire_carries_it() -> None:

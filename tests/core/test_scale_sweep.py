@@ -53,6 +53,8 @@ def _reference(bodies: Bodies, j: Joints) -> dict:
 
 
 def _close(got: float, want: float, rtol: float) -> bool:
+    """Within `rtol` of `want`, relatively. The bounds below stand ~4x above this machine's errors: x goes through
+    atan2, a few ulps apart on another CPU's kernels (tests/perturb.py; 1.2e-15 of E = 0.343 seen at --perturb-ulps 4)."""
     return abs(got - want) <= rtol * abs(want)
 
 
@@ -82,8 +84,8 @@ def test_the_offset_moves_neither_the_gap_nor_the_width(name: str) -> None:
             r = evaluate(bodies, [joints], outputs=("energy", "gradient")).batches[0]
         else:
             r = prepare(bodies, [joints]).evaluate(bodies.q, outputs=("energy", "gradient")).batches[0]
-        assert _close(r.coordinate[0], want["coordinate"], 1e-15), (path, r.coordinate[0], want["coordinate"])
-        assert _close(r.x[0], want["x"], 1e-15), (path, r.x[0], want["x"])
+        assert _close(r.coordinate[0], want["coordinate"], 4e-15), (path, r.coordinate[0], want["coordinate"])
+        assert _close(r.x[0], want["x"], 4e-15), (path, r.x[0], want["x"])
         assert _close(r.energy[0], want["energy"], 1e-14), (path, r.energy[0], want["energy"])
         g = want["gradient"]
         assert np.max(np.abs(r.gradient[0] - g)) <= 1e-14 * np.max(np.abs(g)), path
@@ -96,7 +98,7 @@ def test_a_far_offset_keeps_x_where_the_bounds_are_near_it() -> None:
     bodies, joints = _hinge(0.0, 0.7), _joints(1e17, 1e17, 1e17)
     want = _reference(bodies, joints)
     for r in (evaluate(bodies, [joints]).batches[0], prepare(bodies, [joints]).evaluate(bodies.q).batches[0]):
-        assert _close(r.energy[0], want["energy"], 1e-15) and want["energy"] > 0.3, (r.energy[0], want["energy"])
+        assert _close(r.energy[0], want["energy"], 1.2e-14) and want["energy"] > 0.3, (r.energy[0], want["energy"])
 
 
 def test_an_offset_whose_bounds_on_x_overflow_is_answered() -> None:
@@ -106,8 +108,9 @@ def test_an_offset_whose_bounds_on_x_overflow_is_answered() -> None:
     bodies, joints = _hinge(0.0, 0.7), _joints(-1e308, 1.0, 1e308)
     want = _reference(bodies, joints)
     r = evaluate(bodies, [joints], outputs=("energy", "gradient")).batches[0]
-    assert (r.coordinate[0], r.x[0]) == (want["coordinate"], want["x"])
-    assert _close(r.energy[0], want["energy"], 1e-15)
+    # x through atan2: a few ulps apart on another CPU's math kernels (tests/perturb.py); 1e308 + x rounds to 1e308
+    assert r.coordinate[0] == want["coordinate"] and _close(r.x[0], want["x"], 4e-15), (r.x[0], want["x"])
+    assert _close(r.energy[0], want["energy"], 1.2e-14)  # E ~ x^3: 3x x's bound
     assert np.max(np.abs(r.gradient[0] - want["gradient"])) <= 1e-14 * np.max(np.abs(want["gradient"]))
     scene = prepare(bodies, [_joints(-1.0, 1.0, 0.0)])
     scene.update(0, [0], lower=[-1e308], offset=[1e308])

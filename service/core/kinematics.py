@@ -353,18 +353,9 @@ def cross(a: Array, b: Array) -> Array:
     return out
 
 
-def to_local(R: Array, w: Array, out: Array | None = None) -> Array:
-    """`R^T w` (N, 3), component-major (or into `out`), for rotations `R` (N, 3, 3) and world vectors `w` (N, 3)."""
-    return _apply(R.transpose(0, 2, 1), w, out)
-
-
 def from_local(M: Array, w: Array) -> Array:
     """`M w` (N, 3), component-major, for matrices `M` (N, 3, 3) and vectors `w` (N, 3)."""
-    return _apply(M, w)
-
-
-def _apply(M: Array, w: Array, out: Array | None = None) -> Array:
-    out = component_major(w.shape[0], (3,), w.dtype) if out is None else out
+    out = component_major(w.shape[0], (3,), w.dtype)
     if w.shape[0] <= SMALL:  # a few joints: the three rows at once (the same sums, in the same order)
         return np.add(M[..., 0] * w[:, 0, None] + M[..., 1] * w[:, 1, None], M[..., 2] * w[:, 2, None], out=out)
     for r in range(3):

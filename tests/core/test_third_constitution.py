@@ -26,7 +26,7 @@ from jointlimits.client import Client, InvalidInput, LocalClient, Scene
 from jointlimits.service import core
 from jointlimits.service.app import create_app
 from jointlimits.service.core.constitution import Array, Curvature, Facts, Progress
-from jointlimits.service.core.kinematics import CarefulFrames, component_major, dot, to_local
+from jointlimits.service.core.kinematics import CarefulFrames, dot, frame_quantities
 from jointlimits.service.core.registry import CONSTITUTIONS, register, unregister
 from tests.http.test_contract_live import serve
 
@@ -53,10 +53,10 @@ class ToySlide:
     )
 
     def local_vectors(self, t: Array, anchors: Array | None, R_ref: Array) -> Array:
-        v = component_major(t.shape[0], (4, 3), t.dtype)
+        # t_k = R_k^T t (the frames of R^T with every v_k = t), then the anchors in place of the points
+        v = frame_quantities(None, R_ref.transpose(0, 1, 3, 2), self.facts.alpha,
+                             np.broadcast_to(t[:, None], (t.shape[0], 4, 3)))
         v[:, 0::2] = anchors
-        for side in range(2):
-            to_local(R_ref[:, side], t, out=v[:, 2 * side + 1])
         return v
 
     def value(self, F: Array) -> Array:

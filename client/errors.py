@@ -42,8 +42,8 @@ class ServiceError(Exception):
                       for d in detail if isinstance(d, dict)]
         else:
             faults = [Fault((), str(detail if detail is not None else body), "http_error")]
-        kind = _BY_TYPE.get((status, faults[0].type)) if faults else None
-        return (kind or _BY_STATUS.get(status, cls))(status, faults)
+        busy = status == 503 and faults and faults[0].type == "busy"  # the one (status, type) with a class of its own
+        return (Busy if busy else _BY_STATUS.get(status, cls))(status, faults)
 
 
 class InvalidInput(ServiceError, ValueError):
@@ -112,5 +112,3 @@ class Busy(ServiceError):
 
 
 _BY_STATUS: dict[int, type[ServiceError]] = {422: InvalidInput, 413: TooLarge, 404: WrongURL}
-_BY_TYPE: dict[tuple[int, str], type[ServiceError]] = {(503, "busy"): Busy}
-"""(status, first fault's type) pairs with a class of their own; they take precedence over `_BY_STATUS`."""

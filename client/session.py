@@ -189,37 +189,14 @@ class Exchange(SessionState):
         self._closed = False  # by `close()`: no more resuming
         self._begin()
 
-    # ---------------------------------------------------------------- frames out
-
-    def _open_frame(self) -> Frame:
-        content, _ = codec.encode(self.request, self.binary)
-        return self._out(content if self.binary else content.decode())
-
-    def _evaluate_frame(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Frame:
-        return self._encode({"kind": proto.EVALUATE, **evaluate_message(q, outputs, hessian_mode, active_only)})
-
-    def _commit_frame(self, q: ArrayLike) -> Frame:
-        return self._encode({"kind": proto.COMMIT, "q": message_array(q, "q")})
-
-    def _update_frame(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Frame:
-        return self._encode({"kind": proto.UPDATE, **update_message(batch, index, values)})
-
-    def _close_frame(self) -> Frame:
-        return self._encode({"kind": proto.CLOSE})
-
     def _encode(self, doc: dict[str, Any]) -> Frame:
-        if self.binary:
-            doc = {k: wire.pack_array(v, wire.INT64 if v.dtype.kind == "i" else wire.FLOAT64) if isinstance(v, np.ndarray) else v
-                   for k, v in doc.items()}
-            return self._out(wire.dumps(doc))
-        doc = {k: np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v for k, v in doc.items()}
-        return self._out(orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY).decode())
+        return self._out(codec.dumps({k: np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v
+                                      for k, v in doc.items()}, self.binary))
 
-    def _out(self, frame: Frame) -> Frame:
+    def _out(self, content: bytes) -> Frame:
+        frame = content if self.binary else content.decode()
         self.bytes_sent += len(frame)
         return frame
-
-    # ---------------------------------------------------------------- replies in
 
     def _read(self, frame: Frame, kind: str) -> dict[str, Any]:
         """The reply document of `kind`; a fault reply raises `InvalidInput` / `TooLarge` (the session stays open)."""
@@ -230,30 +207,6 @@ class Exchange(SessionState):
         if doc.get("kind") != kind:
             raise ServiceError(502, [Fault((), f"expected a {kind!r} reply, got {doc.get('kind')!r}", "protocol")])
         return doc
-
-    def _opened(self, frame: Frame) -> None:
-        doc = self._read(frame, proto.OPENED)
-        self._coordinates = [self._array(c) for c in doc["coordinates"]]
-        self.limits: dict[str, Any] = dict(doc.get("limits", {}))  # the server's bounds in force: max_frame_bytes, idle_seconds
-
-    def _evaluation(self, frame: Frame) -> Evaluation:
-        # Every reply starts with its kind (fixmap header, "kind", then the kind; or '{"kind":"...'): a fault is
-        # read as such, an evaluation is HTTP's answer document (plus kind), which HTTP's decoder reads.
-        if frame[1:12] == _BINARY_ERROR or frame[:15] == _JSON_ERROR:
-            self._read(frame, proto.EVALUATION)  # raises the fault
-        self.bytes_received += len(frame)
-        ev = codec.decode(frame, codec.BINARY if isinstance(frame, bytes) else codec.JSON)  # type: ignore[arg-type]
-        return ev.sized(self.request)  # each batch knows its size: `joint(k)` works under active_only
-
-    def _committed(self, frame: Frame, q: ArrayLike) -> list[Array]:
-        doc = self._read(frame, proto.COMMITTED)
-        return self._keep([self._array(c) for c in doc["coordinates"]], q)
-
-    def _updated(self, frame: Frame, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
-        doc = self._read(frame, proto.UPDATED)
-        self._apply_update(batch, index, values)
-        if "coordinates" in doc:  # the batch's committed coordinates after a change of offsets
-            self._coordinates[batch] = self._array(doc["coordinates"])
 
     def _array(self, v: Any) -> Array:
         return owned(wire.unpack_array(v, wire.FLOAT64, 1) if isinstance(v, dict) else v)
@@ -282,15 +235,19 @@ class Exchange(SessionState):
     def _open(self) -> Steps[None]:
         yield "drop", None  # a connection whose opening was refused (a busy 503 reply) before trying again
         yield "connect", None
-        self._opened((yield "send", self._open_frame()))
+        doc = self._read((yield "send", self._out(codec.encode(self.request, self.binary)[0])), proto.OPENED)
+        self._coordinates = [self._array(c) for c in doc["coordinates"]]
+        self.limits: dict[str, Any] = dict(doc.get("limits", {}))  # the server's bounds in force: max_frame_bytes, idle_seconds
 
     def _reopen(self) -> Steps[None]:
         self._closed = False
         self.request = self.request_for_reopen()
         yield from self._open()
 
-    def _exchange(self, frame: Frame) -> Steps[Frame]:
-        """`frame`'s reply; with `resume`, on a new connection in the committed state where the last one was lost."""
+    def _exchange(self, doc: dict[str, Any]) -> Steps[Frame]:
+        """`doc`'s reply; with `resume`, on a new connection in the committed state where the last one was lost."""
+        frame = self._encode(doc)
+
         def attempt() -> Steps[Frame]:
             if self._ws is None and self.resume and not self._closed:
                 yield from self._reopen()
@@ -302,21 +259,31 @@ class Exchange(SessionState):
 
     def _evaluate(self, q: ArrayLike, outputs: Any, hessian_mode: str | None,
                   active_only: bool | None) -> Steps[Evaluation]:
-        frame = self._evaluate_frame(q, outputs, hessian_mode, active_only)
-        return self._evaluation((yield from self._exchange(frame)))
+        frame = yield from self._exchange({"kind": proto.EVALUATE, **evaluate_message(q, outputs, hessian_mode, active_only)})
+        # Every reply starts with its kind (fixmap header, "kind", then the kind; or '{"kind":"...'): a fault is
+        # read as such, an evaluation is HTTP's answer document (plus kind), which HTTP's decoder reads.
+        if frame[1:12] == _BINARY_ERROR or frame[:15] == _JSON_ERROR:
+            self._read(frame, proto.EVALUATION)  # raises the fault
+        self.bytes_received += len(frame)
+        ev = codec.decode(frame, codec.BINARY if isinstance(frame, bytes) else codec.JSON)  # type: ignore[arg-type]
+        return ev.sized(self.request)  # each batch knows its size: `joint(k)` works under active_only
 
     def _commit(self, q: ArrayLike) -> Steps[list[Array]]:
-        return self._committed((yield from self._exchange(self._commit_frame(q))), q)
+        doc = self._read((yield from self._exchange({"kind": proto.COMMIT, "q": message_array(q, "q")})), proto.COMMITTED)
+        return self._keep([self._array(c) for c in doc["coordinates"]], q)
 
     def _update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Steps[None]:
-        reply = yield from self._exchange(self._update_frame(batch, index, values))
-        self._updated(reply, batch, index, values)
+        reply = yield from self._exchange({"kind": proto.UPDATE, **update_message(batch, index, values)})
+        doc = self._read(reply, proto.UPDATED)
+        self._apply_update(batch, index, values)
+        if "coordinates" in doc:  # the batch's committed coordinates after a change of offsets
+            self._coordinates[batch] = self._array(doc["coordinates"])
 
     def _close(self) -> Steps[None]:
         self._closed = True
         if self._ws is not None:
             try:
-                yield "send", self._close_frame()  # the server answers by closing (code 1000)
+                yield "send", self._encode({"kind": proto.CLOSE})  # the server answers by closing (code 1000)
             except SessionClosed:
                 pass
             yield "drop", None

@@ -30,7 +30,7 @@ from jointlimits.service.settings import bearer_token
 DEFAULT_URL = "http://127.0.0.1:8000"
 RETRYABLE = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError, httpx.WriteError)
 """Connection failures: the request never reached the server, or was dropped before an answer (both calls are
-idempotent). A busy 503 and a proxy's 502/503/504 are retried too (`Retry.again`); nothing else is."""
+idempotent). A busy 503 and a proxy's 502/503/504 are retried too (`Retry`); nothing else is."""
 PROXY_STATUSES = frozenset({502, 503, 504})
 MAX_RETRY_AFTER = 30.0
 """Longest `Retry-After` (seconds) the clients sleep for; a server asking more raises `Busy` at once."""
@@ -59,11 +59,10 @@ def run(steps: Steps[T], io: Callable[[str, Any], Any]) -> T:
             op, arg = steps.throw(error) if error is not None else steps.send(reply)
         except StopIteration as done:
             return done.value
-        reply, error = None, None
         try:
-            reply = io(op, arg)
+            reply, error = io(op, arg), None
         except BaseException as e:  # thrown into `steps`, where it is handled or raised on
-            error = e
+            reply, error = None, e
 
 
 async def arun(steps: Steps[T], io: Callable[[str, Any], Awaitable[Any]]) -> T:
@@ -75,11 +74,10 @@ async def arun(steps: Steps[T], io: Callable[[str, Any], Awaitable[Any]]) -> T:
             op, arg = steps.throw(error) if error is not None else steps.send(reply)
         except StopIteration as done:
             return done.value
-        reply, error = None, None
         try:
-            reply = await io(op, arg)
+            reply, error = await io(op, arg), None
         except BaseException as e:
-            error = e
+            reply, error = None, e
 
 
 class BaseClient:
@@ -156,7 +154,7 @@ class BaseClient:
         n = part_joints(self._limits, self.binary, self.max_joints_per_request, request.outputs, len(request.batches))
         parts = split.plan(request, n)
         progress = self.progress if progress is None else progress
-        report = progress if callable(progress) else Bar() if progress and len(parts) > 1 else None
+        report = progress if callable(progress) else bar() if progress and len(parts) > 1 else None
         return Job(request, parts, report)
 
 
@@ -174,7 +172,7 @@ class Job:
             result = _result(response)
         except ServiceError as e:
             raise split.relocate(part, e) from None
-        self._done += part.n_joints
+        self._done += part.request.n_joints
         if self._report:
             self._report(self._done, self.request.n_joints)
         return result
@@ -184,19 +182,17 @@ class Job:
         return split.merge(self.request, self.parts, results).sized(self.request)
 
 
-class Bar:
+def bar(width: int = 30) -> ProgressCallback:
     """A tiny stderr progress bar (no dependency): `done / total` joints of a split request."""
+    t0 = time.perf_counter()
 
-    def __init__(self, width: int = 30) -> None:
-        self.width = width
-        self.t0 = time.perf_counter()
-
-    def __call__(self, done: int, total: int) -> None:
-        filled = int(self.width * (done / total if total else 1.0))
-        elapsed = time.perf_counter() - self.t0
-        sys.stderr.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] {done}/{total} joints {elapsed:5.1f}s")
+    def draw(done: int, total: int) -> None:
+        filled = int(width * (done / total if total else 1.0))
+        sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done}/{total} joints {time.perf_counter() - t0:5.1f}s")
         sys.stderr.write("\n" if done >= total else "")
         sys.stderr.flush()
+
+    return draw
 
 
 @functools.lru_cache(maxsize=4)

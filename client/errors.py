@@ -76,7 +76,7 @@ class Unreachable(ServiceError):
         super().__init__(status, [Fault((), msg, "unreachable")], where="unreachable")
 
     def after(self, attempts: int) -> Unreachable:
-        """The same failure, said of `attempts` attempts (a session's open retried by `Resume`)."""
+        """The same failure, said of `attempts` attempts (retried by `transport.Retry`)."""
         return Unreachable(self.url, attempts, self.cause, status=self.status, proxy=self.proxy,
                            retry_after=self.retry_after)
 

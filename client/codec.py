@@ -17,20 +17,8 @@ BINARY = wire.MEDIA_TYPE
 
 def encode(request: Request, binary: bool) -> tuple[bytes, str]:
     """The request body and its Content-Type."""
-    if binary:
-        f64 = lambda a: wire.pack_array(a, wire.FLOAT64)  # noqa: E731
-        doc = _document(request, f64, lambda a: wire.pack_array(a, wire.INT64))
-        return wire.dumps(doc), BINARY
-    # orjson writes every float64 in its shortest round-trip form: the server reads back the same bits.
-    as_json = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
-    doc = _document(request, as_json, lambda a: np.ascontiguousarray(a, dtype=np.int64))
-    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY), JSON
-
-
-def _document(request: Request, f64: Any, i64: Any) -> dict[str, Any]:
-    # A None array goes as null (nil), for the service to name (a session's opening).
-    f64, i64 = ((lambda a, f=f: None if a is None else f(a)) for f in (f64, i64))
-    return {
+    f64, i64 = ((lambda a, t=t: None if a is None else np.ascontiguousarray(a, dtype=t)) for t in (np.float64, np.int64))
+    doc = {  # a None array goes as null (nil), for the service to name (a session's opening)
         "bodies": {k: f64(getattr(request, k)) for k in ("q", "q_prev", "q_ref")},
         "batches": [
             {
@@ -48,6 +36,23 @@ def _document(request: Request, f64: Any, i64: Any) -> dict[str, Any]:
         "active_only": bool(request.active_only),
         **({"layout": request.layout} if request.layout != "joints" else {}),  # the default stays off the wire
     }
+    return dumps(doc, binary), BINARY if binary else JSON
+
+
+def dumps(doc: Any, binary: bool) -> bytes:
+    """A document whose arrays are C-ordered float64 or int64 NumPy arrays: msgpack, each array a wire map (no
+    copy), or JSON, where orjson writes every float64 in its shortest round-trip form (the server reads the same bits)."""
+    if not binary:
+        return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY)
+
+    def packed(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: packed(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [packed(x) for x in v]
+        return wire.pack_array(v, wire.INT64 if v.dtype.kind == "i" else wire.FLOAT64) if isinstance(v, np.ndarray) else v
+
+    return wire.dumps(packed(doc))
 
 
 def decode(content: bytes, content_type: str) -> Evaluation:

@@ -42,8 +42,8 @@ class ServiceError(Exception):
                       for d in detail if isinstance(d, dict)]
         else:
             faults = [Fault((), str(detail if detail is not None else body), "http_error")]
-        kind = _BY_TYPE.get((status, faults[0].type)) if faults else None
-        return (kind or _BY_STATUS.get(status, cls))(status, faults)
+        busy = status == 503 and faults and faults[0].type == "busy"  # the one (status, type) with a class of its own
+        return (Busy if busy else _BY_STATUS.get(status, cls))(status, faults)
 
 
 class InvalidInput(ServiceError, ValueError):
@@ -76,7 +76,7 @@ class Unreachable(ServiceError):
         super().__init__(status, [Fault((), msg, "unreachable")], where="unreachable")
 
     def after(self, attempts: int) -> Unreachable:
-        """The same failure, said of `attempts` attempts (a session's open retried by `Resume`)."""
+        """The same failure, said of `attempts` attempts (retried by `transport.Retry`)."""
         return Unreachable(self.url, attempts, self.cause, status=self.status, proxy=self.proxy,
                            retry_after=self.retry_after)
 
@@ -112,5 +112,3 @@ class Busy(ServiceError):
 
 
 _BY_STATUS: dict[int, type[ServiceError]] = {422: InvalidInput, 413: TooLarge, 404: WrongURL}
-_BY_TYPE: dict[tuple[int, str], type[ServiceError]] = {(503, "busy"): Busy}
-"""(status, first fault's type) pairs with a class of their own; they take precedence over `_BY_STATUS`."""

@@ -13,9 +13,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from jointlimits.client.aio import AsyncClient
-from jointlimits.client.model import NEEDED, OPTIONAL, Array, BatchResult, Evaluation, Request, as_flag, as_outputs
-from jointlimits.client.model import as_request, in_body, null_arrays
-from jointlimits.client.session import CLOSED, SessionClosed, SessionState, batch_number, message_array, owned
+from jointlimits.client.model import NEEDED, OPTIONAL, Array, BatchResult, Evaluation, Request, as_request, in_body
+from jointlimits.client.model import null_arrays
+from jointlimits.client.session import CLOSED, SessionClosed, SessionState, evaluate_message, message_array, owned
+from jointlimits.client.session import update_message
 from jointlimits.client.transport import ProgressCallback
 from jointlimits.schemas import ConstitutionsResponse, EvaluateRequest, Limits
 from jointlimits.schemas.constitutions import describe
@@ -109,16 +110,6 @@ class LocalClient:
         pass
 
 
-def options(request: Request, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> dict[str, Any]:
-    """The evaluate options of a call, the opening request's where not given (for the in-process session)."""
-    return {
-        "outputs": request.outputs if outputs is None else as_outputs(outputs),
-        "hessian_mode": request.hessian_mode if hessian_mode is None else hessian_mode,
-        "active_only": request.active_only if active_only is None else as_flag(active_only),
-        "layout": request.layout,  # the opening's, as the server keeps it (a message cannot change it)
-    }
-
-
 def _call(fn: Callable[[], T]) -> T:
     """`fn()`, its input faults raised as `LocalClient` raises them (`loc` starting with "body", as the server's)."""
     try:
@@ -151,9 +142,11 @@ class LocalSession(SessionState):
 
     def evaluate(self, q: ArrayLike, *, outputs: Any = None, hessian_mode: str | None = None,
                  active_only: bool | None = None) -> Evaluation:
-        scene, opts = self._live(), options(self.request, outputs, hessian_mode, active_only)
-        q = message_array(q, "q")  # as the service reads a message's arrays: no cast, no reshape
-        return result(_call(lambda: scene.evaluate(q, **opts))).sized(self.request)
+        r, scene = self.request, self._live()
+        # The opening's options where not given; its `layout` always, as the server keeps it (a message cannot change it).
+        opts = {"outputs": r.outputs, "hessian_mode": r.hessian_mode, "active_only": r.active_only, "layout": r.layout,
+                **evaluate_message(q, outputs, hessian_mode, active_only)}  # as the service reads a message's arrays
+        return result(_call(lambda: scene.evaluate(**opts))).sized(r)
 
     def commit(self, q: ArrayLike) -> list[Array]:
         scene, q = self._live(), np.array(message_array(q, "q"))
@@ -163,9 +156,7 @@ class LocalSession(SessionState):
                strength: ArrayLike | None = None, offset: ArrayLike | None = None) -> None:
         scene = self._live()
         values = {"lower": lower, "upper": upper, "strength": strength, "offset": offset}
-        given = {k: message_array(v, k) for k, v in values.items() if v is not None}  # None: left out
-        b, idx = batch_number(batch), message_array(index, "index", integer=True)  # as the service reads them
-        _call(lambda: scene.update(b, idx, **given))
+        _call(lambda: scene.update(**update_message(batch, index, values)))
         self._apply_update(batch, index, values)
         if offset is not None:  # a new offset moves the batch's committed coordinates with it
             self._coordinates[batch] = owned(scene.coordinates([batch])[0])

@@ -39,7 +39,7 @@ def as_outputs(outputs: Any) -> tuple[str, ...]:
         return (outputs,)
     if isinstance(outputs, (list, tuple, np.ndarray)):
         return tuple(np.asarray(outputs).tolist() if isinstance(outputs, np.ndarray) else outputs)
-    raise InvalidInput(422, [Fault(("body", "outputs"), *NOT_A_LIST)], where="invalid input")
+    raise in_body([Fault(("outputs",), *NOT_A_LIST)])
 
 
 def as_flag(value: Any) -> bool:
@@ -47,8 +47,7 @@ def as_flag(value: Any) -> bool:
     not a truthy True."""
     if isinstance(value, (bool, np.bool_)):
         return bool(value)
-    raise InvalidInput(422, [Fault(("body", "active_only"), "Input should be a valid boolean", "bool_type")],
-                       where="invalid input")
+    raise in_body([Fault(("active_only",), "Input should be a valid boolean", "bool_type")])
 
 
 def _array(value: ArrayLike, name: str, faults: list[Fault], integer: bool = False) -> np.ndarray | None:
@@ -63,7 +62,6 @@ def _array(value: ArrayLike, name: str, faults: list[Fault], integer: bool = Fal
 
 def _wrong_shape(name: str, a: np.ndarray, want: tuple[int, ...], faults: list[Fault]) -> None:
     faults.append(Fault((name,), f"must have shape {want} (one row per joint of body_ids), got {a.shape}"))
-    return None
 
 
 REVOLUTE_LIMIT, PRISMATIC_LIMIT = revolute.FACTS.uid, prismatic.FACTS.uid

@@ -18,8 +18,8 @@ from numpy.typing import ArrayLike
 from jointlimits.client import codec
 from jointlimits.client.errors import Busy, Fault, ServiceError, Unreachable
 from jointlimits.client.model import Array, Evaluation, Request, as_flag, as_outputs, as_request, in_body
-from jointlimits.client.transport import (MAX_RETRY_AFTER, PROXY_STATUSES, Retry, Steps, T, is_fault_list, proxy_page,
-                                         retry_after, wrong_url)
+from jointlimits.client.transport import (MAX_RETRY_AFTER, PROXY_STATUSES, Retry, Steps, T, is_fault_list, refusal,
+                                         wrong_url)
 from jointlimits.schemas import binary as wire
 from jointlimits.schemas import session as proto
 from jointlimits.service.core import registry
@@ -62,30 +62,26 @@ def resumable(e: Exception) -> bool:
     return isinstance(e, Unreachable) or (isinstance(e, ServiceError) and e.status in (502, 503, 504))
 
 
-class Resume:
+class Resume(Retry):
     """The retries of one step of a session (an open, a message and its reply), by the HTTP clients' rule
-    (`transport.Retry.wait`): `backoff` doubling, `retries` times, a busy 503's or a proxy's `Retry-After` waited."""
+    (`transport.Retry`), of a failure another server can take over from (`resumable`); one no server would mend
+    (a fault, 401, 4408, ...) is raised at once. Past the retries a lost session's `SessionClosed` (the first
+    failure) stays the one raised, the last as its cause, unless the last was busy."""
 
     def __init__(self, retries: int, backoff: float, on: bool, max_retry_after: float = MAX_RETRY_AFTER) -> None:
-        self._retry = Retry(retries if on else 0, backoff, "", max_retry_after)
+        super().__init__(retries if on else 0, backoff, max_retry_after)
         self._first: ServiceError | None = None
 
     def pause(self, e: ServiceError) -> float:
-        """Seconds to wait after `e` if another server can take over (`resumable`); a failure no server would
-        mend (a fault, 401, 4408, ...) at once. Past the retries (or a `Retry-After` over `max_retry_after`),
-        as the HTTP clients do, the last failure, `Busy` and `Unreachable` saying every attempt; but a lost session's
-        `SessionClosed` (the first failure) stays the one raised, the last as its cause, unless the last was busy."""
         self._first = first = self._first or e
         if not resumable(e):
             raise e
-        busy = e if isinstance(e, Busy) else None  # `Busy` raised by `wait` when not waited
-        pause = self._retry.wait(e.retry_after if isinstance(e, (Busy, Unreachable)) else None, busy)
-        if pause is not None:
-            return pause
-        last = e.after(self._retry.attempts) if isinstance(e, Unreachable) else e  # every attempt said
-        if isinstance(first, SessionClosed) and first is not e:
-            raise first from last
-        raise last from None  # its cause: `e.cause`
+        try:
+            return super().pause(e)
+        except ServiceError as last:
+            if isinstance(first, SessionClosed) and first is not e and not isinstance(last, Busy):
+                raise first from last
+            raise
 
 
 class SessionState:
@@ -153,16 +149,25 @@ def message_array(value: Any, name: str, integer: bool = False) -> np.ndarray:
     return a
 
 
-def batch_number(batch: Any) -> int:
-    """An update's `batch` as the service reads it: an int64 (0.5 is not batch 0), in pydantic's words."""
+def evaluate_message(q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> dict[str, Any]:
+    """An `evaluate` message's fields as the service reads them: `q`, and the options given (None: the opening's)."""
+    given = {"outputs": None if outputs is None else list(as_outputs(outputs)), "hessian_mode": hessian_mode,
+             "active_only": None if active_only is None else as_flag(active_only)}
+    return {"q": message_array(q, "q"), **{k: v for k, v in given.items() if v is not None}}
+
+
+def update_message(batch: Any, index: ArrayLike, values: dict[str, ArrayLike | None]) -> dict[str, Any]:
+    """An `update` message's fields as the service reads them: `batch` an int64 (0.5 is not batch 0, in pydantic's
+    words), `index` and the values given (None: left out), neither cast nor reshaped."""
     listed = isinstance(batch, (list, tuple)) or (isinstance(batch, np.ndarray) and batch.ndim > 0)
     a, faults = (None, [Fault(("batch",), *NOT_AN_INTEGER)]) if listed else as_array([batch], ("batch",), integer=True)
     if faults:
         raise in_body([replace(faults[0], loc=("batch",))])  # the field, not its element
-    return int(a[0])
+    return {"batch": int(a[0]), "index": message_array(index, "index", integer=True),
+            **{k: message_array(v, k) for k, v in values.items() if v is not None}}
 
 
-__all__ = ["Resume", "SessionClosed", "SessionState", "batch_number", "message_array", "resumable"]
+__all__ = ["Resume", "SessionClosed", "SessionState", "evaluate_message", "message_array", "resumable", "update_message"]
 
 
 class Exchange(SessionState):
@@ -184,42 +189,14 @@ class Exchange(SessionState):
         self._closed = False  # by `close()`: no more resuming
         self._begin()
 
-    # ---------------------------------------------------------------- frames out
-
-    def _open_frame(self) -> Frame:
-        content, _ = codec.encode(self.request, self.binary)
-        return self._out(content if self.binary else content.decode())
-
-    def _evaluate_frame(self, q: ArrayLike, outputs: Any, hessian_mode: str | None, active_only: bool | None) -> Frame:
-        given = {"outputs": None if outputs is None else list(as_outputs(outputs)), "hessian_mode": hessian_mode,
-                 "active_only": None if active_only is None else as_flag(active_only)}
-        return self._encode({"kind": proto.EVALUATE, "q": message_array(q, "q"),
-                             **{k: v for k, v in given.items() if v is not None}})  # None: the opening's
-
-    def _commit_frame(self, q: ArrayLike) -> Frame:
-        return self._encode({"kind": proto.COMMIT, "q": message_array(q, "q")})
-
-    def _update_frame(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Frame:
-        doc: dict[str, Any] = {"kind": proto.UPDATE, "batch": batch_number(batch), "index": message_array(index, "index", integer=True)}
-        doc.update({k: message_array(v, k) for k, v in values.items() if v is not None})  # None: left out
-        return self._encode(doc)
-
-    def _close_frame(self) -> Frame:
-        return self._encode({"kind": proto.CLOSE})
-
     def _encode(self, doc: dict[str, Any]) -> Frame:
-        if self.binary:
-            doc = {k: wire.pack_array(v, wire.INT64 if v.dtype.kind == "i" else wire.FLOAT64) if isinstance(v, np.ndarray) else v
-                   for k, v in doc.items()}
-            return self._out(wire.dumps(doc))
-        doc = {k: np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v for k, v in doc.items()}
-        return self._out(orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY).decode())
+        return self._out(codec.dumps({k: np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v
+                                      for k, v in doc.items()}, self.binary))
 
-    def _out(self, frame: Frame) -> Frame:
+    def _out(self, content: bytes) -> Frame:
+        frame = content if self.binary else content.decode()
         self.bytes_sent += len(frame)
         return frame
-
-    # ---------------------------------------------------------------- replies in
 
     def _read(self, frame: Frame, kind: str) -> dict[str, Any]:
         """The reply document of `kind`; a fault reply raises `InvalidInput` / `TooLarge` (the session stays open)."""
@@ -230,30 +207,6 @@ class Exchange(SessionState):
         if doc.get("kind") != kind:
             raise ServiceError(502, [Fault((), f"expected a {kind!r} reply, got {doc.get('kind')!r}", "protocol")])
         return doc
-
-    def _opened(self, frame: Frame) -> None:
-        doc = self._read(frame, proto.OPENED)
-        self._coordinates = [self._array(c) for c in doc["coordinates"]]
-        self.limits: dict[str, Any] = dict(doc.get("limits", {}))  # the server's bounds in force: max_frame_bytes, idle_seconds
-
-    def _evaluation(self, frame: Frame) -> Evaluation:
-        # Every reply starts with its kind (fixmap header, "kind", then the kind; or '{"kind":"...'): a fault is
-        # read as such, an evaluation is HTTP's answer document (plus kind), which HTTP's decoder reads.
-        if frame[1:12] == _BINARY_ERROR or frame[:15] == _JSON_ERROR:
-            self._read(frame, proto.EVALUATION)  # raises the fault
-        self.bytes_received += len(frame)
-        ev = codec.decode(frame, codec.BINARY if isinstance(frame, bytes) else codec.JSON)  # type: ignore[arg-type]
-        return ev.sized(self.request)  # each batch knows its size: `joint(k)` works under active_only
-
-    def _committed(self, frame: Frame, q: ArrayLike) -> list[Array]:
-        doc = self._read(frame, proto.COMMITTED)
-        return self._keep([self._array(c) for c in doc["coordinates"]], q)
-
-    def _updated(self, frame: Frame, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> None:
-        doc = self._read(frame, proto.UPDATED)
-        self._apply_update(batch, index, values)
-        if "coordinates" in doc:  # the batch's committed coordinates after a change of offsets
-            self._coordinates[batch] = self._array(doc["coordinates"])
 
     def _array(self, v: Any) -> Array:
         return owned(wire.unpack_array(v, wire.FLOAT64, 1) if isinstance(v, dict) else v)
@@ -282,15 +235,19 @@ class Exchange(SessionState):
     def _open(self) -> Steps[None]:
         yield "drop", None  # a connection whose opening was refused (a busy 503 reply) before trying again
         yield "connect", None
-        self._opened((yield "send", self._open_frame()))
+        doc = self._read((yield "send", self._out(codec.encode(self.request, self.binary)[0])), proto.OPENED)
+        self._coordinates = [self._array(c) for c in doc["coordinates"]]
+        self.limits: dict[str, Any] = dict(doc.get("limits", {}))  # the server's bounds in force: max_frame_bytes, idle_seconds
 
     def _reopen(self) -> Steps[None]:
         self._closed = False
         self.request = self.request_for_reopen()
         yield from self._open()
 
-    def _exchange(self, frame: Frame) -> Steps[Frame]:
-        """`frame`'s reply; with `resume`, on a new connection in the committed state where the last one was lost."""
+    def _exchange(self, doc: dict[str, Any]) -> Steps[Frame]:
+        """`doc`'s reply; with `resume`, on a new connection in the committed state where the last one was lost."""
+        frame = self._encode(doc)
+
         def attempt() -> Steps[Frame]:
             if self._ws is None and self.resume and not self._closed:
                 yield from self._reopen()
@@ -302,21 +259,31 @@ class Exchange(SessionState):
 
     def _evaluate(self, q: ArrayLike, outputs: Any, hessian_mode: str | None,
                   active_only: bool | None) -> Steps[Evaluation]:
-        frame = self._evaluate_frame(q, outputs, hessian_mode, active_only)
-        return self._evaluation((yield from self._exchange(frame)))
+        frame = yield from self._exchange({"kind": proto.EVALUATE, **evaluate_message(q, outputs, hessian_mode, active_only)})
+        # Every reply starts with its kind (fixmap header, "kind", then the kind; or '{"kind":"...'): a fault is
+        # read as such, an evaluation is HTTP's answer document (plus kind), which HTTP's decoder reads.
+        if frame[1:12] == _BINARY_ERROR or frame[:15] == _JSON_ERROR:
+            self._read(frame, proto.EVALUATION)  # raises the fault
+        self.bytes_received += len(frame)
+        ev = codec.decode(frame, codec.BINARY if isinstance(frame, bytes) else codec.JSON)  # type: ignore[arg-type]
+        return ev.sized(self.request)  # each batch knows its size: `joint(k)` works under active_only
 
     def _commit(self, q: ArrayLike) -> Steps[list[Array]]:
-        return self._committed((yield from self._exchange(self._commit_frame(q))), q)
+        doc = self._read((yield from self._exchange({"kind": proto.COMMIT, "q": message_array(q, "q")})), proto.COMMITTED)
+        return self._keep([self._array(c) for c in doc["coordinates"]], q)
 
     def _update(self, batch: int, index: ArrayLike, values: dict[str, ArrayLike | None]) -> Steps[None]:
-        reply = yield from self._exchange(self._update_frame(batch, index, values))
-        self._updated(reply, batch, index, values)
+        reply = yield from self._exchange({"kind": proto.UPDATE, **update_message(batch, index, values)})
+        doc = self._read(reply, proto.UPDATED)
+        self._apply_update(batch, index, values)
+        if "coordinates" in doc:  # the batch's committed coordinates after a change of offsets
+            self._coordinates[batch] = self._array(doc["coordinates"])
 
     def _close(self) -> Steps[None]:
         self._closed = True
         if self._ws is not None:
             try:
-                yield "send", self._close_frame()  # the server answers by closing (code 1000)
+                yield "send", self._encode({"kind": proto.CLOSE})  # the server answers by closing (code 1000)
             except SessionClosed:
                 pass
             yield "drop", None
@@ -332,12 +299,11 @@ def handshake_error(url: str, e: Exception) -> Exception:
 
     if isinstance(e, InvalidStatus):
         status, body = e.response.status_code, bytes(e.response.body or b"")
-        if status in PROXY_STATUSES and not is_fault_list(body):  # a proxy with no upstream: as `evaluate` says it
-            return Unreachable(url, 1, status=status, proxy=proxy_page(body), retry_after=retry_after(e.response))
-        if status == 404 or not is_fault_list(body):  # the status read, not 404 (a FastAPI app with no route: 403)
+        proxy = status in PROXY_STATUSES and not is_fault_list(body)  # a proxy with no upstream: as `evaluate` says it
+        if not proxy and (status == 404 or not is_fault_list(body)):  # the status read, not 404 (a FastAPI app with no route: 403)
             return wrong_url(url, f"answered HTTP {status} {e.response.reason_phrase} to the WebSocket upgrade", status)
-        error = codec.error(status, body)  # a worker at its connection cap: `Busy`, waited as it asks (`Resume`)
-        return Busy(status, error.faults, retry_after=retry_after(e.response)) if isinstance(error, Busy) else error
+        # A worker at its connection cap: `Busy`, waited as it asks (`Resume`); else the service's refusal (401, ...).
+        return refusal(url, e.response, status, body, proxy) or codec.error(status, body)
     # Refused, unresolvable, no answer within the open timeout, or closed before any answer (`evaluate` retries it);
     # `InvalidMessage` says only "did not receive a valid HTTP response": its cause says what was read instead.
     why = e.__cause__ if isinstance(e, InvalidMessage) and e.__cause__ is not None else e

@@ -29,10 +29,6 @@ class Part:
     bodies: np.ndarray | None
     """Original body row of each of the part's bodies (M,), or None when they are all kept."""
 
-    @property
-    def n_joints(self) -> int:
-        return self.request.n_joints
-
 
 def plan(request: Request, max_joints: int) -> list[Part]:
     """Parts of at most `max_joints` joints (at least one part, empty batches included)."""

@@ -88,10 +88,7 @@ class Client(BaseClient):
 
     def session(self, request: Request | dict | EvaluateRequest, *, resume: bool = True) -> Session:
         """A session on the server's prepared scene of `request` (what `evaluate` takes; docs/sessions.md,
-        "Sessions"): `with client.session(r) as s:`. `resume`: a session closed by a server that stops (1012,
-        1001) or is full for now (1013, 4429), or dropped, is reopened in its committed state and the message
-        in flight sent again, and an open that reaches no server, or one that drains, is tried again: `retries`
-        times with `backoff`; a busy 503 (the worker's connection cap) after its `Retry-After`, as `evaluate`."""
+        "Sessions"): `with client.session(r) as s:`; `resume` as `Session` says."""
         return Session(request=request, resume=resume, **self._session_options())
 
     def _send(self, request: httpx.Request) -> httpx.Response:
@@ -115,8 +112,9 @@ class Session(Exchange):
     changes limits, strengths or offsets of some joints. A fault raises `InvalidInput` and the
     session stays open. With `resume` (the default), a connection closed by a server that stops
     (1012, 1001), full for now (1013, 4429) or dropped is reopened in the committed state and the message in flight sent
-    again, `retries` times at most with `backoff` (behind a load balancer, on another server);
-    else, or past them, a lost connection raises `SessionClosed`, and `reopen()` continues.
+    again, `retries` times at most with `backoff` (behind a load balancer, on another server), as is an opening
+    that reaches no server or one that drains (a busy 503, the worker's connection cap: after its `Retry-After`,
+    as `evaluate`); else, or past them, a lost connection raises `SessionClosed`, and `reopen()` continues.
     """
 
     def _begin(self) -> None:

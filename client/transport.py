@@ -30,7 +30,7 @@ from jointlimits.service.settings import bearer_token
 DEFAULT_URL = "http://127.0.0.1:8000"
 RETRYABLE = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError, httpx.WriteError)
 """Connection failures: the request never reached the server, or was dropped before an answer (both calls are
-idempotent). A busy 503 and a proxy's 502/503/504 are retried too (`Retry.again`); nothing else is."""
+idempotent). A busy 503 and a proxy's 502/503/504 are retried too (`Retry`); nothing else is."""
 PROXY_STATUSES = frozenset({502, 503, 504})
 MAX_RETRY_AFTER = 30.0
 """Longest `Retry-After` (seconds) the clients sleep for; a server asking more raises `Busy` at once."""
@@ -59,11 +59,10 @@ def run(steps: Steps[T], io: Callable[[str, Any], Any]) -> T:
             op, arg = steps.throw(error) if error is not None else steps.send(reply)
         except StopIteration as done:
             return done.value
-        reply, error = None, None
         try:
-            reply = io(op, arg)
+            reply, error = io(op, arg), None
         except BaseException as e:  # thrown into `steps`, where it is handled or raised on
-            error = e
+            reply, error = None, e
 
 
 async def arun(steps: Steps[T], io: Callable[[str, Any], Awaitable[Any]]) -> T:
@@ -75,11 +74,10 @@ async def arun(steps: Steps[T], io: Callable[[str, Any], Awaitable[Any]]) -> T:
             op, arg = steps.throw(error) if error is not None else steps.send(reply)
         except StopIteration as done:
             return done.value
-        reply, error = None, None
         try:
-            reply = await io(op, arg)
+            reply, error = await io(op, arg), None
         except BaseException as e:
-            error = e
+            reply, error = None, e
 
 
 class BaseClient:
@@ -136,17 +134,17 @@ class BaseClient:
     def _sending(self, request: httpx.Request) -> Steps[httpx.Response]:
         """`request`'s answer, `("send", request)` tried again after a connection failure, a busy 503 or a proxy's
         502/503/504, `("sleep", seconds)` between, as `Retry` says."""
-        retry = Retry(self.retries, self.backoff, f"{request.method} {request.url}", self.max_retry_after)
+        url, retry = f"{request.method} {request.url}", Retry(self.retries, self.backoff, self.max_retry_after)
         while True:
             try:
                 response = yield "send", request
             except RETRYABLE as e:
-                yield "sleep", retry.pause(e)
-                continue
-            pause = retry.again(response)  # None: the answer; else a busy 503 or a proxy's 502/503/504 to retry
-            if pause is None:
-                return response
-            yield "sleep", pause
+                refused: ServiceError | None = Unreachable(url, 1, e)
+            else:  # None: the answer; else a busy 503 or a proxy's 502/503/504 to retry
+                refused = refusal(url, response, response.status_code, response.content, from_proxy(response))
+                if refused is None:
+                    return response
+            yield "sleep", retry.pause(refused)
 
     def _job(self, request: Request, progress: bool | ProgressCallback | None) -> Job:
         """`request` in parts that fit `self._limits` (fetched by the caller: that is I/O); a None array
@@ -156,7 +154,7 @@ class BaseClient:
         n = part_joints(self._limits, self.binary, self.max_joints_per_request, request.outputs, len(request.batches))
         parts = split.plan(request, n)
         progress = self.progress if progress is None else progress
-        report = progress if callable(progress) else Bar() if progress and len(parts) > 1 else None
+        report = progress if callable(progress) else bar() if progress and len(parts) > 1 else None
         return Job(request, parts, report)
 
 
@@ -174,7 +172,7 @@ class Job:
             result = _result(response)
         except ServiceError as e:
             raise split.relocate(part, e) from None
-        self._done += part.n_joints
+        self._done += part.request.n_joints
         if self._report:
             self._report(self._done, self.request.n_joints)
         return result
@@ -184,19 +182,17 @@ class Job:
         return split.merge(self.request, self.parts, results).sized(self.request)
 
 
-class Bar:
+def bar(width: int = 30) -> ProgressCallback:
     """A tiny stderr progress bar (no dependency): `done / total` joints of a split request."""
+    t0 = time.perf_counter()
 
-    def __init__(self, width: int = 30) -> None:
-        self.width = width
-        self.t0 = time.perf_counter()
-
-    def __call__(self, done: int, total: int) -> None:
-        filled = int(self.width * (done / total if total else 1.0))
-        elapsed = time.perf_counter() - self.t0
-        sys.stderr.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] {done}/{total} joints {elapsed:5.1f}s")
+    def draw(done: int, total: int) -> None:
+        filled = int(width * (done / total if total else 1.0))
+        sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done}/{total} joints {time.perf_counter() - t0:5.1f}s")
         sys.stderr.write("\n" if done >= total else "")
         sys.stderr.flush()
+
+    return draw
 
 
 @functools.lru_cache(maxsize=4)
@@ -241,55 +237,41 @@ def proxy_page(content: bytes) -> str:
     return (text[:117] + "...") if len(text) > 120 else (text or "an empty body")
 
 
-class Retry:
-    """The retries of one request: connection errors, busy 503s and a proxy's 502/503/504 draw on the same
-    budget and the same backoff steps: each retry, whatever its cause, spends the next step."""
+def refusal(url: str, response: Any, status: int, body: bytes, proxy: bool) -> ServiceError | None:
+    """An answer that computed nothing, to retry (`response`'s `Retry-After` in it): a proxy's 502/503/504 (`proxy`:
+    not the service's) as `Unreachable` with its status and page, a busy 503 as `Busy`; else None."""
+    if proxy:
+        return Unreachable(url, 1, status=status, proxy=proxy_page(body), retry_after=retry_after(response))
+    error = codec.error(status, body) if status == 503 else None  # the deadline's 503 ran for the whole timeout
+    return Busy(status, error.faults, retry_after=retry_after(response)) if isinstance(error, Busy) else None
 
-    def __init__(self, retries: int, backoff: float, url: str, max_retry_after: float = MAX_RETRY_AFTER) -> None:
+
+class Retry:
+    """The retries of one request (and of a session's steps, `client/session.py:Resume`): connection errors, busy
+    503s and a proxy's 502/503/504 draw on the same budget and the same backoff steps: each retry, whatever its
+    cause, spends the next step."""
+
+    def __init__(self, retries: int, backoff: float, max_retry_after: float = MAX_RETRY_AFTER) -> None:
         self._pauses = (backoff * 2**k for k in range(retries))  # the sleep before each retry
-        self.url = url
         self.max_retry_after = max_retry_after
         self.attempts = 0
 
-    def pause(self, error: Exception) -> float:
-        """Seconds to sleep after `error` (one of `RETRYABLE`) before the next try; `Unreachable` if none is left."""
+    def pause(self, e: ServiceError) -> float:
+        """Seconds to sleep after `e` (`Unreachable` or `Busy`: nothing was computed) before the next try: its
+        `Retry-After`, at least the backoff step. When no retry is left, or `e` asks to wait more than
+        `max_retry_after`: `e` raised, said of every attempt."""
         self.attempts += 1
-        pause = next(self._pauses, None)
-        if pause is None:
-            raise Unreachable(self.url, self.attempts, error) from error
-        return pause
-
-    def again(self, response: httpx.Response) -> float | None:
-        """None if `response` is an answer to hand on; else (a busy 503, or a proxy's 502/503/504: nothing was
-        computed) seconds to sleep before the next try: its `Retry-After`, at least the backoff step. When no
-        retry is left, or the answer asks to wait more than `max_retry_after`: `Busy` for the service's busy
-        503, `Unreachable` (with the proxy's `status`) for a proxy's answer."""
-        error = None
-        if not from_proxy(response):
-            error = codec.error(response.status_code, response.content) if response.status_code == 503 else None
-            if not isinstance(error, Busy):  # the deadline's 503 ran for the whole timeout: not retried
-                return None
-        after = retry_after(response)
-        pause = self.wait(after, error)
-        if pause is None:
-            raise Unreachable(self.url, self.attempts, status=response.status_code, proxy=proxy_page(response.content),
-                              retry_after=after)
-        return pause
-
-    def wait(self, after: float | None, busy: Busy | None = None) -> float | None:
-        """Seconds to sleep after a refusal that computed nothing (`busy`, or a proxy's answer) whose `Retry-After`
-        is `after`: at least the backoff step. No retry left, or `after` over `max_retry_after`: `Busy` raised
-        (`busy`'s faults, `after`, the attempts) or, for a proxy's answer, None. A session's opening waits by it too
-        (`client/session.py:Resume`)."""
-        self.attempts += 1
+        after = getattr(e, "retry_after", None)
         too_long = after is not None and after > self.max_retry_after
         step = None if too_long else next(self._pauses, None)
         if step is not None:
             return max(step, after or 0.0)
-        if busy is not None:
-            raise Busy(busy.status, busy.faults, retry_after=after, attempts=self.attempts,
+        if isinstance(e, Busy):
+            raise Busy(e.status, e.faults, retry_after=after, attempts=self.attempts,
                        max_retry_after=self.max_retry_after if too_long else None)
-        return None
+        if isinstance(e, Unreachable):
+            raise e.after(self.attempts) from e.cause
+        raise e from None
 
 
 def part_joints(limits: ConstitutionsResponse | None, binary: bool, user_max: int | None,

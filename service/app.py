@@ -137,19 +137,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                            allow_headers=["Authorization", "Content-Type", "Accept", "X-Request-ID"],
                            expose_headers=["X-Request-ID"], max_age=600)
     app.add_middleware(FaultListMiddleware)
-    app.add_middleware(ObservabilityMiddleware, metrics=metrics, route_paths=lambda: _route_paths(app))
+    app.add_middleware(ObservabilityMiddleware, metrics=metrics)
     app.add_middleware(CloseConnections, state=app.state)
     return app
-
-
-def _route_paths(app: FastAPI) -> list[str]:
-    """Paths of the app's routes without parameters (labels for requests refused before routing)."""
-    paths = [r.path for r in app.routes if isinstance(getattr(r, "path", None), str)]
-    try:
-        paths += list(app.openapi().get("paths", {}))  # also the routes of included routers
-    except Exception:  # pragma: no cover (a broken schema must not break metrics)
-        pass
-    return [p for p in paths if "{" not in p]
 
 
 app = create_app()

@@ -429,8 +429,7 @@ def _size(event: dict[str, Any]) -> int:
     return sys.getsizeof(data) if data else 0
 
 
-def not_utf8() -> tuple[int, str]:
-    return 1007, "a text message must be valid UTF-8 (send msgpack as a binary message)"
+NOT_UTF8 = 1007, "a text message must be valid UTF-8 (send msgpack as a binary message)"
 
 
 class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
@@ -550,7 +549,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
             return super().handle_parser_exception()
         self.conn.data_to_send()  # websockets' own close frame and EOF: replaced by ours
         self._close_and_drain(*((1009, _too_big(exc, self.config.ws_max_size)) if isinstance(exc, PayloadTooBig)
-                                else not_utf8()))
+                                else NOT_UTF8))
 
     def send_receive_event_to_app(self) -> None:
         if self.curr_msg_data_type != "text" or self.close_sent:
@@ -561,7 +560,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
         try:
             text = data.decode()
         except UnicodeDecodeError:
-            code, reason = not_utf8()
+            code, reason = NOT_UTF8
             log.warning("client %s broke the WebSocket protocol: closing with %s (%s)", peer(self.client), code, reason)
             return self._close_and_drain(code, reason)  # tells the application, sends the close, drains the rest
         self.queue.put_nowait({"type": "websocket.receive", "text": text})

@@ -25,9 +25,8 @@ from starlette.websockets import WebSocketDisconnect
 from jointlimits.schemas import session as proto
 from jointlimits.service import sizing
 from jointlimits.service.core import Evaluation, Fault, InputError
-from jointlimits.service.core.assembled import check_layout
 from jointlimits.service.core.prepared import PreparedScene, prepare
-from jointlimits.service.core.validate import check_bodies, check_options, raise_if
+from jointlimits.service.core.validate import check_bodies, raise_if
 from jointlimits.service.http import binary, budget, convert, document, limits, routes
 from jointlimits.service.http.budget import Reservation
 from jointlimits.service.http.document import NOT_OPEN, Message
@@ -323,10 +322,9 @@ def decode(frame: Frame, max_values: int, max_batches: int = 0, opening: bool = 
             kwargs = binary.decode(frame, max_batches, opening=True, checker=checker)  # type: ignore[arg-type]
         else:
             kwargs = convert.decode(text, max_values, max_batches, opening=True, checker=checker)
-        # The options become the session's defaults: checked now; `q` is part of the document, checked as
+        # The options, the session's defaults, were checked with the document; `q` is part of it, checked as
         # POST /v1/evaluate checks it (the scene is prepared at q_prev).
-        raise_if(check_options(kwargs["outputs"], kwargs["hessian_mode"]) + check_layout(kwargs["layout"])
-                 + check_bodies(kwargs["bodies"]))
+        raise_if(check_bodies(kwargs["bodies"]))
         return kwargs
     except (InputError, HttpError) as e:
         # A later kind of message sent first: one fault that says so, not the opening document's five.

@@ -199,7 +199,7 @@ def serve(args: argparse.Namespace) -> int:
     # process "killed by SIGTERM" (143). A graceful stop is a success: exit 0, like the
     # multi-worker supervisor does.
     for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, _exit_cleanly)
+        signal.signal(sig, lambda signum, frame: sys.exit(0))
     try:
         uvicorn.run(
             "jointlimits.service.app:app",
@@ -224,10 +224,6 @@ def serve(args: argparse.Namespace) -> int:
         if own_metrics_dir:
             shutil.rmtree(own_metrics_dir, ignore_errors=True)
     return 0
-
-
-def _exit_cleanly(signum: int, frame: object) -> None:
-    raise SystemExit(0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -23,6 +23,7 @@ from typing import Any
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client import multiprocess
+from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 ACCESS_LOGGER = "jointlimits.access"
@@ -235,8 +236,5 @@ class _MetricsRoute:
 
 
 def _request_id(scope: Scope) -> str:
-    for name, value in scope.get("headers", ()):
-        if name == b"x-request-id":
-            rid = value.decode("latin-1")
-            return rid if _REQUEST_ID.match(rid) else uuid.uuid4().hex
-    return uuid.uuid4().hex
+    rid = Headers(scope=scope).get("x-request-id", "")
+    return rid if _REQUEST_ID.match(rid) else uuid.uuid4().hex

@@ -208,8 +208,7 @@ def serve(args: argparse.Namespace) -> int:
             workers=args.workers,
             log_config=log_config(args.log_level, args.access_log),
             log_level=args.log_level,
-            # uvicorn refuses a larger message itself (1009, drained: the client reads it) before buffering it;
-            # no permessage-deflate: float64 arrays barely compress, deflate would only cost CPU.
+            # uvicorn refuses a larger message itself (1009, drained: the client reads it) before buffering it.
             **server_options(args.max_frame_bytes),
             access_log=False,  # ours (JSON, with request id and joints) replaces uvicorn's
             timeout_graceful_shutdown=max(1, math.ceil(args.graceful_timeout)),

@@ -310,25 +310,26 @@ def decode(frame: Frame, max_values: int, max_batches: int = 0, opening: bool = 
     its `id` (under "id", None when absent); `InputError` (422) or `HttpError` (413: a JSON text's values, or the
     opening's batches, counted before they are parsed, as in a request), carrying the document's readable `id`."""
     checker = document.Checker(binary=isinstance(frame, bytes))
-    text = frame.encode() if isinstance(frame, str) else None  # counts are faster on bytes than on str
     try:
         if not opening:
-            if text is None:
+            if isinstance(frame, bytes):
                 return checker.message(binary.unpack(frame, checker, message=True))
+            text = frame.encode()  # counts are faster on bytes than on str
             limits.check_json(text, max_values)
             checker.booleans = convert.booleans(text)
             return checker.message(convert.load(text))
-        if text is None:
-            kwargs = binary.decode(frame, max_batches, opening=True, checker=checker)  # type: ignore[arg-type]
+        if isinstance(frame, bytes):
+            kwargs = binary.decode(frame, max_batches, opening=True, checker=checker)
         else:
-            kwargs = convert.decode(text, max_values, max_batches, opening=True, checker=checker)
+            kwargs = convert.decode(frame.encode(), max_values, max_batches, opening=True, checker=checker)
         # The options, the session's defaults, were checked with the document; `q` is part of it, checked as
         # POST /v1/evaluate checks it (the scene is prepared at q_prev).
         raise_if(check_bodies(kwargs["bodies"]))
         return kwargs
     except (InputError, HttpError) as e:
         # A later kind of message sent first: one fault that says so, not the opening document's five.
-        if opening and isinstance(e, InputError) and any(f.loc == ("kind",) and f.type == "extra_forbidden" for f in e.faults):
+        later = isinstance(e, InputError) and any(f.loc == ("kind",) and f.type == "extra_forbidden" for f in e.faults)
+        if opening and later:
             e = InputError([Fault(("kind",), NOT_OPEN, "session_not_open")])
         raise with_id(e, checker.message_id) from None
 

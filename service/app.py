@@ -26,7 +26,7 @@ from jointlimits.service.http.auth import BearerAuthMiddleware, SessionOriginMid
 from jointlimits.service.http.budget import Budget, ReleaseMiddleware
 from jointlimits.service.http.errors import FaultListMiddleware
 from jointlimits.service.http.routes import install
-from jointlimits.service.http.timeouts import OPENED, BodyTimeoutMiddleware
+from jointlimits.service.http.timeouts import OPENED
 from jointlimits.service.observability import LIFESPAN_METRICS, Metrics, ObservabilityMiddleware
 from jointlimits.service.settings import Settings
 
@@ -122,12 +122,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # The worker's memory budgets (service/http/budget.py): taken by the routes, given back after the answer.
     app.state.uploads = Budget(sizing.upload_bytes(settings), on_change=lambda b: metrics.uploads_held.set(b.held))
     app.state.in_flight = Budget(sizing.inflight_bytes(settings), on_change=show)
-    # The middleware, innermost first (Starlette wraps in reverse): the body's read timeout; the release of the
-    # budgets after the answer is sent; bearer auth (before the body is read); CORS (answers preflights before
-    # auth could refuse them) and the sessions' Origin check (a foreign Origin is refused, token or not); every
-    # refusal in the fault-list shape; observability (sees every request, 401s and preflights too, serves
-    # /metrics); outermost, `Connection: close` while draining or on an aged connection.
-    app.add_middleware(BodyTimeoutMiddleware, timeout=settings.body_timeout)
+    # The middleware, innermost first (Starlette wraps in reverse): the release of the budgets after the answer is
+    # sent; bearer auth (before the body is read); CORS (answers preflights before auth could refuse them) and the
+    # sessions' Origin check (a foreign Origin is refused, token or not); every refusal in the fault-list shape;
+    # observability (sees every request, 401s and preflights too, serves /metrics); outermost, `Connection: close`
+    # while draining or on an aged connection.
     app.add_middleware(ReleaseMiddleware)
     if settings.token:
         app.add_middleware(BearerAuthMiddleware, token=settings.token)
@@ -137,19 +136,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                            allow_headers=["Authorization", "Content-Type", "Accept", "X-Request-ID"],
                            expose_headers=["X-Request-ID"], max_age=600)
     app.add_middleware(FaultListMiddleware)
-    app.add_middleware(ObservabilityMiddleware, metrics=metrics, route_paths=lambda: _route_paths(app))
+    app.add_middleware(ObservabilityMiddleware, metrics=metrics)
     app.add_middleware(CloseConnections, state=app.state)
     return app
-
-
-def _route_paths(app: FastAPI) -> list[str]:
-    """Paths of the app's routes without parameters (labels for requests refused before routing)."""
-    paths = [r.path for r in app.routes if isinstance(getattr(r, "path", None), str)]
-    try:
-        paths += list(app.openapi().get("paths", {}))  # also the routes of included routers
-    except Exception:  # pragma: no cover (a broken schema must not break metrics)
-        pass
-    return [p for p in paths if "{" not in p]
 
 
 app = create_app()

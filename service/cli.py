@@ -199,7 +199,7 @@ def serve(args: argparse.Namespace) -> int:
     # process "killed by SIGTERM" (143). A graceful stop is a success: exit 0, like the
     # multi-worker supervisor does.
     for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, _exit_cleanly)
+        signal.signal(sig, lambda signum, frame: sys.exit(0))
     try:
         uvicorn.run(
             "jointlimits.service.app:app",
@@ -208,8 +208,7 @@ def serve(args: argparse.Namespace) -> int:
             workers=args.workers,
             log_config=log_config(args.log_level, args.access_log),
             log_level=args.log_level,
-            # uvicorn refuses a larger message itself (1009, drained: the client reads it) before buffering it;
-            # no permessage-deflate: float64 arrays barely compress, deflate would only cost CPU.
+            # uvicorn refuses a larger message itself (1009, drained: the client reads it) before buffering it.
             **server_options(args.max_frame_bytes),
             access_log=False,  # ours (JSON, with request id and joints) replaces uvicorn's
             timeout_graceful_shutdown=max(1, math.ceil(args.graceful_timeout)),
@@ -224,10 +223,6 @@ def serve(args: argparse.Namespace) -> int:
         if own_metrics_dir:
             shutil.rmtree(own_metrics_dir, ignore_errors=True)
     return 0
-
-
-def _exit_cleanly(signum: int, frame: object) -> None:
-    raise SystemExit(0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -17,12 +17,13 @@ import os
 import re
 import time
 import uuid
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client import multiprocess
+from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 ACCESS_LOGGER = "jointlimits.access"
@@ -164,12 +165,9 @@ class ObservabilityMiddleware:
     """Request id (the caller's `X-Request-ID` when short and printable, else a new one, echoed in the answer),
     JSON access log and metrics for every HTTP request; serves `GET /metrics`."""
 
-    def __init__(self, app: ASGIApp, metrics: Metrics, route_paths: Callable[[], Iterable[str]] = tuple) -> None:
+    def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
         self.app, self.metrics = app, metrics
-        # Paths of the app's routes, for requests refused before routing (401, 413 from a middleware):
-        # they are labelled with their route too; any other unmatched path is "unmatched" (bounded labels).
-        self._route_paths = route_paths
-        self._known: frozenset[str] | None = None
+        self._known: frozenset[str] | None = None  # the app's route paths without parameters, once read
         self.log = logging.getLogger(ACCESS_LOGGER)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -211,9 +209,12 @@ class ObservabilityMiddleware:
     def _record(self, scope: Scope, state: dict[str, Any], request_id: str, status: int, elapsed: float,
                 bytes_in: int) -> None:
         route = getattr(scope.get("route"), "path", None)
-        if route is None:
-            if self._known is None:
-                self._known = frozenset(self._route_paths())
+        if route is None:  # refused before routing (401, 413 from a middleware): labelled with its route too;
+            # any other path is "unmatched" (bounded labels)
+            if self._known is None:  # the app's own routes, and its routers' (its OpenAPI paths)
+                app = scope["app"]
+                paths = [*(getattr(r, "path", None) for r in app.routes), *app.openapi().get("paths", {})]
+                self._known = frozenset(p for p in paths if isinstance(p, str) and "{" not in p)
             route = scope["path"] if scope["path"] in self._known else "unmatched"
         method = scope["method"]
         self.metrics.requests.labels(method, route, str(status)).inc()
@@ -235,8 +236,5 @@ class _MetricsRoute:
 
 
 def _request_id(scope: Scope) -> str:
-    for name, value in scope.get("headers", ()):
-        if name == b"x-request-id":
-            rid = value.decode("latin-1")
-            return rid if _REQUEST_ID.match(rid) else uuid.uuid4().hex
-    return uuid.uuid4().hex
+    rid = Headers(scope=scope).get("x-request-id", "")
+    return rid if _REQUEST_ID.match(rid) else uuid.uuid4().hex

@@ -133,15 +133,13 @@ class Settings:
         1024, positive_int,
         "connections a worker holds at once, HTTP and sessions; one more is answered 503 busy and closed",
     )
-    # The drain on SIGTERM (service/app.py): each worker's /readyz answers 503 "draining" at once and the worker
-    # goes on accepting and answering for this long, then stops accepting and finishes what it holds.
+    # The drain on SIGTERM (service/app.py:drain_on_sigterm); then the worker finishes what it holds.
     shutdown_delay: float = _setting(
         5.0, seconds,
         "seconds each worker keeps accepting and answering after SIGTERM, /readyz answering 503 draining, "
         "before it stops accepting (load balancers and Kubernetes endpoints stop sending meanwhile); 0: at once",
     )
-    # Rebalancing after a rollout (service/app.py): a keep-alive connection this old is told `Connection: close`
-    # with its next answer, so the client's next one is balanced anew (an L4 balancer: onto a restarted pod too).
+    # Rebalancing after a rollout (service/app.py:CloseConnections; an L4 balancer: onto a restarted pod too).
     max_connection_age: float = _setting(
         60.0, seconds,
         "seconds a keep-alive connection serves requests; the first answer after it says Connection: close, "

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hmac
 
+from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from jointlimits.service.core import Fault
@@ -17,10 +18,6 @@ from jointlimits.service.http.errors import refuse
 
 PROTECTED_PREFIX = "/v1/"
 _UNAUTHORIZED = "missing or invalid bearer token"
-
-
-def _header(scope: Scope, name: bytes) -> bytes | None:
-    return next((v for k, v in scope.get("headers", ()) if k == name), None)
 
 
 class BearerAuthMiddleware:
@@ -37,10 +34,10 @@ class BearerAuthMiddleware:
         await refuse(scope, receive, send, 401, fault, _UNAUTHORIZED, challenge)
 
     def _authorized(self, scope: Scope) -> bool:
-        scheme, _, credentials = (_header(scope, b"authorization") or b"").strip().partition(b" ")
+        scheme, _, credentials = Headers(scope=scope).get("authorization", "").strip().partition(" ")
         # The scheme is case-insensitive (RFC 9110); the token comparison is constant-time,
         # so it leaks nothing about how much of the token matched.
-        return scheme.lower() == b"bearer" and hmac.compare_digest(credentials.strip(), self.expected)
+        return scheme.lower() == "bearer" and hmac.compare_digest(credentials.strip().encode("latin-1"), self.expected)
 
 
 class SessionOriginMiddleware:
@@ -54,8 +51,7 @@ class SessionOriginMiddleware:
         self.origins = {o.rstrip("/") for o in origins}
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        raw = _header(scope, b"origin") if scope["type"] == "websocket" else None
-        origin = None if raw is None else raw.decode("latin-1")
+        origin = Headers(scope=scope).get("origin") if scope["type"] == "websocket" else None
         if origin is None or "*" in self.origins or origin.rstrip("/") in self.origins:
             return await self.app(scope, receive, send)
         msg = f"origin {origin[:200]!r} is not allowed (JOINTLIMITS_CORS_ORIGINS): no session from this site"

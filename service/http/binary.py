@@ -134,12 +134,8 @@ def unpack(body: bytes, r: document.Checker, max_batches: int | None = None, mes
 
 def decode(body: bytes, max_batches: int | None = None, opening: bool = False,
            checker: document.Checker | None = None) -> dict[str, Any]:
-    """Keyword arguments of `jointlimits.service.core.evaluate` for a msgpack body; `InputError` / 413 `HttpError`.
-    Its joints are counted once it is read (`limits.admit`).
-
-    More batches than `max_batches` is a 413 before any batch is read (each costs Python work here).
-    `opening`: a session's opening document, whose optional `id` is returned too, under "id".
-    """
+    """`convert.decode` for a msgpack body: `InputError`, or 413 `HttpError` for more batches than `max_batches`
+    before any batch is read (each costs Python work here; its joints are counted once it is read, `limits.admit`)."""
     r = checker or document.Checker(binary=True)
     return r.request(unpack(body, r, max_batches, opening=opening), opening)
 

@@ -173,7 +173,7 @@ async def receive(request: Request, settings: Settings, binary_request: bool, bi
         return False
 
     try:
-        body = await limits.read_body(request, settings.max_body_bytes, take)
+        body = await limits.read_body(request, settings.max_body_bytes, settings.body_timeout, take)
         if body is None:  # refused as it arrived, then drained
             raise busy(f"this worker is receiving as many request bodies as its upload budget holds "
                        f"({uploads.capacity} bytes, docs/deployment.md, 'Limits and sizing a pod')")

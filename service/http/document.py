@@ -21,9 +21,11 @@ from jointlimits.schemas import evaluate as models
 from jointlimits.schemas import session as proto
 from jointlimits.schemas.constitutions import STRENGTH_DEFAULT
 from jointlimits.service.core import Bodies, Fault, InputError, Joints, registry
+from jointlimits.service.core.assembled import LAYOUTS
 from jointlimits.service.core.errors import MAX_FAULTS, Loc
 from jointlimits.service.core.validate import _element_faults as element_faults
-from jointlimits.service.core.validate import DUPLICATE_KEY_MSG, HESSIAN_MODES, ROWS, NOT_A_LIST, NOT_AN_INTEGER, ORIGINS, as_array, literal_msg
+from jointlimits.service.core.validate import (DUPLICATE_KEY_MSG, HESSIAN_MODES, NOT_A_LIST, NOT_AN_INTEGER, ORIGINS,
+                                               ROWS, as_array, check_options, literal_msg)
 
 # Each object's keys (True: required), as the wire models define them.
 REQUEST, BODIES, BATCH = ({k: f.is_required() for k, f in m.model_fields.items()} for m in (models.EvaluateRequest, models.Bodies, models.JointBatch))
@@ -194,25 +196,16 @@ class Checker:
         return np.zeros(0, np.int64 if integer else np.float64) if a is None else a
 
     def options(self, top: dict[str, Any]) -> dict[str, Any]:
-        """The evaluate options `top` gives, checked (the core checks them again for the in-process arrays)."""
-        out: dict[str, Any] = {}
-        if "outputs" in top:
-            outputs = top["outputs"]
-            if not isinstance(outputs, list):
-                self.fault(("outputs",), *NOT_A_LIST)
-                outputs = list(OUTPUTS)
-            elif not outputs:
-                self.fault(("outputs",), "List should have at least 1 item after validation, not 0", "too_short")
-            for i, o in enumerate(outputs):
-                if not isinstance(o, str) or o not in OUTPUTS:
-                    self.fault(("outputs", i), literal_msg(OUTPUTS), "literal_error")
-            out["outputs"] = outputs
-        if "hessian_mode" in top:
-            out["hessian_mode"] = self.literal(top["hessian_mode"], ("hessian_mode",), HESSIAN_MODES)
-        if "active_only" in top:
-            out["active_only"] = top["active_only"]
-            if not isinstance(top["active_only"], bool):
-                self.fault(("active_only",), "Input should be a valid boolean", "bool_type")
+        """The evaluate options `top` gives, checked by the core's `check_options` (which the core runs again for
+        the in-process arrays) once `outputs` is a list: a document with a faulty option is refused here."""
+        out = {k: top[k] for k in ("outputs", "hessian_mode", "active_only") if k in top}
+        if not isinstance(out.get("outputs", []), list):
+            self.fault(("outputs",), *NOT_A_LIST)
+            out["outputs"] = list(OUTPUTS)
+        for f in check_options(out.get("outputs", OUTPUTS), out.get("hessian_mode", HESSIAN_MODES[0])):
+            self.fault(f.loc, f.msg, f.type)
+        if not isinstance(out.get("active_only", False), bool):
+            self.fault(("active_only",), "Input should be a valid boolean", "bool_type")
         return out
 
     # ------------------------------------------------------------------ a request
@@ -247,7 +240,7 @@ class Checker:
         top = self.object(doc, (), OPENING if opening else REQUEST) or {}
         # The document's own scalars first: a flood of keys in `bodies` or of batches does not hide them.
         options = {"outputs": list(OUTPUTS), "hessian_mode": "exact", "active_only": False} | self.options(top)
-        layout = self.literal(top.get("layout", "joints"), ("layout",), ("joints", "bodies"))
+        layout = self.literal(top.get("layout", "joints"), ("layout",), LAYOUTS)
         opening_id = self.id(top.get("id")) if opening else None
         bodies = self.object(top["bodies"], ("bodies",), BODIES) if "bodies" in top else None
         q = {k: self.array(bodies[k], ("bodies", k)) if bodies and k in bodies else np.zeros((0, 12)) for k in BODY_ARRAYS}

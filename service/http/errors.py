@@ -21,7 +21,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from jointlimits.service.core import Fault, InputError
 from jointlimits.service.core.errors import MAX_FAULTS, DeadlineExceeded
-from jointlimits.service.http.timeouts import BODY_TIMED_OUT, RETRY_AFTER_SECONDS
+from jointlimits.service.http.timeouts import RETRY_AFTER_SECONDS
 MAX_KEY_CHARS = 64
 """A `loc` element echoed back (an unknown key) is cut to this many characters plus `...`."""
 MAX_MSG_CHARS = 1024
@@ -33,7 +33,8 @@ CLIENT_CLOSED = 499
 
 
 class HttpError(Exception):
-    """A request refused before the core sees it: 413 too large, 415 / 406 unknown media type, 503 busy."""
+    """A request refused before the core sees it: 413 too large, 408 its body too slow, 415 / 406 unknown media type,
+    503 busy."""
 
     def __init__(self, status: int, faults: list[Fault], headers: dict[str, str] | None = None) -> None:
         self.status, self.faults, self.headers = status, faults, headers  # headers: a 503's Retry-After
@@ -105,13 +106,9 @@ async def fault_handler(request: Request, exc: Exception) -> FaultList:
 
 
 async def client_gone(request: Request, exc: Exception) -> Response:
-    """`ClientDisconnect` while reading the body: 408 if the body timed out, else 499 (nobody hears it). Either
-    way one access-log line at info and a 4xx in the metrics: not a 500 with a traceback."""
-    timeout = request.scope.get("state", {}).get(BODY_TIMED_OUT)
-    if timeout is None:
-        return Response(status_code=CLIENT_CLOSED)
-    msg = f"request body not received within {timeout:g} s (JOINTLIMITS_BODY_TIMEOUT)"
-    return one_fault(408, ["body"], msg, "timeout", {"Connection": "close"})
+    """`ClientDisconnect` while reading the body: 499 (nobody hears it), one access-log line at info and a 4xx in
+    the metrics, not a 500 with a traceback."""
+    return Response(status_code=CLIENT_CLOSED)
 
 
 async def deadline_handler(request: Request, exc: Exception) -> FaultList:

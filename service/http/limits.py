@@ -1,5 +1,5 @@
-"""Request limits, each checked once, here: the bytes while a body streams in (`read_body`); a JSON text's values
-and batches on its bytes, before its parse (`check_json`); a msgpack request's batches from its header
+"""Request limits, each checked once, here: the bytes and time while a body streams in (`read_body`); a JSON text's
+values and batches on its bytes, before its parse (`check_json`); a msgpack request's batches from its header
 (`check_batches`); the joints and the answer's size once parsed, before any evaluation (`admit`).
 
 Values and JSON batches are counted on the bytes because parsing is what they bound: a JSON value costs 24 (`0,`)
@@ -10,17 +10,21 @@ most `max_json_values / 11` joints, so joints are counted once parsed.
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Callable
 
 from fastapi import Request
 
+from jointlimits.service.core import Fault
+from jointlimits.service.http.errors import HttpError
 from jointlimits.service.http.errors import too_large as _too_large
 from jointlimits.service.http.timeouts import CHUNK_BYTES, CHUNKS, MIN_CHUNKS, too_many_pieces
 from jointlimits.schemas.answer import BATCH_OVERHEAD_BYTES, FLOATS_PER_JOINT, answer_bytes  # noqa: F401 (re-exported)
 from jointlimits.service.settings import Settings
 
-async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool]) -> bytes | None:
-    """The body, refused with 413 as soon as it is known to exceed `max_bytes` (by header or while streaming).
+async def read_body(request: Request, max_bytes: int, timeout: float, take: Callable[[int], bool]) -> bytes | None:
+    """The body, refused with 413 as soon as it is known to exceed `max_bytes` (by header or while streaming), with
+    408 if it is not all received within `timeout` seconds (JOINTLIMITS_BODY_TIMEOUT: a slowloris body, closed).
     `take(n)` says whether to keep each chunk (the upload budget, `budget.receive`); once it says no, the rest is
     read and dropped (the client gets an answer, not a reset, and nothing is held) and the result is None."""
     declared = request.headers.get("content-length")
@@ -29,18 +33,24 @@ async def read_body(request: Request, max_bytes: int, take: Callable[[int], bool
     chunks: list[bytes] | None = []
     size = 0
     chunks_in = request.scope.get("extensions", {}).get(CHUNKS)  # counted by the connection layer (`jointlimits serve`)
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > max_bytes:
-            raise _too_large(("body",), f"request body exceeds {max_bytes} bytes, the most this service accepts")
-        if chunks_in is not None and too_many_pieces(chunks_in[0], size):
-            raise _too_large(("body",), f"request body arrived in {chunks_in[0]} pieces (chunks, or reads of "
-                             f"its bytes) for {size} bytes; this service reads {MIN_CHUNKS} pieces, then one per "
-                             f"{CHUNK_BYTES} bytes: send it in larger chunks or writes")
-        if chunks is not None and take(len(chunk)):
-            chunks.append(chunk)
-        else:
-            chunks = None  # refused: drain
+    try:
+        async with asyncio.timeout(timeout):
+            async for chunk in request.stream():
+                size += len(chunk)
+                if size > max_bytes:
+                    msg = f"request body exceeds {max_bytes} bytes, the most this service accepts"
+                    raise _too_large(("body",), msg)
+                if chunks_in is not None and too_many_pieces(chunks_in[0], size):
+                    raise _too_large(("body",), f"request body arrived in {chunks_in[0]} pieces (chunks, or reads of "
+                                     f"its bytes) for {size} bytes; this service reads {MIN_CHUNKS} pieces, then one "
+                                     f"per {CHUNK_BYTES} bytes: send it in larger chunks or writes")
+                if chunks is not None and take(len(chunk)):
+                    chunks.append(chunk)
+                else:
+                    chunks = None  # refused: drain
+    except TimeoutError:
+        msg = f"request body not received within {timeout:g} s (JOINTLIMITS_BODY_TIMEOUT)"
+        raise HttpError(408, [Fault(("body",), msg, "timeout")], headers={"Connection": "close"}) from None
     return None if chunks is None else b"".join(chunks)
 
 

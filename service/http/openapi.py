@@ -18,19 +18,14 @@ _REF = "#/components/schemas/{model}"
 
 
 def add_components(openapi: dict[str, Any]) -> dict[str, Any]:
-    """Add the request and error models (and what they refer to) to `components.schemas`."""
+    """Add the request and error models (and what they refer to) to `components.schemas`; the UID fields' words and
+    values, the example answer, bearer auth and its 401, X-Request-ID."""
     _, top = models_json_schema(
         [(EvaluateRequest, "validation"), (ErrorResponse, "serialization")], ref_template=_REF
     )
     schemas = openapi.setdefault("components", {}).setdefault("schemas", {})
     for name, schema in top.get("$defs", {}).items():
         schemas.setdefault(name, schema)
-    return _document(openapi)
-
-
-def _document(openapi: dict[str, Any]) -> dict[str, Any]:
-    """The UID fields' words and values, the example answer, bearer auth and its 401, X-Request-ID."""
-    schemas = openapi["components"]["schemas"]
     for (model, name), words in registered().items():
         schemas[model]["properties"][name].update(words)
     openapi["components"]["securitySchemes"] = {"bearer": BEARER}

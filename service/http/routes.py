@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections import Counter
 
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import JSONResponse, RedirectResponse, Response
@@ -113,11 +114,9 @@ def draining(settings: Settings) -> FaultList:
 
 @router.get("/v1/constitutions", response_model=ConstitutionsResponse, summary="Supported constitutions")
 def list_constitutions(request: Request) -> ConstitutionsResponse:
-    s = request.app.state.settings
     infos = [describe(f) for f in sorted(registry.CONSTITUTIONS.values(), key=lambda f: -f.uid)]
-    bounds = Limits(max_body_bytes=s.max_body_bytes, max_joints=s.max_joints, max_batches=s.max_batches,
-                    max_answer_bytes=s.max_answer_bytes, max_json_values=s.max_json_values)
-    return ConstitutionsResponse(constitutions=infos, limits=bounds)
+    bounds = {k: getattr(request.app.state.settings, k) for k in Limits.model_fields}  # each a setting's name
+    return ConstitutionsResponse(constitutions=infos, limits=Limits(**bounds))
 
 
 @router.post(
@@ -161,11 +160,11 @@ def _evaluate(  # noqa: ANN001 (codec modules)
         n_bodies = kwargs["bodies"].q.shape[0]
         state.in_flight.shrink(sizing.request_cost(len(body), checker.values, batch_joints, n_bodies, outputs,
                                                    binary_answer, settings))
-        by_uid: dict[int, int] = {}  # joint counts for the access log and metrics (service/observability.py)
+        by_uid: Counter[int] = Counter()  # joint counts for the access log and metrics (service/observability.py)
         for j in kwargs["batches"]:
-            by_uid[int(j.constitution_uid)] = by_uid.get(int(j.constitution_uid), 0) + len(j.body_ids)
+            by_uid[int(j.constitution_uid)] += len(j.body_ids)
         state.joints_by_constitution = by_uid
-        state.joints = sum(by_uid.values())
+        state.joints = sum(batch_joints)
     # The core, with its guard that no answer carries NaN or Infinity (overflow is a 422 naming the joint).
     ev = evaluate(**kwargs, deadline=deadline)
     check_deadline(deadline)

@@ -25,9 +25,8 @@ from starlette.websockets import WebSocketDisconnect
 from jointlimits.schemas import session as proto
 from jointlimits.service import sizing
 from jointlimits.service.core import Evaluation, Fault, InputError
-from jointlimits.service.core.assembled import check_layout
 from jointlimits.service.core.prepared import PreparedScene, prepare
-from jointlimits.service.core.validate import check_bodies, check_options, raise_if
+from jointlimits.service.core.validate import check_bodies, raise_if
 from jointlimits.service.http import binary, budget, convert, document, limits, routes
 from jointlimits.service.http.budget import Reservation
 from jointlimits.service.http.document import NOT_OPEN, Message
@@ -156,7 +155,7 @@ async def _messages(websocket: WebSocket, settings: Settings, metrics: Metrics, 
                 reservations.append(await state.in_flight.acquire(cost, settings.queue_timeout))
                 reply = await run_in_threadpool(_open, frame, settings, state, session)
             else:
-                message = decode(frame, settings.max_json_values)
+                message: Message = decode(frame, settings.max_json_values)
                 kind, mid = message.kind, message.id
                 if kind == proto.CLOSE:
                     metrics.session_messages.labels(kind, outcome).inc()
@@ -164,7 +163,7 @@ async def _messages(websocket: WebSocket, settings: Settings, metrics: Metrics, 
                 reply = await _answer(session, message, binary_frame, settings, state, reservations)
         except (InputError, HttpError) as e:
             outcome = "fault"
-            reply = encode(error(e, getattr(e, "id", None) if mid is None else mid), binary_frame)
+            reply = encode(error(e), binary_frame, getattr(e, "id", None) if mid is None else mid)
             if kind == "open" and isinstance(e, HttpError) and e.status == 413:
                 await _send(websocket, reply, settings)
                 metrics.session_messages.labels(kind, outcome).inc()
@@ -243,7 +242,7 @@ def _reserve(state: Any, session: Session, joints: int, most: int, bodies: int =
 
 def _open(frame: Frame, settings: Settings, state: Any, session: Session) -> Frame:
     """Open the session's scene from its opening document (in a worker thread); the `opened` reply."""
-    kwargs = decode_open(frame, settings.max_json_values, settings.max_batches)
+    kwargs = decode(frame, settings.max_json_values, settings.max_batches, opening=True)
     batch_joints = [int(j.body_ids.shape[0]) for j in kwargs["batches"]]
     joints, bodies = sum(batch_joints), int(kwargs["bodies"].q.shape[0])
     try:
@@ -264,9 +263,7 @@ def _open(frame: Frame, settings: Settings, state: Any, session: Session) -> Fra
     opened = {"kind": proto.OPENED, "bodies": scene.n_bodies, "batch_sizes": list(scene.batch_sizes),
               "coordinates": coordinates,
               "limits": {"max_frame_bytes": settings.max_frame_bytes, "idle_seconds": settings.session_idle_seconds}}
-    if kwargs["id"] is not None:
-        opened["id"] = kwargs["id"]
-    return encode(opened, isinstance(frame, bytes))
+    return encode(opened, isinstance(frame, bytes), kwargs["id"])
 
 
 async def _answer(session: Session, m: Message, binary_frame: bool, settings: Settings, state: Any,
@@ -295,9 +292,7 @@ async def _answer(session: Session, m: Message, binary_frame: bool, settings: Se
         reply = {"kind": proto.UPDATED, "batch": m.batch, "joints": int(m.index.shape[0])}
         if "offset" in m.values:  # a new offset moves the batch's committed coordinates with it
             reply["coordinates"] = scene.coordinates([m.batch])[0]
-    if m.id is not None:
-        reply["id"] = m.id
-    return encode(reply, binary_frame)
+    return encode(reply, binary_frame, m.id)
 
 
 async def _run(session: Session, fn: Callable[[], T]) -> T:
@@ -310,42 +305,32 @@ async def _run(session: Session, fn: Callable[[], T]) -> T:
 # ------------------------------------------------------------------ messages: frames <-> the scene's arguments
 
 
-def decode_open(frame: Frame, max_values: int, max_batches: int) -> dict[str, Any]:
-    """Keyword arguments of the core for the opening document, plus its `id` (under "id", None when absent);
-    `InputError` (422) or `HttpError` (413: its JSON values or its batches, counted before they are parsed, as
-    in a request), carrying the document's readable `id` (`with_id`)."""
+def decode(frame: Frame, max_values: int, max_batches: int = 0, opening: bool = False) -> Any:
+    """A later message (a `Message`), or with `opening` the core's keyword arguments for the opening document plus
+    its `id` (under "id", None when absent); `InputError` (422) or `HttpError` (413: a JSON text's values, or the
+    opening's batches, counted before they are parsed, as in a request), carrying the document's readable `id`."""
     checker = document.Checker(binary=isinstance(frame, bytes))
     try:
-        if isinstance(frame, str):
-            kwargs = convert.decode(frame.encode(), max_values, max_batches, opening=True, checker=checker)
-        else:
+        if not opening:
+            if isinstance(frame, bytes):
+                return checker.message(binary.unpack(frame, checker, message=True))
+            text = frame.encode()  # counts are faster on bytes than on str
+            limits.check_json(text, max_values)
+            checker.booleans = convert.booleans(text)
+            return checker.message(convert.load(text))
+        if isinstance(frame, bytes):
             kwargs = binary.decode(frame, max_batches, opening=True, checker=checker)
-        # The options become the session's defaults: checked now; `q` is part of the document, checked as
+        else:
+            kwargs = convert.decode(frame.encode(), max_values, max_batches, opening=True, checker=checker)
+        # The options, the session's defaults, were checked with the document; `q` is part of it, checked as
         # POST /v1/evaluate checks it (the scene is prepared at q_prev).
-        raise_if(check_options(kwargs["outputs"], kwargs["hessian_mode"]) + check_layout(kwargs["layout"])
-                 + check_bodies(kwargs["bodies"]))
+        raise_if(check_bodies(kwargs["bodies"]))
         return kwargs
     except (InputError, HttpError) as e:
         # A later kind of message sent first: one fault that says so, not the opening document's five.
-        if isinstance(e, InputError) and any(f.loc == ("kind",) and f.type == "extra_forbidden" for f in e.faults):
+        later = isinstance(e, InputError) and any(f.loc == ("kind",) and f.type == "extra_forbidden" for f in e.faults)
+        if opening and later:
             e = InputError([Fault(("kind",), NOT_OPEN, "session_not_open")])
-        raise with_id(e, checker.message_id) from None
-
-
-def decode(frame: Frame, max_values: int) -> Message:
-    """A later message; `InputError` naming the key at fault, or `HttpError` (413) for a JSON text of more
-    values than `max_values` (before its parse), carrying the message's readable `id`."""
-    checker = document.Checker(binary=isinstance(frame, bytes))
-    try:
-        if isinstance(frame, str):
-            text = frame.encode()  # counts are faster on bytes than on str
-            limits.check_json(text, max_values)
-            doc = convert.load(text)
-            checker.booleans = convert.booleans(text)
-        else:
-            doc = binary.unpack(frame, checker, message=True)
-        return checker.message(doc)
-    except (InputError, HttpError) as e:
         raise with_id(e, checker.message_id) from None
 
 
@@ -358,9 +343,11 @@ def with_id(e: Exception, id: int | str | None) -> Exception:
 # ------------------------------------------------------------------ replies
 
 
-def encode(doc: dict[str, Any], binary_frame: bool) -> Frame:
-    """A reply in the encoding of the message it answers: arrays as array maps (msgpack) or lists of shortest
-    round-trip floats (JSON), written as `POST /v1/evaluate`'s answers are."""
+def encode(doc: dict[str, Any], binary_frame: bool, id: int | str | None = None) -> Frame:
+    """A reply in the encoding of the message it answers (with the message's `id` last, if it had one): arrays as
+    array maps (msgpack) or lists of shortest round-trip floats (JSON), written as `POST /v1/evaluate`'s answers are."""
+    if id is not None:
+        doc["id"] = id
     return binary.dumps(doc) if binary_frame else convert.dumps(doc).decode()
 
 
@@ -375,12 +362,9 @@ def at_message_q(e: InputError) -> InputError:
     return InputError([Fault(f.loc[1:], f.msg, f.type) if f.loc[:2] == ("bodies", "q") else f for f in e.faults])
 
 
-def error(exc: InputError | HttpError, id: int | str | None) -> dict[str, Any]:
+def error(exc: InputError | HttpError) -> dict[str, Any]:
     """A fault reply: HTTP's 4xx body (`detail`, every `loc` starting with "body") with its `status`."""
     # Rendered as HTTP's (cut, JSON-safe): a key the client sent is echoed as POST echoes it, never whole.
     http = isinstance(exc, HttpError)
     status, detail = (exc.status, render(exc.faults)) if http else (422, render(exc.faults, ("body",)))
-    doc: dict[str, Any] = {"kind": proto.ERROR, "status": status, **detail}
-    if id is not None:
-        doc["id"] = id
-    return doc
+    return {"kind": proto.ERROR, "status": status, **detail}

@@ -1,8 +1,8 @@
 """The connection layer: a worker's connections capped, deadlines on reads and writes, a WebSocket close always read.
 
 uvicorn times out only idle keep-alive connections: a client that sends nothing, half its headers, or its body at
-one byte a second (slowloris) holds a connection for ever. Each bound here is a total, not an idle time: the request
-head and the requests pipelined behind an answer (`ReadTimeoutProtocol`), the body (`BodyTimeoutMiddleware`), a
+one byte a second (slowloris) holds a connection for ever. Each bound is a total, not an idle time: the request
+head and the requests pipelined behind an answer (`ReadTimeoutProtocol`), the body (`limits.read_body`), a
 session message, and in both protocols the write side (`_WriteBound`: a client that stops reading is reset, freeing
 what it held; the application sees it as `Drain`). uvicorn's own WebSocket close on a protocol fault was a reset the
 client read as 1006: ours sends a close frame and a FIN, then drains (`WriteTimeoutWebSocketProtocol`).
@@ -22,7 +22,6 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocket
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
@@ -34,7 +33,6 @@ from jointlimits.service.observability import LIFESPAN_METRICS, peer
 from jointlimits.service.settings import Settings
 from jointlimits.service.sizing import UPLOAD_FACTOR
 
-BODY_TIMED_OUT = "body_timed_out"  # key in the request's scope state, read by `errors.client_gone`
 RETRY_AFTER_SECONDS = 5
 """`Retry-After` of every 503 (busy, past the request deadline): the worker is free again at once, a busy pod soon."""
 DRAIN = "jointlimits.drain"
@@ -403,7 +401,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
         if not self.transport.is_closing():
             log.debug("request head not complete within %s s: closing %s", self.header_timeout, self.client)
             msg = f"request headers not received within {self.header_timeout:g} s (JOINTLIMITS_HEADER_TIMEOUT)"
-            timed_out = _answer(b"408 Request Timeout", msg, "timeout")  # as the body's 408 (`errors.client_gone`)
+            timed_out = _answer(b"408 Request Timeout", msg, "timeout")  # as the body's 408 (`limits.read_body`)
             reason, answer = ("slow_head", timed_out) if self._head_bytes else ("silent", b"")
             self._refuse(reason, answer)
 
@@ -429,8 +427,7 @@ def _size(event: dict[str, Any]) -> int:
     return sys.getsizeof(data) if data else 0
 
 
-def not_utf8() -> tuple[int, str]:
-    return 1007, "a text message must be valid UTF-8 (send msgpack as a binary message)"
+NOT_UTF8 = 1007, "a text message must be valid UTF-8 (send msgpack as a binary message)"
 
 
 class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
@@ -550,7 +547,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
             return super().handle_parser_exception()
         self.conn.data_to_send()  # websockets' own close frame and EOF: replaced by ours
         self._close_and_drain(*((1009, _too_big(exc, self.config.ws_max_size)) if isinstance(exc, PayloadTooBig)
-                                else not_utf8()))
+                                else NOT_UTF8))
 
     def send_receive_event_to_app(self) -> None:
         if self.curr_msg_data_type != "text" or self.close_sent:
@@ -561,7 +558,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
         try:
             text = data.decode()
         except UnicodeDecodeError:
-            code, reason = not_utf8()
+            code, reason = NOT_UTF8
             log.warning("client %s broke the WebSocket protocol: closing with %s (%s)", peer(self.client), code, reason)
             return self._close_and_drain(code, reason)  # tells the application, sends the close, drains the rest
         self.queue.put_nowait({"type": "websocket.receive", "text": text})
@@ -678,32 +675,3 @@ def frame_limit(websocket: WebSocket, configured: int) -> int:
     config = getattr(getattr(websocket._receive, "__self__", None), "config", None)
     server = getattr(config, "ws_max_size", None)
     return min(configured, server) if isinstance(server, int) and server > 0 else configured
-
-
-class BodyTimeoutMiddleware:
-    """Bounds each wait for body bytes by the request's deadline; past it the app sees a disconnect."""
-
-    def __init__(self, app: ASGIApp, timeout: float) -> None:
-        self.app, self.timeout = app, timeout
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            return await self.app(scope, receive, send)
-        deadline = asyncio.get_running_loop().time() + self.timeout
-        body_done = False
-
-        async def receive_bounded() -> Message:
-            nonlocal body_done
-            if body_done:  # after the body, a receive waits for a disconnect: no deadline on that
-                return await receive()
-            try:
-                async with asyncio.timeout_at(deadline):
-                    message = await receive()
-            except TimeoutError:
-                scope.setdefault("state", {})[BODY_TIMED_OUT] = self.timeout
-                return {"type": "http.disconnect"}
-            if message["type"] != "http.request" or not message.get("more_body", False):
-                body_done = True
-            return message
-
-        await self.app(scope, receive_bounded, send)

@@ -1,4 +1,5 @@
-"""A batch's energies and the derivatives of its active joints, from its frames and coordinates.
+"""The energies of every batch's joints at once (`penalize`), then a batch's derivatives of its active joints
+(`differentiate`), from its frames and coordinates.
 
 The pipeline that validates and forms frames and coordinates is `jointlimits.service.core.prepared`.
 """

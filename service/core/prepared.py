@@ -18,8 +18,8 @@ numbers. A telescoping coordinate (the prismatic slide) depends on `q` and `q_re
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from itertools import accumulate
 from dataclasses import dataclass
+from itertools import accumulate
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -247,16 +247,15 @@ class PreparedScene:
         faults = (jb.faults + self._collapsed(b, jb, F, careful, known))[:MAX_FAULTS]
         return F, x, coordinate, pen.astype(x.dtype, copy=False), faults
 
-    def _limits(self) -> tuple[Array, Array, Array, Array]:
-        """Every batch's penalty bounds, strengths and widths (`penalize`), one after the other: kept until `update`
-        or a commit changes them (a committed batch's bound its coordinate, `lower` and `upper`)."""
+    def _limits(self) -> list[Array]:
+        """Every batch's penalty bounds, strengths and widths (`penalize`), one after the other (a committed batch's
+        bound its coordinate: `lower`, `upper`), kept until `update` or a commit changes them."""
         key = [jb.theta is None for jb in self._batches]
         if self._kept is None or self._kept[0] != key:
-            parts = [(jb.lo, jb.up) if jb.theta is None else (jb.lower.astype(jb.lo.dtype), jb.upper.astype(jb.lo.dtype))
-                     for jb in self._batches]
-            cat = lambda a: np.concatenate(a) if a else np.zeros(0)  # noqa: E731
-            self._kept = key, (cat([lo for lo, _ in parts]), cat([up for _, up in parts]),
-                               cat([jb.s for jb in self._batches]), cat([jb.w for jb in self._batches]))
+            dt = self._table.dtype
+            parts = [((jb.lo, jb.up) if free else (jb.lower.astype(dt), jb.upper.astype(dt))) + (jb.s, jb.w)
+                     for jb, free in zip(self._batches, key)]
+            self._kept = key, [np.concatenate(a) for a in zip(*parts)] if parts else [np.zeros(0)] * 4
         return self._kept[1]
 
     # ---------------------------------------------------------------- state
@@ -281,7 +280,7 @@ class PreparedScene:
                     r = self._angle(jb)
                     turn = rem(x - r)
                     x = r + turn
-                    if jb.committed is not None:  # the committed coordinate moves by the turn (as in `_evaluate_batch`)
+                    if jb.committed is not None:  # the committed coordinate moves by the turn (as in `_at_q`)
                         coordinate = jb.committed + turn
                 new.append((F_q, x, _plus_offset(x, jb.offset) if coordinate is None else coordinate))
             log.raise_if_any()
@@ -528,12 +527,11 @@ def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: lis
     return p
 
 
-def _rows(slopes: tuple | None, own: slice) -> tuple | None:
-    """`penalize`'s slopes (each (A,)) of active joints `own` (views), `(E', E'', shift, plain)`."""
-    if slopes is None:
-        return None
-    cut = lambda a: None if a is None else a[own]  # noqa: E731
-    return (*map(cut, slopes[:3]), None if slopes[3] is None else tuple(map(cut, slopes[3])))
+def _rows(slopes: tuple | Array | None, own: slice) -> tuple | Array | None:
+    """`penalize`'s slopes (tuples of (A,) arrays, or None) at the active joints `own`, as views."""
+    if isinstance(slopes, np.ndarray):
+        return slopes[own]
+    return None if slopes is None else tuple(_rows(a, own) for a in slopes)
 
 
 def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:

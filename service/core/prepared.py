@@ -527,11 +527,13 @@ def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: lis
     return p
 
 
-def _rows(slopes: tuple | Array | None, own: slice) -> tuple | Array | None:
-    """`penalize`'s slopes (tuples of (A,) arrays, or None) at the active joints `own`, as views."""
-    if isinstance(slopes, np.ndarray):
-        return slopes[own]
-    return None if slopes is None else tuple(_rows(a, own) for a in slopes)
+def _rows(slopes: tuple | None, own: slice) -> tuple | None:
+    """`penalize`'s slopes `(E', E'', shift, plain)` (each (A,); shift, plain may be None) at the active joints `own`."""
+    if slopes is None:
+        return None
+    dE, d2E, shift, plain = slopes
+    cut = None if shift is None else shift[own]
+    return dE[own], d2E[own], cut, None if plain is None else _rows((*plain, None), own)[:3]
 
 
 def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:

@@ -54,11 +54,13 @@ def penalize(x: Array, lo: Array, up: Array, s: Array, w: Array, want_d: bool,
 
 
 def differentiate(b: int, c: Constitution, F: Array, v: Array, energy: Array, finite: bool, active: NDArray[np.intp],
-                  slopes: tuple | None, want_g: bool, want_h: bool, psd: bool, compact: bool, threads: int = 1,
-                  deadline: float | None = None, balance: Array | None = None) -> tuple[Array | None, Array | None]:
+                  slopes: tuple | None, first: int, want_g: bool, want_h: bool, psd: bool, compact: bool,
+                  threads: int = 1, deadline: float | None = None,
+                  balance: Array | None = None) -> tuple[Array | None, Array | None]:
     """Batch `b`'s asked-for gradient (R, 24) and Hessian (R, 24, 24), else None, at its frames `F` (N, 4, 3):
     R = A rows of the `active` (A,) joints if `compact`, else N (the inactive rows exact zeros, never
-    differentiated). `energy` (N,), `finite`, `active` and `slopes` (each (A,)) are `penalize`'s for these joints.
+    differentiated). `energy` (N,), `finite` and `active` are `penalize`'s for these joints, their `slopes` its rows
+    `first : first + A`.
 
     `v` (N, 4, 3) the body-local vectors (`balance` (N, 4): their `assembly.balance`, if already taken).
     Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
@@ -85,7 +87,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, energy: Array, fi
         def chunk(start: int) -> list[int]:
             """Differentiate active joints `start : start + size`; the rows among them that overflow."""
             check_deadline(deadline)
-            part = slice(start, start + size)
+            part, rows_s = slice(start, start + size), slice(first + start, first + min(start + size, a))  # of `slopes`
             sel = active[part]
             rows, contiguous = part, True  # compact or every joint active: the chunk's own rows, in place
             if not (compact or every):  # in place too where a stretch of joints is active
@@ -96,9 +98,9 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, energy: Array, fi
             bc = None if balance is None else at(balance)
 
             def formed(dE: Array, d2E: Array, shift: NDArray[np.int_] | None, g_out: Array, h_out: Array | None) -> bool:
-                h_finite = _derivatives(c, at(F), at(v), dE[part], d2E[part], g_out, h_out, psd, bc)
+                h_finite = _derivatives(c, at(F), at(v), dE[rows_s], d2E[rows_s], g_out, h_out, psd, bc)
                 if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`, `_in_band`): back
-                    k = shift[part]
+                    k = shift[rows_s]
                     lifted = k.nonzero()[0]
                     for out in (g_out, h_out):
                         if out is not None and lifted.shape[0]:

@@ -152,7 +152,7 @@ class PreparedScene:
             raise_if(faults)
             e, own = energy[ends[b] : ends[b + 1]], slice(cuts[b], cuts[b + 1])
             a = None if active is None else active[own] - ends[b]
-            gradient, hessian = differentiate(b, jb.c, F, jb.v, e, finite, a, _rows(slopes, own), want_g, want_h, psd,
+            gradient, hessian = differentiate(b, jb.c, F, jb.v, e, finite, a, slopes, cuts[b], want_g, want_h, psd,
                                               compact or active_only, self._threads, deadline, jb.balance)
             index, xs, es, cs = (a, x[a], e[a], coordinate[a]) if active_only else (jb.index, x, e, coordinate)
             results.append((BatchResult(jb.c.facts.uid, index, xs, es, gradient, hessian, cs), e, a))
@@ -525,15 +525,6 @@ def _progress(c: Constitution, kept: dict[str, Progress], path: str, starts: lis
             p = c.advance(p, F, dF)
         kept[path] = p
     return p
-
-
-def _rows(slopes: tuple | None, own: slice) -> tuple | None:
-    """`penalize`'s slopes `(E', E'', shift, plain)` (each (A,); shift, plain may be None) at the active joints `own`."""
-    if slopes is None:
-        return None
-    dE, d2E, shift, plain = slopes
-    cut = None if shift is None else shift[own]
-    return dE[own], d2E[own], cut, None if plain is None else _rows((*plain, None), own)[:3]
 
 
 def _last_state(careful: CarefulFrames | None) -> CarefulFrames | None:

@@ -1,4 +1,5 @@
-"""A batch's energies and the derivatives of its active joints, from its frames and coordinates.
+"""The energies of every batch's joints at once (`penalize`), then a batch's derivatives of its active joints
+(`differentiate`), from its frames and coordinates.
 
 The pipeline that validates and forms frames and coordinates is `jointlimits.service.core.prepared`.
 """
@@ -24,49 +25,59 @@ SCATTER_CHUNK = 2048
 """The chunk when Hessian rows are scattered (some joints inside their range): its scratch rows, 9 MB."""
 
 
-def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Array, up: Array, s: Array, want_g: bool,
-                  want_h: bool, psd: bool, compact: bool, threads: int = 1, deadline: float | None = None,
-                  balance: Array | None = None,
-                  w: Array | None = None) -> tuple[Array, Array | None, Array | None, Array | None]:
-    """Batch `b`'s energy (N,) at its frames `F` (N, 4, 3) and coordinate `x` (N,); the positions `active` (A,)
-    of the joints outside their range (None when neither derivatives nor `compact` are asked); the asked-for
-    gradient (R, 24) and Hessian (R, 24, 24), else None: R = A rows of the active joints if `compact`, else N
-    (the inactive rows exact zeros, never differentiated).
-
-    `v` (N, 4, 3) the body-local vectors (`balance` (N, 4): their `assembly.balance`, if already taken);
-    `lo`, `up` (N,) the bounds on `x` (`w` (N,): their `penalty.width`, if already taken), `s` (N,) the strengths.
-    Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
-    past `deadline` (a `time.monotonic()` value), checked before each derivative chunk, which run on `threads`.
-    """
+def penalize(x: Array, lo: Array, up: Array, s: Array, w: Array, want_d: bool,
+             want_active: bool) -> tuple[Array, bool, NDArray[np.intp] | None, tuple | None]:
+    """The energy (N,) at `x` (N,) of every batch's joints at once (each joint's arithmetic is its own: the bits of
+    a batch alone), whether it is finite, the positions `active` (A,) of the joints outside their range (None
+    without `want_d` or `want_active`), and with `want_d` their slopes `(E', E'', shift, plain)` (`_in_band`).
+    `lo`, `up` (N,) the bounds on `x`, `w` (N,) their `penalty.width`, `s` (N,) the strengths."""
     # one gap for the energy, the active joints and their slopes (the side only for these)
-    g, side = penalty.gap(x, lo, up) if want_g or want_h else (penalty.distance(x, lo, up), None)
+    g, side = penalty.gap(x, lo, up) if want_d else (penalty.distance(x, lo, up), None)
     energy, r, w, careful = penalty.energy_and_relative(g, x, lo, up, s, w)
-    overflow = nonfinite_rows(energy)
-    if overflow:  # s = 0 pays nothing however far out: 0 * inf is no overflow (nor active, below)
+    finite = bool(np.isfinite(energy).all())  # the common case: one flat test (`differentiate` names the rows)
+    if not finite:  # s = 0 pays nothing however far out: 0 * inf is no overflow (nor active, below)
         energy[s == 0] = 0.0
-        overflow = nonfinite_rows(energy)
-    active = gradient = hessian = None
-    if want_g or want_h or compact:
+    active = slopes = None
+    if want_d or want_active:
         active = ((g > 0) & (s > 0)).nonzero()[0]
-    if want_g or want_h:
-        a, dtype = active.shape[0], F.dtype
-        n = a if compact else x.shape[0]
-        # Inactive rows are exact zeros (calloc: untouched pages stay free); when every row is
-        # differentiated each is written once, with no zero-fill before.
-        alloc = np.empty if a == n else np.zeros
-        gradient = alloc((n, 24), dtype=dtype) if want_g else None
-        hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
-        every = a == x.shape[0]  # every joint active: no gathers, every chunk's rows in place
+    if want_d:
         # Per-joint scalars for every active joint at once: per chunk they would be a dozen short calls each.
         at_active = (x, lo, up, s, r, w, side)
-        if not every:
+        if active.shape[0] != x.shape[0]:
             at_active = tuple(take_joints(q, active) for q in at_active)
         if careful:  # a gap or width overflowed, or r^3 left the normal range: from halves and exponents
             _, dE, d2E = penalty.derivatives(*at_active[:4])
         else:  # from the energy's own relative gaps and widths (the same bits as `derivatives`)
             dE, d2E = penalty.slopes(*at_active[4:], at_active[3])
-        shift = penalty.scale_up(dE, d2E, *at_active[:4])
-        shift, plain = _in_band(dE, d2E, shift)
+        slopes = (dE, d2E, *_in_band(dE, d2E, penalty.scale_up(dE, d2E, *at_active[:4])))
+    return energy, finite, active, slopes
+
+
+def differentiate(b: int, c: Constitution, F: Array, v: Array, energy: Array, finite: bool, active: NDArray[np.intp],
+                  slopes: tuple | None, first: int, want_g: bool, want_h: bool, psd: bool, compact: bool,
+                  threads: int = 1, deadline: float | None = None,
+                  balance: Array | None = None) -> tuple[Array | None, Array | None]:
+    """Batch `b`'s asked-for gradient (R, 24) and Hessian (R, 24, 24), else None, at its frames `F` (N, 4, 3):
+    R = A rows of the `active` (A,) joints if `compact`, else N (the inactive rows exact zeros, never
+    differentiated). `energy` (N,), `finite` and `active` are `penalize`'s for these joints, their `slopes` its rows
+    `first : first + A`.
+
+    `v` (N, 4, 3) the body-local vectors (`balance` (N, 4): their `assembly.balance`, if already taken).
+    Raises `InputError` naming the joints whose energy or derivatives overflow; `DeadlineExceeded`
+    past `deadline` (a `time.monotonic()` value), checked before each derivative chunk, which run on `threads`.
+    """
+    overflow = [] if finite else nonfinite_rows(energy)
+    gradient = hessian = None
+    if want_g or want_h:
+        a, dtype, n_all = active.shape[0], F.dtype, F.shape[0]
+        n = a if compact else n_all
+        # Inactive rows are exact zeros (calloc: untouched pages stay free); when every row is
+        # differentiated each is written once, with no zero-fill before.
+        alloc = np.empty if a == n else np.zeros
+        gradient = alloc((n, 24), dtype=dtype) if want_g else None
+        hessian = alloc((n, 24, 24), dtype=dtype) if want_h else None
+        every = a == n_all  # every joint active: no gathers, every chunk's rows in place
+        dE, d2E, shift, plain = slopes
         # Rows written in place when every row is differentiated; else a chunk's go through scratch rows
         # first, kept to a few MB. On threads, at least two chunks per thread (a batch alone keeps them busy).
         size = CHUNK if a == n or not want_h else SCATTER_CHUNK
@@ -76,7 +87,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
         def chunk(start: int) -> list[int]:
             """Differentiate active joints `start : start + size`; the rows among them that overflow."""
             check_deadline(deadline)
-            part = slice(start, start + size)
+            part, rows_s = slice(start, start + size), slice(first + start, first + min(start + size, a))  # of `slopes`
             sel = active[part]
             rows, contiguous = part, True  # compact or every joint active: the chunk's own rows, in place
             if not (compact or every):  # in place too where a stretch of joints is active
@@ -87,9 +98,9 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
             bc = None if balance is None else at(balance)
 
             def formed(dE: Array, d2E: Array, shift: NDArray[np.int_] | None, g_out: Array, h_out: Array | None) -> bool:
-                h_finite = _derivatives(c, at(F), at(v), dE[part], d2E[part], g_out, h_out, psd, bc)
+                h_finite = _derivatives(c, at(F), at(v), dE[rows_s], d2E[rows_s], g_out, h_out, psd, bc)
                 if shift is not None:  # rows of E' and E'' formed scaled by 2^k (`penalty.scale_up`, `_in_band`): back
-                    k = shift[part]
+                    k = shift[rows_s]
                     lifted = k.nonzero()[0]
                     for out in (g_out, h_out):
                         if out is not None and lifted.shape[0]:
@@ -122,7 +133,7 @@ def differentiate(b: int, c: Constitution, F: Array, v: Array, x: Array, lo: Arr
               "the energy or its derivatives overflow float64 at this configuration and strength")
         for j in sorted(set(overflow))[:MAX_FAULTS]
     ])
-    return energy, active, gradient, hessian
+    return gradient, hessian
 
 
 def _in_band(dE: Array, d2E: Array, shift: NDArray[np.int_] | None) -> tuple[NDArray[np.int_] | None, tuple | None]:

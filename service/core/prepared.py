@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from itertools import accumulate
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -26,7 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from jointlimits.service.core import assembled, assembly, penalty
 from jointlimits.service.core.constitution import Array, Constitution, Progress
 from jointlimits.service.core.errors import MAX_FAULTS, Fault, FaultLog, InputError, check_deadline
-from jointlimits.service.core.evaluate import collapsed_faults, differentiate
+from jointlimits.service.core.evaluate import collapsed_faults, differentiate, penalize
 from jointlimits.service.core.kinematics import (PREV_STEP, REF, STEP, STEPS, TOTAL_STEP, BodyTable, CarefulFrames,
                                                  add_positions, careful_frames, exponents, frame_quantities,
                                                  relative_position, scaled_frames, state_frames)
@@ -99,6 +100,8 @@ class PreparedScene:
         self._plain, self._all_plain = table.plain, False  # the bodies on the frames' common path to q (`_load`)
         self.n_bodies: int = table.dofs.shape[2]
         self.batch_sizes: list[int] = [jb.v.shape[0] for jb in batches]
+        self._ends = [0, *accumulate(self.batch_sizes)]  # batch b's joints: [ends[b], ends[b + 1]) of all
+        self._kept: tuple | None = None  # `_limits`
 
     def evaluate(self, q: ArrayLike, outputs: Iterable[str] = OUTPUTS, hessian_mode: str = "exact",
                  active_only: bool = False, deadline: float | None = None, layout: str = "joints") -> Evaluation:
@@ -137,9 +140,22 @@ class PreparedScene:
         steps = {r for jb in batches for r in (jb.rows if jb.theta is None else jb.rows[-1:])}
         self._load(q, {jb.rows[-1] for jb in batches}, steps)
         want_g, want_h, compact = "gradient" in outputs, "hessian" in outputs, layout == "bodies"
+        at_q = [self._at_q(b, jb, deadline) for b, jb in enumerate(batches)]  # (F, x, coordinate, pen, faults)
+        # The penalty of every batch at once; then each batch's faults and derivatives in batch order.
         # layout "bodies" sums the active joints' rows alone: only those are stored (compact)
-        results = [self._evaluate_batch(b, jb, want_g, want_h, psd, active_only, deadline, compact)
-                   for b, jb in enumerate(batches)]
+        pen = np.concatenate([p for _, _, _, p, _ in at_q]) if batches else np.zeros(0)
+        energy, finite, active, slopes = penalize(pen, *self._limits(), want_g or want_h, compact or active_only)
+        ends = self._ends
+        cuts = ends if active is None else active.searchsorted(ends).tolist()
+        results = []
+        for b, (jb, (F, x, coordinate, _, faults)) in enumerate(zip(batches, at_q)):
+            raise_if(faults)
+            e, own = energy[ends[b] : ends[b + 1]], slice(cuts[b], cuts[b + 1])
+            a = None if active is None else active[own] - ends[b]
+            gradient, hessian = differentiate(b, jb.c, F, jb.v, e, finite, a, slopes, cuts[b], want_g, want_h, psd,
+                                              compact or active_only, self._threads, deadline, jb.balance)
+            index, xs, es, cs = (a, x[a], e[a], coordinate[a]) if active_only else (jb.index, x, e, coordinate)
+            results.append((BatchResult(jb.c.facts.uid, index, xs, es, gradient, hessian, cs), e, a))
         total = float(sum(e.sum() for _, e, _ in results))
         if not np.isfinite(total):
             raise InputError([Fault(("batches",), "the total energy overflows float64")])
@@ -212,29 +228,35 @@ class PreparedScene:
         bound = [self._table.size_bound(jb.pairs, 2)] if jb.c.facts.unit_frames else None
         return collapsed_faults(b, jb.c, ("q",), [F], careful, [known], bound)
 
-    def _evaluate_batch(self, b: int, jb: _Batch, want_g: bool, want_h: bool, psd: bool, active_only: bool,
-                        deadline: float | None, compact: bool) -> tuple[BatchResult, Array, Array | None]:
-        """Batch `b`'s answer at the loaded `q`, every joint's energy (N,) and the active joints' positions."""
+    def _at_q(self, b: int, jb: _Batch, deadline: float | None) -> tuple[Array, Array, Array, Array, list[Fault]]:
+        """Batch `b`'s frames (N, 4, 3), x, coordinate and the penalty's argument (N,) at the loaded `q`, and its faults
+        there (raised in batch order, with its derivatives')."""
         check_deadline(deadline)
         dF, F_q = self._step(jb, jb.rows[-1], jb.r_start)
         if jb.theta is None:  # v1: x summed over every step from q_ref
             F, careful, x, known = self._to_q(jb, jb.starts, jb.fixed, jb.rows, "whole", dF, F_q)
             x = _from_origin(x, jb)
             coordinate = _plus_offset(x, jb.offset)
-            pen, lo, up = x if jb.on_c is None else np.where(jb.on_c, coordinate, x), jb.lo, jb.up
+            pen = x if jb.on_c is None else np.where(jb.on_c, coordinate, x)
         else:
             F, careful, dx, known = self._to_q(jb, jb.starts[-1:], [], jb.rows[-1:], "last", dF, F_q)
             # the committed coordinate plus the turn: `(committed - offset) + dx + offset` kept `committed` only to
             # ulps of the offset (0.8 answered 0 under an offset of 1e17)
             x, coordinate = jb.theta + dx, jb.committed + dx
-            pen, lo, up = coordinate, *(a.astype(x.dtype, copy=False) for a in (jb.lower, jb.upper))  # on the coordinate
-        raise_if((jb.faults + self._collapsed(b, jb, F, careful, known))[:MAX_FAULTS])
-        energy, active, gradient, hessian = differentiate(b, jb.c, F, jb.v, pen.astype(x.dtype, copy=False), lo, up, jb.s,
-                                                          want_g, want_h, psd, compact or active_only, self._threads,
-                                                          deadline, jb.balance, jb.w)
-        index, xs, es, cs = (active, x[active], energy[active], coordinate[active]) if active_only else (jb.index, x, energy,
-                                                                                                        coordinate)
-        return BatchResult(jb.c.facts.uid, index, xs, es, gradient, hessian, cs), energy, active
+            pen = coordinate  # on the coordinate (`_limits`)
+        faults = (jb.faults + self._collapsed(b, jb, F, careful, known))[:MAX_FAULTS]
+        return F, x, coordinate, pen.astype(x.dtype, copy=False), faults
+
+    def _limits(self) -> list[Array]:
+        """Every batch's penalty bounds, strengths and widths (`penalize`), one after the other (a committed batch's
+        bound its coordinate: `lower`, `upper`), kept until `update` or a commit changes them."""
+        key = [jb.theta is None for jb in self._batches]
+        if self._kept is None or self._kept[0] != key:
+            dt = self._table.dtype
+            parts = [((jb.lo, jb.up) if free else (jb.lower.astype(dt), jb.upper.astype(dt))) + (jb.s, jb.w)
+                     for jb, free in zip(self._batches, key)]
+            self._kept = key, [np.concatenate(a) for a in zip(*parts)] if parts else [np.zeros(0)] * 4
+        return self._kept[1]
 
     # ---------------------------------------------------------------- state
 
@@ -258,7 +280,7 @@ class PreparedScene:
                     r = self._angle(jb)
                     turn = rem(x - r)
                     x = r + turn
-                    if jb.committed is not None:  # the committed coordinate moves by the turn (as in `_evaluate_batch`)
+                    if jb.committed is not None:  # the committed coordinate moves by the turn (as in `_at_q`)
                         coordinate = jb.committed + turn
                 new.append((F_q, x, _plus_offset(x, jb.offset) if coordinate is None else coordinate))
             log.raise_if_any()
@@ -339,6 +361,7 @@ class PreparedScene:
             jb.committed[index] = jb.theta[index] + after["offset"]
             jb.theta = _angle_of(jb.committed, jb.offset, jb.lo.dtype)
         jb.lo[index], jb.up[index], jb.s[index], jb.w[index] = lo, up, after["strength"], w
+        self._kept = None
         if on_c is not None or jb.on_c is not None:
             jb.on_c = np.zeros(jb.lo.shape[0], dtype=bool) if jb.on_c is None else jb.on_c
             jb.on_c[index] = False if on_c is None else on_c

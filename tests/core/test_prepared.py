@@ -308,6 +308,7 @@ def test_update_equals_a_scene_prepared_with_the_new_values() -> None:
     up = joints[0].upper[index] - 0.1
     s = joints[0].strength[index] * 2 + 1
     off = np.full(index.shape, 0.05)
+    scene.evaluate(sc.q)  # the scene keeps its penalty's limits from here (`_limits`): the update must reach them
     scene.update(0, index, lower=lo, upper=up, strength=s, offset=off)
     new = joints[0]
     lower, upper, strength, offset = new.lower.copy(), new.upper.copy(), new.strength.copy(), new.offset.copy()

@@ -404,13 +404,12 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
                           for row in _increments(numerics(j.constitution_uid))[:-1]}
     n_bodies = bodies.q_ref.shape[0]
     checks = [joint_faults(b, joints, n_bodies) for b, joints in enumerate(batches)]
-    # The polar factors of the bodies some joint reads (indices out of range are `check_joints`' faults).
+    # The polar factors of the bodies some joint reads, of batches without faults (their indices are in range; with
+    # a fault the call is refused after `check_rotations`, which reads every body's ratio, used or not).
     used = np.zeros(n_bodies, dtype=bool)
-    for j in batches:
-        ids = np.asarray(j.body_ids).ravel()
-        if ids.dtype.kind in "iu" and ids.shape[0]:
-            # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
-            used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
+    for j, (faults, _) in zip(batches, checks):
+        if not faults:
+            used[j.body_ids] = True
     # A singular A_ref is named by check_rotations, hostile numbers by the checks after (in batch order).
     table = BodyTable(bodies, dtype, rows=rows, used=used)
     FaultLog(check_rotations(table.ratio), *(faults for faults, _ in checks)).raise_if_any()

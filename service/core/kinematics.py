@@ -92,10 +92,10 @@ class BodyTable:
     """
 
     def __init__(self, bodies: Bodies, dtype: type = np.float64, rows: Iterable[int] = STEPS,
-                 used: NDArray[np.bool_] | None = None) -> None:
+                 used: NDArray[np.bool_] | None = None, plain: Iterable[int] | None = None) -> None:
         """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage);
-        `plain` is taken over `rows`. The polar factors `rotation` (9, B) and the conditioning `ratio` (B,) of
-        each `A_ref`; `used` (B,): the bodies sure to get one (`polar_rotation`)."""
+        `plain` is taken over the rows `plain` (default `rows`). The polar factors `rotation` (9, B) and the
+        conditioning `ratio` (B,) of each `A_ref`; `used` (B,): the bodies sure to get one (`polar_rotation`)."""
         n = bodies.q.shape[0]
         filled = tuple(sorted(set(rows)))
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
@@ -107,12 +107,16 @@ class BodyTable:
         for s in spanned:
             transpose_into(dofs[s], q[s])
         self._subtract(filled)
+        self._current = set(filled)  # the increment rows that are those of the states as loaded (`increments`)
+        self._fresh = bodies.q if 2 in spanned else None  # `load` of this `q` once: already there (the stateless call)
         # Squared norms (`_plain_bodies`), kept until their rows change: taken now, while in cache.
         self._norms = {("state", s): squared_norms(self.states[s]) for s in spanned}
         self._norms |= {("row", row): squared_norms(self.linear[row]) for row in filled}
         self._plains: dict[frozenset[int], NDArray[np.bool_]] = {}  # `plain_over`'s, until the rows change
         self.dtype = np.dtype(dtype)
-        self.plain = self.plain_over(filled)
+        self.plain = self.plain_over(filled)  # first over every row: over fewer it may be that one (`plain_over`)
+        if plain is not None:
+            self.plain = self.plain_over(plain)
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
         R, self.ratio = polar_rotation(A_ref, used)
@@ -120,15 +124,22 @@ class BodyTable:
 
     def load(self, state: int, q: Array) -> None:
         """Bodies' DOFs `q` (B, 12) into `state` (the increment rows keep their old values)."""
+        fresh, self._fresh = self._fresh, None
+        if state == 2 and q is fresh:  # the q this table was built with, not loaded since: there already
+            return
         self._plains = {}
         transpose_into(self.dofs[state], q)
         self._norms.pop(("state", state), None)
+        self._current -= {row for row, spans in STEPS.items() if state in spans}
 
     def increments(self, rows: Iterable[int]) -> None:
-        """The increment `rows` of `A` from the states they span, as loaded."""
-        rows = tuple(rows)
+        """The increment `rows` of `A` from the states they span, as loaded (the rows already so: as they are)."""
+        rows = tuple(row for row in rows if row not in self._current)
+        if not rows:
+            return
         self._plains = {}
         self._subtract(rows)
+        self._current.update(rows)
         for row in rows:
             self._norms.pop(("row", row), None)
 
@@ -141,7 +152,9 @@ class BodyTable:
         """`_plain_bodies` over the increment `rows` (with the kept norms)."""
         rows = frozenset(rows)
         if rows not in self._plains:
-            self._plains[rows] = _plain_bodies(self.states, self.linear, rows, self._norms)
+            # Over more rows a body meets more conditions: where every body is plain over more, so over these.
+            every = next((p for wider, p in self._plains.items() if wider > rows and p.all()), None)
+            self._plains[rows] = _plain_bodies(self.states, self.linear, rows, self._norms) if every is None else every
         return self._plains[rows]
 
     def size_bound(self, pairs: NDArray[np.intp], state: int) -> Array:

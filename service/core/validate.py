@@ -176,8 +176,6 @@ POSE_HINT = (
 
 def check_rotations(rotation_ratio: np.ndarray) -> list[Fault]:
     """Bodies whose `A_ref` is too close to singular for a polar factor (`rotation_ratio` (B,) = s_min / s_max)."""
-    if rotation_ratio.min(initial=np.inf) >= SINGULAR_RATIO:  # the common case: one reduction (NaN: named below)
-        return []
     return [
         Fault(("bodies", "q_ref", i), f"A_ref is singular (smallest/largest singular value < {SINGULAR_RATIO:g})")
         for i in _where(~(rotation_ratio >= SINGULAR_RATIO))
@@ -226,19 +224,11 @@ def joint_faults(b: int, joints: Joints, n_bodies: int) -> tuple[list[Fault], Ar
     return (faults + _check_rows(b, joints, n_bodies, geometry, shaped, edge))[:MAX_FAULTS], edge
 
 
-def finite(*arrays: np.ndarray) -> bool:
-    """True only where every element of `arrays` is finite, from one sum each (a NaN or an infinity survives a sum; one
-    that overflows says False too: the caller's detailed pass then names nothing). Under `np.errstate(all="ignore")`."""
-    total = 0.0
-    for a in arrays:
-        total += np.add.reduce(a, axis=None)
-    return math.isfinite(total)
-
-
 def _clean(joints: Joints, n_bodies: int, edge: Array) -> bool:
     """True only where `_check_rows` finds nothing, from a few flat reductions of a well-shaped batch: `up - lo`, the
     strengths and `dot(edge, edge)` are >= 0 (the last > 0) with a finite sum only where their fields are finite, in
-    order and an edge has an axis (an underflow or an overflow here takes `_check_rows`' way)."""
+    order and an edge has an axis (a NaN or an infinity survives a sum; an underflow or an overflow here, a sum that
+    overflows among them, takes `_check_rows`' way)."""
     ids = joints.body_ids
     if ids.shape[0] == 0 or not (ids.min() >= 0 and ids.max() < n_bodies and (ids[:, 0] != ids[:, 1]).all()):
         return False
@@ -246,7 +236,7 @@ def _clean(joints: Joints, n_bodies: int, edge: Array) -> bool:
     signed = np.concatenate((joints.upper - joints.lower, joints.strength, d2))
     rest = [a for a in (joints.offset, joints.prev_coordinate, None if joints.edges is not None else joints.local_edges[:, 1])
             if a is not None]  # r0, r1 of body-local edges are not in `edge`
-    return bool(signed.min() >= 0 and d2.min() > 0) and finite(signed, *rest)  # NaN: False
+    return bool(signed.min() >= 0 and d2.min() > 0) and math.isfinite(sum(np.add.reduce(a, None) for a in (signed, *rest)))
 
 
 def _check_kind(b: int, joints: Joints, given: list[str]) -> list[Fault]:

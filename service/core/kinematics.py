@@ -30,6 +30,7 @@ REF, PREV_STEP, STEP, TOTAL_STEP = range(4)
 increment of a bilinear form in F's increments: no cancellation of two large values of two states)."""
 STEPS = {PREV_STEP: (0, 1), STEP: (1, 2), TOTAL_STEP: (0, 2)}
 """Each increment row of `A` as (from, to) states: 0 q_ref, 1 q_prev, 2 q."""
+_SPANNING = [{row for row, spans in STEPS.items() if s in spans} for s in range(3)]  # the rows each state ends or starts
 
 
 def solve3(A: Array, b: Array) -> Array:
@@ -130,7 +131,7 @@ class BodyTable:
         self._plains = {}
         transpose_into(self.dofs[state], q)
         self._norms.pop(("state", state), None)
-        self._current -= {row for row, spans in STEPS.items() if state in spans}
+        self._current -= _SPANNING[state]
 
     def increments(self, rows: Iterable[int]) -> None:
         """The increment `rows` of `A` from the states they span, as loaded (the rows already so: as they are)."""

@@ -32,14 +32,17 @@ def cofactors(a: Array, out: Array | None = None) -> tuple[Array, Array]:
         g = a.take(_PQST, axis=0)
         C = np.multiply(g[:9], g[9:18], out=out)
         C -= g[18:27] * g[27:]
-    else:  # a pass per entry, in place: no (9, M) gathers
-        C = np.empty_like(a) if out is None else out
-        tmp = np.empty_like(a[0])
-        for i in range(9):
-            np.multiply(a[_P[i]], a[_Q[i]], out=C[i])
-            C[i] -= np.multiply(a[_S[i]], a[_T[i]], out=tmp)
-    p = a[:3] * C[:3]  # det = a0 C0 + a1 C1 + a2 C2, summed in that order
-    return C, p[0] + p[1] + p[2]
+        p = a[:3] * C[:3]  # det = a0 C0 + a1 C1 + a2 C2 (below), its products in one pass
+        return C, p[0] + p[1] + p[2]
+    C = np.empty_like(a) if out is None else out  # a pass per entry, in place: no (9, M) gathers
+    tmp = np.empty_like(a[0])
+    for i in range(9):
+        np.multiply(a[_P[i]], a[_Q[i]], out=C[i])
+        C[i] -= np.multiply(a[_S[i]], a[_T[i]], out=tmp)
+    det = np.multiply(a[0], C[0])
+    det += a[1] * C[1]
+    det += a[2] * C[2]
+    return C, det
 
 
 def squared_norms(a: Array) -> Array:

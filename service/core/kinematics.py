@@ -8,6 +8,7 @@ state: subtracting it first keeps a scene far from the origin from losing digits
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from functools import cache
@@ -29,6 +30,7 @@ REF, PREV_STEP, STEP, TOTAL_STEP = range(4)
 increment of a bilinear form in F's increments: no cancellation of two large values of two states)."""
 STEPS = {PREV_STEP: (0, 1), STEP: (1, 2), TOTAL_STEP: (0, 2)}
 """Each increment row of `A` as (from, to) states: 0 q_ref, 1 q_prev, 2 q."""
+_SPANNING = [{row for row, spans in STEPS.items() if s in spans} for s in range(3)]  # the rows each state ends or starts
 
 
 def solve3(A: Array, b: Array) -> Array:
@@ -41,7 +43,10 @@ def solve3(A: Array, b: Array) -> Array:
     # Overflow is expected on the first pass (redone below) and legitimate on the second (an
     # anchor beyond float64: the coordinate overflows and `validate` names the joint).
     x, det = _solve3(a, y)
-    bad = (~((np.abs(det) >= 2.0**-900) & (np.abs(det) <= 2.0**900) & np.isfinite(x[0] + x[1] + x[2]))).nonzero()[0]
+    size = np.abs(det)  # the common case: every det inside, every x finite, in three flat reductions
+    if size.min(initial=1.0) >= 2.0**-900 and size.max(initial=1.0) <= 2.0**900 and math.isfinite(np.add.reduce(x, None)):
+        return x.reshape(3, *lead[::-1]).T
+    bad = (~((size >= 2.0**-900) & (size <= 2.0**900) & np.isfinite(x[0] + x[1] + x[2]))).nonzero()[0]
     if bad.shape[0]:  # det ~|A|^3 inside 2^+-900 keeps the cofactors (~det^(2/3)) normal numbers
         e = np.frexp(np.abs(a[:, bad]).max(axis=0))[1]
         x[:, bad] = np.ldexp(_solve3(np.ldexp(a[:, bad], -e), y[:, bad])[0], -e)
@@ -88,10 +93,10 @@ class BodyTable:
     """
 
     def __init__(self, bodies: Bodies, dtype: type = np.float64, rows: Iterable[int] = STEPS,
-                 used: NDArray[np.bool_] | None = None) -> None:
+                 used: NDArray[np.bool_] | None = None, plain: Iterable[int] | None = None) -> None:
         """Only the increment `rows` of `A`, and the states they span, are filled (the others are garbage);
-        `plain` is taken over `rows`. The polar factors `rotation` (9, B) and the conditioning `ratio` (B,) of
-        each `A_ref`; `used` (B,): the bodies sure to get one (`polar_rotation`)."""
+        `plain` is taken over the rows `plain` (default `rows`). The polar factors `rotation` (9, B) and the
+        conditioning `ratio` (B,) of each `A_ref`; `used` (B,): the bodies sure to get one (`polar_rotation`)."""
         n = bodies.q.shape[0]
         filled = tuple(sorted(set(rows)))
         q = (bodies.q_ref, bodies.q_prev, bodies.q)
@@ -103,12 +108,16 @@ class BodyTable:
         for s in spanned:
             transpose_into(dofs[s], q[s])
         self._subtract(filled)
+        self._current = set(filled)  # the increment rows that are those of the states as loaded (`increments`)
+        self._fresh = bodies.q if 2 in spanned else None  # `load` of this `q` once: already there (the stateless call)
         # Squared norms (`_plain_bodies`), kept until their rows change: taken now, while in cache.
         self._norms = {("state", s): squared_norms(self.states[s]) for s in spanned}
         self._norms |= {("row", row): squared_norms(self.linear[row]) for row in filled}
         self._plains: dict[frozenset[int], NDArray[np.bool_]] = {}  # `plain_over`'s, until the rows change
         self.dtype = np.dtype(dtype)
-        self.plain = self.plain_over(filled)
+        self.plain = self.plain_over(filled)  # first over every row: over fewer it may be that one (`plain_over`)
+        if plain is not None:
+            self.plain = self.plain_over(plain)
         # The polar factors in float64 whatever `dtype`: they decide which A_ref is singular.
         A_ref = self.linear[REF] if self.dtype == np.float64 else np.ascontiguousarray(bodies.q_ref[:, 3:].T)
         R, self.ratio = polar_rotation(A_ref, used)
@@ -116,15 +125,22 @@ class BodyTable:
 
     def load(self, state: int, q: Array) -> None:
         """Bodies' DOFs `q` (B, 12) into `state` (the increment rows keep their old values)."""
+        fresh, self._fresh = self._fresh, None
+        if state == 2 and q is fresh:  # the q this table was built with, not loaded since: there already
+            return
         self._plains = {}
         transpose_into(self.dofs[state], q)
         self._norms.pop(("state", state), None)
+        self._current -= _SPANNING[state]
 
     def increments(self, rows: Iterable[int]) -> None:
-        """The increment `rows` of `A` from the states they span, as loaded."""
-        rows = tuple(rows)
+        """The increment `rows` of `A` from the states they span, as loaded (the rows already so: as they are)."""
+        rows = tuple(row for row in rows if row not in self._current)
+        if not rows:
+            return
         self._plains = {}
         self._subtract(rows)
+        self._current.update(rows)
         for row in rows:
             self._norms.pop(("row", row), None)
 
@@ -137,7 +153,9 @@ class BodyTable:
         """`_plain_bodies` over the increment `rows` (with the kept norms)."""
         rows = frozenset(rows)
         if rows not in self._plains:
-            self._plains[rows] = _plain_bodies(self.states, self.linear, rows, self._norms)
+            # Over more rows a body meets more conditions: where every body is plain over more, so over these.
+            every = next((p for wider, p in self._plains.items() if wider > rows and p.all()), None)
+            self._plains[rows] = _plain_bodies(self.states, self.linear, rows, self._norms) if every is None else every
         return self._plains[rows]
 
     def size_bound(self, pairs: NDArray[np.intp], state: int) -> Array:
@@ -371,6 +389,8 @@ def axis(d: Array) -> Array:
     # (overflows only in the odd rows, redone below)
     dd = dot(d, d)
     t = d / np.sqrt(dd)[:, None]
+    if dd.min(initial=lo) >= lo and dd.max(initial=hi) <= hi:  # the common case (NaN: below)
+        return t
     odd = (~((dd >= lo) & (dd <= hi))).nonzero()[0]
     if odd.shape[0]:
         _, e = np.frexp(max_abs(d[odd]))

@@ -32,12 +32,13 @@ def cofactors(a: Array, out: Array | None = None) -> tuple[Array, Array]:
         g = a.take(_PQST, axis=0)
         C = np.multiply(g[:9], g[9:18], out=out)
         C -= g[18:27] * g[27:]
-    else:  # a pass per entry, in place: no (9, M) gathers
-        C = np.empty_like(a) if out is None else out
-        tmp = np.empty_like(a[0])
-        for i in range(9):
-            np.multiply(a[_P[i]], a[_Q[i]], out=C[i])
-            C[i] -= np.multiply(a[_S[i]], a[_T[i]], out=tmp)
+        p = a[:3] * C[:3]  # det = a0 C0 + a1 C1 + a2 C2 (below), its products in one pass
+        return C, p[0] + p[1] + p[2]
+    C = np.empty_like(a) if out is None else out  # a pass per entry, in place: no (9, M) gathers
+    tmp = np.empty_like(a[0])
+    for i in range(9):
+        np.multiply(a[_P[i]], a[_Q[i]], out=C[i])
+        C[i] -= np.multiply(a[_S[i]], a[_T[i]], out=tmp)
     det = np.multiply(a[0], C[0])
     det += a[1] * C[1]
     det += a[2] * C[2]
@@ -48,6 +49,8 @@ def squared_norms(a: Array) -> Array:
     """Squared norms (M,) of the columns of `a` (K, M), summed in one fixed order whatever M and layout (einsum's
     is not: a lone column is one contiguous dot, so a joint's answer would depend on its request's other joints)."""
     sq = a * a  # every product in one pass, then the sums in order
+    if sq.shape[1] > 1 and sq.flags.c_contiguous:  # one call: NumPy sums pairwise only along the fast axis, not this one
+        return np.add.reduce(sq, axis=0)
     s = sq[0] + sq[1]
     for row in sq[2:]:
         s += row
@@ -94,19 +97,15 @@ def polar_rotation(a: Array, used: NDArray[np.bool_] | None = None) -> tuple[Arr
         h *= 0.5
         X_new += np.multiply(C, h, out=C)
         step = np.subtract(X, X_new, out=None if X is a else X)
-        done = np.abs(step, out=step).max(axis=0) <= _NEWTON_TOL
-        if R is None and going.shape[0] == m and done.any():
-            # Every body still going, column j body j: this step is R (the common case: all at once, no
-            # scatter). Columns not done yet are overwritten as they converge (or by the SVD below).
-            R = X_new
-            going, X_new = going[~done], X_new[:, ~done]
-        elif done.all():
-            R = np.empty_like(a) if R is None else R
-            R[:, going] = X_new
-            going = going[:0]
-        elif done.any():
-            R = np.empty_like(a) if R is None else R
-            R[:, going[done]] = X_new[:, done]
+        done = np.maximum.reduce(np.abs(step, out=step), axis=0) <= _NEWTON_TOL
+        if done.any():
+            if R is None and going.shape[0] == m:
+                # Every body still going, column j body j: this step is R (the common case: all at once, no
+                # scatter). Columns not done yet are overwritten as they converge (or by the SVD below).
+                R = X_new
+            else:
+                R = np.empty_like(a) if R is None else R
+                R[:, going[done]] = X_new[:, done]
             going, X_new = going[~done], X_new[:, ~done]
         if going.shape[0] == 0:
             break

@@ -422,20 +422,19 @@ def _prepare(bodies: Bodies, batches: list[Joints], threads: int, dtype: type, o
     limits are its own arrays (`update` writes them); else the stateless call's, which allocates
     nothing it does not need (every fresh array here is page faults of its own), and whose collapsed
     frames at q_ref and q_prev are named with those at q."""
-    # q_prev is always in the table: the state a commit replaces.
-    rows = {PREV_STEP} | {row for j in batches if j.constitution_uid in CONSTITUTIONS
-                          for row in _increments(numerics(j.constitution_uid))[:-1]}
+    # q_prev is always in the table: the state a commit replaces. The stateless call's q too, and its last steps.
+    steps = [_increments(numerics(j.constitution_uid)) for j in batches if j.constitution_uid in CONSTITUTIONS]
+    rows = {PREV_STEP} | {row for s in steps for row in s[:-1]}
     n_bodies = bodies.q_ref.shape[0]
     checks = [joint_faults(b, joints, n_bodies) for b, joints in enumerate(batches)]
-    # The polar factors of the bodies some joint reads (indices out of range are `check_joints`' faults).
+    # The polar factors of the bodies some joint reads, of batches without faults (their indices are in range; with
+    # a fault the call is refused after `check_rotations`, which reads every body's ratio, used or not).
     used = np.zeros(n_bodies, dtype=bool)
-    for j in batches:
-        ids = np.asarray(j.body_ids).ravel()
-        if ids.dtype.kind in "iu" and ids.shape[0]:
-            # In range (the common case, two flat reductions): no mask and no compressed copy of the indices.
-            used[ids if ids.min() >= 0 and ids.max() < n_bodies else ids[(ids >= 0) & (ids < n_bodies)]] = True
+    for j, (faults, _) in zip(batches, checks):
+        if not faults:
+            used[j.body_ids] = True
     # A singular A_ref is named by check_rotations, hostile numbers by the checks after (in batch order).
-    table = BodyTable(bodies, dtype, rows=rows, used=used)
+    table = BodyTable(bodies, dtype, rows=rows if own else rows | {s[-1] for s in steps}, used=used, plain=rows)
     FaultLog(check_rotations(table.ratio), *(faults for faults, _ in checks)).raise_if_any()
     # (2, N) pairs: contiguous indices gather 30% faster; the edge vectors as the checks took them (float64)
     prepared = [_prepare_batch(b, j, table, own, np.ascontiguousarray(j.body_ids.T), d if dtype == np.float64 else None)

@@ -7,6 +7,7 @@ in order and caps the faults of a request (`errors.FaultLog`).
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -224,18 +225,18 @@ def joint_faults(b: int, joints: Joints, n_bodies: int) -> tuple[list[Fault], Ar
 
 
 def _clean(joints: Joints, n_bodies: int, edge: Array) -> bool:
-    """True only where `_check_rows` finds nothing, from a few flat reductions of a well-shaped batch: each
-    quantity below is finite and >= 0 only where its fields are finite and in order (`up - lo`: lower <= upper;
-    `|edge|`: an axis). An overflow here takes `_check_rows`' way."""
-    ids, lo, up, off = joints.body_ids, joints.lower, joints.upper, joints.offset
+    """True only where `_check_rows` finds nothing, from a few flat reductions of a well-shaped batch: `up - lo`, the
+    strengths and `dot(edge, edge)` are >= 0 (the last > 0) with a finite sum only where their fields are finite, in
+    order and an edge has an axis (a NaN or an infinity survives a sum; an underflow or an overflow here, a sum that
+    overflows among them, takes `_check_rows`' way)."""
+    ids = joints.body_ids
     if ids.shape[0] == 0 or not (ids.min() >= 0 and ids.max() < n_bodies and (ids[:, 0] != ids[:, 1]).all()):
         return False
-    size = max_abs(edge)
-    signed = [up - lo, joints.strength, size]
-    finite = [a for a in (off, joints.prev_coordinate, None if joints.edges is not None else joints.local_edges[:, 1])
-              if a is not None]  # r0, r1 of body-local edges are not in `edge`
-    return (size.min() > 0 and all(a.min() >= 0 and a.max() < np.inf for a in signed)  # NaN: False
-            and all(np.isfinite(a).all() for a in finite))
+    d2 = np.add.reduce(edge * edge, axis=1)
+    signed = np.concatenate((joints.upper - joints.lower, joints.strength, d2))
+    rest = [a for a in (joints.offset, joints.prev_coordinate, None if joints.edges is not None else joints.local_edges[:, 1])
+            if a is not None]  # r0, r1 of body-local edges are not in `edge`
+    return bool(signed.min() >= 0 and d2.min() > 0) and math.isfinite(sum(np.add.reduce(a, None) for a in (signed, *rest)))
 
 
 def _check_kind(b: int, joints: Joints, given: list[str]) -> list[Fault]:

@@ -49,3 +49,22 @@ def test_plains_follow_a_new_q() -> None:
     after = table.plain_over({PREV_STEP, STEP})
     assert after[0]
     np.testing.assert_array_equal(after, _fresh(table, {PREV_STEP, STEP}))
+
+
+@pytest.mark.parametrize("shrunk", [False, True])
+def test_the_stateless_tables_q_is_loaded_once(shrunk: bool) -> None:
+    """The stateless call's table is built with its q and every row, `plain` over the prepared rows alone; `load` of
+    that same q keeps rows and masks (one pass), of another q takes them anew: each as a fresh computation."""
+    bodies = _bodies(1) if shrunk else random_scene(np.random.default_rng(5)).bodies()
+    every = {PREV_STEP, STEP, TOTAL_STEP}
+    with np.errstate(all="ignore"):  # as the pipeline builds it (prepared.py): the shrunk A_ref's polar estimate
+        table = BodyTable(bodies, rows=every, plain={PREV_STEP})
+        np.testing.assert_array_equal(table.plain, _fresh(table, {PREV_STEP}))
+        for q in (bodies.q, bodies.q_prev, bodies.q):
+            table.load(2, q)
+            table.increments((STEP, TOTAL_STEP))
+            other = BodyTable(Bodies(q, bodies.q_prev, bodies.q_ref), rows=every)
+            assert all(np.array_equal(a, b) for a, b in zip(table.linear, other.linear))
+            for rows in ({PREV_STEP}, {STEP}, {TOTAL_STEP}, every):
+                np.testing.assert_array_equal(table.plain_over(rows), _fresh(table, rows))
+    assert table.plain_over(every).all() != shrunk

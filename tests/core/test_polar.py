@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jointlimits.service.core.kinematics import PREV_STEP, STEP, TOTAL_STEP, BodyTable, _plain_bodies
-from jointlimits.service.core.polar import polar_rotation
+from jointlimits.service.core.polar import polar_rotation, squared_norms
 from jointlimits.service.core.scene import Bodies
 
 
@@ -136,3 +136,18 @@ def test_mostly_used_bodies_take_the_whole_table():
     R, ratio = polar_rotation(a)
     R_used, ratio_used = polar_rotation(a, used)
     assert R_used.tobytes() == R.tobytes() and ratio_used.tobytes() == ratio.tobytes()
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 257])
+@pytest.mark.parametrize("order", ["C", "F"])
+def test_squared_norms_add_the_rows_in_order(m, order):
+    """`polar.squared_norms` in one call where NumPy's sum is row after row: bitwise the rows added in order, for
+    any count of columns (a lone one is summed pairwise by NumPy) and layout, with magnitudes far apart."""
+    rng = np.random.default_rng(m)
+    for k in (9, 12):
+        a = np.array(rng.normal(size=(k, m)) * 10.0 ** rng.integers(-8, 9, size=(k, m)), order=order)
+        sq = a * a
+        want = sq[0] + sq[1]
+        for row in sq[2:]:
+            want = want + row
+        assert squared_norms(a).tobytes() == want.tobytes()

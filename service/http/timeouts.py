@@ -11,6 +11,7 @@ client read as 1006: ours sends a close frame and a FIN, then drains (`WriteTime
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import logging
 import re
@@ -75,6 +76,14 @@ MAX_PIPELINED = 16
 and the connection is closed after the answers owed (RFC 9112 9.3.2: the client resends what was not answered).
 Unbounded, uvicorn read on after each answer: one connection pipelining `GET /healthz` took a worker from 68 to
 640 MiB and 10 s of CPU in 10 s, answering 41 of them."""
+
+
+@functools.cache
+def worker_settings() -> Settings:
+    """This worker's settings, read at its first connection: `jointlimits serve` writes its environment before the
+    worker starts, and `Settings()` (20 variables read and parsed, 35 us idle, 160 us under load) was read twice per
+    connection, ~7% of an idle worker's CPU for a connection that asks `/healthz`."""
+    return Settings()
 
 
 def too_many_pieces(pieces: int, size: int) -> bool:
@@ -163,7 +172,7 @@ class _WriteBound:
     """The write deadline of both protocols: `write_timeout` seconds of paused writing, then a reset. Mixed in
     before uvicorn's protocol class (its `pause_writing`, `resume_writing`, `connection_lost` run after ours)."""
 
-    write_timeout: float | None = None  # None: JOINTLIMITS_WRITE_TIMEOUT, read per connection
+    write_timeout: float | None = None  # None: JOINTLIMITS_WRITE_TIMEOUT, read once per worker (`worker_settings`)
     transport: asyncio.Transport
     loop: asyncio.AbstractEventLoop
     app_state: dict[str, Any]
@@ -172,7 +181,7 @@ class _WriteBound:
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.write_timeout is None:
-            self.write_timeout = Settings().write_timeout
+            self.write_timeout = worker_settings().write_timeout
         self.drain = Drain()
         self._write_timer = _Timer(self.loop, self._write_expired)
 
@@ -235,8 +244,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     """uvicorn's httptools protocol with a deadline on each request head (`header_timeout` seconds) and on
     a full write buffer (`write_timeout` seconds); each request's scope carries the connection's `Drain`."""
 
-    header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read per connection
-    max_connections: int | None = None  # None: JOINTLIMITS_MAX_CONNECTIONS, read per connection
+    header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read once per worker (`worker_settings`)
+    max_connections: int | None = None  # None: JOINTLIMITS_MAX_CONNECTIONS, read once per worker (`worker_settings`)
     heads_held = 0  # bytes of every connection's unfinished and queued heads in this worker (MAX_HEADS_HELD)
     _cut = False  # a pipelined head or a body refused: the answers owed are sent, nothing more is read
     _lingers = False  # refused and half-closed (`REFUSED_LINGER`), counted in `lingering`
@@ -246,7 +255,7 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.header_timeout is None or self.max_connections is None:
-            settings = Settings()
+            settings = worker_settings()
             self.header_timeout = self.header_timeout or settings.header_timeout
             self.max_connections = self.max_connections or settings.max_connections
         self._head_timer = _Timer(self.loop, self._head_expired)
@@ -435,7 +444,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
     reason and a FIN, the rest drained; 1012 on shutdown; a message's bytes in the worker's upload budget from its
     first byte (1013 past it); the latest ping alone answered; a client's protocol fault one WARNING line."""
 
-    message_timeout: float | None = None  # None: JOINTLIMITS_BODY_TIMEOUT, read per connection
+    message_timeout: float | None = None  # None: JOINTLIMITS_BODY_TIMEOUT, read once per worker (`worker_settings`)
     draining = False  # closed under the application (1009, 1007, 1013): the rest is read and dropped
     _drained = 0  # bytes read and dropped since the close
     _upload: Any = None  # this connection's `budget.Reservation` in the worker's upload budget
@@ -447,7 +456,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
         super().__init__(*args, **kwargs)
         self.queue = _Queue()
         if self.message_timeout is None:
-            self.message_timeout = Settings().body_timeout
+            self.message_timeout = worker_settings().body_timeout
         self._message_timer = _Timer(self.loop, self._message_expired)
         self._owed_pong = b""  # the answer to the latest ping, held while writes are paused (one at most)
 

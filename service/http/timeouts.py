@@ -11,7 +11,6 @@ client read as 1006: ours sends a close frame and a FIN, then drains (`WriteTime
 from __future__ import annotations
 
 import asyncio
-import functools
 import json
 import logging
 import re
@@ -31,7 +30,7 @@ from websockets.frames import Close, Frame, Opcode
 
 from jointlimits.schemas.session import TRY_AGAIN_LATER
 from jointlimits.service.observability import LIFESPAN_METRICS, peer
-from jointlimits.service.settings import Settings
+from jointlimits.service.settings import from_env
 from jointlimits.service.sizing import UPLOAD_FACTOR
 
 RETRY_AFTER_SECONDS = 5
@@ -76,14 +75,6 @@ MAX_PIPELINED = 16
 and the connection is closed after the answers owed (RFC 9112 9.3.2: the client resends what was not answered).
 Unbounded, uvicorn read on after each answer: one connection pipelining `GET /healthz` took a worker from 68 to
 640 MiB and 10 s of CPU in 10 s, answering 41 of them."""
-
-
-@functools.cache
-def worker_settings() -> Settings:
-    """This worker's settings, read at its first connection: `jointlimits serve` writes its environment before the
-    worker starts, and `Settings()` (20 variables read and parsed, 35 us idle, 160 us under load) was read twice per
-    connection, ~7% of an idle worker's CPU for a connection that asks `/healthz`."""
-    return Settings()
 
 
 def too_many_pieces(pieces: int, size: int) -> bool:
@@ -172,7 +163,7 @@ class _WriteBound:
     """The write deadline of both protocols: `write_timeout` seconds of paused writing, then a reset. Mixed in
     before uvicorn's protocol class (its `pause_writing`, `resume_writing`, `connection_lost` run after ours)."""
 
-    write_timeout: float | None = None  # None: JOINTLIMITS_WRITE_TIMEOUT, read once per worker (`worker_settings`)
+    write_timeout: float | None = None  # None: JOINTLIMITS_WRITE_TIMEOUT, read per connection
     transport: asyncio.Transport
     loop: asyncio.AbstractEventLoop
     app_state: dict[str, Any]
@@ -181,7 +172,7 @@ class _WriteBound:
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.write_timeout is None:
-            self.write_timeout = worker_settings().write_timeout
+            self.write_timeout = from_env("write_timeout")
         self.drain = Drain()
         self._write_timer = _Timer(self.loop, self._write_expired)
 
@@ -244,8 +235,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     """uvicorn's httptools protocol with a deadline on each request head (`header_timeout` seconds) and on
     a full write buffer (`write_timeout` seconds); each request's scope carries the connection's `Drain`."""
 
-    header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read once per worker (`worker_settings`)
-    max_connections: int | None = None  # None: JOINTLIMITS_MAX_CONNECTIONS, read once per worker (`worker_settings`)
+    header_timeout: float | None = None  # None: JOINTLIMITS_HEADER_TIMEOUT, read per connection
+    max_connections: int | None = None  # None: JOINTLIMITS_MAX_CONNECTIONS, read per connection
     heads_held = 0  # bytes of every connection's unfinished and queued heads in this worker (MAX_HEADS_HELD)
     _cut = False  # a pipelined head or a body refused: the answers owed are sent, nothing more is read
     _lingers = False  # refused and half-closed (`REFUSED_LINGER`), counted in `lingering`
@@ -255,9 +246,8 @@ class ReadTimeoutProtocol(_WriteBound, HttpToolsProtocol):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.header_timeout is None or self.max_connections is None:
-            settings = worker_settings()
-            self.header_timeout = self.header_timeout or settings.header_timeout
-            self.max_connections = self.max_connections or settings.max_connections
+            self.header_timeout = self.header_timeout or from_env("header_timeout")
+            self.max_connections = self.max_connections or from_env("max_connections")
         self._head_timer = _Timer(self.loop, self._head_expired)
         self._head_bytes, self._head_size = False, 0  # bytes of the current head have arrived (any; how many)
         self._in_head = False  # the parser is inside a request's head (not in the rest of an answered one's body)
@@ -444,7 +434,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
     reason and a FIN, the rest drained; 1012 on shutdown; a message's bytes in the worker's upload budget from its
     first byte (1013 past it); the latest ping alone answered; a client's protocol fault one WARNING line."""
 
-    message_timeout: float | None = None  # None: JOINTLIMITS_BODY_TIMEOUT, read once per worker (`worker_settings`)
+    message_timeout: float | None = None  # None: JOINTLIMITS_BODY_TIMEOUT, read per connection
     draining = False  # closed under the application (1009, 1007, 1013): the rest is read and dropped
     _drained = 0  # bytes read and dropped since the close
     _upload: Any = None  # this connection's `budget.Reservation` in the worker's upload budget
@@ -456,7 +446,7 @@ class WriteTimeoutWebSocketProtocol(_WriteBound, WebSocketsSansIOProtocol):
         super().__init__(*args, **kwargs)
         self.queue = _Queue()
         if self.message_timeout is None:
-            self.message_timeout = worker_settings().body_timeout
+            self.message_timeout = from_env("body_timeout")
         self._message_timer = _Timer(self.loop, self._message_expired)
         self._owed_pong = b""  # the answer to the latest ping, held while writes are paused (one at most)
 
